@@ -1,0 +1,83 @@
+"""mi_tetvr: differentiable volume rendering of tetrahedral meshes in Mitsuba 3.
+
+Usage::
+
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")   # or "cuda_ad_rgb"
+    import mi_tetvr                 # registers the `tetmesh` shape and `tetvr` integrator
+
+The numpy parts (:mod:`mi_tetvr.mesh`, :mod:`mi_tetvr.io`,
+:mod:`mi_tetvr.transfer`) work without a Mitsuba variant. If no variant is set
+at import, call :func:`register` after :func:`mitsuba.set_variant`.
+"""
+from __future__ import annotations
+
+import importlib
+
+from .io import read_tetmesh, write_tetmesh
+from .mesh import MeshError, TetMesh, Topology, build_topology, quality
+from .transfer import TransferFunction
+
+__all__ = ["register", "tetmesh_dict", "read_tetmesh", "write_tetmesh", "MeshError",
+           "TetMesh", "Topology", "build_topology", "quality", "TransferFunction"]
+
+_registered_variant = None
+
+
+def register():
+    """Register the ``tetmesh`` shape and ``tetvr`` integrator with the current
+    Mitsuba variant (again after switching variants)."""
+    global _registered_variant
+    import mitsuba as mi
+    variant = mi.variant()
+    if variant is None:
+        raise RuntimeError("mi_tetvr.register(): call mitsuba.set_variant(...) first "
+                           "(e.g. 'llvm_ad_rgb' or 'cuda_ad_rgb')")
+    if not variant.endswith("_rgb") or "_ad_" not in variant:
+        raise RuntimeError(f"mi_tetvr needs an autodiff RGB variant (llvm_ad_rgb or "
+                           f"cuda_ad_rgb), not '{variant}'")
+    if variant == _registered_variant:
+        return
+    from . import plugins  # noqa: F401
+    for name in ("kernels", "traversal", "plugins.tetmesh", "plugins.tetvr"):
+        mod = importlib.import_module(f"{__name__}.{name}")
+        if _registered_variant is not None:
+            importlib.reload(mod)
+    _registered_variant = variant
+
+
+def tetmesh_dict(vertices, tets, color=None, opacity=None, **props):
+    """A ``mi.load_dict`` entry for a ``tetmesh`` built from arrays.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    tets : (m, 4) int
+    color : (n, 3) float, optional
+    opacity : (n,) float, optional
+    **props
+        Other plugin properties (e.g. ``to_world``).
+    """
+    import mitsuba as mi
+    import numpy as np
+    d = {"type": "tetmesh",
+         "vertices": mi.TensorXf(np.asarray(vertices, dtype=np.float32)),
+         "tets": mi.TensorXi(np.asarray(tets, dtype=np.int32))}
+    if color is not None:
+        d["color"] = mi.TensorXf(np.asarray(color, dtype=np.float32))
+    if opacity is not None:
+        d["opacity"] = mi.TensorXf(np.asarray(opacity, dtype=np.float32))
+    d.update(props)
+    return d
+
+
+def _auto_register():
+    try:
+        import mitsuba as mi
+    except ImportError:
+        return
+    if mi.variant() is not None:
+        register()
+
+
+_auto_register()

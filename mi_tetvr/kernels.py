@@ -1,0 +1,297 @@
+"""Pure Dr.Jit kernels: the segment integral and the tet-walk step.
+
+Everything here is a function of Dr.Jit arrays only (no Mitsuba scene, no
+Python state), so it runs unchanged on ``llvm_ad_rgb`` and ``cuda_ad_rgb``
+and can be differentiated by Dr.Jit's AD.
+
+Segment integral (DiffTetVR Eq. 1, Alg. 1 with the corrected Alg. 3)
+--------------------------------------------------------------------
+Inside a tet, color ``c`` and opacity (extinction) ``s`` are linear along the
+ray. A segment of length ``L`` is split into ``n_sub`` sub-intervals; on each,
+the extinction is held at its value at the sub-interval's midpoint (which
+integrates a linear extinction *exactly*, so transmittance is exact) and the
+color stays linear. For constant extinction ``a``, length ``t`` and linear color
+``c0 -> c1`` the emission is, with ``x = a t`` and ``A = exp(-x)``::
+
+    C = (1 - A) c0 + (A - (1 - A) / x) (c0 - c1)
+
+(the printed Alg. 3 is exact only for ``t = 1``). Small ``x`` uses Taylor
+series so that ``x -> 0`` is exact and free of cancellation.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+#: Below this optical depth the sub-interval integral uses Taylor series.
+_SMALL_X = 1e-2
+
+
+def accumulate(x, c0, c1):
+    """Emission and transmittance of a sub-interval with constant extinction.
+
+    Parameters
+    ----------
+    x : Float
+        Optical depth ``a * t`` (>= 0).
+    c0, c1 : Color3f
+        Color at the start and end of the sub-interval.
+
+    Returns
+    -------
+    (Color3f, Float)
+        Emission ``C`` and transmittance ``A = exp(-x)``.
+    """
+    small = x < _SMALL_X
+    A = dr.exp(-x)
+    x2 = x * x
+    # g = (1 - A) / x and h = A - g, by series for small x.
+    g_series = 1.0 - x * 0.5 + x2 * (1.0 / 6.0) - x2 * x * (1.0 / 24.0)
+    h_series = -x * 0.5 + x2 * (1.0 / 3.0) - x2 * x * 0.125
+    g = dr.select(small, g_series, (1.0 - A) / dr.select(small, 1.0, x))
+    h = dr.select(small, h_series, A - g)
+    C = (x * g) * c0 + h * (c0 - c1)
+    return C, A
+
+
+def segment_integral(length, c0, c1, s0, s1, n_sub: int):
+    """Emission-absorption integral over a segment with linear color/opacity.
+
+    Parameters
+    ----------
+    length : Float
+        Segment length (>= 0).
+    c0, c1 : Color3f
+        Color at entry and exit.
+    s0, s1 : Float
+        Extinction at entry and exit.
+    n_sub : int
+        Number of sub-intervals (a Python int: the loop is unrolled).
+
+    Returns
+    -------
+    (Color3f, Float)
+        Emission seen from the entry side and the segment's transmittance.
+    """
+    dt = length * (1.0 / n_sub)
+    C = dr.zeros(mi.Color3f, dr.width(length))
+    T = dr.ones(mi.Float, dr.width(length))
+    for i in range(n_sub):
+        a = dr.lerp(s0, s1, (i + 0.5) / n_sub)
+        ci0 = dr.lerp(c0, c1, i / n_sub)
+        ci1 = dr.lerp(c0, c1, (i + 1) / n_sub)
+        Ci, Ai = accumulate(a * dt, ci0, ci1)
+        C += T * Ci
+        T *= Ai
+    return C, T
+
+
+# ----------------------------------------------------------------------------
+# Tet-walk step
+# ----------------------------------------------------------------------------
+#
+# The walk is combinatorial, in the 2D frame of the ray (Aman et al., Alg. 1-7):
+# every vertex is projected onto the plane orthogonal to the ray through its
+# origin, and the side on which the ray passes each edge is the sign of a 2D
+# cross product. Each edge's sign is computed from its two vertices in a
+# canonical order (lower global index first), so it is bit-identical in every
+# tet that shares the edge; exact zeros are broken by symbolically moving the
+# ray by (eps, eps^2) (simulation of simplicity). Every ray therefore passes
+# on one definite side of every edge: it can't slip between faces, through
+# vertices or along edges, and zero-volume tets are crossed like any other.
+
+#: PERM[4 f + j]: local vertex order (apex k = f, then face f's vertices a, b, c).
+_PERM = [0, 1, 2, 3,
+         1, 0, 3, 2,
+         2, 0, 1, 3,
+         3, 0, 2, 1]
+
+
+def project(p, o, u, v):
+    """2D coordinates of point ``p`` in the ray frame ``(o; u, v)``."""
+    q = p - o
+    return mi.Point2f(dr.dot(q, u), dr.dot(q, v))
+
+
+def edge_function(i, pi, j, pj):
+    """Side of the directed edge ``i -> j`` on which the ray passes.
+
+    Parameters
+    ----------
+    i, j : UInt32
+        Global vertex indices (they fix the canonical evaluation order).
+    pi, pj : Point2f
+        Their projections in the ray frame.
+
+    Returns
+    -------
+    (Float, Bool)
+        The 2D cross product ``pi x pj`` (twice the signed area of the triangle
+        (origin, pi, pj)) and its sign with ties broken consistently
+        (``True`` = positive: the ray passes to the left of ``i -> j``).
+    """
+    swap = i > j
+    P = dr.select(swap, pj, pi)
+    Q = dr.select(swap, pi, pj)
+    e = P.x * Q.y - P.y * Q.x
+    tie = dr.select(P.y != Q.y, P.y - Q.y, Q.x - P.x)
+    pos = dr.select(e != 0, e > 0, tie > 0)
+    return dr.select(swap, -e, e), pos ^ swap
+
+
+def ray_frame(d):
+    """Orthonormal ``u, v`` with ``u x v = d``."""
+    u, _ = mi.coordinate_system(d)
+    return u, dr.cross(d, u)
+
+
+def face_weights(e_a, e_b, e_c):
+    """Barycentric weights of the ray's crossing point in a triangle from the
+    three edge functions opposite each vertex (any common sign); degenerate
+    (edge-on) triangles get equal weights."""
+    s = e_a + e_b + e_c
+    ok = dr.abs(s) > 0
+    inv = dr.select(ok, dr.rcp(dr.select(ok, s, 1.0)), 0.0)
+    wa = dr.maximum(e_a * inv, 0.0)
+    wb = dr.maximum(e_b * inv, 0.0)
+    wc = dr.maximum(e_c * inv, 0.0)
+    n = wa + wb + wc
+    ok &= n > 0
+    inv_n = dr.select(ok, dr.rcp(dr.select(ok, n, 1.0)), 0.0)
+    third = 1.0 / 3.0
+    return (dr.select(ok, wa * inv_n, third), dr.select(ok, wb * inv_n, third),
+            dr.select(ok, wc * inv_n, third))
+
+
+class MeshBuffers:
+    """Flat Dr.Jit buffers of the tet meshes of a scene (no state beyond data).
+
+    tets : UInt32 (4 m)          global vertex index of each tet's corners
+    nbr : Int32 (4 m)            4 * neighbour + its local face, -1 on the boundary
+    boundary : UInt32 (b)        4 * tet + local face of each boundary face
+    faces : UInt32 (3 b)         boundary face vertices (outward)
+    positions : Float (3 n)      vertex positions (differentiable)
+    color : Float (3 n)          linear RGB (differentiable)
+    opacity : Float (n)          extinction per unit length (differentiable)
+    """
+    DRJIT_STRUCT = {"tets": mi.UInt32, "nbr": mi.Int32, "boundary": mi.UInt32,
+                    "faces": mi.UInt32, "positions": mi.Float, "color": mi.Float,
+                    "opacity": mi.Float}
+
+    def __init__(self, tets=None, nbr=None, boundary=None, faces=None,
+                 positions=None, color=None, opacity=None):
+        self.tets, self.nbr, self.boundary, self.faces = tets, nbr, boundary, faces
+        self.positions, self.color, self.opacity = positions, color, opacity
+
+    def position(self, i, active=True):
+        return dr.gather(mi.Point3f, self.positions, i, active)
+
+    def attributes(self, i, active=True):
+        return (dr.gather(mi.Color3f, self.color, i, active),
+                dr.gather(mi.Float, self.opacity, i, active))
+
+
+def face_entry(buf, face, o, u, v, d, active):
+    """Where a ray crosses a boundary face.
+
+    Parameters
+    ----------
+    buf : MeshBuffers
+    face : UInt32
+        Global boundary face index.
+
+    Returns
+    -------
+    tet : UInt32, f : UInt32
+        Tet behind the face and the face's local index in it.
+    t : Float
+        Ray parameter of the crossing point.
+    c, s : Color3f, Float
+        Interpolated color and opacity there.
+    outward : Bool
+        True when the ray leaves the mesh through this face.
+    """
+    ia = dr.gather(mi.UInt32, buf.faces, face * 3 + 0, active)
+    ib = dr.gather(mi.UInt32, buf.faces, face * 3 + 1, active)
+    ic = dr.gather(mi.UInt32, buf.faces, face * 3 + 2, active)
+    Pa, Pb, Pc = buf.position(ia, active), buf.position(ib, active), buf.position(ic, active)
+    pa, pb, pc = project(Pa, o, u, v), project(Pb, o, u, v), project(Pc, o, u, v)
+    e_bc, _ = edge_function(ib, pb, ic, pc)
+    e_ca, _ = edge_function(ic, pc, ia, pa)
+    e_ab, _ = edge_function(ia, pa, ib, pb)
+    wa, wb, wc = face_weights(e_bc, e_ca, e_ab)
+    p = wa * Pa + wb * Pb + wc * Pc
+    ca, sa = buf.attributes(ia, active)
+    cb, sb = buf.attributes(ib, active)
+    cc, sc = buf.attributes(ic, active)
+    code = dr.gather(mi.UInt32, buf.boundary, face, active)
+    outward = dr.dot(dr.cross(Pb - Pa, Pc - Pa), d) > 0
+    return (code >> 2, code & 3, dr.dot(p - o, d),
+            wa * ca + wb * cb + wc * cc, wa * sa + wb * sb + wc * sc, outward)
+
+
+def walk_step(buf, perm, tet, f_in, o, u, v, d, active):
+    """Cross one tet: find the exit face of a ray entering ``tet`` through its
+    local face ``f_in``.
+
+    Returns
+    -------
+    t_out : Float
+        Ray parameter of the exit point.
+    c_out, s_out : Color3f, Float
+        Color and opacity there.
+    nbr : Int32
+        ``4 * next_tet + entry_face`` of the neighbour, -1 when leaving the mesh.
+    """
+    base = tet * 4
+    k = f_in * 4
+    ik = dr.gather(mi.UInt32, buf.tets, base + dr.gather(mi.UInt32, perm, k, active), active)
+    la = dr.gather(mi.UInt32, perm, k + 1, active)
+    lb = dr.gather(mi.UInt32, perm, k + 2, active)
+    lc = dr.gather(mi.UInt32, perm, k + 3, active)
+    ia = dr.gather(mi.UInt32, buf.tets, base + la, active)
+    ib = dr.gather(mi.UInt32, buf.tets, base + lb, active)
+    ic = dr.gather(mi.UInt32, buf.tets, base + lc, active)
+    Pk, Pa, Pb, Pc = (buf.position(ik, active), buf.position(ia, active),
+                      buf.position(ib, active), buf.position(ic, active))
+    pk, pa, pb, pc = (project(Pk, o, u, v), project(Pa, o, u, v),
+                      project(Pb, o, u, v), project(Pc, o, u, v))
+    ea, sa = edge_function(ik, pk, ia, pa)
+    eb, sb = edge_function(ik, pk, ib, pb)
+    ec, sc = edge_function(ik, pk, ic, pc)
+    # Faces around the apex k, outward: (k,b,a) opposite c, (k,c,b) opposite a,
+    # (k,a,c) opposite b. The ray leaves through (k,x,y) when it passes left of
+    # k->x and right of k->y.
+    opp_c = sb & ~sa
+    opp_a = sc & ~sb
+    opp_b = sa & ~sc
+    # Inconsistent signs (only after round-off in the first entry face): take
+    # the candidate whose two edge functions are the most in agreement.
+    none = ~(opp_a | opp_b | opp_c)
+    s_c = dr.minimum(eb, -ea)
+    s_a = dr.minimum(ec, -eb)
+    s_b = dr.minimum(ea, -ec)
+    best_c = (s_c >= s_a) & (s_c >= s_b)
+    best_a = ~best_c & (s_a >= s_b)
+    opp_c |= none & best_c
+    opp_a |= none & best_a
+    opp_b |= none & ~best_c & ~best_a
+    # Exit face (k, x, y) and the local index z of the vertex it is opposite.
+    ix = dr.select(opp_c, ib, dr.select(opp_a, ic, ia))
+    iy = dr.select(opp_c, ia, dr.select(opp_a, ib, ic))
+    Px = dr.select(opp_c, Pb, dr.select(opp_a, Pc, Pa))
+    Py = dr.select(opp_c, Pa, dr.select(opp_a, Pb, Pc))
+    px = dr.select(opp_c, pb, dr.select(opp_a, pc, pa))
+    py = dr.select(opp_c, pa, dr.select(opp_a, pb, pc))
+    ex = dr.select(opp_c, eb, dr.select(opp_a, ec, ea))
+    ey = dr.select(opp_c, ea, dr.select(opp_a, eb, ec))
+    lz = dr.select(opp_c, lc, dr.select(opp_a, la, lb))
+    exy, _ = edge_function(ix, px, iy, py)
+    wk, wx, wy = face_weights(exy, -ey, ex)
+    p_out = wk * Pk + wx * Px + wy * Py
+    ck, sk = buf.attributes(ik, active)
+    cx, sx = buf.attributes(ix, active)
+    cy, sy = buf.attributes(iy, active)
+    nbr = dr.gather(mi.Int32, buf.nbr, base + lz, active)
+    return (dr.dot(p_out - o, d), wk * ck + wx * cx + wy * cy,
+            wk * sk + wx * sx + wy * sy, nbr)

@@ -1,0 +1,1 @@
+"""Mitsuba-facing plugins of mi_tetvr (thin wrappers over the engine)."""

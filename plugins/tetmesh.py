@@ -1,0 +1,125 @@
+"""The ``tetmesh`` shape: a tetrahedral mesh with per-vertex color and opacity.
+
+.. pluginparameters::
+
+ * - filename
+   - |string|
+   - Mesh file in any volume format meshio reads (.vtu, .vtk, .msh, .mesh, ...).
+ * - vertices, tets, color, opacity
+   - |tensor|
+   - Alternatively the arrays themselves: (n, 3) positions, (m, 4) indices,
+     (n, 3) linear RGB and (n,) extinction (see :func:`mi_tetvr.tetmesh_dict`).
+ * - color_attribute
+   - |string|
+   - Point-data array holding the color. (Default: ``color``)
+ * - opacity_attribute
+   - |string|
+   - Point-data array holding the opacity. (Default: ``opacity``)
+ * - scalar_attribute
+   - |string|
+   - Scalar point-data array to pre-shade with ``transfer_function``
+     (Default: the only scalar array).
+ * - transfer_function
+   - |string|
+   - DiffTetVR XML or project JSON transfer function; when given, color and
+     opacity come from the scalar field. (Default: none)
+ * - value_min, value_max
+   - |float|
+   - Scalar range mapped to [0, 1] by the transfer function. (Default: the
+     field's range)
+ * - opacity_scale
+   - |float|
+   - Multiplies the transfer function's opacity. (Default: 1)
+ * - to_world
+   - |transform|
+   - Applied to the vertex positions at load. Opacity stays per unit length
+     of world space. (Default: identity)
+
+Missing color defaults to white (1, 1, 1), missing opacity to 1 per unit length.
+
+Differentiable parameters (``mi.traverse``): ``vertex_positions`` (3n),
+``vertex_color`` (3n) and ``vertex_opacity`` (n). After changing them,
+``params.update()`` rebuilds the boundary's BVH; the topology stays.
+
+.. code-block:: python
+
+    'volume': {
+        'type': 'tetmesh',
+        'filename': 'scenes/meshes/blob.vtu',
+    }
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_tetvr.io import read_tetmesh
+from mi_tetvr.mesh import TetMesh
+
+
+def _tensor(props, key):
+    return np.array(props[key]) if key in props else None
+
+
+def mesh_from_properties(props) -> TetMesh:
+    """The numpy mesh described by a ``tetmesh`` property set."""
+    if "filename" in props:
+        fs = mi.Thread.thread().file_resolver()
+        path = str(fs.resolve(props["filename"]))
+        vmin = props.get("value_min", None)
+        vmax = props.get("value_max", None)
+        mesh = read_tetmesh(
+            path,
+            color=props.get("color_attribute", "color"),
+            opacity=props.get("opacity_attribute", "opacity"),
+            scalar=props.get("scalar_attribute", None),
+            transfer_function=props.get("transfer_function", None),
+            value_range=None if vmin is None or vmax is None else (float(vmin), float(vmax)),
+            opacity_scale=float(props.get("opacity_scale", 1.0)),
+        )
+    elif "vertices" in props and "tets" in props:
+        opacity = _tensor(props, "opacity")
+        mesh = TetMesh(_tensor(props, "vertices"), _tensor(props, "tets"),
+                       _tensor(props, "color"),
+                       None if opacity is None else opacity.reshape(-1))
+    else:
+        raise ValueError("tetmesh: give either 'filename' or the tensors 'vertices' and 'tets'")
+    if "to_world" in props:
+        mesh = mesh.transformed(np.array(props["to_world"].matrix, dtype=np.float64))
+    return mesh
+
+
+class TetMeshShape(mi.Mesh):
+    __doc__ = __doc__
+
+    def __init__(self, props):
+        mesh = mesh_from_properties(props)
+        topo = mesh.topology
+        super().__init__("tetmesh", len(mesh.vertices), len(topo.boundary_faces),
+                         props, False, False)
+        self.mesh = mesh
+        self.topology = topo
+        params = mi.traverse(self)
+        params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
+        params["faces"] = mi.UInt32(topo.boundary_faces.astype(np.uint32).ravel())
+        self.add_attribute("vertex_color", 3, mi.Float(mesh.color.astype(np.float32).ravel()))
+        self.add_attribute("vertex_opacity", 1, mi.Float(mesh.opacity.astype(np.float32)))
+        params.update()
+        nbr = np.where(topo.neighbors >= 0, topo.neighbors.astype(np.int64) * 4
+                       + topo.neighbor_faces, -1)
+        #: Index buffers of the walk (local indices; see mi_tetvr.kernels.MeshBuffers)
+        self.tet_buffers = dict(
+            tets=topo.tets.astype(np.uint32).ravel(),
+            nbr=nbr.astype(np.int32).ravel(),
+            boundary=(topo.boundary_tets.astype(np.uint32) * 4
+                      + topo.boundary_local_faces.astype(np.uint32)),
+            faces=topo.boundary_faces.astype(np.uint32).ravel(),
+        )
+
+    def to_string(self):
+        return (f"TetMeshShape[vertices={len(self.mesh.vertices)}, "
+                f"tets={self.topology.n_tets}, boundary_faces={len(self.topology.boundary_faces)}]")
+
+
+mi.register_shape("tetmesh", lambda props: TetMeshShape(props))

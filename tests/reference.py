@@ -1,0 +1,275 @@
+"""Independent brute-force reference renderer for tetrahedral emission-absorption volumes.
+
+Pure numpy, float64, deliberately simple and slow.  It is used by the test suite to
+check the real (Dr.Jit) renderer and shares no code with it.
+
+Model (per ray, direction normalised so that t is a distance):
+
+* every ray is clipped against every tetrahedron.  A tetrahedron is the set where
+  its four barycentric coordinates are >= 0; along the ray each coordinate is an
+  affine function ``lambda_i(t) = a_i + t * b_i`` so this is exactly Cyrus-Beck
+  clipping against the four face half-spaces.  Only ``0 <= t <= t_max`` counts.
+* inside tet ``j`` the colour and the extinction are the barycentric interpolation
+  of the vertex values, hence linear along the segment ``[t0, t1]``.
+* segment emission ``C_seg = int_0^L sigma(s) c(s) exp(-tau(s)) ds`` with the optical
+  depth ``tau(s)`` (a quadratic) in closed form, integrated with composite
+  Gauss-Legendre quadrature (sub-intervals of optical depth <= 0.5 each); the
+  part of a segment beyond optical depth ``_TAU_CUT`` is skipped for the emission
+  (its weight is below exp(-_TAU_CUT)).  ``T_seg = exp(-tau(L))``.
+* segments of a ray are sorted by ``t0`` and reduced to the union of their
+  intervals: each start is clipped to the largest end of the preceding segments
+  (fully covered segments vanish, partially covered ones keep their uncovered part,
+  attributes at the new start interpolated linearly).  So a ray inside a face or
+  along an edge shared by several tets is not counted once per tet; the result is
+  right because the per-vertex field is continuous across faces.
+* the remaining segments are composited front to back:
+  ``C += T * C_seg; T *= T_seg``;  ``rgb = C + T * background``, ``alpha = 1 - T``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["reference_render"]
+
+# Optical depth beyond which the rest of a segment's emission is ignored
+# (relative contribution < exp(-80) ~ 2e-35).
+_TAU_CUT = 80.0
+# Target optical depth of one quadrature sub-interval.
+_TAU_SUB = 0.5
+# Ray/tet pairs handled at once during clipping (~ 250 MB of temporaries).
+_PAIR_BUDGET = 1_000_000
+# Quadrature sub-intervals handled at once.
+_SUB_BUDGET = 100_000
+
+
+def _prepare_tets(vertices, tets):
+    """Drop degenerate tets; return (tets, v0, G) with G (m,3,3) = inverse edge matrix."""
+    m = tets.shape[0]
+    if m == 0:
+        return tets, np.zeros((0, 3)), np.zeros((0, 3, 3))
+    used = vertices[np.unique(tets)]
+    scale = float(np.max(used.max(axis=0) - used.min(axis=0)))
+    if not np.isfinite(scale) or scale <= 0.0:
+        scale = 1.0
+    v0 = vertices[tets[:, 0]]
+    # E columns: v1-v0, v2-v0, v3-v0
+    E = np.stack([vertices[tets[:, i]] - v0 for i in (1, 2, 3)], axis=-1)
+    vol = np.linalg.det(E) / 6.0
+    keep = np.abs(vol) > 1e-14 * scale**3
+    tets, v0, E = tets[keep], v0[keep], E[keep]
+    G = np.linalg.inv(E) if len(tets) else np.zeros((0, 3, 3))
+    return tets, v0, G
+
+
+def _clip(o, d, tmax, v0, G):
+    """Clip rays (kc) against tets (mc).
+
+    Returns pair indices (ray, tet), t0, t1 and barycentrics at t0, t1 (S,4)."""
+    diff = o[:, None, :] - v0[None, :, :]                 # (kc, mc, 3)
+    a = np.einsum("kmj,mij->kmi", diff, G)                # lambda_1..3 at t = 0
+    b = np.einsum("kj,mij->kmi", d, G)                    # d lambda_1..3 / dt
+    del diff
+    a = np.concatenate([1.0 - a.sum(-1, keepdims=True), a], axis=-1)  # (kc, mc, 4)
+    b = np.concatenate([-b.sum(-1, keepdims=True), b], axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        root = -a / b
+    lo = np.where(b > 0.0, root, -np.inf).max(-1)
+    hi = np.where(b < 0.0, root, np.inf).min(-1)
+    del root
+    parallel_out = ((b == 0.0) & (a < 0.0)).any(-1)
+    t0 = np.maximum(lo, 0.0)
+    t1 = np.minimum(hi, tmax[:, None])
+    hit = (t1 > t0) & ~parallel_out
+    ki, mi = np.nonzero(hit)
+    t0 = t0[ki, mi]
+    t1 = t1[ki, mi]
+    a = a[ki, mi]
+    b = b[ki, mi]
+    l0 = a + t0[:, None] * b
+    l1 = a + t1[:, None] * b
+    return ki, mi, t0, t1, _renorm(l0), _renorm(l1)
+
+
+def _union_clip(ray, tet, t0, t1, l0, l1):
+    """Reduce the segments of every ray to the union of their intervals.
+
+    Input sorted by (ray, t0).  Each segment's start is clipped to the running maximum
+    of the ends of the previous segments of the same ray: a fully covered segment is
+    dropped, a partially covered one keeps its uncovered tail, with barycentrics at the
+    new start interpolated linearly along the segment (exact: attributes are affine in a
+    tet).  This removes double counting where a ray runs inside a face or along an edge
+    shared by several tets; the field is continuous across faces, so which tet supplies
+    a shared piece does not matter."""
+    S = ray.shape[0]
+    if S < 2:
+        return ray, tet, t0, t1, l0, l1
+    # segmented running max of t1, done exactly on integer keys: rank of t1 among all
+    # ends, offset per ray (ray is non-decreasing, so groups never mix in the max)
+    by_end = np.argsort(t1, kind="stable")
+    rank = np.empty(S, dtype=np.int64)
+    rank[by_end] = np.arange(S)
+    key = np.maximum.accumulate(ray.astype(np.int64) * S + rank)
+    run_end = t1[by_end[key - ray.astype(np.int64) * S]]  # max end over [group start, i]
+    prev_end = np.empty(S)
+    prev_end[0] = -np.inf
+    prev_end[1:] = run_end[:-1]
+    prev_end[1:][ray[1:] != ray[:-1]] = -np.inf
+    keep = prev_end < t1
+    clip = keep & (prev_end > t0)
+    if np.any(clip):
+        f = (prev_end[clip] - t0[clip]) / (t1[clip] - t0[clip])
+        l0 = l0.copy()
+        l0[clip] = _renorm(l0[clip] + f[:, None] * (l1[clip] - l0[clip]))
+        t0 = t0.copy()
+        t0[clip] = prev_end[clip]
+    return ray[keep], tet[keep], t0[keep], t1[keep], l0[keep], l1[keep]
+
+
+def _renorm(lam):
+    lam = np.clip(lam, 0.0, None)
+    s = lam.sum(-1, keepdims=True)
+    return lam / np.where(s > 0.0, s, 1.0)
+
+
+def _segment_integrals(L, s0, s1, xq, wq):
+    """For each segment return (I0, I1, tau) with
+    I0 = int_0^L sigma e^{-tau} ds, I1 = int_0^L sigma e^{-tau} (s/L) ds, tau = tau(L)."""
+    S = L.shape[0]
+    ds = s1 - s0
+    tau_tot = 0.5 * L * (s0 + s1)
+    q = 0.5 * ds / L                                      # tau(s) = s0 s + q s^2
+    # effective integration length: where tau reaches _TAU_CUT (stable root)
+    Le = L.copy()
+    big = tau_tot > _TAU_CUT
+    if np.any(big):
+        disc = np.maximum(s0[big] ** 2 + 4.0 * q[big] * _TAU_CUT, 0.0)
+        Le[big] = np.minimum(2.0 * _TAU_CUT / (s0[big] + np.sqrt(disc)), L[big])
+    tau_e = s0 * Le + q * Le * Le
+    nsub = np.ceil(2.0 * tau_e / _TAU_SUB).astype(np.int64)
+    nsub = np.clip(nsub, 1, int(np.ceil(2.0 * _TAU_CUT / _TAU_SUB)) + 1)
+
+    I0 = np.zeros(S)
+    I1 = np.zeros(S)
+    cum = np.cumsum(nsub)
+    start = 0
+    while start < S:
+        base = cum[start - 1] if start > 0 else 0
+        stop = int(np.searchsorted(cum, base + _SUB_BUDGET, side="right"))
+        stop = max(stop, start + 1)
+        idx = np.arange(start, stop)
+        n = nsub[idx]
+        seg = np.repeat(idx, n)                           # segment of every sub-interval
+        first = np.repeat(np.cumsum(n) - n, n)
+        k = np.arange(seg.shape[0]) - first               # sub-interval number
+        h = Le[seg] / n.repeat(n)
+        sa = k * h                                        # sub-interval start
+        s = sa[:, None] + (0.5 * (xq[None, :] + 1.0)) * h[:, None]   # (nsub_tot, nq)
+        Ls, s0s, qs, dss = L[seg][:, None], s0[seg][:, None], q[seg][:, None], ds[seg][:, None]
+        u = s / Ls
+        sig = s0s + dss * u
+        tau = s0s * s + qs * s * s
+        g = sig * np.exp(-tau) * (0.5 * h[:, None]) * wq[None, :]
+        g0 = g.sum(-1)
+        g1 = (g * u).sum(-1)
+        I0[start:stop] = np.bincount(seg - start, weights=g0, minlength=stop - start)
+        I1[start:stop] = np.bincount(seg - start, weights=g1, minlength=stop - start)
+        start = stop
+    return I0, I1, tau_tot
+
+
+def reference_render(vertices, tets, color, opacity, origins, directions,
+                     background=(0, 0, 0), t_max=np.inf, n_quad=48):
+    """Brute-force float64 reference of emission-absorption rendering of a tet mesh.
+
+    vertices (n,3) float, tets (m,4) int (any orientation; tets with
+    |volume| <= 1e-14 * scale^3 are skipped, scale = largest bounding-box extent of
+    the referenced vertices), color (n,3) linear RGB per vertex (emission per unit
+    extinction), opacity (n,) extinction per unit length >= 0, origins (k,3),
+    directions (k,3) (normalised inside; a zero direction hits nothing).
+    background: RGB triple (or (k,3)); t_max: scalar or (k,) distance limit.
+    Returns rgb (k,3) float64 and alpha (k,) float64.
+    """
+    V = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    Tt = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
+    col = np.asarray(color, dtype=np.float64).reshape(-1, 3)
+    sig = np.asarray(opacity, dtype=np.float64).reshape(-1)
+    O = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    D = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    k = O.shape[0]
+    if D.shape[0] != k:
+        raise ValueError("origins and directions must have the same length")
+    if col.shape[0] != V.shape[0] or sig.shape[0] != V.shape[0]:
+        raise ValueError("color/opacity must have one entry per vertex")
+    if np.any(sig < 0.0):
+        raise ValueError("opacity must be >= 0")
+    bg = np.broadcast_to(np.asarray(background, dtype=np.float64), (k, 3))
+    tmax = np.broadcast_to(np.asarray(t_max, dtype=np.float64), (k,)).copy()
+
+    norm = np.linalg.norm(D, axis=1)
+    valid = norm > 0.0
+    D = D / np.where(valid, norm, 1.0)[:, None]
+    tmax[~valid] = -1.0                                   # no hits for zero directions
+
+    xq, wq = np.polynomial.legendre.leggauss(int(n_quad))
+
+    Tt, v0, G = _prepare_tets(V, Tt)
+    m = Tt.shape[0]
+
+    C = np.zeros((k, 3))
+    T = np.ones(k)
+    if m > 0 and k > 0:
+        mc = min(m, _PAIR_BUDGET)
+        kc = max(1, _PAIR_BUDGET // mc)
+        for r0 in range(0, k, kc):
+            r1 = min(k, r0 + kc)
+            parts = []
+            for m0 in range(0, m, mc):
+                m1 = min(m, m0 + mc)
+                ki, mi, t0, t1, l0, l1 = _clip(O[r0:r1], D[r0:r1], tmax[r0:r1],
+                                               v0[m0:m1], G[m0:m1])
+                if ki.size:
+                    parts.append((ki + r0, mi + m0, t0, t1, l0, l1))
+            if not parts:
+                continue
+            ray = np.concatenate([p[0] for p in parts])
+            tet = np.concatenate([p[1] for p in parts])
+            t0 = np.concatenate([p[2] for p in parts])
+            t1 = np.concatenate([p[3] for p in parts])
+            l0 = np.concatenate([p[4] for p in parts])
+            l1 = np.concatenate([p[5] for p in parts])
+            # sort by (ray, t0) and keep only the union of the covered intervals
+            order = np.lexsort((t0, ray))
+            ray, tet, t0, t1 = ray[order], tet[order], t0[order], t1[order]
+            l0, l1 = l0[order], l1[order]
+            ray, tet, t0, t1, l0, l1 = _union_clip(ray, tet, t0, t1, l0, l1)
+            if ray.size == 0:
+                continue
+            vid = Tt[tet]                                  # (S,4)
+            c0 = np.einsum("si,sic->sc", l0, col[vid])
+            c1 = np.einsum("si,sic->sc", l1, col[vid])
+            s0 = np.einsum("si,si->s", l0, sig[vid])
+            s1 = np.einsum("si,si->s", l1, sig[vid])
+            L = t1 - t0
+            I0, I1, tau = _segment_integrals(L, s0, s1, xq, wq)
+            Cseg = c0 * I0[:, None] + (c1 - c0) * I1[:, None]
+            Tseg = np.exp(-tau)
+
+            # front-to-back compositing, segments are sorted by (ray, t0)
+            new_group = np.ones(ray.shape[0], dtype=bool)
+            new_group[1:] = ray[1:] != ray[:-1]
+            group_start = np.maximum.accumulate(np.where(new_group, np.arange(ray.shape[0]), 0))
+            rank = np.arange(ray.shape[0]) - group_start
+            by_rank = np.argsort(rank, kind="stable")
+            counts = np.bincount(rank)
+            pos = 0
+            for cnt in counts:
+                sel = by_rank[pos:pos + cnt]
+                pos += cnt
+                rr = ray[sel]                              # unique within one rank
+                C[rr] += T[rr, None] * Cseg[sel]
+                T[rr] *= Tseg[sel]
+
+    rgb = C + T[:, None] * bg
+    alpha = 1.0 - T
+    return rgb, alpha
