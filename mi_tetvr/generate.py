@@ -7,9 +7,10 @@ import numpy as np
 from .mesh import TetMesh
 
 #: Kuhn (Freudenthal) split of a cube into 6 tets sharing the main diagonal;
-#: corners are numbered i*4 + j*2 + k for offsets (i, j, k) in {0, 1}^3.
-KUHN_TETS = np.array([[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7],
-                      [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]])
+#: corners are numbered i*4 + j*2 + k for offsets (i, j, k) in {0, 1}^3;
+#: all six are positively oriented.
+KUHN_TETS = np.array([[0, 3, 1, 7], [0, 1, 5, 7], [0, 2, 3, 7],
+                      [0, 6, 2, 7], [0, 5, 4, 7], [0, 4, 6, 7]])
 
 
 def grid_tets(shape):

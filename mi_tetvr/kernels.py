@@ -170,17 +170,19 @@ class MeshBuffers:
     nbr : Int32 (4 m)            4 * neighbour + its local face, -1 on the boundary
     boundary : UInt32 (b)        4 * tet + local face of each boundary face
     faces : UInt32 (3 b)         boundary face vertices (outward)
+    face_adj : Int32 (3 b)       boundary face across the edge opposite each corner
     positions : Float (3 n)      vertex positions (differentiable)
     color : Float (3 n)          linear RGB (differentiable)
     opacity : Float (n)          extinction per unit length (differentiable)
     """
     DRJIT_STRUCT = {"tets": mi.UInt32, "nbr": mi.Int32, "boundary": mi.UInt32,
-                    "faces": mi.UInt32, "positions": mi.Float, "color": mi.Float,
+                    "faces": mi.UInt32, "face_adj": mi.Int32, "positions": mi.Float, "color": mi.Float,
                     "opacity": mi.Float}
 
-    def __init__(self, tets=None, nbr=None, boundary=None, faces=None,
+    def __init__(self, tets=None, nbr=None, boundary=None, faces=None, face_adj=None,
                  positions=None, color=None, opacity=None):
         self.tets, self.nbr, self.boundary, self.faces = tets, nbr, boundary, faces
+        self.face_adj = face_adj
         self.positions, self.color, self.opacity = positions, color, opacity
 
     def position(self, i, active=True):
@@ -191,8 +193,26 @@ class MeshBuffers:
                 dr.gather(mi.Float, self.opacity, i, active))
 
 
+def _face_corners(buf, face, o, u, v, active):
+    ia = dr.gather(mi.UInt32, buf.faces, face * 3 + 0, active)
+    ib = dr.gather(mi.UInt32, buf.faces, face * 3 + 1, active)
+    ic = dr.gather(mi.UInt32, buf.faces, face * 3 + 2, active)
+    Pa, Pb, Pc = buf.position(ia, active), buf.position(ib, active), buf.position(ic, active)
+    pa, pb, pc = project(Pa, o, u, v), project(Pb, o, u, v), project(Pc, o, u, v)
+    return (ia, ib, ic), (Pa, Pb, Pc), (pa, pb, pc)
+
+
+#: Steps of the walk over the boundary surface in :func:`face_entry`.
+BOUNDARY_WALK_STEPS = 4
+
+
 def face_entry(buf, face, o, u, v, d, active):
     """Where a ray crosses a boundary face.
+
+    The face found by Mitsuba's ray tracer is first moved, over the boundary
+    surface, to the face that the ray crosses by the walk's own (consistent)
+    edge predicate: a ray hitting a vertex or an edge of the boundary must
+    start in the tet the walk agrees with.
 
     Parameters
     ----------
@@ -211,11 +231,20 @@ def face_entry(buf, face, o, u, v, d, active):
     outward : Bool
         True when the ray leaves the mesh through this face.
     """
-    ia = dr.gather(mi.UInt32, buf.faces, face * 3 + 0, active)
-    ib = dr.gather(mi.UInt32, buf.faces, face * 3 + 1, active)
-    ic = dr.gather(mi.UInt32, buf.faces, face * 3 + 2, active)
-    Pa, Pb, Pc = buf.position(ia, active), buf.position(ib, active), buf.position(ic, active)
-    pa, pb, pc = project(Pa, o, u, v), project(Pb, o, u, v), project(Pc, o, u, v)
+    face = mi.UInt32(face)
+    for _ in range(BOUNDARY_WALK_STEPS):
+        (ia, ib, ic), _, (pa, pb, pc) = _face_corners(buf, face, o, u, v, active)
+        e_bc, s_bc = edge_function(ib, pb, ic, pc)
+        e_ca, s_ca = edge_function(ic, pc, ia, pa)
+        e_ab, s_ab = edge_function(ia, pa, ib, pb)
+        # Front or back facing by the projected area; the ray is inside when
+        # every edge sign agrees, else cross the first edge that disagrees.
+        back = (e_bc + e_ca + e_ab) > 0
+        adj = dr.select(s_bc != back, 0, dr.select(s_ca != back, 1, 2))
+        move = active & ((s_bc != back) | (s_ca != back) | (s_ab != back))
+        nxt = dr.gather(mi.Int32, buf.face_adj, face * 3 + adj, move)
+        face = dr.select(move & (nxt >= 0), mi.UInt32(nxt), face)
+    (ia, ib, ic), (Pa, Pb, Pc), (pa, pb, pc) = _face_corners(buf, face, o, u, v, active)
     e_bc, _ = edge_function(ib, pb, ic, pc)
     e_ca, _ = edge_function(ic, pc, ia, pa)
     e_ab, _ = edge_function(ia, pa, ib, pb)

@@ -149,6 +149,9 @@ class Topology:
         Tet behind each boundary face.
     boundary_local_faces : (b,) int8
         Local face index of each boundary face in its tet.
+    boundary_adjacency : (b, 3) int32
+        Boundary face across the edge opposite each corner of each boundary
+        face (any one where the surface is non-manifold), -1 if none.
     volumes : (m,) float64
         Volumes (>= 0) of the oriented tets.
     flat : (m,) bool
@@ -162,6 +165,7 @@ class Topology:
     boundary_faces: np.ndarray
     boundary_tets: np.ndarray
     boundary_local_faces: np.ndarray
+    boundary_adjacency: np.ndarray
     volumes: np.ndarray
     flat: np.ndarray
     n_flipped: int
@@ -201,6 +205,24 @@ def _match_faces(tets):
     neighbors[fa], neighbors[fb] = fb // 4, fa // 4
     neighbor_faces[fa], neighbor_faces[fb] = fb % 4, fa % 4
     return faces, neighbors, neighbor_faces, fa, fb
+
+
+def _edge_adjacency(tris):
+    """(b, 3): triangle across the edge opposite each corner, -1 if none."""
+    b = len(tris)
+    adj = np.full((b, 3), -1, dtype=np.int64)
+    if b == 0:
+        return adj.astype(np.int32)
+    e = np.stack([tris[:, [1, 2]], tris[:, [2, 0]], tris[:, [0, 1]]], 1).reshape(-1, 2)
+    e = np.sort(e, axis=1)
+    key = e[:, 0] * (int(tris.max()) + 1) + e[:, 1]
+    order = np.argsort(key, kind="stable")
+    k = key[order]
+    same = np.flatnonzero(k[1:] == k[:-1])
+    a, c = order[same], order[same + 1]
+    adj.ravel()[a] = c // 3
+    adj.ravel()[c] = a // 3
+    return adj.astype(np.int32)
 
 
 def build_topology(vertices, tets, *, warn=True) -> Topology:
@@ -269,11 +291,13 @@ def build_topology(vertices, tets, *, warn=True) -> Topology:
             f"{n_flat} zero-volume tet(s) kept (they contribute nothing; rays step "
             f"over them): {_preview(np.flatnonzero(flat))}", stacklevel=2)
     bnd = np.flatnonzero(neighbors < 0)
+    bfaces = faces[bnd]
     return Topology(
         tets=tets.astype(np.int32),
         neighbors=neighbors.reshape(m, 4).astype(np.int32),
         neighbor_faces=neighbor_faces.reshape(m, 4).astype(np.int8),
-        boundary_faces=faces[bnd].astype(np.int32),
+        boundary_faces=bfaces.astype(np.int32),
+        boundary_adjacency=_edge_adjacency(bfaces),
         boundary_tets=(bnd // 4).astype(np.int32),
         boundary_local_faces=(bnd % 4).astype(np.int8),
         volumes=np.abs(vol),

@@ -26,7 +26,7 @@ from .kernels import _PERM, face_entry, ray_frame, segment_integral, walk_step
 class WalkSettings:
     """Python-level settings of the walk (not traced)."""
 
-    def __init__(self, n_sub=4, t_min=1e-4, max_steps=100_000, retrace_eps=1e-5):
+    def __init__(self, n_sub=8, t_min=1e-4, max_steps=100_000, retrace_eps=1e-5):
         self.n_sub = int(n_sub)
         self.t_min = float(t_min)
         self.max_steps = int(max_steps)
@@ -61,6 +61,8 @@ def walk(buf, tet, f_in, t, c, s, o, u, v, d, t_stop, settings: WalkSettings,
         Transmittance of the walked part.
     t : Float
         Where the walk ended.
+    steps : UInt32
+        Tets crossed.
     """
     perm = mi.UInt32(_PERM)
     L = mi.Color3f(0.0)
@@ -99,7 +101,7 @@ def walk(buf, tet, f_in, t, c, s, o, u, v, d, t_stop, settings: WalkSettings,
         active &= inside & ~clip & (steps < settings.max_steps)
         if dr.hint(not back_to_front, mode="scalar"):
             active &= T > settings.t_min
-    return L, T, t
+    return L, T, t, steps
 
 
 @dr.syntax
@@ -118,8 +120,9 @@ def render_rays(scene, buf, shapes, face_offsets, ray, settings: WalkSettings, a
 
     Returns
     -------
-    (Color3f, Float)
-        Accumulated emission ``C`` and transmittance ``T`` (pixel = C + T bg).
+    (Color3f, Float, UInt32)
+        Accumulated emission ``C``, transmittance ``T`` (pixel = C + T bg) and
+        the number of tets crossed.
     """
     o = mi.Point3f(ray.o)
     d = mi.Vector3f(ray.d)
@@ -136,7 +139,7 @@ def render_rays(scene, buf, shapes, face_offsets, ray, settings: WalkSettings, a
     L_in = mi.Color3f(0.0)
     T_in = mi.Float(1.0)
     # Reversed ray from the exit point; its parameter is t_hit - t.
-    L_in, T_in, _ = walk(buf, tet, f_in, 0.0, c, s, o + d * t_hit, u, -v, -d,
+    L_in, T_in, _, steps = walk(buf, tet, f_in, 0.0, c, s, o + d * t_hit, u, -v, -d,
                          t_hit, settings, inside, back_to_front=True)
 
     # -- 2. Front to back, with re-entry. --
@@ -157,14 +160,15 @@ def render_rays(scene, buf, shapes, face_offsets, ray, settings: WalkSettings, a
         entering = active & si.is_valid()
         tet, f_in, t_e, c, s, outward = face_entry(buf, face, o, u, v, d, entering)
         entering &= ~outward
-        L_seg, T_seg, t_end = walk(buf, tet, f_in, dr.maximum(t_e, start), c, s,
+        L_seg, T_seg, t_end, n = walk(buf, tet, f_in, dr.maximum(t_e, start), c, s,
                                    o, u, v, d, t_max, settings, entering,
                                    back_to_front=False)
         L += T * L_seg
         T *= T_seg
+        steps += n
         # An outgoing face here means the ray is on a face the walk just left
         # (round-off): step past it.
         t = dr.select(entering, t_end,
                       dr.select(si.is_valid(), start + si.t, t_max))
         active &= si.is_valid() & (T > settings.t_min) & (t < t_max)
-    return L, T
+    return L, T, steps

@@ -115,6 +115,7 @@ class TetMeshShape(mi.Mesh):
             boundary=(topo.boundary_tets.astype(np.uint32) * 4
                       + topo.boundary_local_faces.astype(np.uint32)),
             faces=topo.boundary_faces.astype(np.uint32).ravel(),
+            face_adj=topo.boundary_adjacency.astype(np.int32).ravel(),
         )
 
     def to_string(self):

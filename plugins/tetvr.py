@@ -6,7 +6,8 @@ shapes by walking the tet adjacency.
  * - n_sub
    - |int|
    - Sub-intervals per tet segment (constant extinction at each sub-interval's
-     midpoint, linear color; DiffTetVR Alg. 1). (Default: 4)
+     midpoint, linear color; DiffTetVR Alg. 1). The error falls as 1/n_sub^2 with the change of
+     optical depth across a tet. (Default: 8)
  * - min_transmittance
    - |float|
    - Early ray termination once the transmittance falls below this. (Default: 1e-4)
@@ -31,7 +32,7 @@ emitter (black without one). The scene must contain only ``tetmesh`` shapes.
 
     'integrator': {
         'type': 'tetvr',
-        'n_sub': 4,
+        'n_sub': 8,
     }
 """
 from __future__ import annotations
@@ -60,7 +61,7 @@ def mesh_buffers(shapes):
 
     Returns (MeshBuffers, face_offsets)."""
     vo = to = fo = 0
-    idx = {k: [] for k in ("tets", "nbr", "boundary", "faces")}
+    idx = {k: [] for k in ("tets", "nbr", "boundary", "faces", "face_adj")}
     face_offsets = []
     for s in shapes:
         b = s.tet_buffers
@@ -68,6 +69,8 @@ def mesh_buffers(shapes):
         idx["nbr"].append(np.where(b["nbr"] >= 0, b["nbr"].astype(np.int64) + 4 * to, -1))
         idx["boundary"].append(b["boundary"].astype(np.int64) + 4 * to)
         idx["faces"].append(b["faces"].astype(np.int64) + vo)
+        idx["face_adj"].append(np.where(b["face_adj"] >= 0,
+                                        b["face_adj"].astype(np.int64) + fo, -1))
         face_offsets.append(fo)
         vo += s.vertex_count()
         to += len(b["tets"]) // 4
@@ -85,6 +88,7 @@ def mesh_buffers(shapes):
         nbr=mi.Int32(cat(idx["nbr"]).astype(np.int32)),
         boundary=mi.UInt32(cat(idx["boundary"]).astype(np.uint32)),
         faces=mi.UInt32(cat(idx["faces"]).astype(np.uint32)),
+        face_adj=mi.Int32(cat(idx["face_adj"]).astype(np.int32)),
         positions=attr("p", lambda s: s.vertex_positions_buffer()),
         color=attr("c", lambda s: s.attribute_buffer("vertex_color")),
         opacity=attr("o", lambda s: s.attribute_buffer("vertex_opacity")),
@@ -97,7 +101,7 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
 
     def __init__(self, props):
         super().__init__(props)
-        n_sub = int(props.get("n_sub", 4))
+        n_sub = int(props.get("n_sub", 8))
         if not 1 <= n_sub <= 64:
             raise ValueError(f"tetvr: n_sub must be in [1, 64], got {n_sub}")
         t_min = float(props.get("min_transmittance", 1e-4))
@@ -125,7 +129,7 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         # optimization); index buffers are cached.
         if len(shapes) == 1:
             s = shapes[0]
-            buf = MeshBuffers(buf.tets, buf.nbr, buf.boundary, buf.faces,
+            buf = MeshBuffers(buf.tets, buf.nbr, buf.boundary, buf.faces, buf.face_adj,
                               s.vertex_positions_buffer(),
                               s.attribute_buffer("vertex_color"),
                               s.attribute_buffer("vertex_opacity"))
@@ -153,7 +157,7 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         ray = mi.Ray3f(dr.detach(ray))
         ray.d = dr.normalize(ray.d)
         active = mi.Bool(active)
-        C, T = render_rays(scene, buf, shapes, offsets, ray, settings, active)
+        C, T, _ = render_rays(scene, buf, shapes, offsets, ray, settings, active)
         L = C + T * self.background(scene, ray.d, active)
         aovs = [1.0 - T] if self.alpha else []
         return L, mi.Bool(True), aovs, L
