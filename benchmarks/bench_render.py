@@ -48,7 +48,7 @@ def parse_args(argv=None):
     p.add_argument("--jitter", type=float, default=0.15,
                    help="vertex jitter in cell sizes (default 0.15; > ~0.2 inverts Kuhn tets)")
     p.add_argument("--scale", type=float, default=1.0, help="blob_field opacity scale (default 1)")
-    p.add_argument("--n-sub", type=int, default=4, help="sub-intervals per segment (default 4)")
+    p.add_argument("--n-sub", type=int, default=8, help="sub-intervals per segment (default 8, as tetvr)")
     p.add_argument("--eps", type=float, default=1e-5,
                    help="baseline: offset past each hit, relative to the bbox diagonal "
                         "(default 1e-5, like tetvr's retrace_epsilon)")

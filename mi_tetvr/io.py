@@ -20,6 +20,8 @@ from .transfer import TransferFunction
 #: meshio cell types that are volume cells but not linear tets.
 _OTHER_VOLUME_CELLS = {"hexahedron", "hexahedron20", "hexahedron27", "wedge", "wedge15",
                        "pyramid", "pyramid13", "polyhedron"}
+#: Formats whose meshio writer drops point data.
+_GEOMETRY_ONLY = {".msh", ".mesh"}
 _QUADRATIC_TETS = {"tetra10", "tetra20", "tetra35", "tetra56"}
 
 
@@ -105,4 +107,8 @@ def write_tetmesh(path, mesh: TetMesh, *, color: str = "color", opacity: str = "
     pd[color] = np.asarray(mesh.color, dtype=np.float64)
     pd[opacity] = np.asarray(mesh.opacity, dtype=np.float64)
     out = meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)], point_data=pd)
-    meshio.write(Path(path), out)
+    path = Path(path)
+    if path.suffix.lower() in _GEOMETRY_ONLY:
+        warnings.warn(f"{path}: this format keeps only the geometry through meshio; "
+                      "color and opacity are not written (use .vtu or .vtk)", stacklevel=2)
+    meshio.write(path, out)

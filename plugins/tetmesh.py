@@ -74,7 +74,8 @@ def mesh_from_properties(props) -> TetMesh:
             color=props.get("color_attribute", "color"),
             opacity=props.get("opacity_attribute", "opacity"),
             scalar=props.get("scalar_attribute", None),
-            transfer_function=props.get("transfer_function", None),
+            transfer_function=(str(fs.resolve(props["transfer_function"]))
+                               if "transfer_function" in props else None),
             value_range=None if vmin is None or vmax is None else (float(vmin), float(vmax)),
             opacity_scale=float(props.get("opacity_scale", 1.0)),
         )
