@@ -63,10 +63,8 @@ def cmd_render(a):
         scene = mi.load_file(str(scene_path), **params)
     except Exception as e:
         sys.exit(f"mi-tetvr: cannot load {scene_path}: {e}")
-    if a.res and "resx" not in scene_path.read_text():
-        film = scene.sensors()[0].film()
-        if tuple(film.size()) != (w, h):
-            sys.exit("mi-tetvr: --res needs a scene whose film uses $resx/$resy defaults")
+    if a.res and tuple(scene.sensors()[0].film().size()) != (w, h):
+        sys.exit("mi-tetvr: --res needs a scene whose film uses $resx/$resy defaults")
     t1 = time.time()
     img = np.array(mi.render(scene, spp=a.spp or 0))
     t2 = time.time()

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import meshio
 import numpy as np
 
 from .generate import blob_field, blob_mesh, grid_mesh
@@ -28,15 +29,13 @@ def make_scene_meshes(directory=None, force=False):
             written.append(p)
 
     save("blob.vtu", blob_mesh(cells=24, jitter=0.15))
-    # A scalar field only (radial distance), to be shaded by a transfer function.
+    # A scalar field only (no color/opacity), to be shaded by a transfer function.
     v, t = grid_mesh(20, jitter=0.1, seed=3)
     r = np.linalg.norm(v * [1.0, 1.3, 1.6], axis=1)
-    m = TetMesh(v, t)
-    m.point_data["density"] = np.cos(3.0 * r) * np.exp(-r)
     p = out / "radial_scalar.vtu"
     if force or not p.exists():
-        import meshio
-        meshio.write(p, meshio.Mesh(v, [("tetra", t)], point_data={"density": m.point_data["density"]}))
+        meshio.write(p, meshio.Mesh(v, [("tetra", t)],
+                                    point_data={"density": np.cos(3.0 * r) * np.exp(-r)}))
         written.append(p)
     # A U-shaped (non-convex) mesh for re-entry.
     v, t = grid_mesh((12, 12, 4), jitter=0.1, seed=4)

@@ -10,12 +10,17 @@ from mi_tetvr.io import read_tetmesh, write_tetmesh
 from mi_tetvr.mesh import FACES, MeshError, TetMesh, build_topology, quality, signed_volumes
 
 
+def reverse_some(t, fraction, seed):
+    """Copy of tets with a random fraction given in reversed orientation."""
+    flip = np.random.default_rng(seed).random(len(t)) < fraction
+    t = t.copy()
+    t[flip] = t[flip][:, [1, 0, 2, 3]]
+    return t, flip
+
+
 def test_topology_properties():
     v, t = grid_mesh(3, jitter=0.15, seed=0)
-    rng = np.random.default_rng(0)
-    t = t.copy()
-    flip = rng.random(len(t)) < 0.3
-    t[flip] = t[flip][:, [1, 0, 2, 3]]
+    t, flip = reverse_some(t, 0.3, seed=0)
     with pytest.warns(UserWarning, match="inverted"):
         topo = build_topology(v, t)
     assert topo.n_flipped == flip.sum()
@@ -94,10 +99,7 @@ def test_flat_tets_oriented_consistently():
     v, t = grid_mesh(2)
     v = v.copy()
     v[np.isclose(v[:, 0], 0.0), 0] = -1.0  # collapse a layer: 24 flat tets
-    rng = np.random.default_rng(1)
-    t = t.copy()
-    flip = rng.random(len(t)) < 0.5
-    t[flip] = t[flip][:, [1, 0, 2, 3]]
+    t, _ = reverse_some(t, 0.5, seed=1)
     with pytest.warns(UserWarning, match="24 zero-volume"):
         topo = build_topology(v, t)
     assert topo.flat.sum() == 24
