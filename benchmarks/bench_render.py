@@ -8,7 +8,7 @@ whole mesh.
 
 1. **tetvr**: ``mi.render`` with the ``tetvr`` integrator (stratified sampler
    without jitter, so its rays are the pixel-centre rays), and
-   :func:`mi_tetvr.traversal.render_rays` called directly on the same rays
+   :func:`mi_tetvr.traversal.trace` called directly on the same rays
    (which gives the number of tets crossed). Both are timed warm (one run to
    compile, then the median of ``--repeat`` runs).
 2. **baseline**: every tet face (each unique triangle once) in one ordinary
@@ -70,7 +70,7 @@ import mi_tetvr  # noqa: E402
 from mi_tetvr.generate import blob_field, grid_mesh  # noqa: E402
 from mi_tetvr.kernels import segment_integral  # noqa: E402
 from mi_tetvr.mesh import FACES  # noqa: E402
-from mi_tetvr.traversal import WalkSettings, render_rays  # noqa: E402
+from mi_tetvr.traversal import WalkSettings, trace  # noqa: E402
 
 mi_tetvr.register()
 from mi_tetvr.plugins.tetvr import mesh_buffers, scene_tetmeshes  # noqa: E402
@@ -261,7 +261,8 @@ def main(a):
 
     # -- tetvr walk on the same rays ------------------------------------------
     def run_walk():
-        C, T, steps = render_rays(tv_scene, buf, shapes, offsets, rays, settings, True)
+        C, T, steps, _ = trace(dr.ADMode.Primal, tv_scene, buf, shapes, offsets, rays,
+                               settings, True)
         dr.eval(C, T, steps)
         return C, T, steps
 
@@ -298,7 +299,7 @@ def main(a):
     print(f"rays through the mesh: {n_hit_rays:,} of {n_rays:,}; "
           f"tets per such ray: mean {n_steps / max(n_hit_rays, 1):.1f}, "
           f"max {int(steps_np.max())}; mean transmittance {float(np.asarray(T_tv).mean()):.3f}")
-    print(f"check mi.render image vs render_rays on the pixel-centre rays: "
+    print(f"check mi.render image vs trace() on the pixel-centre rays: "
           f"max |diff| = {d_img:.2e}")
     print(f"check baseline vs tetvr: max |dC| = {diff.max():.2e} "
           f"(mean {diff.mean():.1e}, {int(bad.sum())} rays > 1e-3), "
@@ -314,7 +315,7 @@ def main(a):
 
     rows = [
         ("tetvr  mi.render", r_first, r_med, n_steps, r_all),
-        ("tetvr  render_rays", w_first, w_med, n_steps, w_all),
+        ("tetvr  trace()", w_first, w_med, n_steps, w_all),
         ("baseline multi-hit BVH", b_first, b_med, n_segs, b_all),
     ]
     print(f"{'method':<24}{'1st run [s]':>12}{'median [s]':>12}{'steps':>14}"
@@ -323,7 +324,7 @@ def main(a):
         print(f"{name:<24}{first:>12.3f}{med:>12.3f}{n:>14,}{n / med / 1e6:>10.1f}"
               f"{n_rays / med / 1e6:>9.2f}   {fmt_times(ts)}")
     print()
-    print(f"baseline / tetvr time ratio: {b_med / w_med:.2f}x (render_rays), "
+    print(f"baseline / tetvr time ratio: {b_med / w_med:.2f}x (trace()), "
           f"{b_med / r_med:.2f}x (mi.render)")
     print(f"('steps' = tet segments integrated; baseline segments = hits - 1 per ray; "
           f"1st run includes tracing + LLVM compilation; median of {a.repeat} warm runs)")

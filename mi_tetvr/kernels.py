@@ -185,21 +185,66 @@ class MeshBuffers:
         self.face_adj = face_adj
         self.positions, self.color, self.opacity = positions, color, opacity
 
-    def position(self, i, active=True):
-        return dr.gather(mi.Point3f, self.positions, i, active)
+    # ``reduce`` is the scatter strategy of the gathers' reverse-mode
+    # derivative (gradients of shared vertices meet there).
+    def position(self, i, active=True, reduce=dr.ReduceMode.Auto):
+        return dr.gather(mi.Point3f, self.positions, i, active, mode=reduce)
 
-    def attributes(self, i, active=True):
-        return (dr.gather(mi.Color3f, self.color, i, active),
-                dr.gather(mi.Float, self.opacity, i, active))
+    def attributes(self, i, active=True, reduce=dr.ReduceMode.Auto):
+        return (dr.gather(mi.Color3f, self.color, i, active, mode=reduce),
+                dr.gather(mi.Float, self.opacity, i, active, mode=reduce))
+
+
+def crossing(ids, P, p, o, d):
+    """Where the ray crosses the triangle of vertices ``ids`` (global indices),
+    given their positions ``P`` and projections ``p`` in the ray frame.
+
+    Returns the ray parameter ``t`` and the barycentric weights. The weights
+    come from the same canonical edge functions as the walk's exit test, so a
+    face shared by two tets gives the same crossing from both sides.
+    """
+    (i0, i1, i2), (P0, P1, P2), (p0, p1, p2) = ids, P, p
+    e0, _ = edge_function(i1, p1, i2, p2)
+    e1, _ = edge_function(i2, p2, i0, p0)
+    e2, _ = edge_function(i0, p0, i1, p1)
+    w = face_weights(e0, e1, e2)
+    return dr.dot(w[0] * P0 + w[1] * P1 + w[2] * P2 - o, d), w
+
+
+def interpolate(buf, ids, w, active=True, reduce=dr.ReduceMode.Auto):
+    """Color and opacity at barycentric weights ``w`` of the vertices ``ids``."""
+    c = mi.Color3f(0.0)
+    s = mi.Float(0.0)
+    for i, wi in zip(ids, w):
+        ci, si = buf.attributes(i, active, reduce)
+        c += wi * ci
+        s += wi * si
+    return c, s
+
+
+def face_point(buf, ids, o, u, v, d, active=True, reduce=dr.ReduceMode.Auto):
+    """``(t, c, s)`` where the ray crosses the triangle ``ids``: gathers the
+    vertices (differentiably, when AD is enabled on the buffers)."""
+    P = tuple(buf.position(i, active, reduce) for i in ids)
+    p = tuple(project(Pi, o, u, v) for Pi in P)
+    t, w = crossing(ids, P, p, o, d)
+    return (t, *interpolate(buf, ids, w, active, reduce))
+
+
+def tet_face(buf, perm, tet, f, active=True):
+    """Global vertex indices ``(apex, a, b, c)`` of ``tet`` for its local face
+    ``f`` (the apex is the vertex opposite the face; ``a, b, c`` the face)."""
+    base = tet * 4
+    k = f * 4
+    return tuple(dr.gather(mi.UInt32, buf.tets,
+                           base + dr.gather(mi.UInt32, perm, k + j, active), active)
+                 for j in range(4))
 
 
 def _face_corners(buf, face, o, u, v, active):
-    ia = dr.gather(mi.UInt32, buf.faces, face * 3 + 0, active)
-    ib = dr.gather(mi.UInt32, buf.faces, face * 3 + 1, active)
-    ic = dr.gather(mi.UInt32, buf.faces, face * 3 + 2, active)
-    Pa, Pb, Pc = buf.position(ia, active), buf.position(ib, active), buf.position(ic, active)
-    pa, pb, pc = project(Pa, o, u, v), project(Pb, o, u, v), project(Pc, o, u, v)
-    return (ia, ib, ic), (Pa, Pb, Pc), (pa, pb, pc)
+    ids = tuple(dr.gather(mi.UInt32, buf.faces, face * 3 + j, active) for j in range(3))
+    P = tuple(buf.position(i, active) for i in ids)
+    return ids, P, tuple(project(Pi, o, u, v) for Pi in P)
 
 
 #: Steps of the walk over the boundary surface in :func:`face_entry`.
@@ -207,7 +252,7 @@ BOUNDARY_WALK_STEPS = 4
 
 
 def face_entry(buf, face, o, u, v, d, active):
-    """Where a ray crosses a boundary face.
+    """The tet behind the boundary face a ray hits.
 
     The face found by Mitsuba's ray tracer is first moved, over the boundary
     surface, to the face that the ray crosses by the walk's own (consistent)
@@ -224,10 +269,6 @@ def face_entry(buf, face, o, u, v, d, active):
     -------
     tet : UInt32, f : UInt32
         Tet behind the face and the face's local index in it.
-    t : Float
-        Ray parameter of the crossing point.
-    c, s : Color3f, Float
-        Interpolated color and opacity there.
     outward : Bool
         True when the ray leaves the mesh through this face.
     """
@@ -244,43 +285,32 @@ def face_entry(buf, face, o, u, v, d, active):
         move = active & ((s_bc != back) | (s_ca != back) | (s_ab != back))
         nxt = dr.gather(mi.Int32, buf.face_adj, face * 3 + adj, move)
         face = dr.select(move & (nxt >= 0), mi.UInt32(nxt), face)
-    (ia, ib, ic), (Pa, Pb, Pc), (pa, pb, pc) = _face_corners(buf, face, o, u, v, active)
-    e_bc, _ = edge_function(ib, pb, ic, pc)
-    e_ca, _ = edge_function(ic, pc, ia, pa)
-    e_ab, _ = edge_function(ia, pa, ib, pb)
-    wa, wb, wc = face_weights(e_bc, e_ca, e_ab)
-    p = wa * Pa + wb * Pb + wc * Pc
-    ca, sa = buf.attributes(ia, active)
-    cb, sb = buf.attributes(ib, active)
-    cc, sc = buf.attributes(ic, active)
+    _, (Pa, Pb, Pc), _ = _face_corners(buf, face, o, u, v, active)
     code = dr.gather(mi.UInt32, buf.boundary, face, active)
     outward = dr.dot(dr.cross(Pb - Pa, Pc - Pa), d) > 0
-    return (code >> 2, code & 3, dr.dot(p - o, d),
-            wa * ca + wb * cb + wc * cc, wa * sa + wb * sb + wc * sc, outward)
+    return code >> 2, code & 3, outward
+
+
+class Step:
+    """Result of :func:`walk_step`: the exit point and the faces involved."""
+
+    def __init__(self, t, c, s, nbr, f_out, entry, exit):
+        self.t, self.c, self.s = t, c, s
+        self.nbr = nbr        # 4 * next tet + its entry face, -1 when leaving the mesh
+        self.f_out = f_out    # local index of the exit face
+        self.entry = entry    # global vertex ids of the entry face
+        self.exit = exit      # global vertex ids of the exit face
 
 
 def walk_step(buf, perm, tet, f_in, o, u, v, d, active):
     """Cross one tet: find the exit face of a ray entering ``tet`` through its
-    local face ``f_in``.
-
-    Returns
-    -------
-    t_out : Float
-        Ray parameter of the exit point.
-    c_out, s_out : Color3f, Float
-        Color and opacity there.
-    nbr : Int32
-        ``4 * next_tet + entry_face`` of the neighbour, -1 when leaving the mesh.
-    """
-    base = tet * 4
+    local face ``f_in``, and the exit point's ray parameter, color and
+    opacity (a :class:`Step`)."""
+    ik, ia, ib, ic = tet_face(buf, perm, tet, f_in, active)
     k = f_in * 4
-    ik = dr.gather(mi.UInt32, buf.tets, base + dr.gather(mi.UInt32, perm, k, active), active)
     la = dr.gather(mi.UInt32, perm, k + 1, active)
     lb = dr.gather(mi.UInt32, perm, k + 2, active)
     lc = dr.gather(mi.UInt32, perm, k + 3, active)
-    ia = dr.gather(mi.UInt32, buf.tets, base + la, active)
-    ib = dr.gather(mi.UInt32, buf.tets, base + lb, active)
-    ic = dr.gather(mi.UInt32, buf.tets, base + lc, active)
     Pk, Pa, Pb, Pc = (buf.position(ik, active), buf.position(ia, active),
                       buf.position(ib, active), buf.position(ic, active))
     pk, pa, pb, pc = (project(Pk, o, u, v), project(Pa, o, u, v),
@@ -312,15 +342,25 @@ def walk_step(buf, perm, tet, f_in, o, u, v, d, active):
     Py = dr.select(opp_c, Pa, dr.select(opp_a, Pb, Pc))
     px = dr.select(opp_c, pb, dr.select(opp_a, pc, pa))
     py = dr.select(opp_c, pa, dr.select(opp_a, pb, pc))
-    ex = dr.select(opp_c, eb, dr.select(opp_a, ec, ea))
-    ey = dr.select(opp_c, ea, dr.select(opp_a, eb, ec))
     lz = dr.select(opp_c, lc, dr.select(opp_a, la, lb))
-    exy, _ = edge_function(ix, px, iy, py)
-    wk, wx, wy = face_weights(exy, -ey, ex)
-    p_out = wk * Pk + wx * Px + wy * Py
-    ck, sk = buf.attributes(ik, active)
-    cx, sx = buf.attributes(ix, active)
-    cy, sy = buf.attributes(iy, active)
-    nbr = dr.gather(mi.Int32, buf.nbr, base + lz, active)
-    return (dr.dot(p_out - o, d), wk * ck + wx * cx + wy * cy,
-            wk * sk + wx * sx + wy * sy, nbr)
+    exit_ids = (ik, ix, iy)
+    t_out, w = crossing(exit_ids, (Pk, Px, Py), (pk, px, py), o, d)
+    c_out, s_out = interpolate(buf, exit_ids, w, active)
+    nbr = dr.gather(mi.Int32, buf.nbr, tet * 4 + lz, active)
+    return Step(t_out, c_out, s_out, nbr, lz, (ia, ib, ic), exit_ids)
+
+
+def clip_segment(t0, c0, s0, t1, c1, s1, t_begin, t_end):
+    """Restrict a segment with linear attributes (``t0 -> t1``) to
+    ``[t_begin, t_end]``. Returns ``(length, c0, c1, s0, s1)``; unclipped
+    segments pass through bit-exactly, never divides by a zero length."""
+    span = t1 - t0
+    inv = dr.select(span > 0, dr.rcp(dr.select(span > 0, span, 1.0)), 0.0)
+    lo = t0 < t_begin
+    hi = t1 > t_end
+    a0 = dr.select(lo, dr.clip((t_begin - t0) * inv, 0.0, 1.0), 0.0)
+    a1 = dr.select(hi, dr.clip((t_end - t0) * inv, 0.0, 1.0), 1.0)
+    a1 = dr.maximum(a1, a0)
+    length = dr.select(lo | hi, (a1 - a0) * span, span)
+    return (length, dr.lerp(c0, c1, a0), dr.lerp(c0, c1, a1),
+            dr.lerp(s0, s1, a0), dr.lerp(s0, s1, a1))

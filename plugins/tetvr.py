@@ -42,7 +42,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_tetvr.kernels import MeshBuffers
-from mi_tetvr.traversal import WalkSettings, render_rays
+from mi_tetvr.traversal import Adjoint, WalkSettings, trace
 
 
 def scene_tetmeshes(scene):
@@ -145,22 +145,43 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         si.wi = -d
         return mi.Color3f(env.eval(si, active))
 
+    def settings_for(self, scene):
+        """Walk settings with the re-trace offset scaled to the scene."""
+        s = self.settings
+        return WalkSettings(s.n_sub, s.t_min, s.max_steps,
+                            self.retrace_epsilon * float(dr.norm(scene.bbox().extents())),
+                            s.reduce)
+
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
-        primal = mode == dr.ADMode.Primal
-        if not primal:
-            raise NotImplementedError("tetvr: derivatives are not available yet")
         shapes, buf, offsets = self._buffers(scene)
-        bbox = scene.bbox()
-        settings = WalkSettings(self.settings.n_sub, self.settings.t_min,
-                                self.settings.max_steps,
-                                self.retrace_epsilon * float(dr.norm(bbox.extents())))
+        settings = self.settings_for(scene)
         ray = mi.Ray3f(dr.detach(ray))
         ray.d = dr.normalize(ray.d)
         active = mi.Bool(active)
-        C, T, _ = render_rays(scene, buf, shapes, offsets, ray, settings, active)
-        L = C + T * self.background(scene, ray.d, active)
-        aovs = [1.0 - T] if self.alpha else []
-        return L, mi.Bool(True), aovs, L
+        bg = self.background(scene, ray.d, active)
+        if mode == dr.ADMode.Primal:
+            C, T, _, _ = trace(mode, scene, buf, shapes, offsets, ray, settings, active)
+            L = C + T * bg
+            return L, mi.Bool(True), [1.0 - T] if self.alpha else [], (L, T)
+        if state_in is None:
+            raise ValueError("tetvr: the derivative modes need the primal pass's state_in")
+        L_pix, T_fin = state_in
+        δaovs = kwargs.get("δaovs", None)
+        δalpha = mi.Float(δaovs[0]) if (self.alpha and δaovs) else mi.Float(0.0)
+        if mode == dr.ADMode.Backward:
+            adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(δL), δalpha)
+        else:
+            adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(0.0), mi.Float(0.0))
+        # The walk itself runs on detached buffers; only the per-segment
+        # recomputation inside the loop sees the parameters' AD graph (read
+        # with AD resumed: the caller, e.g. render_backward, suspends it).
+        with dr.resume_grad():
+            _, buf_ad, _ = self._buffers(scene)
+        _, _, _, adj = trace(mode, scene, dr.detach(buf), shapes, offsets, ray, settings,
+                             active, adj, buf_ad=buf_ad)
+        if mode == dr.ADMode.Backward:
+            return mi.Color3f(0.0), mi.Bool(True), [], None
+        return adj.dL, mi.Bool(True), [adj.dalpha] if self.alpha else [], None
 
     def to_string(self):
         s = self.settings

@@ -172,11 +172,7 @@ def test_early_termination_threshold(jittered):
 
 @pytest.mark.parametrize("name", [
     "spx/spx.vtk", "a-grid/a_grid.vtk",
-    pytest.param("post/post.vtk", marks=pytest.mark.xfail(
-        strict=True, reason="2 of 24 rays lose opacity: the mesh has coincident "
-        "internal boundary faces (duplicated vertices), and re-entry at zero distance "
-        "is missed")),
-                                  "sfepy/elbow.mesh", "bluntfin/bluntfin_tets.vtu"])
+    "post/post.vtk", "sfepy/elbow.mesh", "bluntfin/bluntfin_tets.vtu"])
 def test_real_meshes(data_dir, name):
     mesh = mi_tetvr_read(data_dir / "tets" / name)
     lo, hi = mesh.bounds

@@ -1,0 +1,210 @@
+"""Derivatives of tetvr: the adjoint (inversion trick) against central finite
+differences of the primal, forward mode against reverse mode, and against
+Dr.Jit's AD through a recorded (evaluated) loop of the primal renderer."""
+import numpy as np
+import pytest
+
+import drjit as dr
+import mitsuba as mi
+from conftest import make_scene, rays_at
+from mi_tetvr.generate import grid_mesh
+from mi_tetvr.mesh import build_topology
+
+KEYS = ("mesh0.vertex_color", "mesh0.vertex_opacity", "mesh0.vertex_positions")
+
+
+def attributes(n, rng, max_opacity=2.0):
+    return rng.uniform(0, 1, (n, 3)), rng.uniform(0, max_opacity, n)
+
+
+def ushape(rng):
+    """Non-convex: a U of two arms (rays leave one arm and re-enter the other)."""
+    V, T = grid_mesh((6, 4, 3), jitter=0.1, seed=5)
+    centroid = V[T].mean(1)
+    T = T[~((np.abs(centroid[:, 0]) < 0.34) & (centroid[:, 1] > -0.5))]
+    return (V, T, *attributes(len(V), rng))
+
+
+def jittered(rng, max_opacity=2.0):
+    V, T = grid_mesh(3, jitter=0.12, seed=3)
+    return (V, T, *attributes(len(V), rng, max_opacity))
+
+
+class Problem:
+    """A scene and fixed rays; the objective is sum(wL . rgb + wa * alpha)."""
+
+    def __init__(self, mesh, o, d, rng):
+        self.mesh = mesh
+        self.scene = make_scene(mesh)
+        self.params = mi.traverse(self.scene)
+        self.integrator = self.scene.integrator()
+        o, d = np.asarray(o, np.float32), np.asarray(d, np.float64)
+        d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+        self.ray = mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T))
+        self.wL = rng.normal(size=(len(o), 3))
+        self.wa = rng.normal(size=len(o))
+
+    def sample(self, mode, **kw):
+        return self.integrator.sample(mode, self.scene, None, self.ray, active=True, **kw)
+
+    def objective(self):
+        with dr.suspend_grad():
+            L, _, aovs, _ = self.sample(dr.ADMode.Primal, δL=None, state_in=None)
+        return (np.array(L, np.float64).T * self.wL).sum() + (np.array(aovs[0]) * self.wa).sum()
+
+    def backward(self):
+        for k in KEYS:
+            dr.enable_grad(self.params[k])
+            dr.set_grad(self.params[k], 0)
+        with dr.suspend_grad():
+            _, _, _, state = self.sample(dr.ADMode.Primal, δL=None, state_in=None)
+            self.sample(dr.ADMode.Backward, δL=mi.Color3f(*self.wL.T), state_in=state,
+                        δaovs=[mi.Float(self.wa)])
+        grads = {k: np.array(dr.grad(self.params[k]), np.float64) for k in KEYS}
+        self.disable()
+        return grads
+
+    def forward(self, directions):
+        for k in KEYS:
+            dr.enable_grad(self.params[k])
+            dr.set_grad(self.params[k], mi.Float(directions[k]))
+        with dr.suspend_grad():
+            _, _, _, state = self.sample(dr.ADMode.Primal, δL=None, state_in=None)
+            δL, _, δaovs, _ = self.sample(dr.ADMode.Forward, δL=None, state_in=state)
+        self.disable()
+        return ((np.array(δL, np.float64).T * self.wL).sum()
+                + (np.array(δaovs[0], np.float64) * self.wa).sum())
+
+    def disable(self):
+        for k in KEYS:
+            dr.disable_grad(self.params[k])
+
+    def finite_difference(self, key, index, h):
+        base = np.array(self.params[key])
+        vals = []
+        for sign in (1, -1):
+            x = base.copy()
+            x[index] += sign * h
+            self.params[key] = mi.Float(x)
+            self.params.update()
+            vals.append(self.objective())
+        self.params[key] = mi.Float(base)
+        self.params.update()
+        return (vals[0] - vals[1]) / (2 * h)
+
+
+def interior_position_entries(V, T):
+    """Flat indices (3 i + axis) of the positions of vertices off the boundary."""
+    boundary = np.unique(build_topology(V, T).boundary_faces)
+    inner = np.setdiff1d(np.arange(len(V)), boundary)
+    return (3 * inner[:, None] + np.arange(3)).ravel()
+
+
+def check_fd(problem, rng, keys=KEYS, n=10, tol=0.05):
+    grads = problem.backward()
+    V, T = problem.mesh[0], problem.mesh[1]
+    for key in keys:
+        g = grads[key]
+        if key.endswith("positions"):
+            candidates = interior_position_entries(V, T)
+            h = 1e-3
+        else:
+            candidates = np.arange(len(g))
+            h = 1e-3
+        # Entries with a sizeable gradient, so that the relative error means something.
+        candidates = candidates[np.abs(g[candidates]) > 1e-3 * np.abs(g).max()]
+        assert len(candidates) > 0
+        idx = rng.choice(candidates, min(n, len(candidates)), replace=False)
+        fd = np.array([problem.finite_difference(key, i, h) for i in idx])
+        err = np.linalg.norm(g[idx] - fd) / np.linalg.norm(fd)
+        assert err < tol, f"{key}: relative L2 error {err:.3g} (adjoint {g[idx]}, FD {fd})"
+    return grads
+
+
+def test_adjoint_matches_finite_differences_jittered():
+    rng = np.random.default_rng(20)
+    check_fd(Problem(jittered(rng), *rays_at(rng, 64), rng), rng)
+
+
+def test_adjoint_matches_finite_differences_nonconvex():
+    rng = np.random.default_rng(21)
+    k = 64
+    o = np.stack([np.full(k, -3.0), rng.uniform(-0.3, 0.9, k), rng.uniform(-0.9, 0.9, k)], 1)
+    d = np.stack([np.ones(k), rng.uniform(-0.1, 0.1, k), rng.uniform(-0.1, 0.1, k)], 1)
+    problem = Problem(ushape(rng), o, d, rng)
+    check_fd(problem, rng)
+
+
+def test_forward_matches_reverse():
+    rng = np.random.default_rng(22)
+    problem = Problem(jittered(rng), *rays_at(rng, 64), rng)
+    grads = problem.backward()
+    for trial in range(2):
+        directions = {k: rng.normal(size=len(g)) for k, g in grads.items()}
+        reverse = sum((directions[k] * grads[k]).sum() for k in KEYS)
+        forward = problem.forward(directions)
+        assert abs(forward - reverse) < 0.01 * abs(reverse), (forward, reverse)
+
+
+def test_adjoint_matches_recorded_loop():
+    """Dr.Jit's AD through the primal renderer with evaluated (recorded) loops."""
+    rng = np.random.default_rng(23)
+    problem = Problem(jittered(rng), *rays_at(rng, 64), rng)
+    grads = problem.backward()
+    for k in KEYS:
+        dr.enable_grad(problem.params[k])
+    with dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, False):
+        L, _, aovs, _ = problem.sample(dr.ADMode.Primal, δL=None, state_in=None)
+        loss = dr.sum(dr.sum(L * mi.Color3f(*problem.wL.T)) + aovs[0] * mi.Float(problem.wa))
+        dr.backward(loss)
+    for k in KEYS:
+        ref = np.array(dr.grad(problem.params[k]), np.float64)
+        err = np.linalg.norm(grads[k] - ref) / np.linalg.norm(ref)
+        assert err < 1e-4, f"{k}: relative error {err:.2e} against the recorded loop"
+    problem.disable()
+
+
+def assert_finite(grads):
+    for k, g in grads.items():
+        assert np.all(np.isfinite(g)), f"{k}: non-finite gradient entries"
+
+
+def test_zero_opacity():
+    """The x -> 0 limit of the segment integral: finite and exact."""
+    rng = np.random.default_rng(24)
+    V, T, C, _ = jittered(rng)
+    problem = Problem((V, T, C, np.zeros(len(V))), *rays_at(rng, 64), rng)
+    grads = check_fd(problem, rng, keys=("mesh0.vertex_opacity",))
+    assert_finite(grads)
+    # With zero opacity nothing is emitted: colors and positions have no effect.
+    assert np.abs(grads["mesh0.vertex_color"]).max() == 0
+    assert np.abs(grads["mesh0.vertex_opacity"]).max() > 0
+
+
+def test_huge_opacity():
+    rng = np.random.default_rng(25)
+    V, T, C, _ = jittered(rng)
+    S = rng.uniform(1e4, 2e4, len(V))
+    problem = Problem((V, T, C, S), *rays_at(rng, 64), rng)
+    assert_finite(problem.backward())
+
+
+def test_grazing_rays_and_camera_inside():
+    rng = np.random.default_rng(26)
+    V, T = grid_mesh(3, jitter=0.0)
+    mesh = (V, T, *attributes(len(V), rng))
+    k = 32
+    # Along the boundary faces' planes and through boundary edges/vertices.
+    y = rng.choice([-1.0, 1.0], k)
+    z = rng.choice(np.linspace(-1, 1, 4), k)
+    o_graze = np.stack([np.full(k, -3.0), y, z], 1)
+    d_graze = np.tile([1.0, 0.0, 0.0], (k, 1))
+    # Inside the mesh, in random directions.
+    o_in = rng.uniform(-0.8, 0.8, (k, 3))
+    d_in = rng.normal(size=(k, 3))
+    problem = Problem(mesh, np.concatenate([o_graze, o_in]), np.concatenate([d_graze, d_in]),
+                      rng)
+    assert_finite(problem.backward())
+    # Inside: a starting point that moves with its tet's vertices.
+    inside = Problem(jittered(rng), o_in, d_in, rng)
+    check_fd(inside, rng)
