@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
-import statistics
 import sys
 import time
 
@@ -67,7 +65,6 @@ import mitsuba as mi  # noqa: E402
 mi.set_variant(ARGS.variant)
 
 import mi_tetvr  # noqa: E402
-from mi_tetvr.generate import blob_field, grid_mesh  # noqa: E402
 from mi_tetvr.kernels import segment_integral  # noqa: E402
 from mi_tetvr.mesh import FACES  # noqa: E402
 from mi_tetvr.traversal import WalkSettings, trace  # noqa: E402
@@ -75,26 +72,13 @@ from mi_tetvr.traversal import WalkSettings, trace  # noqa: E402
 mi_tetvr.register()
 from mi_tetvr.plugins.tetvr import mesh_buffers, scene_tetmeshes  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from common import grid_scene, header, timed  # noqa: E402
+
 
 # ----------------------------------------------------------------------------
 # Scene
 # ----------------------------------------------------------------------------
-
-CAM_ORIGIN = [2.6, 1.8, 3.4]
-CAM_FOV = 33.0
-
-
-def sensor_dict(res):
-    return {
-        "type": "perspective",
-        "fov": CAM_FOV,
-        "to_world": mi.ScalarTransform4f().look_at(origin=CAM_ORIGIN, target=[0, 0, 0],
-                                                   up=[0, 1, 0]),
-        "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
-        "film": {"type": "hdrfilm", "width": res, "height": res, "pixel_format": "rgb",
-                 "rfilter": {"type": "box"}},
-    }
-
 
 def pixel_rays(sensor, res):
     """One normalized ray through each pixel centre (row-major, like the film)."""
@@ -178,22 +162,6 @@ def baseline_rays(scene, faces, color, opacity, ray, n_sub: int, eps: float,
 # Timing helpers
 # ----------------------------------------------------------------------------
 
-def timed(fn, repeat):
-    """(first-run seconds incl. compilation, median of ``repeat`` warm runs, result)."""
-    dr.sync_thread()
-    t0 = time.perf_counter()
-    out = fn()
-    dr.sync_thread()
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        dr.sync_thread()
-        times.append(time.perf_counter() - t0)
-    return first, statistics.median(times), times, out
-
-
 def total(x):
     return int(np.asarray(x, dtype=np.uint64).sum())
 
@@ -206,23 +174,12 @@ def rgb_np(C):
 
 def main(a):
     res, n_rays = a.res, a.res * a.res
-    print(f"# mi_tetvr render benchmark  (mitsuba {mi.__version__}, drjit {dr.__version__}, "
-          f"variant {mi.variant()})")
-    print(f"# device: {platform.processor() or platform.machine()}, "
-          f"{os.cpu_count()} CPU cores, Dr.Jit thread pool size {dr.thread_count()}; "
-          f"python {platform.python_version()}")
+    header("render benchmark")
 
     # -- mesh ----------------------------------------------------------------
     t0 = time.perf_counter()
-    v, tets = grid_mesh(a.cells, jitter=a.jitter)
-    color, opacity = blob_field(v, a.scale)
-    tv_scene = mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "tetvr", "n_sub": a.n_sub, "min_transmittance": 0.0,
-                       "alpha": False},
-        "sensor": sensor_dict(res),
-        "volume": mi_tetvr.tetmesh_dict(v, tets, color, opacity),
-    })
+    tv_scene, v, tets, color, opacity = grid_scene(
+        a.cells, res, a.jitter, a.scale, n_sub=a.n_sub, min_transmittance=0.0, alpha=False)
     shape = scene_tetmeshes(tv_scene)[0]
     topo = shape.topology
     t_tv_scene = time.perf_counter() - t0

@@ -48,8 +48,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .kernels import (_PERM, clip_segment, face_entry, face_point, ray_frame,
-                      segment_integral, tet_face, walk_step)
+from .kernels import (_PERM, clip_segment, crossing, face_entry, face_point, project,
+                      ray_frame, segment_integral, tet_face, walk_step)
 
 
 class WalkSettings:
@@ -123,6 +123,55 @@ def locate(buf, tet, f_out, o, u, v, d, t_start, max_steps: int, active):
     return tet, f_in
 
 
+def _vertex_grads(buf, ids, g, o, u, v, d, active):
+    """Gradient of ``g . (t, c, s)`` of the ray's crossing of the triangle
+    ``ids`` w.r.t. each vertex's position, color and opacity (local AD)."""
+    with dr.resume_grad():
+        P = [buf.position(i, active) for i in ids]
+        A = [buf.attributes(i, active) for i in ids]
+        dr.enable_grad(P, A)
+        p = tuple(project(Pi, o, u, v) for Pi in P)
+        t, w = crossing(ids, tuple(P), p, o, d)
+        c = w[0] * A[0][0] + w[1] * A[1][0] + w[2] * A[2][0]
+        s = w[0] * A[0][1] + w[1] * A[1][1] + w[2] * A[2][1]
+        dr.backward_from(t * g[0] + dr.dot(c, g[1]) + s * g[2])
+        return [VertexGrad(dr.grad(P[j]), *dr.grad(A[j])) for j in range(3)]
+
+
+class VertexGrad:
+    """Pending gradient of one vertex's position, color and opacity."""
+    DRJIT_STRUCT = {"p": mi.Vector3f, "c": mi.Color3f, "s": mi.Float}
+
+    def __init__(self, p=None, c=None, s=None):
+        self.p = None if p is None else mi.Vector3f(p)
+        self.c = None if c is None else mi.Color3f(c)
+        self.s = None if s is None else mi.Float(s)
+
+    @staticmethod
+    def zero():
+        return VertexGrad(mi.Vector3f(0.0), mi.Color3f(0.0), mi.Float(0.0))
+
+
+def _add(a: VertexGrad, b: VertexGrad):
+    return VertexGrad(a.p + b.p, a.c + b.c, a.s + b.s)
+
+
+def _scatter(buf_ad, i, g: VertexGrad, active, reduce):
+    """Add ``g`` to the parameter gradients of vertex ``i`` (through the
+    reverse-mode derivative of a gather: a scatter-add in ``reduce`` mode)."""
+    with dr.resume_grad():
+        P = buf_ad.position(i, active, reduce)
+        c, s = buf_ad.attributes(i, active, reduce)
+        dr.backward_from(dr.dot(P, g.p) + dr.dot(c, g.c) + s * g.s,
+                         flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+
+
+def _tangent(buf_ad, ids, o, u, v, d, active):
+    """Forward mode: the tangent of a face crossing's ``(t, c, s)``."""
+    with dr.resume_grad():
+        return dr.forward_to(*face_point(buf_ad, ids, o, u, v, d, active))
+
+
 @dr.syntax
 def walk(mode, buf, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
          settings: WalkSettings, active, adj: Adjoint = None, buf_ad=None):
@@ -134,42 +183,87 @@ def walk(mode, buf, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
     their updated values, where the walk ended, the number of tets crossed and
     (forward mode) the updated ``adj``. ``buf_ad``: the buffers attached to
     the parameters' AD graph (derivative modes; ``buf`` may be detached).
+
+    Derivative modes: each segment is a function of the ``(t, c, s)`` of its
+    entry and exit crossings; its local derivatives come from Dr.Jit's AD on
+    just the clipped segment integral. A crossing is shared by two consecutive
+    segments, so its gradient is complete one step later; it then goes to the
+    crossed face's three vertices. Consecutive faces share two vertices, so
+    reverse mode keeps the gradients of the current face's vertices in
+    registers and scatter-adds a vertex only when the walk leaves it behind:
+    one vertex (7 values) per step instead of three, the rest after the loop.
+    Forward mode carries the exit crossing's tangent over as the next entry's.
     """
     primal = mode == dr.ADMode.Primal
+    backward = mode == dr.ADMode.Backward
     perm = mi.UInt32(_PERM)
     tet = mi.UInt32(tet)
     f_in = mi.UInt32(f_in)
     L = mi.Color3f(L)
     T = mi.Float(T)
     active = mi.Bool(active)
-    t, c, s = face_point(buf, tet_face(buf, perm, tet, f_in, active)[1:], o, u, v, d, active)
+    entry_ids = tet_face(buf, perm, tet, f_in, active)[1:]
+    t, c, s = face_point(buf, entry_ids, o, u, v, d, active)
     steps = mi.UInt32(0)
+    # Gradient (backward) or tangent (forward) of the entry crossing.
+    e_t, e_c, e_s = mi.Float(0.0), mi.Color3f(0.0), mi.Float(0.0)
+    win = list(entry_ids)  # the entry face's vertices and their pending gradients
+    win_g = [VertexGrad.zero() for _ in range(3)]
+    if dr.hint(not primal and not backward, mode="scalar"):
+        e_t, e_c, e_s = _tangent(buf_ad, entry_ids, o, u, v, d, active)
     while dr.hint(active, label="tetvr_walk"):
         st = walk_step(buf, perm, tet, f_in, o, u, v, d, active)
         t_out = dr.maximum(st.t, t)
-        seg = clip_segment(t, c, s, t_out, st.c, st.s, t_begin, t_stop)
-        C_seg, T_seg = segment_integral(*seg, n_sub=settings.n_sub)
-        if dr.hint(not primal, mode="scalar"):
-            # Radiance reaching the pixel from behind this segment.
-            R = adj.L_pix - (L + T * C_seg)
+        if dr.hint(primal, mode="scalar"):
+            seg = clip_segment(t, c, s, t_out, st.c, st.s, t_begin, t_stop)
+            C_seg, T_seg = segment_integral(*seg, n_sub=settings.n_sub)
+        else:
             with dr.resume_grad():
-                # The segment again, as a differentiable function of its four
-                # vertices (the entry and exit faces).
-                r = settings.reduce
-                ta, ca, sa = face_point(buf_ad, st.entry, o, u, v, d, active, r)
-                tb, cb, sb = face_point(buf_ad, st.exit, o, u, v, d, active, r)
-                length, c0, c1, s0, s1 = clip_segment(ta, ca, sa, dr.maximum(tb, ta), cb, sb,
-                                                      t_begin, t_stop)
-                C_d, _ = segment_integral(length, c0, c1, s0, s1, settings.n_sub)
+                x = (mi.Float(t), mi.Color3f(c), mi.Float(s),
+                     mi.Float(t_out), mi.Color3f(st.c), mi.Float(st.s))
+                dr.enable_grad(x)
+                if dr.hint(not backward, mode="scalar"):
+                    x_t = _tangent(buf_ad, st.exit, o, u, v, d, active)
+                    dr.set_grad(x, (e_t, e_c, e_s, *x_t))
+                length, c0, c1, s0, s1 = clip_segment(*x, t_begin, t_stop)
+                C_d, T_d = segment_integral(length, c0, c1, s0, s1, settings.n_sub)
+                C_seg = dr.detach(C_d)
+                T_seg = dr.detach(T_d)
+                # Radiance reaching the pixel from behind this segment.
+                R = adj.L_pix - (L + T * C_seg)
                 tau = length * (s0 + s1) * 0.5  # the midpoint sums, exact
                 Lo = T * C_d - tau * R
                 Lo_alpha = tau * adj.T_fin
-                if dr.hint(mode == dr.ADMode.Backward, mode="scalar"):
+                if dr.hint(backward, mode="scalar"):
                     dr.backward_from(dr.dot(adj.dL, Lo) + adj.dalpha * Lo_alpha)
+                    g = dr.grad(x)
                 else:
                     dLo, dLo_alpha = dr.forward_to(Lo, Lo_alpha)
                     adj.dL += dLo
                     adj.dalpha += dLo_alpha
+            if dr.hint(backward, mode="scalar"):
+                vg = _vertex_grads(buf, st.entry, (e_t + g[0], e_c + g[1], e_s + g[2]),
+                                   o, u, v, d, active)
+                e_t, e_c, e_s = mi.Float(g[3]), mi.Color3f(g[4]), mi.Float(g[5])
+                # Into the window (the entry face is the window's vertex set),
+                # then scatter the vertex the exit face leaves behind.
+                ik, ix, iy = st.exit
+                drop = mi.UInt32(0)
+                drop_g = VertexGrad.zero()
+                new_win, new_g = [], []
+                for j in range(3):
+                    gj = win_g[j]
+                    for m in range(3):
+                        gj = dr.select(win[j] == st.entry[m], _add(gj, vg[m]), gj)
+                    out = (win[j] != ix) & (win[j] != iy)
+                    drop = dr.select(out, win[j], drop)
+                    drop_g = dr.select(out, gj, drop_g)
+                    new_g.append(dr.select(out, VertexGrad.zero(), gj))
+                    new_win.append(dr.select(out, ik, win[j]))
+                win, win_g = new_win, new_g
+                _scatter(buf_ad, drop, drop_g, active, settings.reduce)
+            else:
+                e_t, e_c, e_s = x_t
         L += T * C_seg
         T *= T_seg
         t = t_out
@@ -180,6 +274,12 @@ def walk(mode, buf, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
         f_in = mi.UInt32(st.nbr & 3)
         active &= (st.nbr >= 0) & (t_out < t_stop) & (steps < settings.max_steps)
         active &= T > settings.t_min
+    if dr.hint(backward, mode="scalar"):
+        # The last exit crossing, and the vertices still in the window.
+        walked = steps > 0
+        vg = _vertex_grads(buf, win, (e_t, e_c, e_s), o, u, v, d, walked)
+        for j in range(3):
+            _scatter(buf_ad, win[j], _add(win_g[j], vg[j]), walked, settings.reduce)
     return L, T, t, steps, adj
 
 

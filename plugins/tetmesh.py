@@ -50,7 +50,6 @@ Differentiable parameters (``mi.traverse``): ``vertex_positions`` (3n),
 """
 from __future__ import annotations
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 

@@ -18,6 +18,13 @@ shapes by walking the tet adjacency.
    - |float|
    - Offset, relative to the scene's bounding-box diagonal, past a boundary
      face before tracing for re-entry. (Default: 1e-5)
+ * - reduce_mode
+   - |string|
+   - How gradients of shared vertices are scatter-added in the derivative
+     modes: ``auto`` (per-thread copies of the gradient buffers on the LLVM
+     backend up to ``dr.expand_threshold()`` entries, atomics on CUDA),
+     ``expand``, ``local`` (pre-reduce within a SIMD packet / warp) or
+     ``direct`` (plain atomics). See ``dr.ReduceMode``. (Default: ``auto``)
  * - alpha
    - |bool|
    - Add the accumulated opacity 1 - T as an AOV channel named ``alpha``.
@@ -111,7 +118,12 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         if max_steps < 1:
             raise ValueError("tetvr: max_steps must be >= 1")
         self.retrace_epsilon = float(props.get("retrace_epsilon", 1e-5))
-        self.settings = WalkSettings(n_sub, t_min, max_steps)
+        modes = {"auto": dr.ReduceMode.Auto, "expand": dr.ReduceMode.Expand,
+                 "local": dr.ReduceMode.Local, "direct": dr.ReduceMode.Direct}
+        reduce = str(props.get("reduce_mode", "auto")).lower()
+        if reduce not in modes:
+            raise ValueError(f"tetvr: reduce_mode must be one of {sorted(modes)}, got {reduce!r}")
+        self.settings = WalkSettings(n_sub, t_min, max_steps, reduce=modes[reduce])
         self.alpha = bool(props.get("alpha", True))
         self._index_cache = None
 
@@ -144,6 +156,14 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         si = dr.zeros(mi.SurfaceInteraction3f)
         si.wi = -d
         return mi.Color3f(env.eval(si, active))
+
+    def sample_rays(self, scene, sensor, sampler):
+        # The sensor weight is a Spectrum; Mitsuba's render_backward and
+        # render_forward multiply the AOVs by it, which makes the alpha AOV a
+        # Color3f that the image block rejects. RGB sensors weight the three
+        # channels equally, so keep one of them.
+        ray, weight, pos = super().sample_rays(scene, sensor, sampler)
+        return ray, mi.Float(weight[0]), pos
 
     def settings_for(self, scene):
         """Walk settings with the re-trace offset scaled to the scene."""

@@ -9,7 +9,7 @@ import pytest
 import mitsuba as mi
 from conftest import ROOT
 from mi_tetvr.generate import grid_mesh
-from mi_tetvr.io import read_tetmesh, write_tetmesh
+from mi_tetvr.io import write_tetmesh
 from mi_tetvr.mesh import TetMesh
 from mi_tetvr.scenes import make_scene_meshes
 

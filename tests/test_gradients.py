@@ -2,7 +2,6 @@
 differences of the primal, forward mode against reverse mode, and against
 Dr.Jit's AD through a recorded (evaluated) loop of the primal renderer."""
 import numpy as np
-import pytest
 
 import drjit as dr
 import mitsuba as mi

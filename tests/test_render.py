@@ -5,7 +5,6 @@ import warnings
 import numpy as np
 import pytest
 
-import mitsuba as mi
 from conftest import make_scene, rays_at, render_rays
 from mi_tetvr.generate import grid_mesh
 from reference import reference_render

@@ -1,0 +1,141 @@
+"""Backward-pass benchmark: one ``mi.render`` + ``dr.backward`` against one
+primal ``mi.render``, measured in the same run.
+
+Scene: the jittered ``cells^3`` grid (64^3 = 1.57M tets) with the blob field,
+``res x res`` pixel-centre rays, default tetvr settings. The loss is the L2
+distance to a target image rendered with perturbed colors and opacities;
+gradients go to ``vertex_color``, ``vertex_opacity`` and ``vertex_positions``.
+``mi.render`` with gradients runs the primal pass, then Mitsuba's
+``render_backward`` runs a second primal pass (it needs the pixel values) and
+the adjoint pass; the breakdown rows time these parts separately and compare
+the scatter strategies (``reduce_mode``) of the gradient accumulation.
+
+Usage::
+
+    python benchmarks/bench_backward.py            # 64^3 cells, 256x256
+    python benchmarks/bench_backward.py --quick    # 16^3 cells, 64x64
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--cells", type=int, default=64, help="grid cells per axis (default 64)")
+    p.add_argument("--res", type=int, default=256, help="image width = height (default 256)")
+    p.add_argument("--repeat", type=int, default=3, help="timed runs (median; default 3)")
+    p.add_argument("--quick", action="store_true", help="smoke run: --cells 16 --res 64")
+    p.add_argument("--modes", default="auto,local,direct",
+                   help="reduce modes to compare (default auto,local,direct)")
+    p.add_argument("--variant", default="llvm_ad_rgb")
+    a = p.parse_args(argv)
+    if a.quick:
+        a.cells, a.res = 16, 64
+    return a
+
+
+ARGS = parse_args()
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+
+mi.set_variant(ARGS.variant)
+import mi_tetvr  # noqa: E402,F401
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from common import grid_scene, header, timed  # noqa: E402
+
+KEYS = ("volume.vertex_color", "volume.vertex_opacity", "volume.vertex_positions")
+
+
+def main(a):
+    header("backward benchmark")
+    scene, v, tets, color, opacity = grid_scene(a.cells, a.res)
+    print(f"mesh: {a.cells}^3 cells, {len(tets):,} tets; image {a.res}x{a.res}, 1 spp")
+    params = mi.traverse(scene)
+    # Target: the same mesh with perturbed attributes.
+    base = {k: mi.Float(params[k]) for k in KEYS}
+    params["volume.vertex_color"] = dr.clip(base["volume.vertex_color"] * 0.8 + 0.1, 0, 1)
+    params["volume.vertex_opacity"] = base["volume.vertex_opacity"] * 1.3
+    params.update()
+    target = mi.TensorXf(mi.render(scene, spp=1))
+    for k in KEYS:
+        params[k] = base[k]
+    params.update()
+    dr.eval(target)
+
+    def primal():
+        img = mi.render(scene, spp=1)
+        dr.eval(img)
+        return img
+
+    def backward(keys):
+        def run():
+            for k in KEYS:
+                dr.disable_grad(params[k])
+            for k in keys:
+                dr.enable_grad(params[k])
+            img = mi.render(scene, params, spp=1)
+            loss = dr.mean(dr.square(img - target), axis=None)
+            dr.backward(loss)
+            grads = [dr.grad(params[k]) for k in keys]
+            dr.eval(grads)
+            return grads
+        return run
+
+    rows = []
+    p_first, p_med, p_all, _ = timed(primal, a.repeat)
+    rows.append(("primal mi.render", p_first, p_med, p_all))
+    integrator = scene.integrator()
+    modes = {"auto": dr.ReduceMode.Auto, "local": dr.ReduceMode.Local,
+             "direct": dr.ReduceMode.Direct, "expand": dr.ReduceMode.Expand}
+    results = {}
+    for name in a.modes.split(","):
+        integrator.settings.reduce = modes[name]
+        f, m, al, grads = timed(backward(KEYS), a.repeat)
+        results[name] = m
+        rows.append((f"render + backward, all 3, reduce={name}", f, m, al))
+    best = min(results, key=results.get)
+    integrator.settings.reduce = modes[best]
+    for k in KEYS:
+        f, m, al, _ = timed(backward((k,)), a.repeat)
+        rows.append((f"render + backward, {k.split('.')[-1]} only", f, m, al))
+    # The adjoint pass alone: sample() in backward mode on the pixel rays.
+    for k in KEYS:
+        dr.enable_grad(params[k])
+    sensor = scene.sensors()[0]
+    with dr.suspend_grad():
+        sampler, _ = integrator.prepare(sensor, 0, 1, integrator.aov_names())
+        ray, _, _ = integrator.sample_rays(scene, sensor, sampler)
+        dr.eval(ray)
+        L, _, aovs, state = integrator.sample(dr.ADMode.Primal, scene, None, ray, None,
+                                              None, True)
+        dr.eval(L, aovs, state)
+    δL = mi.Color3f(1.0)
+
+    def adjoint():
+        with dr.suspend_grad():
+            integrator.sample(dr.ADMode.Backward, scene, None, ray, δL, state, True,
+                              δaovs=[mi.Float(1.0)])
+        dr.eval([dr.grad(params[k]) for k in KEYS])
+
+    f, m, al, _ = timed(adjoint, a.repeat)
+    rows.append(("adjoint pass alone (sample, backward mode)", f, m, al))
+
+    print()
+    print(f"{'':46s} {'1st run [s]':>11s} {'median [s]':>11s} {'/ primal':>9s}   runs [s]")
+    for name, f, m, al in rows:
+        print(f"{name:46s} {f:11.3f} {m:11.3f} {m / p_med:8.2f}x   "
+              + ", ".join(f"{x:.3f}" for x in al))
+    print()
+    print(f"render + backward / primal render: {results[best] / p_med:.2f}x "
+          f"(reduce_mode={best}; 'auto' = expand on LLVM when the buffers fit "
+          f"dr.expand_threshold() = {dr.expand_threshold():,} entries)")
+
+
+if __name__ == "__main__":
+    main(ARGS)
