@@ -5,6 +5,7 @@ import numpy as np
 
 import drjit as dr
 import mitsuba as mi
+import mi_tetvr
 from conftest import make_scene, rays_at
 from mi_tetvr.generate import grid_mesh
 from mi_tetvr.mesh import build_topology
@@ -207,3 +208,65 @@ def test_grazing_rays_and_camera_inside():
     # Inside: a starting point that moves with its tet's vertices.
     inside = Problem(jittered(rng), o_in, d_in, rng)
     check_fd(inside, rng)
+
+
+def test_mi_render_workflow_forward_backward_and_fd():
+    """Through mi.render: dr.backward and dr.forward of an RGBA image loss
+    agree with each other and with finite differences of the rendered loss."""
+    rng = np.random.default_rng(27)
+    V, T, C, S = jittered(rng)
+    scene = mi.load_dict({
+        "type": "scene", "integrator": {"type": "tetvr"},
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[2.5, 1.5, 3.0],
+                                                              target=[0, 0, 0], up=[0, 1, 0]),
+                   "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
+                   "film": {"type": "hdrfilm", "width": 16, "height": 16,
+                            "rfilter": {"type": "box"}}},
+        "mesh0": mi_tetvr.tetmesh_dict(V, T, C, S)})
+    params = mi.traverse(scene)
+    w = mi.TensorXf(rng.normal(size=(16, 16, 4)).astype(np.float32))  # RGB and the alpha AOV
+
+    def loss(p):
+        return dr.sum(mi.render(scene, p, spp=1) * w, axis=None)
+
+    key = "mesh0.vertex_opacity"
+    dr.enable_grad(params[key])
+    dr.backward(loss(params))
+    g = np.array(dr.grad(params[key]), np.float64)
+    direction = rng.normal(size=len(g))
+    dr.set_grad(params[key], mi.Float(direction))
+    fwd = float(np.array(dr.forward_to(loss(params))).ravel()[0])
+    dr.disable_grad(params[key])
+    reverse = float(direction @ g)
+    assert abs(fwd - reverse) < 0.01 * abs(reverse), (fwd, reverse)
+    base = np.array(params[key])
+    vals = []
+    h = 1e-3
+    for sign in (1, -1):
+        params[key] = mi.Float(base + sign * h * direction)
+        params.update()
+        vals.append(float(np.array(loss(None)).ravel()[0]))
+    params[key] = mi.Float(base)
+    params.update()
+    fd = (vals[0] - vals[1]) / (2 * h)
+    assert abs(fd - reverse) < 0.02 * abs(reverse), (fd, reverse)
+
+
+def test_reduce_modes_agree_and_bad_mode_is_refused():
+    rng = np.random.default_rng(28)
+    mesh = jittered(rng)
+    o, d = rays_at(rng, 64)
+    grads = []
+    for mode in ("auto", "direct", "local"):
+        problem = Problem(mesh, o, d, np.random.default_rng(1))
+        problem.integrator.settings.reduce = {"auto": dr.ReduceMode.Auto,
+                                              "direct": dr.ReduceMode.Direct,
+                                              "local": dr.ReduceMode.Local}[mode]
+        grads.append(problem.backward())
+    for other in grads[1:]:
+        for k in KEYS:
+            np.testing.assert_allclose(other[k], grads[0][k], rtol=1e-4,
+                                       atol=1e-6 * np.abs(grads[0][k]).max())
+    with np.testing.assert_raises_regex(Exception, "reduce_mode"):
+        make_scene(mesh, reduce_mode="sometimes")
