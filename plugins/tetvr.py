@@ -30,6 +30,12 @@ shapes by walking the tet adjacency.
    - Add the accumulated opacity 1 - T as an AOV channel named ``alpha``.
      (Default: true)
 
+Derivatives: ``mi.render`` with parameters, ``dr.backward`` and ``dr.forward``
+reach ``<id>.vertex_color``, ``<id>.vertex_opacity`` and ``<id>.vertex_positions``
+(and the ``alpha`` AOV's gradient flows too). The adjoint re-walks the rays and
+records nothing (see :mod:`mi_tetvr.traversal`); the silhouette of the mesh
+(which pixels it covers) has no boundary term.
+
 The pixel value is ``C + T * background`` where ``C`` is the accumulated
 emission, ``T`` the transmittance and ``background`` the scene's environment
 emitter (black without one). The scene must contain only ``tetmesh`` shapes.
