@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# Install mi_tetvr and everything it needs, then render the default scene.
-#   bash setup.sh            install + render out/default.exr and out/default.png
+# Install mi_tetvr and everything it needs, then run the main job on the
+# project's own default data set: render the default volume into a multi-view
+# data set, reconstruct it as a tet mesh, print the test PSNR.
+#   bash setup.sh            install + render out/default.{exr,png} + fit out/default_fit
 #   bash setup.sh --install  install only
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -15,4 +17,7 @@ python3 -m pip install -q -e ".[test]"
 python3 -m mi_tetvr.cli make-scenes >/dev/null
 if [ "${1:-}" != "--install" ]; then
     mi-tetvr render scenes/default.xml -o out/default.exr -o out/default.png
+    mi-tetvr make-dataset scenes/volumes/default.npy --tf scenes/tf_default.json \
+        --views 32 --test-views 8 --res 64 --fov 30 --out out/default_data
+    mi-tetvr fit out/default_data --out out/default_fit --restart --config scenes/fit_default.json
 fi

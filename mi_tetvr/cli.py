@@ -3,6 +3,9 @@
     mi-tetvr render SCENE.xml -o OUT.exr|.png [--spp N] [--res WxH] [--variant V]
     mi-tetvr info MESH [--json]
     mi-tetvr make-scenes [DIR]
+    mi-tetvr make-dataset VOLUME --tf TF --views N --res R --out DIR
+    mi-tetvr fit DATA --out DIR [--config FILE.json] [--time-budget MIN] [...]
+    mi-tetvr eval MESH DATA [--background R,G,B]
 """
 from __future__ import annotations
 
@@ -102,6 +105,87 @@ def cmd_make_scenes(a):
         print(f"wrote {p}")
 
 
+def _background(text):
+    """'white', 'black' or 'r,g,b' (linear) -> list, or None for RGBA fitting."""
+    if text is None or text == "none":
+        return None
+    named = {"white": [1.0, 1.0, 1.0], "black": [0.0, 0.0, 0.0]}
+    if text in named:
+        return named[text]
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != 3:
+        raise SystemExit(f"mi-tetvr: --background must be white, black, none or r,g,b; got {text!r}")
+    return vals
+
+
+def _load_data(path, downscale, holdout):
+    from mi_tetvr.datasets import load_dataset
+    try:
+        return load_dataset(path, downscale=downscale, holdout=holdout)
+    except (ValueError, FileNotFoundError) as e:
+        sys.exit(f"mi-tetvr: {e}")
+
+
+def cmd_fit(a):
+    _set_variant(a.variant)
+    from mi_tetvr.fit import FitConfig, run
+    try:
+        cfg = FitConfig.from_file(a.config) if a.config else FitConfig()
+        overrides = {k: getattr(a, k) for k in (
+            "init", "resolution", "iterations", "time_budget", "views_per_step", "lr_color",
+            "lr_opacity", "lr_position", "loss", "regularizer", "downscale", "seed", "n_sub")}
+        if a.background is not None:
+            overrides["background"] = _background(a.background)
+        if a.freeze_boundary is not None:
+            overrides["freeze_boundary"] = a.freeze_boundary
+        cfg = cfg.updated(**overrides)
+    except ValueError as e:
+        sys.exit(f"mi-tetvr: {e}")
+    data = _load_data(a.data, cfg.downscale, a.holdout)
+    print(f"{a.data}: {len(data.train)} training and {len(data.test)} test views "
+          f"({data.train[0].width}x{data.train[0].height})")
+    try:
+        metrics = run(data, a.out, cfg, resume=not a.restart)
+    except KeyboardInterrupt:
+        sys.exit("mi-tetvr: interrupted; progress saved (run the same command to resume)")
+    m = metrics["mean"]
+    print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} over {len(metrics['views'])} "
+          f"view(s) [{metrics['split']}]; {metrics['tets']:,} tets, {metrics['seconds']:.0f} s "
+          f"-> {Path(a.out) / 'mesh.vtu'}")
+
+
+def cmd_eval(a):
+    _set_variant(a.variant)
+    from mi_tetvr.fit import evaluate_mesh
+    data = _load_data(a.data, a.downscale, a.holdout)
+    metrics = evaluate_mesh(a.mesh, data, background=_background(a.background),
+                            split=a.split)
+    for name, m in metrics["views"].items():
+        print(f"  {name:<24s} PSNR {m['psnr']:6.2f} dB  SSIM {m['ssim']:.4f}")
+    m = metrics["mean"]
+    print(f"mean PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} ({len(metrics['views'])} views)")
+    if a.json:
+        Path(a.json).write_text(json.dumps(metrics, indent=2))
+
+
+def cmd_make_dataset(a):
+    _set_variant(a.variant)
+    from mi_tetvr.transfer import TransferFunction
+    from mi_tetvr.volume import load_volume, make_dataset
+    try:
+        vr = None if a.value_range is None else tuple(float(x) for x in a.value_range.split(","))
+        volume = load_volume(a.volume, value_range=vr)
+        tf = TransferFunction.from_file(a.tf)
+    except (ValueError, FileNotFoundError) as e:
+        sys.exit(f"mi-tetvr: {e}")
+    make_dataset(volume, tf, views=a.views, res=a.res, out_dir=a.out, test_views=a.test_views,
+                 seed=a.seed, radius=a.radius, fov=a.fov, opacity_scale=a.opacity_scale)
+    print(f"wrote {a.views} training and {a.test_views} test views at {a.res}x{a.res} to {a.out}")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog="mi-tetvr", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -122,6 +206,56 @@ def main(argv=None):
     m = sub.add_parser("make-scenes", help="(re)generate the meshes of the bundled scenes")
     m.add_argument("dir", nargs="?", default=None)
     m.set_defaults(func=cmd_make_scenes)
+    d = sub.add_parser("make-dataset", help="render a scalar volume into a NeRF-style data set")
+    d.add_argument("volume", help="scalar grid (.npy, .cvol, .mhd, .vti, raw .gz)")
+    d.add_argument("--tf", required=True, help="transfer function (.json or DiffTetVR .xml)")
+    d.add_argument("--views", type=int, default=64, help="training views (default 64)")
+    d.add_argument("--test-views", type=int, default=8, help="test views (default 8)")
+    d.add_argument("--res", type=int, default=256, help="image size (default 256)")
+    d.add_argument("--value-range", help="lo,hi of the raw values mapped to [0, 1] "
+                   "(default: the data's range)")
+    d.add_argument("--opacity-scale", type=float, default=1.0)
+    d.add_argument("--radius", type=float, default=4.0, help="camera distance (default 4)")
+    d.add_argument("--fov", type=float, help="horizontal fov in degrees (default: frames the "
+                   "[-1, 1]^3 box)")
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--out", required=True)
+    d.add_argument("--variant", default="llvm_ad_rgb")
+    d.set_defaults(func=cmd_make_dataset)
+    f = sub.add_parser("fit", help="reconstruct a tet-mesh volume from a multi-view data set")
+    f.add_argument("data", help="NeRF-style folder (transforms*.json) or COLMAP model folder")
+    f.add_argument("--out", required=True, help="output folder (also the checkpoint)")
+    f.add_argument("--config", help="JSON file of fit settings (see mi_tetvr.fit.FitConfig)")
+    f.add_argument("--init", help="grid (default), tetwild, delaunay or a mesh file")
+    f.add_argument("--resolution", type=int, help="cells along the largest axis (default 32)")
+    f.add_argument("--iterations", type=int, help="optimizer steps (default 1500)")
+    f.add_argument("--time-budget", type=float, help="minutes; stops in time and saves")
+    f.add_argument("--views-per-step", type=int)
+    f.add_argument("--lr-color", type=float)
+    f.add_argument("--lr-opacity", type=float, help="optical depth per cell and step")
+    f.add_argument("--lr-position", type=float, help="cell sizes per step; 0 = fixed")
+    f.add_argument("--regularizer", type=float, help="tet-quality weight (with positions)")
+    f.add_argument("--loss", choices=["l1", "l2"])
+    f.add_argument("--background", help="none (fit RGBA, default), white, black or r,g,b")
+    f.add_argument("--freeze-boundary", action=argparse.BooleanOptionalAction, default=None)
+    f.add_argument("--downscale", type=int, help="shrink images by this factor")
+    f.add_argument("--holdout", type=int, default=8,
+                   help="with a train split only: every N-th view is a test view (default 8)")
+    f.add_argument("--n-sub", type=int)
+    f.add_argument("--seed", type=int)
+    f.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
+    f.add_argument("--variant", default="llvm_ad_rgb")
+    f.set_defaults(func=cmd_fit)
+    e = sub.add_parser("eval", help="PSNR/SSIM of a mesh on a data set's test views")
+    e.add_argument("mesh")
+    e.add_argument("data")
+    e.add_argument("--background", help="none (default), white, black or r,g,b")
+    e.add_argument("--downscale", type=int, default=1)
+    e.add_argument("--holdout", type=int, default=8)
+    e.add_argument("--split", choices=["test", "train"], default="test")
+    e.add_argument("--json", help="also write the metrics to this file")
+    e.add_argument("--variant", default="llvm_ad_rgb")
+    e.set_defaults(func=cmd_eval)
     a = p.parse_args(argv)
     a.func(a)
 

@@ -43,4 +43,26 @@ def make_scene_meshes(directory=None, force=False):
     t = t[~((np.abs(c[:, 0]) < 0.34) & (c[:, 1] > -0.3))]
     col, op = blob_field(v, 3.0)
     save("ushape.vtu", TetMesh(v, t, np.clip(0.2 + 0.8 * col, 0, 1), 0.6 + op))
+    p = out.parent / "volumes" / "default.npy"
+    if force or not p.exists():
+        p.parent.mkdir(exist_ok=True)
+        np.save(p, default_volume())
+        written.append(p)
     return written
+
+
+def default_volume(n=64):
+    """The project's own scalar volume (n^3, values in [0, 1], x fastest as
+    ``values[z, y, x]``): a tilted ring, three blobs and a faint shell, the
+    default data set's ground truth (shaded by ``scenes/tf_default.json``)."""
+    x = (np.arange(n) + 0.5) / n * 2.0 - 1.0
+    z, y, x = np.meshgrid(x, x, x, indexing="ij")
+    p = np.stack([x, y, z], -1)
+    c, s = np.cos(0.5), np.sin(0.5)
+    q = p @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]])  # tilted ring in the xy plane
+    ring = np.exp(-((np.hypot(q[..., 0], q[..., 1]) - 0.55) ** 2 + q[..., 2] ** 2) / 0.012)
+    blobs = sum(a * np.exp(-np.sum((p - np.array(m)) ** 2, -1) / w) for a, m, w in (
+        (1.0, (0.0, 0.0, 0.0), 0.03), (0.9, (0.35, -0.45, 0.3), 0.015),
+        (0.8, (-0.4, 0.35, -0.35), 0.02)))
+    shell = 0.25 * np.exp(-(np.linalg.norm(p, axis=-1) - 0.85) ** 2 / 0.004)
+    return np.clip(0.6 * ring + blobs + shell, 0.0, 1.0).astype(np.float32)

@@ -67,7 +67,7 @@ from typing import Tuple, Union
 
 import numpy as np
 
-__all__ = ["TransferFunction", "srgb_to_linear"]
+__all__ = ["TransferFunction", "srgb_to_linear", "linear_to_srgb"]
 
 PathType = Union[str, "PathLike[str]"]
 
@@ -102,6 +102,13 @@ def srgb_to_linear(c):
     # np.maximum keeps the unused branch free of NaN warnings for c < -0.055.
     high = ((np.maximum(c, 0.04045) + 0.055) / 1.055) ** 2.4
     return np.where(c <= 0.04045, c / 12.92, high)
+
+
+def linear_to_srgb(c):
+    """Convert linear RGB to sRGB-encoded values (the inverse of
+    :func:`srgb_to_linear`); float64, same shape, inputs clipped at 0."""
+    c = np.maximum(np.asarray(c, dtype=np.float64), 0.0)
+    return np.where(c <= 0.0031308, c * 12.92, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
 
 
 def _as_float_array(value, name: str) -> np.ndarray:

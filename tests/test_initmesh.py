@@ -1,0 +1,266 @@
+"""Initial meshes: grid, fTetWild, Delaunay, visual-hull bounds, reports."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+import mitsuba as mi
+
+from mi_tetvr.initmesh import (delaunay_init, format_report, grid_init, mesh_report,
+                               project_points, tetwild_init, visual_hull_bounds)
+from mi_tetvr.mesh import MeshError, build_topology, signed_volumes
+
+
+def _boundary_area(v, topo):
+    f = v[topo.boundary_faces]
+    return 0.5 * np.linalg.norm(np.cross(f[:, 1] - f[:, 0], f[:, 2] - f[:, 0]), axis=1).sum()
+
+
+def _check_valid(v, t):
+    assert v.dtype == np.float64 and t.dtype == np.int64
+    assert v.shape[1] == 3 and t.shape[1] == 4 and len(t) > 0
+    vol = signed_volumes(v, t)
+    assert np.all(vol > 0)
+    assert np.array_equal(np.unique(t), np.arange(len(v)))  # no unreferenced vertex
+    topo = build_topology(v, t, warn=False)                 # raises if non-manifold
+    assert topo.n_flipped == 0 and not topo.flat.any()
+    return topo, vol
+
+
+# ----------------------------------------------------------------------------- grid
+def test_grid_init_counts_and_coverage():
+    b = np.array([[-1.0, 0.0, 2.0], [3.0, 1.0, 4.2]])      # extents 4, 1, 2.2
+    v, t = grid_init(b, 8)
+    shape = (8, 2, 4)                                        # 8 * 1/4 = 2, 8 * 2.2/4 = 4.4
+    assert len(t) == 6 * np.prod(shape)
+    assert len(v) == np.prod(np.array(shape) + 1)
+    for a in range(3):
+        assert len(np.unique(v[:, a])) == shape[a] + 1
+    topo, vol = _check_valid(v, t)
+    box_vol = np.prod(b[1] - b[0])
+    assert abs(vol.sum() - box_vol) <= 1e-9 * box_vol
+    bf = v[topo.boundary_faces]                              # every boundary face on the box
+    on = np.any(np.all(np.isclose(bf, b[0]), axis=1) | np.all(np.isclose(bf, b[1]), axis=1), axis=1)
+    assert on.all()
+    assert np.isclose(_boundary_area(v, topo), 2 * (4 * 1 + 4 * 2.2 + 1 * 2.2))
+    # a thin box still gets one cell along its short axes; jitter keeps the box
+    v, t = grid_init([[0, 0, 0], [1, 0.01, 0.5]], 4, jitter=0.3)
+    assert len(t) == 6 * 4 * 1 * 2
+    _, vol = _check_valid(v, t)
+    assert np.isclose(vol.sum(), 0.005)
+    with pytest.raises(ValueError):
+        grid_init([[0, 0, 0], [1, 0, 1]], 4)
+
+
+# ----------------------------------------------------------------------------- fTetWild
+def test_tetwild_box_and_sphere(tmp_path):
+    pytest.importorskip("pytetwild")
+    trimesh = pytest.importorskip("trimesh")
+    b = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    v, t = tetwild_init(bounds=b, edge_length_fac=0.1, num_threads=1)
+    _, vol = _check_valid(v, t)
+    assert abs(vol.sum() - 1.0) < 0.01
+    assert np.all(v >= -1e-6) and np.all(v <= 1 + 1e-6)
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    s.apply_translation([1.0, 2.0, 3.0])
+    v, t = tetwild_init(s, edge_length_fac=0.1, num_threads=1)
+    _, vol = _check_valid(v, t)
+    assert abs(vol.sum() / (4 / 3 * np.pi * 0.5 ** 3) - 1) < 0.03
+    assert np.all(v >= s.bounds[0] - 0.01) and np.all(v <= s.bounds[1] + 0.01)
+    # a surface given as a file trimesh loads
+    trimesh.creation.box(bounds=[[0, 0, 0], [2, 1, 1]]).export(tmp_path / "box.stl")
+    v, t = tetwild_init(tmp_path / "box.stl", edge_length_fac=0.1, num_threads=1)
+    _, vol = _check_valid(v, t)
+    assert abs(vol.sum() - 2.0) < 0.02
+    with pytest.raises(ValueError):
+        tetwild_init()
+
+
+# ----------------------------------------------------------------------------- Delaunay
+def test_delaunay_outliers_and_hull():
+    from scipy.spatial import ConvexHull
+
+    rng = np.random.default_rng(1)
+    inliers = rng.normal(size=(400, 3)) * [1.0, 0.5, 0.3]
+    outliers = np.array([[20.0, 0, 0], [0, -15, 3], [8, 8, 8], [-30, 1, 1], [0, 0, 25]])
+    v, t = delaunay_init(np.concatenate([inliers, outliers]), outlier_std=2.0)
+    # no outlier survives
+    d = np.linalg.norm(v[:, None] - outliers[None], axis=2)
+    assert d.min() > 1.0
+    topo, vol = _check_valid(v, t)
+    hull = ConvexHull(v)
+    assert np.isclose(vol.sum(), hull.volume, rtol=1e-9)               # fills its hull
+    assert np.isclose(_boundary_area(v, topo), hull.area, rtol=1e-9)   # no internal boundary
+    assert len(v) >= 0.97 * len(inliers)                               # few inliers lost
+    assert vol.sum() > 0.95 * ConvexHull(inliers).volume
+    # padded box corners: the hull is the padded bounding box
+    v, t = delaunay_init(inliers, outlier_std=None, padding=0.1)
+    lo, hi = inliers.min(0), inliers.max(0)
+    _, vol = _check_valid(v, t)
+    assert np.isclose(vol.sum(), np.prod(1.2 * (hi - lo)), rtol=1e-3)
+    with pytest.raises(MeshError):
+        delaunay_init([[0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    with pytest.raises(MeshError):                                      # coplanar
+        delaunay_init(np.c_[rng.uniform(size=(30, 2)), np.zeros(30)], outlier_std=None)
+
+
+def test_delaunay_degenerate_lattice_stays_conforming():
+    # a lattice is maximally degenerate: qhull emits flat tets that glue
+    # differently triangulated quads; they must not leave holes
+    a = np.linspace(0, 1, 5)
+    p = np.stack(np.meshgrid(a, a, a, indexing="ij"), -1).reshape(-1, 3)
+    v, t = delaunay_init(p, outlier_std=None)
+    topo, vol = _check_valid(v, t)
+    assert len(v) == len(p)
+    assert np.abs(v - p[np.argmin(np.linalg.norm(v[:, None] - p[None], axis=2), 1)]).max() < 0.01
+    assert abs(vol.sum() - 1) < 0.01
+    assert abs(_boundary_area(v, topo) - 6) < 0.05     # only the cube's faces are boundary
+
+
+# ----------------------------------------------------------------------------- cameras
+@dataclasses.dataclass
+class View:
+    """Stand-in for mi_tetvr.datasets.View (duck typing)."""
+    image: np.ndarray
+    to_world: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+
+def _look_at(origin, target, up):
+    return np.array(mi.ScalarTransform4f().look_at(origin=origin, target=target, up=up).matrix,
+                    dtype=np.float64)
+
+
+def test_projection_matches_mitsuba():
+    W, H, fov = 40, 30, 50.0
+    for off in [(0.0, 0.0), (0.1, -0.05)]:
+        to_world = _look_at([1.0, 2.0, 3.0], [0.2, 0.0, -0.1], [0.0, 1.0, 0.0])
+        sensor = mi.load_dict({
+            "type": "perspective", "fov": fov, "fov_axis": "x",
+            "principal_point_offset_x": off[0], "principal_point_offset_y": off[1],
+            "to_world": mi.ScalarTransform4f(to_world),
+            "film": {"type": "hdrfilm", "width": W, "height": H}})
+        f = W / 2 / np.tan(np.radians(fov) / 2)
+        cx, cy = W * (0.5 - off[0]), H * (0.5 - off[1])
+        view = View(np.zeros((H, W, 4)), to_world, f, f, cx, cy, W, H)
+        pos = np.array([[0.1, 0.2], [0.5, 0.5], [0.9, 0.7], [0.03, 0.95]])
+        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(pos[:, 0], pos[:, 1]), mi.Point2f(0.5, 0.5))
+        o, d = np.array(ray.o, np.float64).T, np.array(ray.d, np.float64).T
+        for dist in (0.5, 2.0, 7.0):
+            uv, depth = project_points(o + dist * d, view)
+            assert np.all(depth > 0)
+            np.testing.assert_allclose(uv, pos * [W, H], atol=1e-3)
+    # camera space: +z forward, +y up, +x to the image's LEFT
+    c2w = np.array(mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, 1],
+                                                  up=[0, 1, 0]).matrix)
+    view = View(None, c2w, 10.0, 10.0, 20.0, 15.0, 40, 30)
+    uv, _ = project_points(np.array([[1.0, 0, 5], [0, 1.0, 5]]), view)
+    assert uv[0, 0] < 20 and np.isclose(uv[0, 1], 15)      # +x: left
+    assert uv[1, 1] < 15 and np.isclose(uv[1, 0], 20)      # +y: up (row 0 is the top)
+
+
+def test_rendered_silhouette_matches_projection():
+    # Mitsuba's image rows: row 0 at the top; a sphere off-centre up-left in
+    # camera space lands where project_points puts it
+    W, H, fov = 24, 16, 45.0
+    to_world = _look_at([0.0, 0.0, 5.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    centre, radius = np.array([-0.6, 0.4, 0.0]), 0.35
+    scene = mi.load_dict({
+        "type": "scene", "integrator": {"type": "direct"},
+        "sensor": {"type": "perspective", "fov": fov, "to_world": mi.ScalarTransform4f(to_world),
+                   "film": {"type": "hdrfilm", "width": W, "height": H, "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": 4}},
+        "ball": {"type": "sphere", "center": centre.tolist(), "radius": radius,
+                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}}})
+    img = np.array(mi.render(scene))[..., 0]
+    f = W / 2 / np.tan(np.radians(fov) / 2)
+    view = View(None, to_world, f, f, W / 2, H / 2, W, H)
+    mask = _sphere_mask(view, W, H, centre, radius)
+    rendered = img > 0.5
+    assert rendered.sum() > 5
+    iou = (mask & rendered).sum() / (mask | rendered).sum()
+    assert iou > 0.8, iou
+
+
+def _pixel_rays(view, W, H):
+    j, i = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    d_cam = np.stack([(view.cx - j) / view.fx, (view.cy - i) / view.fy, np.ones_like(j)], -1)
+    m = np.asarray(view.to_world)
+    d = d_cam @ m[:3, :3].T
+    return m[:3, 3], d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def _sphere_mask(view, W, H, centre, radius):
+    o, d = _pixel_rays(view, W, H)
+    oc = o - centre
+    b = d @ oc
+    disc = b ** 2 - (oc @ oc - radius ** 2)
+    return (disc >= 0) & (-b + np.sqrt(np.maximum(disc, 0)) > 0)
+
+
+def _box_mask(view, W, H, lo, hi):
+    o, d = _pixel_rays(view, W, H)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0, t1 = (lo - o) / d, (hi - o) / d
+    tn = np.nanmax(np.minimum(t0, t1), axis=-1)
+    tf = np.nanmin(np.maximum(t0, t1), axis=-1)
+    return (tn <= tf) & (tf > 0)
+
+
+def _six_views(mask_fn, W=40, H=32, dist=4.0):
+    f = W / 2 / np.tan(np.radians(40.0) / 2)
+    dirs = [([1, 0, 0], [0, 1, 0]), ([-1, 0, 0], [0, 1, 0]), ([0, 1, 0], [0, 0, 1]),
+            ([0, -1, 0], [0, 0, 1]), ([0, 0, 1], [0, 1, 0]), ([0, 0, -1], [0, 1, 0])]
+    views = []
+    for dvec, up in dirs:
+        c2w = _look_at((dist * np.asarray(dvec, float)).tolist(), [0.0, 0.0, 0.0], up)
+        view = View(None, c2w, f, f, W / 2, H / 2, W, H)
+        alpha = mask_fn(view, W, H).astype(np.float64)
+        view.image = np.concatenate([np.zeros((H, W, 3)), alpha[..., None]], -1)
+        views.append(view)
+    return views
+
+
+def test_visual_hull_bounds_sphere_and_box():
+    centre, radius = np.array([0.2, -0.1, 0.15]), 0.5
+    views = _six_views(lambda v, W, H: _sphere_mask(v, W, H, centre, radius))
+    b = visual_hull_bounds(views, resolution=32)
+    lo, hi = centre - radius, centre + radius
+    assert np.all(b[0] <= lo) and np.all(b[1] >= hi)
+    assert np.all(b[1] - b[0] < 1.4 * 2 * radius), b
+    # an explicit initial box larger than what the views see: voxels outside
+    # the images must be carved for a tight box (every view sees the object)
+    lo, hi = np.array([-0.3, -0.6, -0.2]), np.array([0.5, 0.2, 0.4])
+    views = _six_views(lambda v, W, H: _box_mask(v, W, H, lo, hi))
+    b = visual_hull_bounds(views, resolution=32, initial_bounds=[[-2, -2, -2], [2, 2, 2]],
+                           outside="carve")
+    assert np.all(b[0] <= lo) and np.all(b[1] >= hi)
+    assert np.all((b[1] - b[0]) < (hi - lo) + 0.4), b
+    # empty masks: nothing survives
+    for v in views:
+        v.image[..., 3] = 0
+    with pytest.raises(ValueError):
+        visual_hull_bounds(views, resolution=8)
+
+
+# ----------------------------------------------------------------------------- report
+def test_mesh_report_on_grid():
+    v, t = grid_init([[0, 0, 0], [2, 1, 1]], 4)     # 4 x 2 x 2 cells
+    r = mesh_report(v, t)
+    assert r["vertices"] == 5 * 3 * 3 and r["tets"] == 6 * 16
+    assert r["boundary_faces"] == 2 * 2 * (4 * 2 + 4 * 2 + 2 * 2)
+    assert r["flat_tets"] == 0 and r["inverted_tets"] == 0 and r["unused_vertices"] == 0
+    assert r["bounds_min"] == [0, 0, 0] and r["bounds_max"] == [2, 1, 1]
+    assert np.isclose(r["volume"], 2.0)
+    # Kuhn tets of a cube are congruent: edges 1, 1, 1, sqrt2, sqrt2, sqrt3 (cell 0.5 here)
+    q = 6 * np.sqrt(2) * (1 / 6) / (10 / 6) ** 1.5
+    for k in ("quality_min", "quality_mean", "quality_p01", "quality_p05", "quality_p50"):
+        assert np.isclose(r[k], q)
+    text = format_report(r)
+    assert "tets" in text and "quality_mean" in text and len(text.splitlines()) == len(r)
