@@ -61,7 +61,7 @@ import numpy as np
 
 from .transfer import linear_to_srgb, srgb_to_linear
 
-__all__ = ["View", "Dataset", "load_dataset", "load_nerf", "load_colmap", "write_nerf",
+__all__ = ["View", "Dataset", "look_at", "load_dataset", "load_nerf", "load_colmap", "write_nerf",
            "read_image", "write_image", "downscale_image", "OPENGL_TO_MITSUBA",
            "OPENCV_TO_MITSUBA"]
 
@@ -79,6 +79,27 @@ Holdout = Union[int, Sequence[int], None]
 # --------------------------------------------------------------------------------------------
 # Images
 # --------------------------------------------------------------------------------------------
+
+def look_at(origin, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world (4, 4) in Mitsuba axes, as ``mi.ScalarTransform4f().look_at``.
+
+    If ``up`` is (nearly) parallel to the view direction, another up vector (the world axis
+    least aligned with the view direction) is used.
+    """
+    o = np.asarray(origin, np.float64)
+    d = np.asarray(target, np.float64) - o
+    d /= np.linalg.norm(d)
+    u = np.asarray(up, np.float64)
+    u = u / np.linalg.norm(u)
+    if abs(np.dot(u, d)) > 0.999:
+        u = np.eye(3)[np.argmin(np.abs(d))]
+    left = np.cross(u, d)
+    left /= np.linalg.norm(left)
+    new_up = np.cross(d, left)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, new_up, d, o
+    return m
+
 
 def downscale_image(image: np.ndarray, factor: int) -> np.ndarray:
     """Area-average an image by an integer factor.
@@ -276,17 +297,7 @@ class View:
             raise ValueError("give exactly one of fov_x (degrees) and fx (pixels)")
         if fx is None:
             fx = 0.5 * width / math.tan(math.radians(fov_x) / 2)
-        o, t, u = (np.asarray(v, np.float64) for v in (origin, target, up))
-        d = t - o
-        d /= np.linalg.norm(d)
-        left = np.cross(u, d)
-        if np.linalg.norm(left) < 1e-12:
-            raise ValueError("look_at: 'up' is parallel to the viewing direction")
-        left /= np.linalg.norm(left)
-        new_up = np.cross(d, left)
-        m = np.eye(4)
-        m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, new_up, d, o
-        return cls(name, image, m, fx, fx, width / 2 if cx is None else cx,
+        return cls(name, image, look_at(origin, target, up), fx, fx, width / 2 if cx is None else cx,
                    height / 2 if cy is None else cy, width, height)
 
     # -- camera geometry --------------------------------------------------------------------

@@ -60,6 +60,7 @@ class FitConfig:
     regularizer: float = 10.0          # weight lambda of the tet-quality term (DiffTetVR
     regularizer_beta: float = 100.0    # Eq. 21, their values); used when positions move
     freeze_boundary: bool = True       # keep boundary vertices fixed when positions move
+    safeguard: bool = True             # shorten position steps that would invert a tet
     n_sub: int = 4                     # sub-intervals per tet segment while fitting
     spp: int = 1
     jitter: bool = True                # random sub-pixel positions (False: pixel centres,
@@ -286,8 +287,9 @@ class Trainer:
         delta = new - old
         if self.config.freeze_boundary:
             delta[self.boundary] = 0.0
-        delta, n_short = safe_step(old, self.tets, delta)
-        self.shortened += int(n_short)
+        if self.config.safeguard:
+            delta, n_short = safe_step(old, self.tets, delta)
+            self.shortened += int(n_short)
         self.opt[K_POSITION] = self.mi.Float((old + delta).astype(np.float32).ravel())
 
     # -- state ------------------------------------------------------------------

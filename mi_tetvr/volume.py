@@ -73,6 +73,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .datasets import look_at
 from .transfer import TransferFunction
 
 __all__ = [
@@ -261,13 +262,7 @@ def _load_cvol(path: Path):
         raise ValueError(f"{str(path)!r}: unknown cvol data type {typ} (0 uint8, 1 uint16, 2 float)")
     dt = np.dtype(_CVOL_TYPES[typ])
     if compressed:
-        # DiffDVR writes chunks with its own lz4cpp stream framing; this has not been
-        # verified against a real compressed file, so refuse rather than guess.
-        try:
-            import lz4  # noqa: F401
-        except ImportError:
-            raise ValueError(f"{str(path)!r}: LZ4-compressed .cvol needs the 'lz4' package "
-                             "(pip install lz4), which is not installed") from None
+        # DiffDVR's lz4cpp chunk framing is not verified against a real file: refuse.
         raise ValueError(f"{str(path)!r}: LZ4-compressed .cvol (DiffDVR lz4cpp chunk framing) "
                          "is not supported; re-save it uncompressed")
     n = nx * ny * nz
@@ -427,27 +422,6 @@ def load_volume(path: PathType, shape=None, dtype=None, spacing=None,
 
 
 # ============================================================================ cameras
-def look_at(origin, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """Camera-to-world (4, 4) in Mitsuba axes, as ``mi.ScalarTransform4f().look_at``.
-
-    If ``up`` is (nearly) parallel to the view direction, another up vector (the world axis
-    least aligned with the view direction) is used.
-    """
-    o = np.asarray(origin, np.float64)
-    d = np.asarray(target, np.float64) - o
-    d /= np.linalg.norm(d)
-    u = np.asarray(up, np.float64)
-    u = u / np.linalg.norm(u)
-    if abs(np.dot(u, d)) > 0.999:
-        u = np.eye(3)[np.argmin(np.abs(d))]
-    left = np.cross(u, d)
-    left /= np.linalg.norm(left)
-    new_up = np.cross(d, left)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, new_up, d, o
-    return m
-
-
 def default_fov(radius: float, margin: float = 1.05) -> float:
     """Horizontal fov (degrees) whose cone at distance ``radius`` holds the sphere of
     radius ``margin * sqrt(3)`` around the origin (the ``[-1, 1]^3`` box)."""

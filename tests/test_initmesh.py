@@ -1,11 +1,11 @@
 """Initial meshes: grid, fTetWild, Delaunay, visual-hull bounds, reports."""
-import dataclasses
 
 import numpy as np
 import pytest
 
 import mitsuba as mi
 
+from mi_tetvr import datasets
 from mi_tetvr.initmesh import (delaunay_init, format_report, grid_init, mesh_report,
                                project_points, tetwild_init, visual_hull_bounds)
 from mi_tetvr.mesh import MeshError, build_topology, signed_volumes
@@ -119,17 +119,8 @@ def test_delaunay_degenerate_lattice_stays_conforming():
 
 
 # ----------------------------------------------------------------------------- cameras
-@dataclasses.dataclass
-class View:
-    """Stand-in for mi_tetvr.datasets.View (duck typing)."""
-    image: np.ndarray
-    to_world: np.ndarray
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
+def View(image, to_world, fx, fy, cx, cy, width, height):
+    return datasets.View("v", image, to_world, fx, fy, cx, cy, width, height)
 
 
 def _look_at(origin, target, up):

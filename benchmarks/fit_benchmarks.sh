@@ -1,0 +1,10 @@
+#!/usr/bin/env bash
+# Reconstruction benchmarks (needs ../shared/data): engine CT rendered by the
+# grid ray marcher, and NeRF-synthetic Lego. Results: out/*_fit/metrics.json.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+DATA=../shared/data
+mi-tetvr make-dataset $DATA/engine-ct/engine_256x256x128_uint8.raw.gz --value-range 0,255 \
+    --tf scenes/tf_engine.json --views 64 --test-views 8 --res 256 --fov 40 --out out/engine_data
+mi-tetvr fit out/engine_data --out out/engine_fit --restart --config benchmarks/fit_engine.json
+mi-tetvr fit $DATA/nerf-lego --downscale 4 --out out/lego_fit --restart --config benchmarks/fit_lego.json
