@@ -35,11 +35,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--steps", type=int, default=300)
+    p.add_argument("--steps", type=int, default=200)
     p.add_argument("--res", type=int, default=64)
     p.add_argument("--views", type=int, default=32)
     p.add_argument("--resolution", type=int, default=16, help="grid cells along the largest axis")
-    p.add_argument("--lrs", default="0.01,0.03,0.1,0.3,1.0",
+    p.add_argument("--lrs", default="0.03,0.1,0.3,1.0",
                    help="position learning rates in cell sizes per step")
     a = p.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_positions_"))

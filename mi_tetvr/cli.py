@@ -6,6 +6,7 @@
     mi-tetvr make-dataset VOLUME --tf TF --views N --res R --out DIR
     mi-tetvr fit DATA --out DIR [--config FILE.json] [--time-budget MIN] [...]
     mi-tetvr eval MESH DATA [--background R,G,B]
+    mi-tetvr refine MESH --select ATTRIBUTE --fraction F -o OUT
 """
 from __future__ import annotations
 
@@ -186,6 +187,19 @@ def cmd_make_dataset(a):
     print(f"wrote {a.views} training and {a.test_views} test views at {a.res}x{a.res} to {a.out}")
 
 
+def cmd_refine(a):
+    from mi_tetvr.io import read_tetmesh, write_tetmesh
+    from mi_tetvr.refine import refine_mesh
+    try:
+        mesh = read_tetmesh(a.mesh)
+        out = refine_mesh(mesh, a.select, a.fraction)
+    except (ValueError, FileNotFoundError, KeyError) as e:
+        sys.exit(f"mi-tetvr: {e}")
+    write_tetmesh(a.output, out)
+    print(f"{a.mesh}: {len(mesh.tets):,} tets, {len(mesh.vertices):,} vertices -> "
+          f"{len(out.tets):,} tets, {len(out.vertices):,} vertices -> {a.output}")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog="mi-tetvr", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -256,6 +270,13 @@ def main(argv=None):
     e.add_argument("--json", help="also write the metrics to this file")
     e.add_argument("--variant", default="llvm_ad_rgb")
     e.set_defaults(func=cmd_eval)
+    rf = sub.add_parser("refine", help="split the edges around the top vertices of a "
+                        "point-data array")
+    rf.add_argument("mesh")
+    rf.add_argument("--select", required=True, help="point-data array to rank vertices by")
+    rf.add_argument("--fraction", type=float, default=0.05, help="top fraction (default 0.05)")
+    rf.add_argument("-o", "--output", required=True)
+    rf.set_defaults(func=cmd_refine)
     a = p.parse_args(argv)
     a.func(a)
 

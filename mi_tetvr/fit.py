@@ -69,6 +69,14 @@ class FitConfig:
     seed: int = 0
     checkpoint_every: int = 100
     log_every: int = 10
+    # Coarse-to-fine: a list of stages run one after the other, each
+    # {"iterations": N, "lr_position": x (0: colors and opacities only),
+    #  "split": fraction of vertices to refine after the stage,
+    #  "prune": opacity threshold (optical depth per cell) to drop empty tets after it}.
+    # None: one stage of ``iterations`` steps with ``lr_position``.
+    stages: list | None = None
+    target_tets: int | None = None     # no more splits once the mesh has this many tets
+    select: str = "gradient"           # refinement criterion: gradient | color | opacity
 
     @classmethod
     def from_file(cls, path):
@@ -98,6 +106,44 @@ class FitConfig:
             raise ValueError("decay must be in (0, 1]")
         if self.background is not None and len(self.background) != 3:
             raise ValueError("background must be three linear RGB values")
+        if self.select not in ("gradient", "color", "opacity"):
+            raise ValueError(f"select must be gradient, color or opacity, got {self.select!r}")
+        for st in self.stage_list():
+            bad = sorted(set(st) - {"iterations", "lr_position", "split", "prune"})
+            if bad:
+                raise ValueError(f"unknown stage settings {bad}: use iterations, lr_position, "
+                                 f"split, prune")
+            if int(st.get("iterations", 0)) < 0 or not 0 <= st.get("split", 0) <= 1:
+                raise ValueError(f"bad stage {st}: iterations >= 0, split in [0, 1]")
+
+    def stage_list(self):
+        """The stages as dicts with all keys (see ``stages``)."""
+        raw = self.stages or [{"iterations": self.iterations, "lr_position": self.lr_position}]
+        return [{"iterations": int(st.get("iterations", 0)),
+                 "lr_position": float(st.get("lr_position", 0.0)),
+                 "split": float(st.get("split", 0.0)),
+                 "prune": st.get("prune", None), **{k: v for k, v in st.items() if k not in
+                                                    ("iterations", "lr_position", "split",
+                                                     "prune")}}
+                for st in raw]
+
+    def for_stage(self, i):
+        """The settings one stage trains with (its iterations and position rate)."""
+        st = self.stage_list()[i]
+        return dataclasses.replace(self, iterations=max(st["iterations"], 1),
+                                   lr_position=st["lr_position"])
+
+
+def coarse_to_fine(rounds=3, steps=300, lr_position=0.05, split=0.05, final=None):
+    """DiffTetVR's schedule: colors only, then colors and positions, then a
+    split of the top ``split`` fraction of vertices; ``rounds`` times, and a
+    last colors-only stage of ``final`` steps (default ``steps``)."""
+    stages = []
+    for _ in range(rounds):
+        stages += [{"iterations": steps}, {"iterations": steps, "lr_position": lr_position,
+                                           "split": split}]
+    return stages + [{"iterations": steps if final is None else final}]
+
 
 
 def psnr(mse):
@@ -144,7 +190,7 @@ def initial_mesh(config: FitConfig, dataset):
     if init == "grid":
         return initmesh.grid_init(bounds, config.resolution)
     edge = float(np.max(bounds[1] - bounds[0])) / config.resolution
-    return initmesh.tetwild_init(bounds=bounds, edge_length=edge)
+    return initmesh.tetwild_init(bounds=bounds, edge_length_abs=edge)
 
 
 def data_bounds(config: FitConfig, dataset):
@@ -219,6 +265,8 @@ class Trainer:
             self.regularizer = QualityRegularizer(self.tets, beta=config.regularizer_beta,
                                                   weight=config.regularizer)
         self.step_index = 0
+        self.stage = 0           # index into config.stage_list()
+        self.stage_start = 0     # global step at which this stage began
         self.elapsed = 0.0
         self.history = {"step": [], "time": [], "loss": [], "psnr": []}
         self.shortened = 0  # vertices whose step the safeguard shortened, in total
@@ -226,7 +274,7 @@ class Trainer:
 
     # -- one step ---------------------------------------------------------------
     def learning_rates(self):
-        frac = min(self.step_index / max(self.config.iterations, 1), 1.0)
+        frac = min((self.step_index - self.stage_start) / max(self.config.iterations, 1), 1.0)
         return {k: self.base_lr[k] * self.config.decay ** frac for k in self.keys}
 
     def render(self, view, params=None, seed=0, spp=None):
@@ -315,6 +363,7 @@ class Trainer:
             opt_state[f"{k}:v"] = np.array(v)
         tmp = Path(path).with_suffix(".tmp.npz")
         np.savez(tmp, vertices=V, tets=T, color=C, opacity=S, step=self.step_index,
+                 stage=self.stage, stage_start=self.stage_start,
                  elapsed=self.elapsed, shortened=self.shortened,
                  history=json.dumps(self.history), config=json.dumps(dataclasses.asdict(self.config)),
                  rng=json.dumps(self.rng.bit_generator.state), **opt_state)
@@ -324,6 +373,8 @@ class Trainer:
         """Restore step count, history, RNG and Adam moments from a checkpoint."""
         mi = self.mi
         self.step_index = int(ckpt["step"])
+        self.stage = int(ckpt["stage"])
+        self.stage_start = int(ckpt["stage_start"])
         self.elapsed = float(ckpt["elapsed"])
         self.shortened = int(ckpt["shortened"])
         self.history = json.loads(str(ckpt["history"]))
@@ -336,6 +387,47 @@ class Trainer:
             m = mi.Float(ckpt[f"{k}:m"].astype(np.float32))
             v = mi.Float(ckpt[f"{k}:v"].astype(np.float32))
             self.opt.state[k] = (value, promoted, lr, (t, m, v, *extra[3:]))
+
+    def moments(self):
+        """Adam's moments per vertex: {key: (t, m (n, c), v (n, c))}."""
+        n = len(np.array(self.params[K_OPACITY]))
+        out = {}
+        for k in self.keys:
+            t, m, v = self.opt.state[k][3][:3]
+            out[k] = (int(np.asarray(t).ravel()[0]), np.array(m).reshape(n, -1),
+                      np.array(v).reshape(n, -1))
+        return out
+
+    def set_moments(self, moments):
+        """Restore per-vertex Adam moments (e.g. interpolated onto a refined mesh)."""
+        mi = self.mi
+        for k, (t, m, v) in moments.items():
+            if k not in self.keys:
+                continue
+            value, promoted, lr, extra = self.opt.state[k]
+            self.opt.state[k] = (value, promoted, lr,
+                                 (type(extra[0])(t), mi.Float(m.astype(np.float32).ravel()),
+                                  mi.Float(v.astype(np.float32).ravel()), *extra[3:]))
+
+    def vertex_scores(self, views, criterion="gradient"):
+        """Per-vertex refinement scores: absolute image-loss gradients summed
+        over ``views`` without stepping (AbsGS-style), of colors, opacities
+        (in optical depth per cell) or both."""
+        dr = self.dr
+        n = len(np.array(self.params[K_OPACITY]))
+        score = np.zeros(n)
+        for j, view in enumerate(views):
+            for k in (K_COLOR, K_OPACITY):
+                dr.clear_grad(self.opt[k])
+            img = self.render(view, self.params, seed=2 * (10 ** 6 + j))
+            dr.backward(self.loss_of(img, view))
+            if criterion in ("gradient", "color"):
+                score += np.abs(np.array(dr.grad(self.opt[K_COLOR]))).reshape(n, 3).sum(1)
+            if criterion in ("gradient", "opacity"):
+                score += np.abs(np.array(dr.grad(self.opt[K_OPACITY]))) / self.h
+        for k in self.keys:
+            dr.clear_grad(self.opt[k])
+        return score
 
     # -- evaluation -------------------------------------------------------------
     def render_view(self, view, seed=0):
@@ -358,6 +450,8 @@ class Trainer:
 def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=print):
     """Fit, checkpointing to ``out_dir``; returns the final metrics dict.
 
+    Runs ``config``'s stages in order (one stage unless ``config.stages``);
+    between stages the mesh may be refined and pruned (:func:`next_stage`).
     A run interrupted (Ctrl-C, or the time budget) still writes the mesh and
     metrics; ``resume=True`` continues from ``out_dir/checkpoint.npz``.
     """
@@ -368,43 +462,51 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.npz"
+    stages = config.stage_list()
     if resume and ckpt_path.exists():
         ckpt = np.load(ckpt_path)
-        trainer = Trainer(dataset, ckpt["vertices"], ckpt["tets"], config,
-                          ckpt["color"], ckpt["opacity"])
+        trainer = Trainer(dataset, ckpt["vertices"], ckpt["tets"],
+                          config.for_stage(int(ckpt["stage"])), ckpt["color"], ckpt["opacity"])
         trainer.load_state(ckpt)
-        log(f"resumed from {ckpt_path} at step {trainer.step_index}")
+        log(f"resumed from {ckpt_path} at step {trainer.step_index} (stage {trainer.stage + 1})")
     else:
         V, T = initial_mesh(config, dataset)
         log(format_report(mesh_report(V, T)))
-        trainer = Trainer(dataset, V, T, config)
+        trainer = Trainer(dataset, V, T, config.for_stage(0))
     (out / "config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2))
 
     budget = None if config.time_budget is None else 60.0 * config.time_budget
     start = time.perf_counter() - trainer.elapsed
     interrupted = False
-    bar = tqdm(total=config.iterations, initial=trainer.step_index, disable=not progress,
-               unit="step", dynamic_ncols=True)
+    bar = tqdm(total=sum(st["iterations"] for st in stages), initial=trainer.step_index,
+               disable=not progress, unit="step", dynamic_ncols=True)
     try:
-        while trainer.step_index < config.iterations:
-            loss = trainer.step()
-            trainer.elapsed = time.perf_counter() - start
-            h = trainer.history
-            h["step"].append(trainer.step_index)
-            h["time"].append(trainer.elapsed)
-            h["loss"].append(loss)
-            h["psnr"].append(psnr(loss) if config.loss == "l2" else float("nan"))
-            bar.update(1)
-            if trainer.step_index % config.log_every == 0 or trainer.step_index == 1:
-                recent = float(np.mean(h["loss"][-config.log_every:]))
-                bar.set_postfix(loss=f"{recent:.3g}",
-                                psnr=f"{psnr(recent):.2f}" if config.loss == "l2" else "-")
-            if trainer.step_index % config.checkpoint_every == 0:
-                trainer.save_checkpoint(ckpt_path)
-            if budget is not None and trainer.elapsed > budget:
-                log(f"time budget of {config.time_budget} min reached at step "
-                    f"{trainer.step_index}")
+        while True:
+            stage = stages[trainer.stage]
+            end = trainer.stage_start + stage["iterations"]
+            while trainer.step_index < end:
+                loss = trainer.step()
+                trainer.elapsed = time.perf_counter() - start
+                h = trainer.history
+                h["step"].append(trainer.step_index)
+                h["time"].append(trainer.elapsed)
+                h["loss"].append(loss)
+                h["psnr"].append(psnr(loss) if config.loss == "l2" else float("nan"))
+                bar.update(1)
+                if trainer.step_index % config.log_every == 0 or trainer.step_index == 1:
+                    recent = float(np.mean(h["loss"][-config.log_every:]))
+                    bar.set_postfix(loss=f"{recent:.3g}", tets=f"{len(trainer.tets):,}",
+                                    psnr=f"{psnr(recent):.2f}" if config.loss == "l2" else "-")
+                if trainer.step_index % config.checkpoint_every == 0:
+                    trainer.save_checkpoint(ckpt_path)
+                if budget is not None and trainer.elapsed > budget:
+                    raise TimeoutError
+            if trainer.stage + 1 == len(stages):
                 break
+            trainer = next_stage(trainer, config, log)
+            trainer.save_checkpoint(ckpt_path)
+    except TimeoutError:
+        log(f"time budget of {config.time_budget} min reached at step {trainer.step_index}")
     except KeyboardInterrupt:
         interrupted = True
         log(f"interrupted at step {trainer.step_index}: saving")
@@ -415,6 +517,54 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     if interrupted:
         raise KeyboardInterrupt
     return result
+
+
+def next_stage(trainer: Trainer, config: FitConfig, log=print):
+    """After a stage: prune empty tets and split the top vertices as the
+    stage says, rebuild the scene, and carry parameters and Adam's moments
+    over (new vertices start from their edge's midpoint values). Returns the
+    next stage's trainer."""
+    from .refine import prune_empty, select_top_fraction, split_vertices
+    stage = config.stage_list()[trainer.stage]
+    V, T, C, S = trainer.arrays()
+    moments = trainer.moments()
+    data = {"color": C, "opacity": S}
+    for k, (_, m, v) in moments.items():
+        data[f"{k}:m"], data[f"{k}:v"] = m, v
+    if stage["prune"] is not None:
+        res = prune_empty(V, T, S, float(stage["prune"]) / trainer.h, point_data=data)
+        log(f"pruned {len(T) - len(res.tets):,} empty tets")
+        V, T, data = res.vertices, res.tets, res.point_data
+    if stage["split"] > 0 and (config.target_tets is None or len(T) < config.target_tets):
+        if len(V) != len(trainer.arrays()[0]) or len(T) != len(trainer.tets):
+            # Scores belong to the pruned mesh's vertices: rebuild once to score them.
+            trainer = _rebuilt(trainer, config, V, T, data, trainer.stage)
+        scores = trainer.vertex_scores(trainer.dataset.train, config.select)
+        selected = select_top_fraction(scores, stage["split"])
+        res = split_vertices(V, T, selected, point_data=data)
+        log(f"split {len(selected):,} vertices: {len(T):,} -> {len(res.tets):,} tets")
+        V, T, data = res.vertices, res.tets, res.point_data
+    return _rebuilt(trainer, config, V, T, data, trainer.stage + 1)
+
+
+def _rebuilt(trainer: Trainer, config: FitConfig, V, T, data, stage):
+    """A trainer for stage ``stage`` on mesh (V, T) with the point data
+    ``data`` (color, opacity, Adam moments), continuing ``trainer``'s run."""
+    new = Trainer(trainer.dataset, V, T, config.for_stage(stage), data["color"],
+                  data["opacity"])
+    new.step_index = trainer.step_index
+    new.stage = stage
+    new.stage_start = trainer.step_index if stage != trainer.stage else trainer.stage_start
+    new.elapsed = trainer.elapsed
+    new.history = trainer.history
+    new.shortened = trainer.shortened
+    new.rng = trainer.rng
+    # build_topology may re-order/orient tets but keeps vertex order: the
+    # per-vertex moments carry over directly.
+    old = trainer.moments()
+    new.set_moments({k: (old[k][0], data[f"{k}:m"], data[f"{k}:v"]) for k in old
+                     if f"{k}:m" in data})
+    return new
 
 
 def write_outputs(trainer: Trainer, out: Path):
@@ -490,5 +640,5 @@ def evaluate_mesh(mesh_path, dataset, background=None, n_sub=8, split="test"):
     return trainer.evaluate(views)
 
 
-__all__ = ["FitConfig", "Trainer", "run", "evaluate_mesh", "image_metrics", "initial_mesh",
+__all__ = ["FitConfig", "Trainer", "run", "next_stage", "coarse_to_fine", "evaluate_mesh", "image_metrics", "initial_mesh",
            "data_bounds", "psnr", "composite"]

@@ -60,3 +60,44 @@ def test_info(tmp_path):
     assert s["volume"] == pytest.approx(8.0)
     r = run("info", str(tmp_path / "none.vtu"))
     assert r.returncode != 0 and "not found" in r.stderr
+
+
+def test_make_dataset_fit_eval(tmp_path):
+    """The main job end to end on a tiny volume: make-dataset, fit (then a
+    resumed fit that has nothing left to do), eval of the written mesh."""
+    from mi_tetvr.scenes import default_volume
+    np.save(tmp_path / "vol.npy", default_volume(12))
+    data, out = tmp_path / "data", tmp_path / "fit"
+    r = run("make-dataset", str(tmp_path / "vol.npy"), "--tf", "scenes/tf_default.json",
+            "--views", "4", "--test-views", "2", "--res", "12", "--fov", "30", "--out", str(data))
+    assert r.returncode == 0, r.stderr
+    r = run("fit", str(data), "--out", str(out), "--resolution", "3", "--iterations", "4",
+            "--views-per-step", "2", "--n-sub", "2")
+    assert r.returncode == 0, r.stderr
+    assert "test PSNR" in r.stdout
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["step"] == 4 and len(metrics["views"]) == 2
+    r = run("eval", str(out / "mesh.vtu"), str(data), "--json", str(tmp_path / "m.json"))
+    assert r.returncode == 0, r.stderr
+    assert "mean PSNR" in r.stdout and (tmp_path / "m.json").is_file()
+    # Bad input: a clear message, no traceback.
+    r = run("fit", str(tmp_path / "nowhere"), "--out", str(out))
+    assert r.returncode != 0 and "not found" in r.stderr and "Traceback" not in r.stderr
+    r = run("fit", str(data), "--out", str(out), "--background", "purple")
+    assert r.returncode != 0 and "--background" in r.stderr
+
+
+def test_refine_command(tmp_path):
+    V, T = grid_mesh(3, jitter=0.1, seed=2)
+    score = np.zeros(len(V))
+    score[[5, 20]] = 1.0
+    src = tmp_path / "m.vtu"
+    write_tetmesh(src, TetMesh(V, T, point_data={"score": score}))
+    r = run("refine", str(src), "--select", "score", "--fraction", "0.05", "-o",
+            str(tmp_path / "r.vtu"))
+    assert r.returncode == 0, r.stderr
+    from mi_tetvr.io import read_tetmesh
+    out = read_tetmesh(tmp_path / "r.vtu")
+    assert len(out.tets) > len(T) and len(out.vertices) > len(V)
+    r = run("refine", str(src), "--select", "nope", "-o", str(tmp_path / "x.vtu"))
+    assert r.returncode != 0 and "nope" in r.stderr and "Traceback" not in r.stderr

@@ -96,10 +96,48 @@ def test_joint_positions_never_invert(data, tmp_path):
     assert np.abs(V - V0).max() > 0.01  # positions did move
 
 
+def test_coarse_to_fine_stages_and_resume(data, tmp_path, monkeypatch):
+    """Colors, then joint with a split, then colors: the mesh grows, the
+    step count and history run on across stages, and an interruption in the
+    last stage resumes there with the refined mesh."""
+    stages = [{"iterations": 5}, {"iterations": 5, "lr_position": 0.1, "split": 0.1},
+              {"iterations": 5}]
+    cfg = CFG.updated(stages=stages)
+    V0, T0 = initial_mesh(cfg, data)
+    interrupt_at(monkeypatch, 13)
+    with pytest.raises(KeyboardInterrupt):
+        run(data, tmp_path, cfg, progress=False, log=lambda *a: None)
+    ck = np.load(tmp_path / "checkpoint.npz")
+    assert int(ck["stage"]) == 2 and int(ck["step"]) == 12 and len(ck["tets"]) > len(T0)
+    monkeypatch.undo()
+    metrics = run(data, tmp_path, cfg, progress=False, log=lambda *a: None)
+    ck = np.load(tmp_path / "checkpoint.npz")
+    assert int(ck["step"]) == 15 and metrics["tets"] == len(ck["tets"]) > len(T0)
+    assert metrics["inverted_tets"] == 0
+    hist = json.loads(str(ck["history"]))
+    assert hist["step"] == list(range(1, 16))
+
+
 def test_time_budget_stops_and_saves(data, tmp_path):
     metrics = run(data, tmp_path, CFG.updated(time_budget=1e-6), progress=False,
                   log=lambda *a: None)
     assert metrics["step"] == 1 and (tmp_path / "mesh.vtu").is_file()
+
+
+@pytest.mark.parametrize("init", ["tetwild", "delaunay"])
+def test_other_initial_meshes(data, init):
+    from mi_tetvr.mesh import build_topology
+    cfg = CFG.updated(init=init)
+    if init == "delaunay":
+        with pytest.raises(ValueError, match="sparse points"):
+            initial_mesh(cfg, data)
+        rng = np.random.default_rng(0)
+        data = type(data)(data.train, data.test, points=rng.uniform(-0.8, 0.8, (300, 3)))
+    V, T = initial_mesh(cfg, data)
+    topo = build_topology(V, T)
+    assert topo.n_tets > 50 and topo.n_flipped == 0
+    lo, hi = V.min(0), V.max(0)
+    assert np.all(hi - lo > 0.5) and np.all(hi - lo < 3.0)
 
 
 def test_config_errors(tmp_path):
