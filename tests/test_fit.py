@@ -2,9 +2,12 @@
 the grid ray marcher: the fit improves held-out PSNR, writes its outputs,
 resumes exactly where it stopped, and saves when interrupted."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
+
+import mitsuba as mi
 
 from mi_tetvr.datasets import load_nerf
 from mi_tetvr.fit import FitConfig, Trainer, evaluate_mesh, initial_mesh, run
@@ -12,7 +15,7 @@ from mi_tetvr.scenes import default_volume
 from mi_tetvr.transfer import TransferFunction
 from mi_tetvr.volume import make_dataset, make_volume
 
-ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[1]
 CFG = FitConfig(resolution=4, iterations=24, views_per_step=2, lr_color=0.08, lr_opacity=0.3,
                 n_sub=2, jitter=False, checkpoint_every=4, log_every=4)
 
@@ -116,6 +119,34 @@ def test_coarse_to_fine_stages_and_resume(data, tmp_path, monkeypatch):
     assert metrics["inverted_tets"] == 0
     hist = json.loads(str(ck["history"]))
     assert hist["step"] == list(range(1, 16))
+
+
+def test_next_stage_prunes_splits_and_carries_state(data):
+    """Pruning drops exactly the empty tets, the split grows the mesh, and
+    colors, opacities and Adam moments follow the vertices."""
+    from mi_tetvr.fit import next_stage
+    cfg = CFG.updated(stages=[{"iterations": 2, "prune": 1e-3, "split": 0.1},
+                              {"iterations": 2}])
+    V, T = initial_mesh(cfg, data)
+    trainer = Trainer(data, V, T, cfg.for_stage(0))
+    for _ in range(2):
+        trainer.step()
+    # Empty the half x < 0 (opacity zero there).
+    S = np.array(trainer.opt["volume.vertex_opacity"])
+    S[V[:, 0] < -1e-9] = 0.0
+    trainer.opt["volume.vertex_opacity"] = mi.Float(S)
+    trainer.params.update(trainer.opt)
+    before = trainer.moments()
+    nxt = next_stage(trainer, cfg, log=lambda *a: None)
+    Vn, Tn, Cn, Sn = nxt.arrays()
+    empty = (S[trainer.tets] <= 1e-3 / trainer.h).all(1)
+    assert empty.any() and nxt.stage == 1 and nxt.step_index == 2 and nxt.stage_start == 2
+    assert len(Tn) > int((~empty).sum())  # pruned, then split
+    assert np.all(Sn[Tn].max(1) > 0)      # no empty tet left
+    after = nxt.moments()
+    for k in ("volume.vertex_color", "volume.vertex_opacity"):
+        assert after[k][0] == before[k][0]                 # Adam's step count carried
+        assert after[k][1].shape[0] == len(Vn)              # moments on the new vertices
 
 
 def test_time_budget_stops_and_saves(data, tmp_path):
