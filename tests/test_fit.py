@@ -180,3 +180,10 @@ def test_config_errors(tmp_path):
     p.write_text(json.dumps({"resolution": 8, "lr_color": 0.1}))
     cfg = FitConfig.from_file(p)
     assert cfg.resolution == 8 and cfg.lr_color == 0.1 and cfg.loss == "l2"
+    with pytest.raises(ValueError, match="unknown stage settings"):
+        FitConfig().updated(stages=[{"iterations": 5, "lr": 1}])
+    from mi_tetvr.fit import coarse_to_fine
+    st = FitConfig().updated(stages=coarse_to_fine(rounds=2, steps=10, split=0.05)).stage_list()
+    assert [s["iterations"] for s in st] == [10] * 5
+    assert [s["split"] for s in st] == [0, 0.05, 0, 0.05, 0]
+    assert [s["lr_position"] > 0 for s in st] == [False, True, False, True, False]
