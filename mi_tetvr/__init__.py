@@ -7,12 +7,20 @@ Usage::
     import mi_tetvr                 # registers the `tetmesh` shape and `tetvr` integrator
 
 The numpy parts (:mod:`mi_tetvr.mesh`, :mod:`mi_tetvr.io`,
-:mod:`mi_tetvr.transfer`) work without a Mitsuba variant. If no variant is set
-at import, call :func:`register` after :func:`mitsuba.set_variant`.
+:mod:`mi_tetvr.transfer`, :mod:`mi_tetvr.refine`, :mod:`mi_tetvr.initmesh`)
+work without a Mitsuba variant. If no variant is set at import, call
+:func:`register` after :func:`mitsuba.set_variant`.
+
+Reconstruction: :mod:`mi_tetvr.datasets` (NeRF / COLMAP data sets and cameras),
+:mod:`mi_tetvr.volume` (scalar grids and the grid ray marcher),
+:mod:`mi_tetvr.initmesh` (initial meshes), :mod:`mi_tetvr.regularizer`
+(tet quality, inversion safeguard), :mod:`mi_tetvr.refine` (coarse-to-fine
+splits) and :mod:`mi_tetvr.fit` (the training loop behind ``mi-tetvr fit``).
 """
 from __future__ import annotations
 
 import importlib
+import sys
 
 from .io import read_tetmesh, write_tetmesh
 from .mesh import MeshError, TetMesh, Topology, build_topology, quality
@@ -39,10 +47,14 @@ def register():
     if variant == _registered_variant:
         return
     from . import plugins  # noqa: F401
-    for name in ("kernels", "traversal", "plugins.tetmesh", "plugins.tetvr"):
-        mod = importlib.import_module(f"{__name__}.{name}")
-        if _registered_variant is not None:
-            importlib.reload(mod)
+    # Modules that bind Mitsuba/Dr.Jit types at import are reloaded for a new variant.
+    for name in ("kernels", "traversal", "volume", "regularizer", "plugins.tetmesh",
+                 "plugins.tetvr"):
+        full = f"{__name__}.{name}"
+        if name.startswith("plugins.") or full in sys.modules:
+            mod = importlib.import_module(full)
+            if _registered_variant is not None:
+                importlib.reload(mod)
     _registered_variant = variant
 
 

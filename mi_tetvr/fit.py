@@ -63,8 +63,9 @@ class FitConfig:
     safeguard: bool = True             # shorten position steps that would invert a tet
     n_sub: int = 4                     # sub-intervals per tet segment while fitting
     spp: int = 1
-    jitter: bool = True                # random sub-pixel positions (False: pixel centres,
-                                       # for targets rendered through pixel centres)
+    jitter: bool | None = None         # random sub-pixel positions; False: pixel centres (for
+                                       # targets rendered through pixel centres); None: False
+                                       # for data sets made by make-dataset, else True
     downscale: int = 1
     seed: int = 0
     checkpoint_every: int = 100
@@ -166,6 +167,14 @@ def image_metrics(pred_rgba, target_rgba, background):
     return {"psnr": psnr(mse), "ssim": ssim, "mse": mse}
 
 
+def pixel_centre_data(dataset):
+    """True for data sets rendered through pixel centres (``mi-tetvr
+    make-dataset`` writes ``volume_info.json``), whose pixels are point
+    samples rather than pixel averages."""
+    root = getattr(dataset, "root", None)
+    return root is not None and (Path(root) / "volume_info.json").is_file()
+
+
 def cell_size(vertices, tets):
     """Mean edge length of a tet mesh."""
     e = vertices[tets[:, [0, 0, 0, 1, 1, 2]]] - vertices[tets[:, [1, 2, 3, 2, 3, 3]]]
@@ -242,11 +251,12 @@ class Trainer:
             MESH_ID: mi_tetvr.tetmesh_dict(vertices, self.tets, color, opacity),
         })
         self.params = mi.traverse(self.scene)
-        sampler = "independent" if config.jitter else "stratified"
+        self.jitter = config.jitter if config.jitter is not None else not pixel_centre_data(dataset)
+        sampler = "independent" if self.jitter else "stratified"
         self.sensors = {}
         for v in dataset.train + dataset.test:
             d = v.sensor_dict(spp=config.spp, sampler=sampler)
-            if not config.jitter:
+            if not self.jitter:
                 d["sampler"]["jitter"] = False
             self.sensors[id(v)] = mi.load_dict(d)
         self.targets = {id(v): mi.TensorXf(np.ascontiguousarray(v.image, np.float32))
@@ -433,7 +443,7 @@ class Trainer:
     def render_view(self, view, seed=0):
         """Numpy (h, w, 4) render of a view (no gradients); with jittered
         sampling, 16 samples per pixel approximate the pixel average."""
-        spp = 16 if self.config.jitter else 1
+        spp = 16 if self.jitter else 1
         with self.dr.suspend_grad():
             return np.array(self.render(view, None, seed=seed, spp=spp))
 

@@ -46,6 +46,8 @@ def test_fit_improves_and_writes_outputs(data, tmp_path):
     assert saved["step"] == CFG.iterations and saved["inverted_tets"] == 0
     # Scoring the written mesh again gives the same numbers (world units kept).
     again = evaluate_mesh(tmp_path / "mesh.vtu", data, n_sub=CFG.n_sub)["mean"]["psnr"]
+    # make-dataset data are point samples at pixel centres: detected, no jitter.
+    assert not Trainer(data, V, T, FitConfig()).jitter
     assert again == pytest.approx(saved["mean"]["psnr"], abs=0.05)
 
 
