@@ -90,14 +90,9 @@ def cmd_info(a):
     if a.json:
         print(json.dumps(s, indent=2))
         return
+    from mi_tetvr.mesh import format_summary
     print(f"{a.mesh}")
-    w = max(len(k) for k in s)
-    for k, v in s.items():
-        if isinstance(v, float):
-            v = f"{v:.6g}"
-        elif isinstance(v, list) and v and isinstance(v[0], float):
-            v = "[" + ", ".join(f"{x:.6g}" for x in v) + "]"
-        print(f"  {k:<{w}}  {v}")
+    print("\n".join("  " + line for line in format_summary(s).splitlines()))
 
 
 def cmd_make_scenes(a):

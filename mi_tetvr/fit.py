@@ -467,7 +467,7 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     """
     from tqdm import tqdm
 
-    from .initmesh import format_report, mesh_report
+    from .mesh import build_topology, format_summary, geometry_summary
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -481,7 +481,7 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
         log(f"resumed from {ckpt_path} at step {trainer.step_index} (stage {trainer.stage + 1})")
     else:
         V, T = initial_mesh(config, dataset)
-        log(format_report(mesh_report(V, T)))
+        log(format_summary(geometry_summary(V, build_topology(V, T, warn=False))))
         trainer = Trainer(dataset, V, T, config.for_stage(0))
     (out / "config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2))
 

@@ -14,7 +14,6 @@ Free functions over numpy arrays. Every initializer returns
 * :func:`visual_hull_bounds` -- the box enclosing the visual hull of alpha
   masks, to give the initializers their region; :func:`project_points` is the
   pinhole projection it uses.
-* :func:`mesh_report` / :func:`format_report` -- counts, bounds and quality.
 
 Camera convention (Mitsuba's ``perspective`` sensor, verified against
 ``Sensor.sample_ray`` in ``tests/test_initmesh.py``): camera space has +z
@@ -40,12 +39,12 @@ from pathlib import Path
 import numpy as np
 
 from .generate import grid_mesh
-from .mesh import FLAT_TOLERANCE, MeshError, build_topology, quality, signed_volumes
+from .mesh import FLAT_TOLERANCE, MeshError, signed_volumes
 
 __all__ = ["grid_init", "tetwild_init", "delaunay_init", "box_surface",
            "remove_outliers", "project_points", "visual_hull_bounds",
            "initial_bounds_from_cameras",
-           "mesh_report", "format_report", "orient_and_compact"]
+           "orient_and_compact"]
 
 
 # --------------------------------------------------------------------------- helpers
@@ -555,60 +554,3 @@ def visual_hull_bounds(views, threshold: float = 0.05, resolution: int = 64,
                              "cameras do not see the initial bounds")
         b = np.stack([kept.min(0) - 1.5 * h, kept.max(0) + 1.5 * h])
     return b
-
-
-# --------------------------------------------------------------------------- report
-def mesh_report(vertices, tets) -> dict:
-    """Counts, bounding box and quality statistics of a tet mesh.
-
-    Parameters
-    ----------
-    vertices : (n, 3) float
-    tets : (m, 4) int
-
-    Returns
-    -------
-    dict
-        ``vertices``, ``unused_vertices``, ``tets``, ``boundary_faces``,
-        ``inverted_tets`` (negative signed volume before orientation),
-        ``flat_tets`` (zero volume per :data:`mi_tetvr.mesh.FLAT_TOLERANCE`),
-        ``bounds_min``, ``bounds_max`` (lists of 3), ``volume`` (sum of
-        absolute tet volumes), ``quality_min``, ``quality_mean``,
-        ``quality_p01``, ``quality_p05``, ``quality_p50`` (of
-        :func:`mi_tetvr.mesh.quality` on the oriented tets).
-    """
-    topo = build_topology(vertices, tets, warn=False)
-    v = np.asarray(vertices, dtype=np.float64)
-    t = np.asarray(topo.tets, dtype=np.int64)
-    q = quality(v, t)
-    used = np.zeros(len(v), bool)
-    used[t.ravel()] = True
-    return {
-        "vertices": int(len(v)),
-        "unused_vertices": int(np.count_nonzero(~used)),
-        "tets": int(len(t)),
-        "boundary_faces": int(len(topo.boundary_faces)),
-        "inverted_tets": int(topo.n_flipped),
-        "flat_tets": int(np.count_nonzero(topo.flat)),
-        "bounds_min": v.min(0).tolist(),
-        "bounds_max": v.max(0).tolist(),
-        "volume": float(topo.volumes.sum()),
-        "quality_min": float(q.min()),
-        "quality_mean": float(q.mean()),
-        "quality_p01": float(np.percentile(q, 1)),
-        "quality_p05": float(np.percentile(q, 5)),
-        "quality_p50": float(np.percentile(q, 50)),
-    }
-
-
-def format_report(d: dict) -> str:
-    """Human-readable lines for a :func:`mesh_report` dict."""
-    def fmt(x):
-        if isinstance(x, float):
-            return f"{x:.6g}"
-        if isinstance(x, (list, tuple)):
-            return "(" + ", ".join(fmt(y) for y in x) + ")"
-        return str(x)
-
-    width = max(len(k) for k in d) if d else 0
-    return "\n".join(f"{k:<{width}} : {fmt(v)}" for k, v in d.items())

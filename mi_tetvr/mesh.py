@@ -333,6 +333,44 @@ DEFAULT_COLOR = (1.0, 1.0, 1.0)
 DEFAULT_OPACITY = 1.0
 
 
+def geometry_summary(vertices, topology: Topology) -> dict:
+    """Counts, bounding box, boundary, repairs and quality statistics of a mesh
+    (``topology`` from :func:`build_topology` of ``vertices``)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    q = quality(v, topology.tets)
+    used = np.zeros(len(v), bool)
+    used[topology.tets.ravel()] = True
+    return {
+        "vertices": int(len(v)),
+        "unused_vertices": int(np.count_nonzero(~used)),
+        "tets": int(topology.n_tets),
+        "boundary_faces": int(len(topology.boundary_faces)),
+        "inverted_tets_fixed": int(topology.n_flipped),
+        "zero_volume_tets": int(np.count_nonzero(topology.flat)),
+        "bounds_min": v.min(0).tolist(),
+        "bounds_max": v.max(0).tolist(),
+        "volume": float(topology.volumes.sum()),
+        "quality_min": float(q.min()),
+        "quality_mean": float(q.mean()),
+        "quality_p01": float(np.percentile(q, 1)),
+        "quality_p05": float(np.percentile(q, 5)),
+        "quality_p50": float(np.percentile(q, 50)),
+    }
+
+
+def format_summary(d: dict) -> str:
+    """Aligned ``key  value`` lines of a summary dict (floats to 6 digits)."""
+    def fmt(x):
+        if isinstance(x, float):
+            return f"{x:.6g}"
+        if isinstance(x, (list, tuple)):
+            return "[" + ", ".join(fmt(y) for y in x) + "]"
+        return str(x)
+
+    width = max((len(k) for k in d), default=0)
+    return "\n".join(f"{k:<{width}}  {fmt(v)}" for k, v in d.items())
+
+
 class TetMesh:
     """A tetrahedral mesh with per-vertex color and opacity (numpy).
 
@@ -377,25 +415,9 @@ class TetMesh:
         return TetMesh(v, self.tets, self.color, self.opacity, self.point_data)
 
     def summary(self) -> dict:
-        """Counts, bounding box, boundary and quality statistics."""
-        topo = self.topology
-        q = quality(self.vertices, topo.tets)
-        used = np.zeros(len(self.vertices), bool)
-        used[topo.tets.ravel()] = True
-        return {
-            "vertices": int(len(self.vertices)),
-            "unused_vertices": int(np.count_nonzero(~used)),
-            "tets": int(topo.n_tets),
-            "boundary_faces": int(len(topo.boundary_faces)),
-            "inverted_tets_fixed": topo.n_flipped,
-            "zero_volume_tets": int(np.count_nonzero(topo.flat)),
-            "bounds_min": self.bounds[0].tolist(),
-            "bounds_max": self.bounds[1].tolist(),
-            "volume": float(topo.volumes.sum()),
-            "quality_min": float(q.min()),
-            "quality_mean": float(q.mean()),
-            "quality_p01": float(np.percentile(q, 1)),
-            "color_range": [float(self.color.min()), float(self.color.max())],
-            "opacity_range": [float(self.opacity.min()), float(self.opacity.max())],
-            "point_data": {k: list(np.shape(v)) for k, v in self.point_data.items()},
-        }
+        """:func:`geometry_summary` plus the ranges of color and opacity and
+        the point-data arrays."""
+        return {**geometry_summary(self.vertices, self.topology),
+                "color_range": [float(self.color.min()), float(self.color.max())],
+                "opacity_range": [float(self.opacity.min()), float(self.opacity.max())],
+                "point_data": {k: list(np.shape(v)) for k, v in self.point_data.items()}}

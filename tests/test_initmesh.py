@@ -6,9 +6,10 @@ import pytest
 import mitsuba as mi
 
 from mi_tetvr import datasets
-from mi_tetvr.initmesh import (delaunay_init, format_report, grid_init, mesh_report,
+from mi_tetvr.initmesh import (delaunay_init, grid_init,
                                project_points, tetwild_init, visual_hull_bounds)
-from mi_tetvr.mesh import MeshError, build_topology, signed_volumes
+from mi_tetvr.mesh import (MeshError, build_topology, format_summary, geometry_summary,
+                           signed_volumes)
 
 
 def _boundary_area(v, topo):
@@ -241,17 +242,18 @@ def test_visual_hull_bounds_sphere_and_box():
 
 
 # ----------------------------------------------------------------------------- report
-def test_mesh_report_on_grid():
+def test_geometry_summary_on_grid():
     v, t = grid_init([[0, 0, 0], [2, 1, 1]], 4)     # 4 x 2 x 2 cells
-    r = mesh_report(v, t)
+    r = geometry_summary(v, build_topology(v, t))
     assert r["vertices"] == 5 * 3 * 3 and r["tets"] == 6 * 16
     assert r["boundary_faces"] == 2 * 2 * (4 * 2 + 4 * 2 + 2 * 2)
-    assert r["flat_tets"] == 0 and r["inverted_tets"] == 0 and r["unused_vertices"] == 0
+    assert r["zero_volume_tets"] == 0 and r["inverted_tets_fixed"] == 0
+    assert r["unused_vertices"] == 0
     assert r["bounds_min"] == [0, 0, 0] and r["bounds_max"] == [2, 1, 1]
     assert np.isclose(r["volume"], 2.0)
     # Kuhn tets of a cube are congruent: edges 1, 1, 1, sqrt2, sqrt2, sqrt3 (cell 0.5 here)
     q = 6 * np.sqrt(2) * (1 / 6) / (10 / 6) ** 1.5
     for k in ("quality_min", "quality_mean", "quality_p01", "quality_p05", "quality_p50"):
         assert np.isclose(r[k], q)
-    text = format_report(r)
+    text = format_summary(r)
     assert "tets" in text and "quality_mean" in text and len(text.splitlines()) == len(r)
