@@ -68,11 +68,9 @@ def scene_tetmeshes(scene):
     return shapes
 
 
-def mesh_buffers(shapes):
-    """Concatenate the shapes' buffers (index offsets applied in numpy, the
-    attribute buffers stay attached to the shapes' AD graph).
-
-    Returns (MeshBuffers, face_offsets)."""
+def index_buffers(shapes):
+    """The shapes' topology buffers concatenated, index offsets applied in
+    numpy. Returns (dict of MeshBuffers index fields, face_offsets)."""
     vo = to = fo = 0
     idx = {k: [] for k in ("tets", "nbr", "boundary", "faces", "face_adj")}
     face_offsets = []
@@ -90,23 +88,28 @@ def mesh_buffers(shapes):
         fo += s.face_count()
     if vo >= 2 ** 32 or 4 * to >= 2 ** 31:
         raise ValueError("tet meshes too large for 32-bit indices")
-    cat = lambda xs: np.concatenate(xs)
+    types = {"tets": (mi.UInt32, np.uint32), "nbr": (mi.Int32, np.int32),
+             "boundary": (mi.UInt32, np.uint32), "faces": (mi.UInt32, np.uint32),
+             "face_adj": (mi.Int32, np.int32)}
+    return ({k: t(np.concatenate(idx[k]).astype(nt)) for k, (t, nt) in types.items()},
+            face_offsets)
 
-    def attr(name, fn):
-        bufs = [fn(s) for s in shapes]
+
+def attribute_buffers(shapes):
+    """Positions, colors and opacities of the shapes, concatenated; they stay
+    attached to the shapes' AD graph (re-read on every render: they change
+    under optimization)."""
+    def cat(bufs):
         return bufs[0] if len(bufs) == 1 else dr.concat(bufs)
+    return {"positions": cat([s.vertex_positions_buffer() for s in shapes]),
+            "color": cat([s.attribute_buffer("vertex_color") for s in shapes]),
+            "opacity": cat([s.attribute_buffer("vertex_opacity") for s in shapes])}
 
-    buf = MeshBuffers(
-        tets=mi.UInt32(cat(idx["tets"]).astype(np.uint32)),
-        nbr=mi.Int32(cat(idx["nbr"]).astype(np.int32)),
-        boundary=mi.UInt32(cat(idx["boundary"]).astype(np.uint32)),
-        faces=mi.UInt32(cat(idx["faces"]).astype(np.uint32)),
-        face_adj=mi.Int32(cat(idx["face_adj"]).astype(np.int32)),
-        positions=attr("p", lambda s: s.vertex_positions_buffer()),
-        color=attr("c", lambda s: s.attribute_buffer("vertex_color")),
-        opacity=attr("o", lambda s: s.attribute_buffer("vertex_opacity")),
-    )
-    return buf, face_offsets
+
+def mesh_buffers(shapes):
+    """All buffers of the shapes. Returns (MeshBuffers, face_offsets)."""
+    idx, face_offsets = index_buffers(shapes)
+    return MeshBuffers(**idx, **attribute_buffers(shapes)), face_offsets
 
 
 class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
@@ -137,23 +140,14 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         return ["alpha"] if self.alpha else []
 
     def _buffers(self, scene):
+        """(shapes, MeshBuffers, face_offsets): index buffers cached per set
+        of shapes, attribute buffers read afresh."""
         shapes = scene_tetmeshes(scene)
         key = tuple(id(s.tet_buffers) for s in shapes)
         if self._index_cache is None or self._index_cache[0] != key:
-            buf, offsets = mesh_buffers(shapes)
-            self._index_cache = (key, buf, offsets)
-        _, buf, offsets = self._index_cache
-        # Attribute buffers are re-read on every call (they change under
-        # optimization); index buffers are cached.
-        if len(shapes) == 1:
-            s = shapes[0]
-            buf = MeshBuffers(buf.tets, buf.nbr, buf.boundary, buf.faces, buf.face_adj,
-                              s.vertex_positions_buffer(),
-                              s.attribute_buffer("vertex_color"),
-                              s.attribute_buffer("vertex_opacity"))
-        else:
-            buf = mesh_buffers(shapes)[0]
-        return shapes, buf, offsets
+            self._index_cache = (key, *index_buffers(shapes))
+        _, idx, offsets = self._index_cache
+        return shapes, MeshBuffers(**idx, **attribute_buffers(shapes)), offsets
 
     def background(self, scene, d, active):
         env = scene.environment()
@@ -179,7 +173,11 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
                             s.reduce)
 
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
-        shapes, buf, offsets = self._buffers(scene)
+        # Derivative modes read the parameters with AD resumed (the caller,
+        # e.g. render_backward, suspends it): the per-segment recomputation
+        # inside the walk needs their AD graph; the walk itself runs detached.
+        with dr.resume_grad(when=mode != dr.ADMode.Primal):
+            shapes, buf, offsets = self._buffers(scene)
         settings = self.settings_for(scene)
         ray = mi.Ray3f(dr.detach(ray))
         ray.d = dr.normalize(ray.d)
@@ -198,13 +196,8 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
             adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(δL), δalpha)
         else:
             adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(0.0), mi.Float(0.0))
-        # The walk itself runs on detached buffers; only the per-segment
-        # recomputation inside the loop sees the parameters' AD graph (read
-        # with AD resumed: the caller, e.g. render_backward, suspends it).
-        with dr.resume_grad():
-            _, buf_ad, _ = self._buffers(scene)
         _, _, _, adj = trace(mode, scene, dr.detach(buf), shapes, offsets, ray, settings,
-                             active, adj, buf_ad=buf_ad)
+                             active, adj, buf_ad=buf)
         if mode == dr.ADMode.Backward:
             return mi.Color3f(0.0), mi.Bool(True), [], None
         return adj.dL, mi.Bool(True), [adj.dalpha] if self.alpha else [], None
