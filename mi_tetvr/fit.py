@@ -541,39 +541,29 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
     data = {"color": C, "opacity": S}
     for k, (_, m, v) in moments.items():
         data[f"{k}:m"], data[f"{k}:v"] = m, v
+    split = stage["split"] > 0 and (config.target_tets is None or len(T) < config.target_tets)
+    # Scored on this stage's mesh; pruning only removes vertices of empty tets.
+    scores = trainer.vertex_scores(trainer.dataset.train, config.select) if split else None
     if stage["prune"] is not None:
         res = prune_empty(V, T, S, float(stage["prune"]) / trainer.h, point_data=data)
         log(f"pruned {len(T) - len(res.tets):,} empty tets")
         V, T, data = res.vertices, res.tets, res.point_data
-    if stage["split"] > 0 and (config.target_tets is None or len(T) < config.target_tets):
-        if len(V) != len(trainer.arrays()[0]) or len(T) != len(trainer.tets):
-            # Scores belong to the pruned mesh's vertices: rebuild once to score them.
-            trainer = _rebuilt(trainer, config, V, T, data, trainer.stage)
-        scores = trainer.vertex_scores(trainer.dataset.train, config.select)
+        scores = None if scores is None else scores[res.vertex_parent]
+    if split:
         selected = select_top_fraction(scores, stage["split"])
         res = split_vertices(V, T, selected, point_data=data)
         log(f"split {len(selected):,} vertices: {len(T):,} -> {len(res.tets):,} tets")
         V, T, data = res.vertices, res.tets, res.point_data
-    return _rebuilt(trainer, config, V, T, data, trainer.stage + 1)
-
-
-def _rebuilt(trainer: Trainer, config: FitConfig, V, T, data, stage):
-    """A trainer for stage ``stage`` on mesh (V, T) with the point data
-    ``data`` (color, opacity, Adam moments), continuing ``trainer``'s run."""
-    new = Trainer(trainer.dataset, V, T, config.for_stage(stage), data["color"],
-                  data["opacity"])
-    new.step_index = trainer.step_index
-    new.stage = stage
-    new.stage_start = trainer.step_index if stage != trainer.stage else trainer.stage_start
-    new.elapsed = trainer.elapsed
-    new.history = trainer.history
-    new.shortened = trainer.shortened
-    new.rng = trainer.rng
-    # build_topology may re-order/orient tets but keeps vertex order: the
+    # build_topology may re-orient tets but keeps the vertex order: the
     # per-vertex moments carry over directly.
-    old = trainer.moments()
-    new.set_moments({k: (old[k][0], data[f"{k}:m"], data[f"{k}:v"]) for k in old
-                     if f"{k}:m" in data})
+    carried = {k: (t, data[f"{k}:m"], data[f"{k}:v"]) for k, (t, _, _) in moments.items()}
+    new = Trainer(trainer.dataset, V, T, config.for_stage(trainer.stage + 1), data["color"],
+                  data["opacity"])
+    new.step_index = new.stage_start = trainer.step_index
+    new.stage = trainer.stage + 1
+    new.elapsed, new.history, new.shortened, new.rng = (trainer.elapsed, trainer.history,
+                                                       trainer.shortened, trainer.rng)
+    new.set_moments(carried)
     return new
 
 
