@@ -43,12 +43,10 @@ Transfer function
     table): ``t = (s - lo) / (hi - lo)`` with ``value_range=(lo, hi)`` (default ``(0, 1)``,
     i.e. the normalised scalar), clamped like :meth:`TransferFunction.__call__`.
 Cameras
-    :class:`Camera` holds a camera-to-world matrix in **Mitsuba axes** (camera looks along
-    +z, +y is up in the image, +x is *left* in the image; what
-    ``mi.ScalarTransform4f().look_at`` builds), the horizontal field of view in degrees and
-    the image size.  Pixel ``(px, py)`` (``py`` from the top) is sampled at its centre.
-    :meth:`Camera.c2w_opengl` is ``to_world @ diag(-1, 1, -1, 1)`` (OpenGL / NeRF axes:
-    looks along -z, +y up, +x right).
+    :class:`mi_tetvr.datasets.View` (without image): camera-to-world in **Mitsuba axes**
+    (camera looks along +z, +y is up in the image, +x is *left* in the image; what
+    ``mi.ScalarTransform4f().look_at`` builds) and pinhole intrinsics in pixels.  Pixel
+    ``(px, py)`` (``py`` from the top) is sampled at its centre.
 Data sets (NeRF-synthetic convention)
     ``transforms_{train,test}.json`` with ``camera_angle_x`` (radians), ``fl_x, fl_y, cx,
     cy, w, h`` (pixels) and per frame ``file_path`` (``./train/r_0``, without extension as in
@@ -58,6 +56,7 @@ Data sets (NeRF-synthetic convention)
 """
 from __future__ import annotations
 
+import dataclasses
 import gzip
 import json
 import math
@@ -73,12 +72,12 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .datasets import look_at
+from .datasets import Dataset, View, look_at, write_nerf
 from .transfer import TransferFunction
 
 __all__ = [
     "Volume", "make_volume", "load_volume", "write_cvol", "write_mhd",
-    "Camera", "look_at", "fibonacci_cameras", "random_cameras", "default_fov",
+    "look_at", "fibonacci_cameras", "random_cameras", "default_fov",
     "render_volume", "render_rays", "camera_rays", "GridField", "TFEval",
     "make_dataset", "trilinear_numpy",
 ]
@@ -436,50 +435,6 @@ def _res(res) -> Tuple[int, int]:
     return int(w), int(h)
 
 
-@dataclass
-class Camera:
-    """A pinhole camera.
-
-    Attributes
-    ----------
-    to_world : (4, 4) float64
-        Camera-to-world in Mitsuba axes (looks along +z, +y up, +x left in the image).
-    fov : float
-        Horizontal field of view in degrees.
-    width, height : int
-        Image size in pixels.
-    """
-
-    to_world: np.ndarray
-    fov: float
-    width: int
-    height: int
-
-    @property
-    def position(self) -> np.ndarray:
-        return np.asarray(self.to_world, np.float64)[:3, 3].copy()
-
-    def c2w_opengl(self) -> np.ndarray:
-        """Camera-to-world in OpenGL / NeRF axes (looks along -z, +y up, +x right)."""
-        return np.asarray(self.to_world, np.float64) @ np.diag([-1.0, 1.0, -1.0, 1.0])
-
-    def intrinsics(self) -> dict:
-        """NeRF-style intrinsics: ``camera_angle_x`` (radians), ``fl_x, fl_y, cx, cy, w, h``."""
-        ang = math.radians(self.fov)
-        fl = 0.5 * self.width / math.tan(0.5 * ang)
-        return {"camera_angle_x": ang, "fl_x": fl, "fl_y": fl, "cx": 0.5 * self.width,
-                "cy": 0.5 * self.height, "w": self.width, "h": self.height}
-
-    def sensor_dict(self) -> dict:
-        """A ``mi.load_dict`` entry for the same camera (a Mitsuba ``perspective`` sensor),
-        e.g. to render the tet renderer from the same views."""
-        return {"type": "perspective", "fov": float(self.fov), "fov_axis": "x",
-                "to_world": mi.ScalarTransform4f(np.asarray(self.to_world, np.float64).tolist()),
-                "film": {"type": "hdrfilm", "width": int(self.width),
-                         "height": int(self.height), "rfilter": {"type": "box"},
-                         "pixel_format": "rgba"}}
-
-
 def _frame(up):
     u = np.asarray(up, np.float64)
     u = u / np.linalg.norm(u)
@@ -491,7 +446,7 @@ def _frame(up):
 
 def fibonacci_cameras(n: int, radius: float = 4.0, res=256, fov: Optional[float] = None,
                       up=(0.0, 0.0, 1.0), target=(0.0, 0.0, 0.0),
-                      hemisphere: bool = False) -> List[Camera]:
+                      hemisphere: bool = False) -> List[View]:
     """``n`` cameras on a Fibonacci sphere of ``radius`` around ``target``, looking at it.
 
     The sphere's pole is ``up`` (also the cameras' up vector; at the poles another one is
@@ -509,12 +464,13 @@ def fibonacci_cameras(n: int, radius: float = 4.0, res=256, fov: Optional[float]
     e1, e2, e3 = _frame(up)
     dirs = (r * np.cos(phi))[:, None] * e1 + (r * np.sin(phi))[:, None] * e2 + z[:, None] * e3
     t = np.asarray(target, np.float64)
-    return [Camera(look_at(t + radius * d, t, up), fov, w, h) for d in dirs]
+    return [View.look_at(f"cam{i}", t + radius * d, t, up, w, h, fov_x=fov)
+            for i, d in enumerate(dirs)]
 
 
 def random_cameras(n: int, radius: float = 4.0, res=256, fov: Optional[float] = None,
                    seed: int = 0, up=(0.0, 0.0, 1.0), target=(0.0, 0.0, 0.0),
-                   hemisphere: bool = False) -> List[Camera]:
+                   hemisphere: bool = False) -> List[View]:
     """``n`` cameras at uniformly random points of a sphere (``numpy.random.default_rng(seed)``),
     looking at ``target``; arguments as :func:`fibonacci_cameras`."""
     w, h = _res(res)
@@ -526,7 +482,8 @@ def random_cameras(n: int, radius: float = 4.0, res=256, fov: Optional[float] = 
     if hemisphere:
         d = np.where((d @ u)[:, None] < 0, d - 2 * (d @ u)[:, None] * u, d)
     t = np.asarray(target, np.float64)
-    return [Camera(look_at(t + radius * x, t, up), fov, w, h) for x in d]
+    return [View.look_at(f"cam{i}", t + radius * x, t, up, w, h, fov_x=fov)
+            for i, x in enumerate(d)]
 
 
 # ============================================================================ Dr.Jit
@@ -685,20 +642,20 @@ def render_rays(field, tf, origins, directions, step: float = 0.25, value_range=
 
 
 def camera_rays(camera):
-    """Rays through the pixel centres of a :class:`Camera` or a Mitsuba sensor.
+    """Rays through the pixel centres of a :class:`~mi_tetvr.datasets.View` or a Mitsuba
+    sensor.
 
     Returns ``(origins Point3f, directions Vector3f, width, height)``, pixels in row-major
     order from the top-left.
     """
     _check_variant()
-    if isinstance(camera, Camera):
+    if isinstance(camera, View):
         w, h = camera.width, camera.height
         idx = dr.arange(mi.UInt32, w * h)
         px, py = mi.Float(idx % w) + 0.5, mi.Float(idx // w) + 0.5
-        tx = math.tan(0.5 * math.radians(camera.fov))
-        ty = tx * h / w
-        x = (1.0 - 2.0 * px / w) * tx
-        y = (1.0 - 2.0 * py / h) * ty
+        # Mitsuba camera axes: +x to the image's left, +y up.
+        x = (camera.cx - px) / camera.fx
+        y = (camera.cy - py) / camera.fy
         m = np.asarray(camera.to_world, np.float64)
         R = [[float(m[r, c]) for c in range(3)] for r in range(3)]
         d = mi.Vector3f(R[0][0] * x + R[0][1] * y + R[0][2],
@@ -723,7 +680,7 @@ def render_volume(volume, tf, camera, step: float = 0.25, value_range=(0.0, 1.0)
     ----------
     volume : Volume or GridField
     tf : TransferFunction or TFEval
-    camera : Camera or mitsuba Sensor (e.g. ``mi.load_dict(camera.sensor_dict())``)
+    camera : View or mitsuba Sensor (e.g. ``mi.load_dict(view.sensor_dict())``)
     step, value_range, opacity_scale, min_transmittance
         See :func:`render_rays`.
 
@@ -747,9 +704,9 @@ def _tf_dict(tf: TransferFunction) -> dict:
             "opacity": [[float(p), float(a)] for p, a in zip(tf.opacity_positions, tf.opacities)]}
 
 
-def make_dataset(volume: Volume, tf: TransferFunction, views: Union[int, Sequence[Camera]],
+def make_dataset(volume: Volume, tf: TransferFunction, views: Union[int, Sequence[View]],
                  res=256, out_dir: PathType = "dataset",
-                 test_views: Union[int, Sequence[Camera]] = 8, radius: float = 4.0,
+                 test_views: Union[int, Sequence[View]] = 8, radius: float = 4.0,
                  fov: Optional[float] = None, seed: int = 0, step: float = 0.25,
                  value_range=(0.0, 1.0), opacity_scale: float = 1.0,
                  min_transmittance: float = 1e-4, up=(0.0, 0.0, 1.0),
@@ -760,14 +717,14 @@ def make_dataset(volume: Volume, tf: TransferFunction, views: Union[int, Sequenc
     ----------
     volume : Volume
     tf : TransferFunction
-    views : int or list of Camera
+    views : int or list of View
         Training cameras, or their number (on a Fibonacci sphere, :func:`fibonacci_cameras`).
     res : int or (w, h)
         Image size for generated cameras.
     out_dir : path
         Receives ``transforms_train.json``, ``transforms_test.json``, ``volume_info.json``,
         ``train/r_<i>.png`` and ``test/r_<i>.png``.
-    test_views : int or list of Camera
+    test_views : int or list of View
         Test cameras, or their number (uniformly random on the sphere, ``seed``).
     radius, fov, up
         Camera sphere radius, horizontal fov in degrees (default :func:`default_fov`), up.
@@ -782,11 +739,10 @@ def make_dataset(volume: Volume, tf: TransferFunction, views: Union[int, Sequenc
     -------
     dict
         ``"train"``, ``"test"``: (n, h, w, 4) float32 premultiplied linear RGBA renders;
-        ``"cameras_train"``, ``"cameras_test"``: lists of :class:`Camera`; ``"out_dir"``.
+        ``"cameras_train"``, ``"cameras_test"``: lists of :class:`View` (with their
+        images); ``"out_dir"``.
     """
     from tqdm import tqdm
-
-    from .datasets import Dataset, View, write_nerf
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -797,20 +753,18 @@ def make_dataset(volume: Volume, tf: TransferFunction, views: Union[int, Sequenc
             if test_views > 0 else []
     field = GridField(volume)
     tfe = TFEval(tf, value_range, opacity_scale)
-    result = {"out_dir": str(out), "cameras_train": list(views), "cameras_test": list(test_views)}
+    result = {"out_dir": str(out)}
     bar = tqdm(total=len(views) + len(test_views), desc="render views", disable=not progress)
     posed = {}
     for split, cams in (("train", views), ("test", test_views)):
-        imgs, posed[split] = [], []
+        posed[split] = []
         for i, cam in enumerate(cams):
             img = render_volume(field, tfe, cam, step=step, min_transmittance=min_transmittance)
-            k = cam.intrinsics()
-            posed[split].append(View(f"r_{i}", img, np.asarray(cam.to_world, np.float64),
-                                     k["fl_x"], k["fl_y"], k["cx"], k["cy"], cam.width,
-                                     cam.height))
-            imgs.append(img)
+            posed[split].append(dataclasses.replace(cam, name=f"r_{i}", image=img))
             bar.update(1)
-        result[split] = np.stack(imgs) if imgs else np.zeros((0, 0, 0, 4), np.float32)
+        result[split] = (np.stack([p.image for p in posed[split]]) if cams
+                         else np.zeros((0, 0, 0, 4), np.float32))
+        result[f"cameras_{split}"] = posed[split]
     bar.close()
     write_nerf(Dataset(posed["train"], posed["test"]), out)
     info = {"volume": volume.info(), "transfer_function": _tf_dict(tf),
@@ -821,7 +775,7 @@ def make_dataset(volume: Volume, tf: TransferFunction, views: Union[int, Sequenc
             "model": "post-classification emission-absorption, midpoint rule, "
                      "premultiplied linear RGB over black, alpha = 1 - T",
             "png": "RGBA 8-bit, sRGB colour, straight alpha",
-            "cameras": {"radius": float(radius), "fov_x_deg": float(views[0].fov) if views
+            "cameras": {"radius": float(radius), "fov_x_deg": float(views[0].fov_x) if views
                         else None, "up": [float(v) for v in up], "seed": int(seed),
                         "train": "fibonacci sphere" if views else None,
                         "n_train": len(views), "n_test": len(test_views),

@@ -8,6 +8,7 @@ from scipy.integrate import quad
 from scipy.interpolate import RegularGridInterpolator
 
 import mitsuba as mi
+from mi_tetvr.datasets import View
 
 from mi_tetvr import volume as V
 from mi_tetvr.transfer import TransferFunction, srgb_to_linear
@@ -133,8 +134,9 @@ def test_tf_eval_matches_numpy():
 def test_cameras_point_at_origin():
     cams = V.fibonacci_cameras(7, radius=3.0, res=(15, 11), fov=40.0)
     cams += V.random_cameras(3, radius=2.5, res=(15, 11), seed=3)
-    cams.append(V.Camera(V.look_at([0, 0, 4.0]), 30.0, 15, 11))    # at the pole of up=z
-    fib = np.array([c.position for c in cams[:7]])
+    cams.append(View.look_at("pole", [0, 0, 4.0], [0, 0, 0], [0, 0, 1], 15, 11,
+                             fov_x=30.0))                          # at the pole of up=z
+    fib = np.array([c.center for c in cams[:7]])
     assert np.allclose(np.linalg.norm(fib, axis=1), 3.0)
     assert np.ptp(fib[:, 2]) > 4.0                                   # spread over the sphere
     for cam in cams:
@@ -144,16 +146,14 @@ def test_cameras_point_at_origin():
         o, d, w, h = V.camera_rays(cam)
         o = np.array(o, np.float64).reshape(3, -1).T
         d = np.array(d, np.float64).reshape(3, -1).T.reshape(h, w, 3)
-        assert np.allclose(o, cam.position, atol=1e-6)
+        assert np.allclose(o, cam.center, atol=1e-6)
         # the centre pixel (odd size) looks at the origin
-        np.testing.assert_allclose(d[h // 2, w // 2], -cam.position / np.linalg.norm(cam.position),
+        np.testing.assert_allclose(d[h // 2, w // 2], -cam.center / np.linalg.norm(cam.center),
                                    atol=1e-6)
-        # independent NeRF/OpenGL ray from the intrinsics and c2w_opengl
-        K = cam.intrinsics()
-        gl = cam.c2w_opengl()
-        assert np.allclose(gl, m @ np.diag([-1, 1, -1, 1]))
+        # independent NeRF/OpenGL ray from the intrinsics and the OpenGL camera-to-world
+        gl = m @ np.diag([-1, 1, -1, 1])
         j, i = np.mgrid[0:h, 0:w]
-        dc = np.stack([(i + 0.5 - K["cx"]) / K["fl_x"], -(j + 0.5 - K["cy"]) / K["fl_y"],
+        dc = np.stack([(i + 0.5 - cam.cx) / cam.fx, -(j + 0.5 - cam.cy) / cam.fy,
                        -np.ones_like(i, dtype=float)], -1)
         dw = dc @ gl[:3, :3].T
         dw /= np.linalg.norm(dw, axis=-1, keepdims=True)
@@ -259,7 +259,7 @@ def test_make_dataset(tmp_path):
         for i, fr in enumerate(meta["frames"]):
             cam = res[f"cameras_{split}"][i]
             m = np.array(fr["transform_matrix"])
-            np.testing.assert_allclose(m, cam.c2w_opengl())
+            np.testing.assert_allclose(m, cam.to_world @ np.diag([-1, 1, -1, 1]), atol=1e-12)
             # OpenGL: the camera looks along its -z axis, towards the origin
             fwd = -m[:3, 2]
             np.testing.assert_allclose(fwd, -m[:3, 3] / np.linalg.norm(m[:3, 3]), atol=1e-9)
