@@ -62,7 +62,7 @@ import numpy as np  # noqa: E402
 mi.set_variant(ARGS.variant)
 import mi_tetvr  # noqa: E402,F401
 from mi_tetvr.plugins.tetvr import mesh_buffers, scene_tetmeshes  # noqa: E402
-from mi_tetvr.traversal import trace  # noqa: E402
+from mi_tetvr.render.walk import trace  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from common import grid_scene, header  # noqa: E402

@@ -24,11 +24,11 @@ import mitsuba as mi
 
 mi.set_variant("llvm_ad_rgb")
 import mi_tetvr  # noqa: E402,F401
-from mi_tetvr.datasets import load_nerf  # noqa: E402
-from mi_tetvr.fit import FitConfig, run  # noqa: E402
-from mi_tetvr.scenes import default_volume  # noqa: E402
+from mi_tetvr.recon.datasets import load_nerf  # noqa: E402
+from mi_tetvr.recon.fit import FitConfig, run  # noqa: E402
+from mi_tetvr.mesh.scenes import default_volume  # noqa: E402
 from mi_tetvr.transfer import TransferFunction  # noqa: E402
-from mi_tetvr.volume import make_dataset, make_volume  # noqa: E402
+from mi_tetvr.grid.volume import make_dataset, make_volume  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

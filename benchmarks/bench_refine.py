@@ -1,6 +1,6 @@
-"""Benchmark of mesh refinement (mi_tetvr.refine) on a ~1M-tet jittered grid.
+"""Benchmark of mesh refinement (mi_tetvr.mesh.refine) on a ~1M-tet jittered grid.
 
-Prints the time of :func:`mi_tetvr.refine.split_vertices` with 5 % of the
+Prints the time of :func:`mi_tetvr.mesh.refine.split_vertices` with 5 % of the
 vertices selected (DiffTetVR's setting), for both global bisection orders and
 for everything selected, next to the baseline measured in the same run:
 :func:`mi_tetvr.mesh.build_topology` on the refined mesh, which every
@@ -18,9 +18,9 @@ import time
 
 import numpy as np
 
-from mi_tetvr.generate import blob_field, grid_mesh
-from mi_tetvr.mesh import build_topology, quality
-from mi_tetvr.refine import prune_empty, select_top_fraction, split_vertices
+from mi_tetvr.mesh.generate import blob_field, grid_mesh
+from mi_tetvr.mesh.topology import build_topology, quality
+from mi_tetvr.mesh.refine import prune_empty, select_top_fraction, split_vertices
 
 
 def timed(fn, repeat):

@@ -1,14 +1,14 @@
 """Render benchmark: the ``tetvr`` tet walk against a Mitsuba-native baseline.
 
 Scene: a jittered regular tet grid (``cells^3`` cells, 6 Kuhn tets each; 64^3
-= 1.57M tets) over [-1, 1]^3 carrying :func:`mi_tetvr.generate.blob_field`,
+= 1.57M tets) over [-1, 1]^3 carrying :func:`mi_tetvr.mesh.generate.blob_field`,
 seen by a perspective camera, one ray per pixel through the pixel centre,
 no early ray termination (``min_transmittance = 0``), so every ray crosses the
 whole mesh.
 
 1. **tetvr**: ``mi.render`` with the ``tetvr`` integrator (stratified sampler
    without jitter, so its rays are the pixel-centre rays), and
-   :func:`mi_tetvr.traversal.trace` called directly on the same rays
+   :func:`mi_tetvr.render.walk.trace` called directly on the same rays
    (which gives the number of tets crossed). Both are timed warm (one run to
    compile, then the median of ``--repeat`` runs).
 2. **baseline**: every tet face (each unique triangle once) in one ordinary
@@ -17,7 +17,7 @@ whole mesh.
    hit) inside a Dr.Jit symbolic loop; between two consecutive hits the ray is
    inside one tet, color and opacity at each hit come from the hit triangle's
    vertices with the barycentrics in ``si.prim_uv``, and the segment is
-   integrated with the same :func:`mi_tetvr.kernels.segment_integral`. (The
+   integrated with the same :func:`mi_tetvr.render.kernels.segment_integral`. (The
    baseline assumes a convex mesh: everything between the first and the last
    hit is inside; the grid is a box.)
 
@@ -65,9 +65,9 @@ import mitsuba as mi  # noqa: E402
 mi.set_variant(ARGS.variant)
 
 import mi_tetvr  # noqa: E402
-from mi_tetvr.kernels import segment_integral  # noqa: E402
-from mi_tetvr.mesh import FACES  # noqa: E402
-from mi_tetvr.traversal import WalkSettings, trace  # noqa: E402
+from mi_tetvr.render.kernels import segment_integral  # noqa: E402
+from mi_tetvr.mesh.topology import FACES  # noqa: E402
+from mi_tetvr.render.walk import WalkSettings, trace  # noqa: E402
 
 mi_tetvr.register()
 from mi_tetvr.plugins.tetvr import mesh_buffers, scene_tetmeshes  # noqa: E402

@@ -1,4 +1,4 @@
-"""Inversion-safeguard benchmark: :func:`mi_tetvr.regularizer.safe_step` on a
+"""Inversion-safeguard benchmark: :func:`mi_tetvr.recon.regularizer.safe_step` on a
 jittered (0.2 of a cell, all tets positive) grid of ~1M tets (56^3 cells, 6 tets each = 1.05M tets).
 
 Three steps, each a random per-vertex Gaussian step of standard deviation
@@ -25,9 +25,9 @@ import time
 
 import numpy as np
 
-from mi_tetvr.generate import grid_mesh
-from mi_tetvr.mesh import signed_volumes
-from mi_tetvr.regularizer import safe_step
+from mi_tetvr.mesh.generate import grid_mesh
+from mi_tetvr.mesh.topology import signed_volumes
+from mi_tetvr.recon.regularizer import safe_step
 
 
 def main(argv=None):

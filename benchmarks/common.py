@@ -13,7 +13,7 @@ import drjit as dr
 import mitsuba as mi
 
 import mi_tetvr
-from mi_tetvr.generate import blob_field, grid_mesh
+from mi_tetvr.mesh.generate import blob_field, grid_mesh
 
 CAM_ORIGIN = [2.6, 1.8, 3.4]
 CAM_FOV = 33.0

@@ -6,30 +6,33 @@ Usage::
     mi.set_variant("llvm_ad_rgb")   # or "cuda_ad_rgb"
     import mi_tetvr                 # registers the `tetmesh` shape and `tetvr` integrator
 
-The numpy parts (:mod:`mi_tetvr.mesh`, :mod:`mi_tetvr.io`,
-:mod:`mi_tetvr.transfer`, :mod:`mi_tetvr.refine`, :mod:`mi_tetvr.initmesh`)
+The numpy parts (:mod:`mi_tetvr.mesh`, :mod:`mi_tetvr.mesh.io`,
+:mod:`mi_tetvr.transfer`, :mod:`mi_tetvr.mesh.refine`, :mod:`mi_tetvr.mesh.initial`)
 work without a Mitsuba variant. If no variant is set at import, call
 :func:`register` after :func:`mitsuba.set_variant`.
 
-Reconstruction: :mod:`mi_tetvr.datasets` (NeRF / COLMAP data sets and cameras),
-:mod:`mi_tetvr.volume` (scalar grids and the grid ray marcher),
-:mod:`mi_tetvr.initmesh` (initial meshes), :mod:`mi_tetvr.regularizer`
-(tet quality, inversion safeguard), :mod:`mi_tetvr.refine` (coarse-to-fine
-splits) and :mod:`mi_tetvr.fit` (the training loop behind ``mi-tetvr fit``).
+Reconstruction: :mod:`mi_tetvr.recon.datasets` (NeRF / COLMAP data sets and cameras),
+:mod:`mi_tetvr.grid.volume` (scalar grids and the grid ray marcher),
+:mod:`mi_tetvr.mesh.initial` (initial meshes), :mod:`mi_tetvr.recon.regularizer`
+(tet quality, inversion safeguard), :mod:`mi_tetvr.mesh.refine` (coarse-to-fine
+splits) and :mod:`mi_tetvr.recon.fit` (the training loop behind ``mi-tetvr fit``).
 """
 from __future__ import annotations
 
 import importlib
 import sys
 
-from .io import read_tetmesh, write_tetmesh
-from .mesh import MeshError, TetMesh, Topology, build_topology, quality
+from .mesh import MeshError, TetMesh, Topology, build_topology, quality, read_tetmesh, write_tetmesh
 from .transfer import TransferFunction
 
 __all__ = ["register", "tetmesh_dict", "read_tetmesh", "write_tetmesh", "MeshError",
            "TetMesh", "Topology", "build_topology", "quality", "TransferFunction"]
 
 _registered_variant = None
+
+#: Modules that bind Mitsuba/Dr.Jit types at import, in dependency order.
+_VARIANT_MODULES = ("render.kernels", "render.walk", "grid.volume", "recon.regularizer",
+                    "plugins.tetmesh", "plugins.tetvr")
 
 
 def register():
@@ -48,8 +51,7 @@ def register():
         return
     from . import plugins  # noqa: F401
     # Modules that bind Mitsuba/Dr.Jit types at import are reloaded for a new variant.
-    for name in ("kernels", "traversal", "volume", "regularizer", "plugins.tetmesh",
-                 "plugins.tetvr"):
+    for name in _VARIANT_MODULES:
         full = f"{__name__}.{name}"
         if name.startswith("plugins.") or full in sys.modules:
             mod = importlib.import_module(full)

@@ -81,7 +81,7 @@ def cmd_render(a):
 
 
 def cmd_info(a):
-    from mi_tetvr.io import read_tetmesh
+    from mi_tetvr.mesh.io import read_tetmesh
     try:
         mesh = read_tetmesh(a.mesh, color=a.color, opacity=a.opacity)
         s = mesh.summary()
@@ -90,13 +90,13 @@ def cmd_info(a):
     if a.json:
         print(json.dumps(s, indent=2))
         return
-    from mi_tetvr.mesh import format_summary
+    from mi_tetvr.mesh.topology import format_summary
     print(f"{a.mesh}")
     print("\n".join("  " + line for line in format_summary(s).splitlines()))
 
 
 def cmd_make_scenes(a):
-    from mi_tetvr.scenes import make_scene_meshes
+    from mi_tetvr.mesh.scenes import make_scene_meshes
     for p in make_scene_meshes(a.dir):
         print(f"wrote {p}")
 
@@ -118,7 +118,7 @@ def _background(text):
 
 
 def _load_data(path, downscale, holdout):
-    from mi_tetvr.datasets import load_dataset
+    from mi_tetvr.recon.datasets import load_dataset
     try:
         return load_dataset(path, downscale=downscale, holdout=holdout)
     except (ValueError, FileNotFoundError) as e:
@@ -127,7 +127,7 @@ def _load_data(path, downscale, holdout):
 
 def cmd_fit(a):
     _set_variant(a.variant)
-    from mi_tetvr.fit import FitConfig, run
+    from mi_tetvr.recon.fit import FitConfig, run
     try:
         cfg = FitConfig.from_file(a.config) if a.config else FitConfig()
         overrides = {k: getattr(a, k) for k in (
@@ -155,7 +155,7 @@ def cmd_fit(a):
 
 def cmd_eval(a):
     _set_variant(a.variant)
-    from mi_tetvr.fit import evaluate_mesh
+    from mi_tetvr.recon.fit import evaluate_mesh
     data = _load_data(a.data, a.downscale, a.holdout)
     metrics = evaluate_mesh(a.mesh, data, background=_background(a.background),
                             split=a.split)
@@ -170,7 +170,7 @@ def cmd_eval(a):
 def cmd_make_dataset(a):
     _set_variant(a.variant)
     from mi_tetvr.transfer import TransferFunction
-    from mi_tetvr.volume import load_volume, make_dataset
+    from mi_tetvr.grid.volume import load_volume, make_dataset
     try:
         vr = None if a.value_range is None else tuple(float(x) for x in a.value_range.split(","))
         volume = load_volume(a.volume, value_range=vr)
@@ -183,8 +183,8 @@ def cmd_make_dataset(a):
 
 
 def cmd_refine(a):
-    from mi_tetvr.io import read_tetmesh, write_tetmesh
-    from mi_tetvr.refine import refine_mesh
+    from mi_tetvr.mesh.io import read_tetmesh, write_tetmesh
+    from mi_tetvr.mesh.refine import refine_mesh
     try:
         mesh = read_tetmesh(a.mesh)
         out = refine_mesh(mesh, a.select, a.fraction)
@@ -234,7 +234,7 @@ def main(argv=None):
     f = sub.add_parser("fit", help="reconstruct a tet-mesh volume from a multi-view data set")
     f.add_argument("data", help="NeRF-style folder (transforms*.json) or COLMAP model folder")
     f.add_argument("--out", required=True, help="output folder (also the checkpoint)")
-    f.add_argument("--config", help="JSON file of fit settings (see mi_tetvr.fit.FitConfig)")
+    f.add_argument("--config", help="JSON file of fit settings (see mi_tetvr.recon.fit.FitConfig)")
     f.add_argument("--init", help="grid (default), tetwild, delaunay or a mesh file")
     f.add_argument("--resolution", type=int, help="cells along the largest axis (default 32)")
     f.add_argument("--iterations", type=int, help="optimizer steps (default 1500)")

@@ -53,8 +53,8 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
-from mi_tetvr.io import read_tetmesh
-from mi_tetvr.mesh import TetMesh
+from mi_tetvr.mesh.io import read_tetmesh
+from mi_tetvr.mesh.topology import TetMesh
 
 
 def _tensor(props, key):
@@ -108,7 +108,7 @@ class TetMeshShape(mi.Mesh):
         params.update()
         nbr = np.where(topo.neighbors >= 0, topo.neighbors.astype(np.int64) * 4
                        + topo.neighbor_faces, -1)
-        #: Index buffers of the walk (local indices; see mi_tetvr.kernels.MeshBuffers)
+        #: Index buffers of the walk (local indices; see mi_tetvr.render.kernels.MeshBuffers)
         self.tet_buffers = dict(
             tets=topo.tets.astype(np.uint32).ravel(),
             nbr=nbr.astype(np.int32).ravel(),

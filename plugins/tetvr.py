@@ -33,7 +33,7 @@ shapes by walking the tet adjacency.
 Derivatives: ``mi.render`` with parameters, ``dr.backward`` and ``dr.forward``
 reach ``<id>.vertex_color``, ``<id>.vertex_opacity`` and ``<id>.vertex_positions``
 (and the ``alpha`` AOV's gradient flows too). The adjoint re-walks the rays and
-records nothing (see :mod:`mi_tetvr.traversal`); the silhouette of the mesh
+records nothing (see :mod:`mi_tetvr.render.walk`); the silhouette of the mesh
 (which pixels it covers) has no boundary term.
 
 The pixel value is ``C + T * background`` where ``C`` is the accumulated
@@ -54,8 +54,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_tetvr.kernels import MeshBuffers
-from mi_tetvr.traversal import Adjoint, WalkSettings, trace
+from mi_tetvr.render.kernels import MeshBuffers
+from mi_tetvr.render.walk import Adjoint, WalkSettings, trace
 
 
 def scene_tetmeshes(scene):

@@ -8,10 +8,10 @@ import pytest
 
 import mitsuba as mi
 from conftest import ROOT
-from mi_tetvr.generate import grid_mesh
-from mi_tetvr.io import write_tetmesh
-from mi_tetvr.mesh import TetMesh
-from mi_tetvr.scenes import make_scene_meshes
+from mi_tetvr.mesh.generate import grid_mesh
+from mi_tetvr.mesh.io import write_tetmesh
+from mi_tetvr.mesh.topology import TetMesh
+from mi_tetvr.mesh.scenes import make_scene_meshes
 
 SCENES = ["default", "transfer_function", "nonconvex", "two_meshes", "inside"]
 
@@ -65,7 +65,7 @@ def test_info(tmp_path):
 def test_make_dataset_fit_eval(tmp_path):
     """The main job end to end on a tiny volume: make-dataset, fit (then a
     resumed fit that has nothing left to do), eval of the written mesh."""
-    from mi_tetvr.scenes import default_volume
+    from mi_tetvr.mesh.scenes import default_volume
     np.save(tmp_path / "vol.npy", default_volume(12))
     data, out = tmp_path / "data", tmp_path / "fit"
     r = run("make-dataset", str(tmp_path / "vol.npy"), "--tf", "scenes/tf_default.json",
@@ -96,7 +96,7 @@ def test_refine_command(tmp_path):
     r = run("refine", str(src), "--select", "score", "--fraction", "0.05", "-o",
             str(tmp_path / "r.vtu"))
     assert r.returncode == 0, r.stderr
-    from mi_tetvr.io import read_tetmesh
+    from mi_tetvr.mesh.io import read_tetmesh
     out = read_tetmesh(tmp_path / "r.vtu")
     assert len(out.tets) > len(T) and len(out.vertices) > len(V)
     r = run("refine", str(src), "--select", "nope", "-o", str(tmp_path / "x.vtu"))

@@ -8,8 +8,8 @@ from PIL import Image
 
 import mitsuba as mi
 
-from mi_tetvr import datasets as D
-from mi_tetvr.transfer import srgb_to_linear
+from mi_tetvr.recon import datasets as D
+from mi_tetvr.color import srgb_to_linear
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""The reconstruction loop (``mi_tetvr.fit``) on a tiny data set rendered by
+"""The reconstruction loop (``mi_tetvr.recon.fit``) on a tiny data set rendered by
 the grid ray marcher: the fit improves held-out PSNR, writes its outputs,
 resumes exactly where it stopped, and saves when interrupted."""
 import json
@@ -9,11 +9,11 @@ import pytest
 
 import mitsuba as mi
 
-from mi_tetvr.datasets import load_nerf
-from mi_tetvr.fit import FitConfig, Trainer, evaluate_mesh, initial_mesh, run
-from mi_tetvr.scenes import default_volume
+from mi_tetvr.recon.datasets import load_nerf
+from mi_tetvr.recon.fit import FitConfig, Trainer, evaluate_mesh, initial_mesh, run
+from mi_tetvr.mesh.scenes import default_volume
 from mi_tetvr.transfer import TransferFunction
-from mi_tetvr.volume import make_dataset, make_volume
+from mi_tetvr.grid.volume import make_dataset, make_volume
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = FitConfig(resolution=4, iterations=24, views_per_step=2, lr_color=0.08, lr_opacity=0.3,
@@ -126,7 +126,7 @@ def test_coarse_to_fine_stages_and_resume(data, tmp_path, monkeypatch):
 def test_next_stage_prunes_splits_and_carries_state(data):
     """Pruning drops exactly the empty tets, the split grows the mesh, and
     colors, opacities and Adam moments follow the vertices."""
-    from mi_tetvr.fit import next_stage
+    from mi_tetvr.recon.fit import next_stage
     cfg = CFG.updated(stages=[{"iterations": 2, "prune": 1e-3, "split": 0.1},
                               {"iterations": 2}])
     V, T = initial_mesh(cfg, data)
@@ -159,7 +159,7 @@ def test_time_budget_stops_and_saves(data, tmp_path):
 
 @pytest.mark.parametrize("init", ["tetwild", "delaunay"])
 def test_other_initial_meshes(data, init):
-    from mi_tetvr.mesh import build_topology
+    from mi_tetvr.mesh.topology import build_topology
     cfg = CFG.updated(init=init)
     if init == "delaunay":
         with pytest.raises(ValueError, match="sparse points"):
@@ -184,7 +184,7 @@ def test_config_errors(tmp_path):
     assert cfg.resolution == 8 and cfg.lr_color == 0.1 and cfg.loss == "l2"
     with pytest.raises(ValueError, match="unknown stage settings"):
         FitConfig().updated(stages=[{"iterations": 5, "lr": 1}])
-    from mi_tetvr.fit import coarse_to_fine
+    from mi_tetvr.recon.fit import coarse_to_fine
     st = FitConfig().updated(stages=coarse_to_fine(rounds=2, steps=10, split=0.05)).stage_list()
     assert [s["iterations"] for s in st] == [10] * 5
     assert [s["split"] for s in st] == [0, 0.05, 0, 0.05, 0]

@@ -7,8 +7,8 @@ import drjit as dr
 import mitsuba as mi
 import mi_tetvr
 from conftest import make_scene, rays_at
-from mi_tetvr.generate import grid_mesh
-from mi_tetvr.mesh import build_topology
+from mi_tetvr.mesh.generate import grid_mesh
+from mi_tetvr.mesh.topology import build_topology
 
 KEYS = ("mesh0.vertex_color", "mesh0.vertex_opacity", "mesh0.vertex_positions")
 

@@ -5,10 +5,10 @@ import pytest
 
 import mitsuba as mi
 
-from mi_tetvr import datasets
-from mi_tetvr.initmesh import (delaunay_init, grid_init,
+from mi_tetvr.recon import datasets
+from mi_tetvr.mesh.initial import (delaunay_init, grid_init,
                                project_points, tetwild_init, visual_hull_bounds)
-from mi_tetvr.mesh import (MeshError, build_topology, format_summary, geometry_summary,
+from mi_tetvr.mesh.topology import (MeshError, build_topology, format_summary, geometry_summary,
                            signed_volumes)
 
 

@@ -5,9 +5,9 @@ import meshio
 import numpy as np
 import pytest
 
-from mi_tetvr.generate import grid_mesh
-from mi_tetvr.io import read_tetmesh, write_tetmesh
-from mi_tetvr.mesh import FACES, MeshError, TetMesh, build_topology, quality, signed_volumes
+from mi_tetvr.mesh.generate import grid_mesh
+from mi_tetvr.mesh.io import read_tetmesh, write_tetmesh
+from mi_tetvr.mesh.topology import FACES, MeshError, TetMesh, build_topology, quality, signed_volumes
 
 
 def reverse_some(t, fraction, seed):
@@ -104,7 +104,7 @@ def test_flat_tets_oriented_consistently():
         topo = build_topology(v, t)
     assert topo.flat.sum() == 24
     # Every interior face is shared with opposite windings after orientation.
-    from mi_tetvr.mesh import _face_parity
+    from mi_tetvr.mesh.topology import _face_parity
     faces = topo.tets[:, FACES].reshape(-1, 3)
     inner = np.flatnonzero(topo.neighbors.ravel() >= 0)
     other = topo.neighbors.ravel()[inner] * 4 + topo.neighbor_faces.ravel()[inner]

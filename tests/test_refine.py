@@ -1,13 +1,13 @@
-"""Mesh refinement (mi_tetvr.refine): conformity, midpoints, prisms, pruning."""
+"""Mesh refinement (mi_tetvr.mesh.refine): conformity, midpoints, prisms, pruning."""
 import itertools
 import warnings
 
 import numpy as np
 import pytest
 
-from mi_tetvr.generate import grid_mesh
-from mi_tetvr.mesh import MeshError, TetMesh, build_topology, signed_volumes
-from mi_tetvr.refine import (LOCAL_EDGES, bisection_order, prune_empty, prune_mesh, refine_mesh,
+from mi_tetvr.mesh.generate import grid_mesh
+from mi_tetvr.mesh.topology import MeshError, TetMesh, build_topology, signed_volumes
+from mi_tetvr.mesh.refine import (LOCAL_EDGES, bisection_order, prune_empty, prune_mesh, refine_mesh,
                              select_by_attribute, select_top_fraction, split_vertices)
 
 ORDERS = ("longest", "hash")
@@ -147,7 +147,7 @@ def grid(cells=4, seed=0):
 @pytest.fixture(scope="module")
 def tetwild_mesh():
     pytest.importorskip("pytetwild")
-    from mi_tetvr.initmesh import tetwild_init
+    from mi_tetvr.mesh.initial import tetwild_init
     v, t = tetwild_init(bounds=np.array([[0, 0, 0], [1, 1, 1]]), edge_length_fac=0.2)
     return v, t
 
@@ -366,7 +366,7 @@ def test_tetwild_mesh(tetwild_mesh, case):
 # --------------------------------------------------------------------------- real meshes
 @pytest.mark.parametrize("path", ["spx/spx.vtk", "a-grid/a_grid.vtk", "post/post.vtk"])
 def test_real_meshes(data_dir, path):
-    from mi_tetvr.io import read_tetmesh
+    from mi_tetvr.mesh.io import read_tetmesh
     f = data_dir / "tets" / path
     if not f.exists():
         pytest.skip(f"{f} is absent")

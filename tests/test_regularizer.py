@@ -5,9 +5,9 @@ import pytest
 import drjit as dr
 import mitsuba as mi
 
-from mi_tetvr.generate import grid_mesh
-from mi_tetvr.mesh import quality, signed_volumes
-from mi_tetvr.regularizer import (DEFAULT_BETA, DEFAULT_WEIGHT, QualityRegularizer,
+from mi_tetvr.mesh.generate import grid_mesh
+from mi_tetvr.mesh.topology import quality, signed_volumes
+from mi_tetvr.recon.regularizer import (DEFAULT_BETA, DEFAULT_WEIGHT, QualityRegularizer,
                                   first_root_in_unit, quality_penalty_np, safe_fractions,
                                   safe_step, tet_regularizer, volume_cubic)
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from conftest import make_scene, rays_at, render_rays
-from mi_tetvr.generate import grid_mesh
+from mi_tetvr.mesh.generate import grid_mesh
 from reference import reference_render
 
 TOL = 3e-3  # default settings against the reference (colors in [0, 1])
@@ -193,7 +193,7 @@ def test_real_meshes(data_dir, name):
 
 
 def mi_tetvr_read(path):
-    from mi_tetvr.io import read_tetmesh
+    from mi_tetvr.mesh.io import read_tetmesh
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return read_tetmesh(path)

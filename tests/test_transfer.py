@@ -10,7 +10,8 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mi_tetvr.transfer import TransferFunction, srgb_to_linear  # noqa: E402
+from mi_tetvr.transfer import TransferFunction  # noqa: E402
+from mi_tetvr.color import srgb_to_linear  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 TF_DIR = DATA / "transfer-functions" / "difftetvr"

@@ -8,10 +8,11 @@ from scipy.integrate import quad
 from scipy.interpolate import RegularGridInterpolator
 
 import mitsuba as mi
-from mi_tetvr.datasets import View
+from mi_tetvr.recon.datasets import View
 
-from mi_tetvr import volume as V
-from mi_tetvr.transfer import TransferFunction, srgb_to_linear
+from mi_tetvr.grid import volume as V
+from mi_tetvr.transfer import TransferFunction
+from mi_tetvr.color import srgb_to_linear
 
 
 def const_tf(color=(0.2, 0.5, 0.8), opacity=1.0):

@@ -109,10 +109,10 @@ def target_field(vertices):
 
     The colour varies smoothly everywhere (in [0.1, 0.9], linear RGB); the
     opacity is a low background plus the soft blobs of
-    :func:`mi_tetvr.generate.blob_field`, so that the whole volume is
+    :func:`mi_tetvr.mesh.generate.blob_field`, so that the whole volume is
     semi-transparent and every vertex's colour shows in some image.
     """
-    from mi_tetvr.generate import blob_field
+    from mi_tetvr.mesh.generate import blob_field
     x, y, z = np.asarray(vertices, float).T
     color = 0.5 + 0.4 * np.stack([np.sin(2.0 * x + 1.0),
                                   np.sin(2.0 * y - 0.5) * np.cos(1.5 * z),
@@ -239,7 +239,7 @@ def main(argv=None):
     if mi.variant() != args.variant:
         mi.set_variant(args.variant)
     import mi_tetvr
-    from mi_tetvr.generate import grid_mesh
+    from mi_tetvr.mesh.generate import grid_mesh
     mi_tetvr.register()
 
     # -- 1. The target --------------------------------------------------------

@@ -86,7 +86,7 @@ import dataclasses
 
 import numpy as np
 
-from .mesh import FLAT_TOLERANCE, MeshError, TetMesh, signed_volumes
+from mi_tetvr.mesh.topology import FLAT_TOLERANCE, MeshError, TetMesh, signed_volumes
 
 __all__ = ["RefineResult", "PruneResult", "split_vertices", "bisection_order", "select_top_fraction",
            "select_by_attribute", "prune_empty", "refine_mesh", "prune_mesh"]

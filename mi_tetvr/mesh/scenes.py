@@ -6,9 +6,9 @@ from pathlib import Path
 import meshio
 import numpy as np
 
-from .generate import blob_field, blob_mesh, grid_mesh
-from .io import write_tetmesh
-from .mesh import TetMesh
+from mi_tetvr.mesh.generate import blob_field, blob_mesh, grid_mesh
+from mi_tetvr.mesh.io import write_tetmesh
+from mi_tetvr.mesh.topology import TetMesh
 
 SCENES_DIR = Path(__file__).resolve().parents[1] / "scenes"
 

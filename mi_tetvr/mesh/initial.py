@@ -3,10 +3,10 @@
 Free functions over numpy arrays. Every initializer returns
 ``(vertices (n, 3) float64, tets (m, 4) int64)`` with positively oriented tets
 (``det(p1 - p0, p2 - p0, p3 - p0) > 0``, the convention of
-:mod:`mi_tetvr.mesh`), no zero-volume tets and no unreferenced vertices.
+:mod:`mi_tetvr.mesh.topology`), no zero-volume tets and no unreferenced vertices.
 
 * :func:`grid_init` -- a regular grid of near-cubic cells over a box, 6 tets
-  per cell (:func:`mi_tetvr.generate.grid_mesh`).
+  per cell (:func:`mi_tetvr.mesh.generate.grid_mesh`).
 * :func:`tetwild_init` -- fTetWild (through ``pytetwild``) on a box or on a
   closed surface.
 * :func:`delaunay_init` -- Delaunay tetrahedralization of sparse points (e.g.
@@ -38,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .generate import grid_mesh
-from .mesh import FLAT_TOLERANCE, MeshError, signed_volumes
+from mi_tetvr.mesh.generate import grid_mesh
+from mi_tetvr.mesh.topology import FLAT_TOLERANCE, MeshError, signed_volumes
 
 __all__ = ["grid_init", "tetwild_init", "delaunay_init", "box_surface",
            "remove_outliers", "project_points", "visual_hull_bounds",
@@ -116,7 +116,7 @@ def grid_init(bounds, resolution: int, jitter: float = 0.0, seed: int = 0):
     -------
     vertices : (n, 3) float64
     tets : (6 nx ny nz, 4) int64
-        Kuhn split of each cell (:data:`mi_tetvr.generate.KUHN_TETS`).
+        Kuhn split of each cell (:data:`mi_tetvr.mesh.generate.KUHN_TETS`).
     """
     b = _as_bounds(bounds)
     resolution = int(resolution)

@@ -185,8 +185,8 @@ def initial_mesh(config: FitConfig, dataset):
     """Vertices and tets of the starting mesh, over ``config.bounds`` or the
     region the data shows (visual hull of the alpha masks, else the sparse
     points, else the cameras' view)."""
-    from . import initmesh
-    from .io import read_tetmesh
+    from mi_tetvr.mesh import initial as initmesh
+    from mi_tetvr.mesh.io import read_tetmesh
     init = config.init
     if init not in ("grid", "tetwild", "delaunay"):
         mesh = read_tetmesh(init)
@@ -207,7 +207,7 @@ def data_bounds(config: FitConfig, dataset):
     training alpha masks (when the images have alpha), else the data set's."""
     if config.bounds is not None:
         return np.asarray(config.bounds, np.float64).reshape(2, 3)
-    from .initmesh import visual_hull_bounds
+    from mi_tetvr.mesh.initial import visual_hull_bounds
     views = dataset.train
     if views and any(float(v.image[..., 3].min()) < 0.5 for v in views):
         return visual_hull_bounds(views)
@@ -219,7 +219,7 @@ class Trainer:
 
     Parameters
     ----------
-    dataset : mi_tetvr.datasets.Dataset
+    dataset : mi_tetvr.recon.datasets.Dataset
         Training and test views (premultiplied linear RGBA images + cameras).
     vertices : (n, 3) float, tets : (m, 4) int
         The mesh to fit (its colors and opacities start from the config).
@@ -232,7 +232,7 @@ class Trainer:
         import mitsuba as mi
 
         import mi_tetvr
-        from .mesh import build_topology
+        from mi_tetvr.mesh.topology import build_topology
 
         self.dr, self.mi = dr, mi
         self.config = config
@@ -271,7 +271,7 @@ class Trainer:
         self.params.update(self.opt)
         self.regularizer = None
         if config.regularizer > 0 and config.lr_position > 0:
-            from .regularizer import QualityRegularizer
+            from mi_tetvr.recon.regularizer import QualityRegularizer
             self.regularizer = QualityRegularizer(self.tets, beta=config.regularizer_beta,
                                                   weight=config.regularizer)
         self.step_index = 0
@@ -340,7 +340,7 @@ class Trainer:
     def _safe_positions(self, old):
         """Freeze the boundary (optionally) and shorten steps that would
         invert a tet."""
-        from .regularizer import safe_step
+        from mi_tetvr.recon.regularizer import safe_step
         new = np.array(self.opt[K_POSITION], np.float64).reshape(-1, 3)
         delta = new - old
         if self.config.freeze_boundary:
@@ -359,7 +359,7 @@ class Trainer:
         return V, self.tets, C, S
 
     def inverted_tets(self):
-        from .mesh import signed_volumes
+        from mi_tetvr.mesh.topology import signed_volumes
         V, T, _, _ = self.arrays()
         return int((signed_volumes(V, T) <= 0).sum())
 
@@ -467,7 +467,7 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     """
     from tqdm import tqdm
 
-    from .mesh import build_topology, format_summary, geometry_summary
+    from mi_tetvr.mesh.topology import build_topology, format_summary, geometry_summary
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -534,7 +534,7 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
     stage says, rebuild the scene, and carry parameters and Adam's moments
     over (new vertices start from their edge's midpoint values). Returns the
     next stage's trainer."""
-    from .refine import prune_empty, select_top_fraction, split_vertices
+    from mi_tetvr.mesh.refine import prune_empty, select_top_fraction, split_vertices
     stage = config.stage_list()[trainer.stage]
     V, T, C, S = trainer.arrays()
     moments = trainer.moments()
@@ -569,8 +569,8 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
 
 def write_outputs(trainer: Trainer, out: Path):
     """mesh.vtu, metrics.json, test renders and the progress plot."""
-    from .io import write_tetmesh
-    from .mesh import TetMesh
+    from mi_tetvr.mesh.io import write_tetmesh
+    from mi_tetvr.mesh.topology import TetMesh
     V, T, C, S = trainer.arrays()
     write_tetmesh(out / "mesh.vtu", TetMesh(V, T, C, S))
     views = trainer.dataset.test or trainer.dataset.train[:1]
@@ -593,7 +593,7 @@ def save_comparison(path, pred_rgba, target_rgba, background):
     """Side by side: rendered | target (sRGB PNG)."""
     from PIL import Image
 
-    from .transfer import linear_to_srgb
+    from mi_tetvr.color import linear_to_srgb
     row = np.concatenate([composite(pred_rgba, background), composite(target_rgba, background)], 1)
     img = (np.clip(linear_to_srgb(np.clip(row, 0, 1)), 0, 1) * 255 + 0.5).astype(np.uint8)
     Image.fromarray(img).save(path)
@@ -632,7 +632,7 @@ def plot_history(history, path, test_psnr=None):
 
 def evaluate_mesh(mesh_path, dataset, background=None, n_sub=8, split="test"):
     """Score a mesh file on a data set's views: PSNR/SSIM per view and mean."""
-    from .io import read_tetmesh
+    from mi_tetvr.mesh.io import read_tetmesh
     mesh = read_tetmesh(mesh_path)
     cfg = FitConfig(background=background, n_sub=n_sub)
     trainer = Trainer(dataset, mesh.vertices, mesh.tets, cfg, mesh.color, mesh.opacity)

@@ -87,7 +87,7 @@ import math
 import drjit as dr
 import numpy as np
 
-from .mesh import quality, signed_volumes
+from mi_tetvr.mesh.topology import quality, signed_volumes
 
 __all__ = ["QualityRegularizer", "tet_regularizer", "quality_penalty_np",
            "volume_cubic", "first_root_in_unit", "safe_fractions", "safe_step",

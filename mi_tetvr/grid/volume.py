@@ -43,7 +43,7 @@ Transfer function
     table): ``t = (s - lo) / (hi - lo)`` with ``value_range=(lo, hi)`` (default ``(0, 1)``,
     i.e. the normalised scalar), clamped like :meth:`TransferFunction.__call__`.
 Cameras
-    :class:`mi_tetvr.datasets.View` (without image): camera-to-world in **Mitsuba axes**
+    :class:`mi_tetvr.recon.datasets.View` (without image): camera-to-world in **Mitsuba axes**
     (camera looks along +z, +y is up in the image, +x is *left* in the image; what
     ``mi.ScalarTransform4f().look_at`` builds) and pinhole intrinsics in pixels.  Pixel
     ``(px, py)`` (``py`` from the top) is sampled at its centre.
@@ -72,8 +72,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .datasets import Dataset, View, look_at, write_nerf
-from .transfer import TransferFunction
+from mi_tetvr.recon.datasets import Dataset, View, look_at, write_nerf
+from mi_tetvr.transfer import TransferFunction
 
 __all__ = [
     "Volume", "make_volume", "load_volume", "write_cvol", "write_mhd",
@@ -489,7 +489,7 @@ def random_cameras(n: int, radius: float = 4.0, res=256, fov: Optional[float] = 
 # ============================================================================ Dr.Jit
 def _check_variant():
     if mi.variant() is None:
-        raise RuntimeError("mi_tetvr.volume: call mitsuba.set_variant(...) first "
+        raise RuntimeError("mi_tetvr.grid.volume: call mitsuba.set_variant(...) first "
                            "(e.g. 'llvm_ad_rgb' or 'cuda_ad_rgb')")
 
 
@@ -642,7 +642,7 @@ def render_rays(field, tf, origins, directions, step: float = 0.25, value_range=
 
 
 def camera_rays(camera):
-    """Rays through the pixel centres of a :class:`~mi_tetvr.datasets.View` or a Mitsuba
+    """Rays through the pixel centres of a :class:`~mi_tetvr.recon.datasets.View` or a Mitsuba
     sensor.
 
     Returns ``(origins Point3f, directions Vector3f, width, height)``, pixels in row-major

@@ -14,8 +14,8 @@ from pathlib import Path
 import meshio
 import numpy as np
 
-from .mesh import MeshError, TetMesh
-from .transfer import TransferFunction
+from mi_tetvr.mesh.topology import MeshError, TetMesh
+from mi_tetvr.transfer import TransferFunction
 
 #: meshio cell types that are volume cells but not linear tets.
 _OTHER_VOLUME_CELLS = {"hexahedron", "hexahedron20", "hexahedron27", "wedge", "wedge15",

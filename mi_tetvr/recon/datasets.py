@@ -12,7 +12,7 @@ Images
     ``View.image`` is ``(H, W, 4) float32`` **premultiplied linear RGB and alpha**: exactly what
     the ``tetvr`` integrator renders over a black background (RGB = accumulated emission, AOV
     ``alpha`` = 1 - transmittance). PNG/JPEG files are sRGB with straight alpha: they are decoded
-    to linear with :func:`mi_tetvr.transfer.srgb_to_linear` and then premultiplied. EXR files are
+    to linear with :func:`mi_tetvr.color.srgb_to_linear` and then premultiplied. EXR files are
     linear and, following the OpenEXR convention, already premultiplied (read and written as is).
     A file without alpha gets alpha = 1. ``View.composite(bg)`` gives the picture over a constant
     background (NeRF-synthetic's white background: ``composite(1.0)``).
@@ -59,7 +59,7 @@ from typing import Dict, List, Optional, Sequence, Union
 
 import numpy as np
 
-from .transfer import linear_to_srgb, srgb_to_linear
+from mi_tetvr.recon.images import check_factor, downscale_image, read_image, write_image
 
 __all__ = ["View", "Dataset", "look_at", "load_dataset", "load_nerf", "load_colmap", "write_nerf",
            "read_image", "write_image", "downscale_image", "OPENGL_TO_MITSUBA",
@@ -71,7 +71,6 @@ OPENGL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
 OPENCV_TO_MITSUBA = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".PNG", ".JPG", ".JPEG", ".EXR")
-_SRGB_LUT8 = srgb_to_linear(np.arange(256) / 255.0).astype(np.float32)
 
 Holdout = Union[int, Sequence[int], None]
 
@@ -99,135 +98,6 @@ def look_at(origin, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
     m = np.eye(4)
     m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, new_up, d, o
     return m
-
-
-def downscale_image(image: np.ndarray, factor: int) -> np.ndarray:
-    """Area-average an image by an integer factor.
-
-    The right / bottom ``W % factor`` / ``H % factor`` pixels are cropped first (this keeps the
-    image origin, so intrinsics scale by ``1 / factor`` exactly).
-
-    Parameters
-    ----------
-    image : (H, W, C) float
-    factor : int >= 1
-
-    Returns
-    -------
-    (H // factor, W // factor, C) float32
-    """
-    factor = _check_factor(factor)
-    image = np.asarray(image, dtype=np.float32)
-    if factor == 1:
-        return image
-    h, w = image.shape[0] // factor, image.shape[1] // factor
-    if h == 0 or w == 0:
-        raise ValueError(f"downscale factor {factor} is larger than the image {image.shape[:2]}")
-    c = image.shape[2]
-    crop = np.ascontiguousarray(image[:h * factor, :w * factor])
-    # Rows first (contiguous blocks, fast), then columns of the 1/factor smaller array.
-    rows = crop.reshape(h, factor, w * factor * c).sum(axis=1, dtype=np.float32)
-    out = rows.reshape(h, w, factor, c).sum(axis=2, dtype=np.float32)
-    out *= np.float32(1.0 / (factor * factor))
-    return out
-
-
-def read_image(path, downscale: int = 1) -> np.ndarray:
-    """Read an image as premultiplied linear RGBA.
-
-    PNG / JPEG (8 or 16 bit, grey, palette, RGB or RGBA) are sRGB with straight alpha: decoded to
-    linear, then premultiplied. EXR (and other HDR formats ``mitsuba.Bitmap`` reads) are linear and
-    premultiplied (OpenEXR convention). A missing alpha channel is 1.
-
-    Parameters
-    ----------
-    path : str or Path
-    downscale : int
-        Integer area-averaging factor applied after premultiplication (see
-        :func:`downscale_image`).
-
-    Returns
-    -------
-    (H // downscale, W // downscale, 4) float32
-    """
-    path = Path(path)
-    if path.suffix.lower() in (".exr", ".hdr", ".pfm", ".rgbe"):
-        import mitsuba as mi
-        bmp = mi.Bitmap(str(path)).convert(mi.Bitmap.PixelFormat.RGBA, mi.Struct.Type.Float32,
-                                           srgb_gamma=False)
-        img = np.array(bmp, dtype=np.float32).reshape(bmp.height(), bmp.width(), 4)
-        return downscale_image(img, downscale)
-
-    from PIL import Image
-    with Image.open(path) as im:
-        im.load()
-        mode = im.mode
-        if mode in ("I;16", "I;16B", "I;16L", "I"):
-            g = np.asarray(im, dtype=np.float64) / (65535.0 if mode != "I" or im.getextrema()[1] > 255
-                                                    else 255.0)
-            lin = srgb_to_linear(np.clip(g, 0, 1)).astype(np.float32)
-            img = np.empty(lin.shape + (4,), np.float32)
-            img[..., :3] = lin[..., None]
-            img[..., 3] = 1.0
-            return downscale_image(img, downscale)
-        has_alpha = mode in ("RGBA", "LA", "PA", "La", "RGBa") or \
-            (mode == "P" and "transparency" in im.info)
-        target = "RGBA" if has_alpha else "RGB"
-        arr = np.asarray(im if im.mode == target else im.convert(target))
-    if has_alpha:
-        img = np.take(_SRGB_LUT8, arr)                   # (H, W, 4); alpha fixed below
-        img[..., 3] = arr[..., 3] * np.float32(1.0 / 255.0)
-        img[..., :3] *= img[..., 3:4]
-    else:
-        img = np.empty(arr.shape[:2] + (4,), np.float32)
-        img[..., :3] = np.take(_SRGB_LUT8, arr)
-        img[..., 3] = 1.0
-    return downscale_image(img, downscale)
-
-
-def write_image(path, image: np.ndarray) -> None:
-    """Write a premultiplied linear RGBA image.
-
-    ``.exr``: linear, premultiplied, float32 (exact). ``.png``: 8-bit sRGB with straight alpha
-    (colour un-premultiplied where alpha > 0, 0 where alpha = 0). ``.jpg``: 8-bit sRGB composited
-    over black, alpha dropped.
-
-    Parameters
-    ----------
-    path : str or Path
-    image : (H, W, 4) or (H, W, 3) float
-    """
-    path = Path(path)
-    image = np.asarray(image, dtype=np.float32)
-    if image.ndim != 3 or image.shape[2] not in (3, 4):
-        raise ValueError(f"expected an (H, W, 3|4) image, got shape {image.shape}")
-    if image.shape[2] == 3:
-        image = np.concatenate([image, np.ones(image.shape[:2] + (1,), np.float32)], axis=2)
-    suffix = path.suffix.lower()
-    if suffix == ".exr":
-        import mitsuba as mi
-        mi.Bitmap(np.ascontiguousarray(image), pixel_format=mi.Bitmap.PixelFormat.RGBA).write(
-            str(path))
-        return
-    from PIL import Image
-    alpha = np.clip(image[..., 3:4], 0.0, 1.0)
-    if suffix == ".png":
-        with np.errstate(divide="ignore", invalid="ignore"):
-            straight = np.where(alpha > 0, image[..., :3] / np.maximum(alpha, 1e-30), 0.0)
-        rgb8 = np.round(linear_to_srgb(np.clip(straight, 0, 1)) * 255.0).astype(np.uint8)
-        a8 = np.round(alpha * 255.0).astype(np.uint8)
-        Image.fromarray(np.concatenate([rgb8, a8], axis=2), "RGBA").save(path, compress_level=3)
-    elif suffix in (".jpg", ".jpeg"):
-        rgb8 = np.round(linear_to_srgb(np.clip(image[..., :3], 0, 1)) * 255.0).astype(np.uint8)
-        Image.fromarray(rgb8, "RGB").save(path, quality=95)
-    else:
-        raise ValueError(f"unsupported image format '{path.suffix}' (use .png, .exr or .jpg)")
-
-
-def _check_factor(factor) -> int:
-    if int(factor) != factor or factor < 1:
-        raise ValueError(f"downscale factor must be a positive integer, got {factor!r}")
-    return int(factor)
 
 
 # --------------------------------------------------------------------------------------------
@@ -433,7 +303,7 @@ class View:
         The right / bottom remainder (``width % factor`` etc.) is cropped, which keeps the
         top-left origin, so ``fx, fy, cx, cy`` scale by ``1 / factor`` exactly.
         """
-        factor = _check_factor(factor)
+        factor = check_factor(factor)
         if factor == 1:
             return replace(self)
         img = None if self.image is None else downscale_image(self.image, factor)
@@ -479,7 +349,7 @@ class Dataset:
 
     def downscaled(self, factor: int) -> "Dataset":
         """A copy with every view downscaled (see :meth:`View.downscaled`)."""
-        factor = _check_factor(factor)
+        factor = check_factor(factor)
         return replace(self, train=[v.downscaled(factor) for v in self.train],
                        test=[v.downscaled(factor) for v in self.test])
 
@@ -717,7 +587,7 @@ def load_nerf(path, downscale: int = 1, holdout: Holdout = 8, *, load_images: bo
     Dataset
     """
     path = Path(path)
-    downscale = _check_factor(downscale)
+    downscale = check_factor(downscale)
     if path.is_file():
         root, files = path.parent, {"train": path.name}
     else:
@@ -902,7 +772,7 @@ def load_colmap(path, images=None, downscale: int = 1, holdout: Holdout = 8, *,
     """
     import pycolmap
     path = Path(path)
-    downscale = _check_factor(downscale)
+    downscale = check_factor(downscale)
     model = _find_colmap_model(path)
     if images is None:
         for cand in (path / "images", model.parent / "images", model.parent.parent / "images"):
