@@ -17,7 +17,7 @@ whole mesh.
    hit) inside a Dr.Jit symbolic loop; between two consecutive hits the ray is
    inside one tet, color and opacity at each hit come from the hit triangle's
    vertices with the barycentrics in ``si.prim_uv``, and the segment is
-   integrated with the same :func:`mi_tetvr.render.kernels.segment_integral`. (The
+   integrated with the same :func:`mi_tetvr.render.segment.segment_integral`. (The
    baseline assumes a convex mesh: everything between the first and the last
    hit is inside; the grid is a box.)
 
@@ -65,7 +65,7 @@ import mitsuba as mi  # noqa: E402
 mi.set_variant(ARGS.variant)
 
 import mi_tetvr  # noqa: E402
-from mi_tetvr.render.kernels import segment_integral  # noqa: E402
+from mi_tetvr.render.segment import segment_integral  # noqa: E402
 from mi_tetvr.mesh.topology import FACES  # noqa: E402
 from mi_tetvr.render.walk import WalkSettings, trace  # noqa: E402
 

@@ -108,7 +108,7 @@ class TetMeshShape(mi.Mesh):
         params.update()
         nbr = np.where(topo.neighbors >= 0, topo.neighbors.astype(np.int64) * 4
                        + topo.neighbor_faces, -1)
-        #: Index buffers of the walk (local indices; see mi_tetvr.render.kernels.MeshBuffers)
+        #: Index buffers of the walk (local indices; see mi_tetvr.render.geometry.MeshBuffers)
         self.tet_buffers = dict(
             tets=topo.tets.astype(np.uint32).ravel(),
             nbr=nbr.astype(np.int32).ravel(),

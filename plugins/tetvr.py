@@ -54,7 +54,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_tetvr.render.kernels import MeshBuffers
+from mi_tetvr.render.geometry import MeshBuffers
 from mi_tetvr.render.walk import Adjoint, WalkSettings, trace
 
 

@@ -5,7 +5,7 @@ import pytest
 
 import drjit as dr
 import mitsuba as mi
-from mi_tetvr.render.kernels import accumulate, segment_integral
+from mi_tetvr.render.segment import accumulate, segment_integral
 
 X = np.array([0.0, 1e-7, 1e-4, 5e-3, 0.0099, 0.0101, 0.099, 0.101, 0.3, 2.0, 30.0, 1e4])
 

@@ -38,7 +38,7 @@ ray termination would make that inversion start from an unknown state). ``R``
 is a difference of two accumulated values, so its absolute error is a few
 float ulps of ``L_pix``; it multiplies ``dtau_k``, so the relative error of a
 gradient stays at float precision. ``dC_k`` and ``dtau_k`` are obtained by
-differentiating the segment integral (:mod:`mi_tetvr.render.kernels`) and the face
+differentiating the segment integral (:mod:`mi_tetvr.render.segment`) and the face
 crossings with Dr.Jit's AD *locally* inside the loop body; the gathers'
 reverse-mode derivative scatter-adds straight into the parameters' gradients.
 Memory is therefore O(rays), independent of the number of tets crossed.
@@ -48,8 +48,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_tetvr.render.kernels import (_PERM, clip_segment, crossing, face_entry, face_point, project,
-                      ray_frame, segment_integral, tet_face, walk_step)
+from mi_tetvr.render.geometry import (_PERM, crossing, face_entry, face_point, project, ray_frame,
+                                     tet_face, walk_step)
+from mi_tetvr.render.segment import clip_segment, segment_integral
 
 
 class WalkSettings:
