@@ -61,7 +61,6 @@ import numpy as np  # noqa: E402
 
 mi.set_variant(ARGS.variant)
 import mi_tetvr  # noqa: E402,F401
-from mi_tetvr.plugins.tetvr import mesh_buffers, scene_tetmeshes  # noqa: E402
 from mi_tetvr.render.walk import trace  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -101,10 +100,8 @@ def pixel_rays(scene, res):
 
 def tets_per_ray(scene, ray):
     integrator = scene.integrator()
-    shapes = scene_tetmeshes(scene)
-    buf, offsets = mesh_buffers(shapes)
     with dr.suspend_grad():
-        _, _, steps, _ = trace(dr.ADMode.Primal, scene, buf, shapes, offsets, ray,
+        _, _, steps, _ = trace(dr.ADMode.Primal, scene, integrator.tet_scene(scene), ray,
                                integrator.settings_for(scene), True)
     steps = np.asarray(steps)
     hit = steps > 0

@@ -70,7 +70,7 @@ from mi_tetvr.mesh.topology import FACES  # noqa: E402
 from mi_tetvr.render.walk import WalkSettings, trace  # noqa: E402
 
 mi_tetvr.register()
-from mi_tetvr.plugins.tetvr import mesh_buffers, scene_tetmeshes  # noqa: E402
+from mi_tetvr.render.buffers import scene_tetmeshes  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from common import grid_scene, header, timed  # noqa: E402
@@ -201,11 +201,10 @@ def main(a):
     rays = pixel_rays(sensor, res)
     integrator = tv_scene.integrator()
     diag = float(dr.norm(tv_scene.bbox().extents()))
-    settings = WalkSettings(a.n_sub, 0.0, integrator.settings.max_steps,
+    settings = WalkSettings(0.0, integrator.settings.max_steps,
                             integrator.retrace_epsilon * diag)
-    shapes = scene_tetmeshes(tv_scene)
-    buf, offsets = mesh_buffers(shapes)
-    dr.eval(buf)
+    ts = integrator.tet_scene(tv_scene)
+    dr.eval(ts.buf, ts.params)
 
     # -- tetvr through mi.render ----------------------------------------------
     def run_render():
@@ -218,7 +217,7 @@ def main(a):
 
     # -- tetvr walk on the same rays ------------------------------------------
     def run_walk():
-        C, T, steps, _ = trace(dr.ADMode.Primal, tv_scene, buf, shapes, offsets, rays,
+        C, T, steps, _ = trace(dr.ADMode.Primal, tv_scene, ts, rays,
                                settings, True)
         dr.eval(C, T, steps)
         return C, T, steps

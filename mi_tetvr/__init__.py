@@ -31,7 +31,8 @@ __all__ = ["register", "tetmesh_dict", "read_tetmesh", "write_tetmesh", "MeshErr
 _registered_variant = None
 
 #: Modules that bind Mitsuba/Dr.Jit types at import, in dependency order.
-_VARIANT_MODULES = ("render.segment", "render.geometry", "render.walk", "grid.volume", "recon.regularizer",
+_VARIANT_MODULES = ("render.segment", "render.buffers", "render.geometry", "render.optical",
+                    "render.adjoint", "render.walk", "grid.volume", "recon.regularizer",
                     "plugins.tetmesh", "plugins.tetvr")
 
 

@@ -53,8 +53,9 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
-from mi_tetvr.mesh.io import read_tetmesh
-from mi_tetvr.mesh.topology import TetMesh
+from mi_tetvr.mesh import TetMesh, read_tetmesh
+from mi_tetvr.render.buffers import shape_index_arrays
+from mi_tetvr.render.optical import EmissionAbsorption
 
 
 def _tensor(props, key):
@@ -92,6 +93,8 @@ def mesh_from_properties(props) -> TetMesh:
 
 class TetMeshShape(mi.Mesh):
     __doc__ = __doc__
+    #: The optical model that integrates this shape's vertex attributes.
+    optical_model = EmissionAbsorption
 
     def __init__(self, props):
         mesh = mesh_from_properties(props)
@@ -103,20 +106,13 @@ class TetMeshShape(mi.Mesh):
         params = mi.traverse(self)
         params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
         params["faces"] = mi.UInt32(topo.boundary_faces.astype(np.uint32).ravel())
-        self.add_attribute("vertex_color", 3, mi.Float(mesh.color.astype(np.float32).ravel()))
-        self.add_attribute("vertex_opacity", 1, mi.Float(mesh.opacity.astype(np.float32)))
+        values = self.optical_model.vertex_values(mesh)
+        for name, channels in self.optical_model.vertex_attributes:
+            self.add_attribute(name, channels,
+                               mi.Float(np.asarray(values[name], np.float32).ravel()))
         params.update()
-        nbr = np.where(topo.neighbors >= 0, topo.neighbors.astype(np.int64) * 4
-                       + topo.neighbor_faces, -1)
-        #: Index buffers of the walk (local indices; see mi_tetvr.render.geometry.MeshBuffers)
-        self.tet_buffers = dict(
-            tets=topo.tets.astype(np.uint32).ravel(),
-            nbr=nbr.astype(np.int32).ravel(),
-            boundary=(topo.boundary_tets.astype(np.uint32) * 4
-                      + topo.boundary_local_faces.astype(np.uint32)),
-            faces=topo.boundary_faces.astype(np.uint32).ravel(),
-            face_adj=topo.boundary_adjacency.astype(np.int32).ravel(),
-        )
+        #: Index arrays of the walk (local indices; see mi_tetvr.render.buffers)
+        self.tet_buffers = shape_index_arrays(topo)
 
     def to_string(self):
         return (f"TetMeshShape[vertices={len(self.mesh.vertices)}, "

@@ -52,64 +52,10 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
-from mi_tetvr.render.geometry import MeshBuffers
-from mi_tetvr.render.walk import Adjoint, WalkSettings, trace
-
-
-def scene_tetmeshes(scene):
-    """The scene's ``tetmesh`` shapes; any other shape is an error."""
-    shapes = list(scene.shapes())
-    others = [s for s in shapes if not hasattr(s, "tet_buffers")]
-    if others:
-        raise ValueError(f"tetvr renders only 'tetmesh' shapes; the scene also contains "
-                         f"{[type(s).__name__ + ':' + s.id() for s in others]}")
-    return shapes
-
-
-def index_buffers(shapes):
-    """The shapes' topology buffers concatenated, index offsets applied in
-    numpy. Returns (dict of MeshBuffers index fields, face_offsets)."""
-    vo = to = fo = 0
-    idx = {k: [] for k in ("tets", "nbr", "boundary", "faces", "face_adj")}
-    face_offsets = []
-    for s in shapes:
-        b = s.tet_buffers
-        idx["tets"].append(b["tets"].astype(np.int64) + vo)
-        idx["nbr"].append(np.where(b["nbr"] >= 0, b["nbr"].astype(np.int64) + 4 * to, -1))
-        idx["boundary"].append(b["boundary"].astype(np.int64) + 4 * to)
-        idx["faces"].append(b["faces"].astype(np.int64) + vo)
-        idx["face_adj"].append(np.where(b["face_adj"] >= 0,
-                                        b["face_adj"].astype(np.int64) + fo, -1))
-        face_offsets.append(fo)
-        vo += s.vertex_count()
-        to += len(b["tets"]) // 4
-        fo += s.face_count()
-    if vo >= 2 ** 32 or 4 * to >= 2 ** 31:
-        raise ValueError("tet meshes too large for 32-bit indices")
-    types = {"tets": (mi.UInt32, np.uint32), "nbr": (mi.Int32, np.int32),
-             "boundary": (mi.UInt32, np.uint32), "faces": (mi.UInt32, np.uint32),
-             "face_adj": (mi.Int32, np.int32)}
-    return ({k: t(np.concatenate(idx[k]).astype(nt)) for k, (t, nt) in types.items()},
-            face_offsets)
-
-
-def attribute_buffers(shapes):
-    """Positions, colors and opacities of the shapes, concatenated; they stay
-    attached to the shapes' AD graph (re-read on every render: they change
-    under optimization)."""
-    def cat(bufs):
-        return bufs[0] if len(bufs) == 1 else dr.concat(bufs)
-    return {"positions": cat([s.vertex_positions_buffer() for s in shapes]),
-            "color": cat([s.attribute_buffer("vertex_color") for s in shapes]),
-            "opacity": cat([s.attribute_buffer("vertex_opacity") for s in shapes])}
-
-
-def mesh_buffers(shapes):
-    """All buffers of the shapes. Returns (MeshBuffers, face_offsets)."""
-    idx, face_offsets = index_buffers(shapes)
-    return MeshBuffers(**idx, **attribute_buffers(shapes)), face_offsets
+from mi_tetvr.render.adjoint import Adjoint
+from mi_tetvr.render.buffers import index_buffers, scene_tetmeshes, tet_scene
+from mi_tetvr.render.walk import WalkSettings, trace
 
 
 class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
@@ -132,22 +78,24 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         reduce = str(props.get("reduce_mode", "auto")).lower()
         if reduce not in modes:
             raise ValueError(f"tetvr: reduce_mode must be one of {sorted(modes)}, got {reduce!r}")
-        self.settings = WalkSettings(n_sub, t_min, max_steps, reduce=modes[reduce])
+        self.n_sub = n_sub
+        self.settings = WalkSettings(t_min, max_steps, reduce=modes[reduce])
         self.alpha = bool(props.get("alpha", True))
         self._index_cache = None
 
     def aov_names(self):
         return ["alpha"] if self.alpha else []
 
-    def _buffers(self, scene):
-        """(shapes, MeshBuffers, face_offsets): index buffers cached per set
-        of shapes, attribute buffers read afresh."""
+    def tet_scene(self, scene):
+        """The :class:`~mi_tetvr.render.buffers.TetScene` the walk reads: index
+        buffers cached per set of shapes, positions and the optical model's
+        parameters read afresh (they change under optimization)."""
         shapes = scene_tetmeshes(scene)
         key = tuple(id(s.tet_buffers) for s in shapes)
         if self._index_cache is None or self._index_cache[0] != key:
             self._index_cache = (key, *index_buffers(shapes))
         _, idx, offsets = self._index_cache
-        return shapes, MeshBuffers(**idx, **attribute_buffers(shapes)), offsets
+        return tet_scene(shapes, idx, offsets, n_sub=self.n_sub)
 
     def background(self, scene, d, active):
         env = scene.environment()
@@ -168,7 +116,7 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
     def settings_for(self, scene):
         """Walk settings with the re-trace offset scaled to the scene."""
         s = self.settings
-        return WalkSettings(s.n_sub, s.t_min, s.max_steps,
+        return WalkSettings(s.t_min, s.max_steps,
                             self.retrace_epsilon * float(dr.norm(scene.bbox().extents())),
                             s.reduce)
 
@@ -177,14 +125,14 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         # e.g. render_backward, suspends it): the per-segment recomputation
         # inside the walk needs their AD graph; the walk itself runs detached.
         with dr.resume_grad(when=mode != dr.ADMode.Primal):
-            shapes, buf, offsets = self._buffers(scene)
+            ts = self.tet_scene(scene)
         settings = self.settings_for(scene)
         ray = mi.Ray3f(dr.detach(ray))
         ray.d = dr.normalize(ray.d)
         active = mi.Bool(active)
         bg = self.background(scene, ray.d, active)
         if mode == dr.ADMode.Primal:
-            C, T, _, _ = trace(mode, scene, buf, shapes, offsets, ray, settings, active)
+            C, T, _, _ = trace(mode, scene, ts, ray, settings, active)
             L = C + T * bg
             return L, mi.Bool(True), [1.0 - T] if self.alpha else [], (L, T)
         if state_in is None:
@@ -196,15 +144,14 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
             adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(δL), δalpha)
         else:
             adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(0.0), mi.Float(0.0))
-        _, _, _, adj = trace(mode, scene, dr.detach(buf), shapes, offsets, ray, settings,
-                             active, adj, buf_ad=buf)
+        _, _, _, adj = trace(mode, scene, ts.detached(), ray, settings, active, adj, ts_ad=ts)
         if mode == dr.ADMode.Backward:
             return mi.Color3f(0.0), mi.Bool(True), [], None
         return adj.dL, mi.Bool(True), [adj.dalpha] if self.alpha else [], None
 
     def to_string(self):
         s = self.settings
-        return (f"TetVRIntegrator[n_sub={s.n_sub}, min_transmittance={s.t_min}, "
+        return (f"TetVRIntegrator[n_sub={self.n_sub}, min_transmittance={s.t_min}, "
                 f"max_steps={s.max_steps}]")
 
 

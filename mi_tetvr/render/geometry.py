@@ -11,6 +11,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mi_tetvr.render.buffers import unpack_link
+
 # ----------------------------------------------------------------------------
 # Tet-walk step
 # ----------------------------------------------------------------------------
@@ -24,13 +26,6 @@ import mitsuba as mi
 # ray by (eps, eps^2) (simulation of simplicity). Every ray therefore passes
 # on one definite side of every edge: it can't slip between faces, through
 # vertices or along edges, and zero-volume tets are crossed like any other.
-
-#: PERM[4 f + j]: local vertex order (apex k = f, then face f's vertices a, b, c).
-_PERM = [0, 1, 2, 3,
-         1, 0, 3, 2,
-         2, 0, 1, 3,
-         3, 0, 2, 1]
-
 
 def project(p, o, u, v):
     """2D coordinates of point ``p`` in the ray frame ``(o; u, v)``."""
@@ -88,38 +83,6 @@ def face_weights(e_a, e_b, e_c):
             dr.select(ok, wc * inv_n, third))
 
 
-class MeshBuffers:
-    """Flat Dr.Jit buffers of the tet meshes of a scene (no state beyond data).
-
-    tets : UInt32 (4 m)          global vertex index of each tet's corners
-    nbr : Int32 (4 m)            4 * neighbour + its local face, -1 on the boundary
-    boundary : UInt32 (b)        4 * tet + local face of each boundary face
-    faces : UInt32 (3 b)         boundary face vertices (outward)
-    face_adj : Int32 (3 b)       boundary face across the edge opposite each corner
-    positions : Float (3 n)      vertex positions (differentiable)
-    color : Float (3 n)          linear RGB (differentiable)
-    opacity : Float (n)          extinction per unit length (differentiable)
-    """
-    DRJIT_STRUCT = {"tets": mi.UInt32, "nbr": mi.Int32, "boundary": mi.UInt32,
-                    "faces": mi.UInt32, "face_adj": mi.Int32, "positions": mi.Float, "color": mi.Float,
-                    "opacity": mi.Float}
-
-    def __init__(self, tets=None, nbr=None, boundary=None, faces=None, face_adj=None,
-                 positions=None, color=None, opacity=None):
-        self.tets, self.nbr, self.boundary, self.faces = tets, nbr, boundary, faces
-        self.face_adj = face_adj
-        self.positions, self.color, self.opacity = positions, color, opacity
-
-    # ``reduce`` is the scatter strategy of the gathers' reverse-mode
-    # derivative (gradients of shared vertices meet there).
-    def position(self, i, active=True, reduce=dr.ReduceMode.Auto):
-        return dr.gather(mi.Point3f, self.positions, i, active, mode=reduce)
-
-    def attributes(self, i, active=True, reduce=dr.ReduceMode.Auto):
-        return (dr.gather(mi.Color3f, self.color, i, active, mode=reduce),
-                dr.gather(mi.Float, self.opacity, i, active, mode=reduce))
-
-
 def crossing(ids, P, p, o, d):
     """Where the ray crosses the triangle of vertices ``ids`` (global indices),
     given their positions ``P`` and projections ``p`` in the ray frame.
@@ -136,33 +99,21 @@ def crossing(ids, P, p, o, d):
     return dr.dot(w[0] * P0 + w[1] * P1 + w[2] * P2 - o, d), w
 
 
-def interpolate(buf, ids, w, active=True, reduce=dr.ReduceMode.Auto):
-    """Color and opacity at barycentric weights ``w`` of the vertices ``ids``."""
-    c = mi.Color3f(0.0)
-    s = mi.Float(0.0)
-    for i, wi in zip(ids, w):
-        ci, si = buf.attributes(i, active, reduce)
-        c += wi * ci
-        s += wi * si
-    return c, s
-
-
-def face_point(buf, ids, o, u, v, d, active=True, reduce=dr.ReduceMode.Auto):
-    """``(t, c, s)`` where the ray crosses the triangle ``ids``: gathers the
+def face_crossing(buf, ids, o, u, v, d, active=True, reduce=dr.ReduceMode.Auto):
+    """``(t, w)`` where the ray crosses the triangle ``ids``: gathers the
     vertices (differentiably, when AD is enabled on the buffers)."""
     P = tuple(buf.position(i, active, reduce) for i in ids)
     p = tuple(project(Pi, o, u, v) for Pi in P)
-    t, w = crossing(ids, P, p, o, d)
-    return (t, *interpolate(buf, ids, w, active, reduce))
+    return crossing(ids, P, p, o, d)
 
 
-def tet_face(buf, perm, tet, f, active=True):
+def tet_face(buf, tet, f, active=True):
     """Global vertex indices ``(apex, a, b, c)`` of ``tet`` for its local face
     ``f`` (the apex is the vertex opposite the face; ``a, b, c`` the face)."""
     base = tet * 4
     k = f * 4
     return tuple(dr.gather(mi.UInt32, buf.tets,
-                           base + dr.gather(mi.UInt32, perm, k + j, active), active)
+                           base + dr.gather(mi.UInt32, buf.face_order, k + j, active), active)
                  for j in range(4))
 
 
@@ -186,7 +137,7 @@ def face_entry(buf, face, o, u, v, d, active):
 
     Parameters
     ----------
-    buf : MeshBuffers
+    buf : mi_tetvr.render.buffers.MeshBuffers
     face : UInt32
         Global boundary face index.
 
@@ -213,29 +164,30 @@ def face_entry(buf, face, o, u, v, d, active):
     _, (Pa, Pb, Pc), _ = _face_corners(buf, face, o, u, v, active)
     code = dr.gather(mi.UInt32, buf.boundary, face, active)
     outward = dr.dot(dr.cross(Pb - Pa, Pc - Pa), d) > 0
-    return code >> 2, code & 3, outward
+    tet, f = unpack_link(code)
+    return tet, f, outward
 
 
 class Step:
-    """Result of :func:`walk_step`: the exit point and the faces involved."""
+    """Result of :func:`walk_step`: the exit crossing and the faces involved."""
 
-    def __init__(self, t, c, s, nbr, f_out, entry, exit):
-        self.t, self.c, self.s = t, c, s
-        self.nbr = nbr        # 4 * next tet + its entry face, -1 when leaving the mesh
+    def __init__(self, t, w, link, f_out, entry, exit):
+        self.t = t            # ray parameter of the exit crossing
+        self.w = w            # its barycentric weights in the exit face
+        self.link = link      # the next tet and its entry face (a link), -1 when leaving the mesh
         self.f_out = f_out    # local index of the exit face
         self.entry = entry    # global vertex ids of the entry face
         self.exit = exit      # global vertex ids of the exit face
 
 
-def walk_step(buf, perm, tet, f_in, o, u, v, d, active):
+def walk_step(buf, tet, f_in, o, u, v, d, active):
     """Cross one tet: find the exit face of a ray entering ``tet`` through its
-    local face ``f_in``, and the exit point's ray parameter, color and
-    opacity (a :class:`Step`)."""
-    ik, ia, ib, ic = tet_face(buf, perm, tet, f_in, active)
+    local face ``f_in``, and the exit crossing (a :class:`Step`)."""
+    ik, ia, ib, ic = tet_face(buf, tet, f_in, active)
     k = f_in * 4
-    la = dr.gather(mi.UInt32, perm, k + 1, active)
-    lb = dr.gather(mi.UInt32, perm, k + 2, active)
-    lc = dr.gather(mi.UInt32, perm, k + 3, active)
+    la = dr.gather(mi.UInt32, buf.face_order, k + 1, active)
+    lb = dr.gather(mi.UInt32, buf.face_order, k + 2, active)
+    lc = dr.gather(mi.UInt32, buf.face_order, k + 3, active)
     Pk, Pa, Pb, Pc = (buf.position(ik, active), buf.position(ia, active),
                       buf.position(ib, active), buf.position(ic, active))
     pk, pa, pb, pc = (project(Pk, o, u, v), project(Pa, o, u, v),
@@ -270,6 +222,5 @@ def walk_step(buf, perm, tet, f_in, o, u, v, d, active):
     lz = dr.select(opp_c, lc, dr.select(opp_a, la, lb))
     exit_ids = (ik, ix, iy)
     t_out, w = crossing(exit_ids, (Pk, Px, Py), (pk, px, py), o, d)
-    c_out, s_out = interpolate(buf, exit_ids, w, active)
-    nbr = dr.gather(mi.Int32, buf.nbr, tet * 4 + lz, active)
-    return Step(t_out, c_out, s_out, nbr, lz, (ia, ib, ic), exit_ids)
+    link = dr.gather(mi.Int32, buf.nbr, tet * 4 + lz, active)
+    return Step(t_out, w, link, lz, (ia, ib, ic), exit_ids)

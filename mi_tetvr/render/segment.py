@@ -31,6 +31,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mi_tetvr.render.pytree import tree_lerp
+
 #: Below this optical depth the sub-interval integral uses Taylor series (to
 #: x^4; truncation < 2e-6 relative). Above it the closed form and its
 #: derivative lose at most ~eps / x^2 to cancellation.
@@ -97,17 +99,17 @@ def segment_integral(length, c0, c1, s0, s1, n_sub: int):
 
 
 
-def clip_segment(t0, c0, s0, t1, c1, s1, t_begin, t_end):
-    """Restrict a segment with linear attributes (``t0 -> t1``) to
-    ``[t_begin, t_end]``. Returns ``(length, c0, c1, s0, s1)``; unclipped
-    segments pass through bit-exactly, never divides by a zero length."""
+def clip_segment(t0, x0, t1, x1, t_begin, t_end):
+    """Restrict a segment with linear attributes (``t0 -> t1``, values ``x0 ->
+    x1``: any Dr.Jit array or ``DRJIT_STRUCT`` of them) to ``[t_begin,
+    t_end]``. Returns ``(length, x_begin, x_end)``; unclipped segments pass
+    through bit-exactly, never divides by a zero length."""
     span = t1 - t0
     inv = dr.select(span > 0, dr.rcp(dr.select(span > 0, span, 1.0)), 0.0)
     lo = t0 < t_begin
     hi = t1 > t_end
-    a0 = dr.select(lo, dr.clip((t_begin - t0) * inv, 0.0, 1.0), 0.0)
-    a1 = dr.select(hi, dr.clip((t_end - t0) * inv, 0.0, 1.0), 1.0)
-    a1 = dr.maximum(a1, a0)
-    length = dr.select(lo | hi, (a1 - a0) * span, span)
-    return (length, dr.lerp(c0, c1, a0), dr.lerp(c0, c1, a1),
-            dr.lerp(s0, s1, a0), dr.lerp(s0, s1, a1))
+    f0 = dr.select(lo, dr.clip((t_begin - t0) * inv, 0.0, 1.0), 0.0)
+    f1 = dr.select(hi, dr.clip((t_end - t0) * inv, 0.0, 1.0), 1.0)
+    f1 = dr.maximum(f1, f0)
+    length = dr.select(lo | hi, (f1 - f0) * span, span)
+    return length, tree_lerp(x0, x1, f0), tree_lerp(x0, x1, f1)

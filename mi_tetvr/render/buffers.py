@@ -1,0 +1,187 @@
+"""The flat buffers the walk reads, and the one encoding of neighbour links.
+
+A *link* names a face of a tet from the side of the tet it belongs to:
+``4 * tet + local_face`` (:func:`pack_links`, :func:`unpack_link`), ``-1``
+where there is nothing across (the mesh boundary). Local face ``f`` is the
+face opposite local vertex ``f`` (:data:`mi_tetvr.mesh.topology.FACES`).
+
+The ``tetmesh`` shape packs its topology into per-shape index arrays
+(:func:`shape_index_arrays`, numpy, local indices); the integrator
+concatenates the shapes of a scene into one :class:`MeshBuffers`
+(:func:`index_buffers`, global indices) and pairs it with the optical model's
+parameters in a :class:`TetScene`.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_tetvr.mesh.topology import FACES
+
+#: FACE_ORDER[4 f + j]: local vertex order seen from local face ``f``: the
+#: apex (the vertex opposite ``f``, i.e. ``f`` itself), then the face's three
+#: vertices in the outward order of :data:`~mi_tetvr.mesh.topology.FACES`.
+FACE_ORDER = np.concatenate([[f, *FACES[f]] for f in range(4)]).astype(np.uint32)
+
+
+def pack_links(tets, faces):
+    """Links ``4 * tet + face`` (int64), ``-1`` where ``tets < 0``.
+
+    Parameters
+    ----------
+    tets : (k,) or (m, 4) int
+        Tet indices (``-1`` for none).
+    faces : same shape, int
+        Local face indices in those tets.
+    """
+    tets = np.asarray(tets, np.int64)
+    return np.where(tets >= 0, tets * 4 + np.asarray(faces, np.int64), -1)
+
+
+def offset_links(links, tet_offset):
+    """Links of a mesh whose tets start at ``tet_offset`` in a concatenation."""
+    links = np.asarray(links, np.int64)
+    return np.where(links >= 0, links + 4 * int(tet_offset), -1)
+
+
+def unpack_link(link):
+    """``(tet, face)`` as ``UInt32`` of a Dr.Jit link (meaningless where the
+    link is ``-1``)."""
+    return mi.UInt32(link >> 2), mi.UInt32(link & 3)
+
+
+def shape_index_arrays(topology):
+    """The index arrays a ``tetmesh`` shape hands the integrator (numpy,
+    indices local to the shape); see :class:`MeshBuffers` for their meaning."""
+    return dict(
+        tets=topology.tets.astype(np.uint32).ravel(),
+        nbr=pack_links(topology.neighbors, topology.neighbor_faces).astype(np.int32).ravel(),
+        boundary=pack_links(topology.boundary_tets,
+                            topology.boundary_local_faces).astype(np.uint32),
+        faces=topology.boundary_faces.astype(np.uint32).ravel(),
+        face_adj=topology.boundary_adjacency.astype(np.int32).ravel(),
+    )
+
+
+class MeshBuffers:
+    """Flat Dr.Jit buffers of the geometry of a scene's tet meshes.
+
+    tets : UInt32 (4 m)          global vertex index of each tet's corners
+    nbr : Int32 (4 m)            link to the face across each local face, -1 on the boundary
+    boundary : UInt32 (b)        link of each boundary face (tet behind it, local face)
+    faces : UInt32 (3 b)         boundary face vertices (outward)
+    face_adj : Int32 (3 b)       boundary face across the edge opposite each corner
+    positions : Float (3 n)      vertex positions (differentiable)
+    face_order : UInt32 (16)     :data:`FACE_ORDER`
+    """
+    DRJIT_STRUCT = {"tets": mi.UInt32, "nbr": mi.Int32, "boundary": mi.UInt32,
+                    "faces": mi.UInt32, "face_adj": mi.Int32, "positions": mi.Float,
+                    "face_order": mi.UInt32}
+
+    def __init__(self, tets=None, nbr=None, boundary=None, faces=None, face_adj=None,
+                 positions=None, face_order=None):
+        self.tets, self.nbr, self.boundary, self.faces = tets, nbr, boundary, faces
+        self.face_adj, self.positions = face_adj, positions
+        self.face_order = mi.UInt32(FACE_ORDER) if face_order is None else face_order
+
+    def position(self, i, active=True, reduce=dr.ReduceMode.Auto):
+        """Position of vertex ``i``; ``reduce`` is the scatter strategy of the
+        gather's reverse-mode derivative (gradients of shared vertices meet there)."""
+        return dr.gather(mi.Point3f, self.positions, i, active, mode=reduce)
+
+
+def scene_tetmeshes(scene):
+    """The scene's ``tetmesh`` shapes; any other shape is an error."""
+    shapes = list(scene.shapes())
+    others = [s for s in shapes if not hasattr(s, "tet_buffers")]
+    if others:
+        raise ValueError(f"tetvr renders only 'tetmesh' shapes; the scene also contains "
+                         f"{[type(s).__name__ + ':' + s.id() for s in others]}")
+    return shapes
+
+
+def index_buffers(shapes):
+    """The shapes' index arrays concatenated, offsets applied in numpy.
+
+    Returns
+    -------
+    (dict of MeshBuffers index fields, list of int)
+        The buffers and each shape's first global boundary face.
+    """
+    vo = to = fo = 0
+    idx = {k: [] for k in ("tets", "nbr", "boundary", "faces", "face_adj")}
+    face_offsets = []
+    for s in shapes:
+        b = s.tet_buffers
+        idx["tets"].append(b["tets"].astype(np.int64) + vo)
+        idx["nbr"].append(offset_links(b["nbr"], to))
+        idx["boundary"].append(offset_links(b["boundary"], to))
+        idx["faces"].append(b["faces"].astype(np.int64) + vo)
+        idx["face_adj"].append(np.where(b["face_adj"] >= 0,
+                                        b["face_adj"].astype(np.int64) + fo, -1))
+        face_offsets.append(fo)
+        vo += s.vertex_count()
+        to += len(b["tets"]) // 4
+        fo += s.face_count()
+    if vo >= 2 ** 32 or 4 * to >= 2 ** 31:
+        raise ValueError("tet meshes too large for 32-bit indices")
+    types = {"tets": (mi.UInt32, np.uint32), "nbr": (mi.Int32, np.int32),
+             "boundary": (mi.UInt32, np.uint32), "faces": (mi.UInt32, np.uint32),
+             "face_adj": (mi.Int32, np.int32)}
+    return ({k: t(np.concatenate(idx[k]).astype(nt)) for k, (t, nt) in types.items()},
+            face_offsets)
+
+
+def concat(buffers):
+    """One buffer of several shapes' buffers (no copy for a single shape)."""
+    return buffers[0] if len(buffers) == 1 else dr.concat(buffers)
+
+
+class TetScene:
+    """What the walk reads for one scene: the shapes (to map Mitsuba's
+    intersections to global boundary faces), their :class:`MeshBuffers`, the
+    optical model and its parameter buffers.
+
+    Parameters
+    ----------
+    shapes : list of tetmesh shapes
+    face_offsets : list of int
+        First global boundary face of each shape.
+    buf : MeshBuffers
+    model : mi_tetvr.render.optical.OpticalModel
+    params : model.Params
+    """
+
+    def __init__(self, shapes, face_offsets, buf, model, params):
+        self.shapes, self.face_offsets = shapes, face_offsets
+        self.buf, self.model, self.params = buf, model, params
+
+    def detached(self):
+        """The same scene with its buffers detached from the AD graph."""
+        return TetScene(self.shapes, self.face_offsets, dr.detach(self.buf), self.model,
+                        dr.detach(self.params))
+
+    def boundary_face(self, si):
+        """Global boundary face index of a preliminary intersection."""
+        idx = mi.UInt32(si.prim_index)
+        if len(self.shapes) == 1:
+            return idx
+        off = mi.UInt32(0)
+        for shape, offset in zip(self.shapes, self.face_offsets):
+            off = dr.select(si.shape == mi.ShapePtr(shape), offset, off)
+        return idx + off
+
+
+def tet_scene(shapes, index, face_offsets, **model_options):
+    """The :class:`TetScene` of ``shapes`` from their concatenated index
+    buffers (:func:`index_buffers`); positions and the optical model's
+    parameters are read from the shapes (attached to their AD graph).
+    ``model_options`` go to the optical model's constructor."""
+    models = {s.optical_model for s in shapes}
+    if len(models) > 1:
+        raise ValueError(f"tetvr: all tetmesh shapes of a scene must use one optical "
+                         f"model, got {sorted(m.__name__ for m in models)}")
+    model = models.pop()(**model_options)
+    buf = MeshBuffers(**index, positions=concat([s.vertex_positions_buffer() for s in shapes]))
+    return TetScene(shapes, face_offsets, buf, model, model.read_params(shapes))

@@ -1,0 +1,156 @@
+"""Optical models: what a vertex carries and how one segment is integrated.
+
+The walk (:mod:`mi_tetvr.render.walk`) crosses faces; at each crossing it
+asks the model for the per-vertex values interpolated there, and for each
+segment (entry and exit values, length) it asks the model for the emission
+and the transmittance. It never looks inside either. The adjoint
+(:mod:`mi_tetvr.render.adjoint`) obtains the local derivatives of a segment by
+Dr.Jit's AD of :meth:`OpticalModel.segment` and of :meth:`OpticalModel.gather`,
+so a model only writes its forward formulas.
+
+A model defines:
+
+* ``Attributes``: a ``DRJIT_STRUCT`` class of the values interpolated at a
+  crossing (barycentric in the crossed face, hence linear along the ray
+  inside a tet); the walk adds, lerps and selects them field by field.
+* ``Params``: a ``DRJIT_STRUCT`` class of the parameter buffers (Mitsuba
+  scene parameters, differentiable), read from the shapes by
+  :meth:`OpticalModel.read_params`.
+* :meth:`OpticalModel.gather`: the attributes of a vertex from ``Params``.
+* :meth:`OpticalModel.segment`: ``(C, T, tau)`` of a segment: the emission
+  seen from its front, its transmittance and its optical depth
+  (``T = exp(-tau)`` mathematically; ``tau`` is what the adjoint
+  differentiates, ``T`` what the primal multiplies).
+
+Models here: :class:`EmissionAbsorption` (what ``tetmesh`` shapes use) and
+:class:`Absorption` (extinction only). To add a model (a scalar classified by
+a transfer function, ...), subclass :class:`OpticalModel`, and let the
+``tetmesh`` shape name it (``shape.optical_model``) and carry its
+``vertex_attributes``; the walk and the adjoint stay as they are.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from mi_tetvr.render.buffers import concat
+from mi_tetvr.render.pytree import weighted_sum
+from mi_tetvr.render.segment import segment_integral
+
+
+class OpticalModel:
+    """Interface of an optical model (see the module docstring).
+
+    Parameters
+    ----------
+    n_sub : int
+        Sub-intervals per segment, for models whose segment integral has no
+        closed form (a Python int: the loop is unrolled).
+    """
+    Attributes = None
+    Params = None
+    #: ``(shape attribute name, channels)`` of the per-vertex buffers the
+    #: ``tetmesh`` shape carries for this model (Mitsuba mesh attributes,
+    #: exposed by ``mi.traverse`` as ``<id>.<name>``).
+    vertex_attributes = ()
+
+    def __init__(self, n_sub: int = 8):
+        self.n_sub = int(n_sub)
+
+    @staticmethod
+    def vertex_values(mesh):
+        """``{name: (n, channels) array}`` of :attr:`vertex_attributes` from a
+        :class:`~mi_tetvr.mesh.TetMesh` (the shape's initial values)."""
+        raise NotImplementedError
+
+    def read_params(self, shapes):
+        """The model's parameter buffers, concatenated over ``shapes`` in the
+        order of their vertices (attached to the shapes' AD graph)."""
+        raise NotImplementedError
+
+    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+        """``Attributes`` of vertex ``i``; ``reduce`` is the scatter strategy
+        of the gather's reverse-mode derivative."""
+        raise NotImplementedError
+
+    def interpolate(self, params, ids, w, active=True, reduce=dr.ReduceMode.Auto):
+        """``Attributes`` at barycentric weights ``w`` of the vertices ``ids``."""
+        return weighted_sum(w, [self.gather(params, i, active, reduce) for i in ids])
+
+    def segment(self, params, length, a0, a1):
+        """``(C : Color3f, T : Float, tau : Float)`` of a segment of
+        ``length`` whose attributes go linearly from ``a0`` to ``a1``."""
+        raise NotImplementedError
+
+
+class EmissionAbsorption(OpticalModel):
+    """Per-vertex color ``c`` (linear RGB, emission per unit extinction) and
+    extinction ``s`` (per unit length), both linear inside a tet; the segment
+    integral of :func:`mi_tetvr.render.segment.segment_integral`."""
+
+    class Attributes:
+        DRJIT_STRUCT = {"c": mi.Color3f, "s": mi.Float}
+
+        def __init__(self, c=None, s=None):
+            self.c, self.s = c, s
+
+    class Params:
+        DRJIT_STRUCT = {"color": mi.Float, "opacity": mi.Float}
+
+        def __init__(self, color=None, opacity=None):
+            self.color, self.opacity = color, opacity
+
+    vertex_attributes = (("vertex_color", 3), ("vertex_opacity", 1))
+
+    @staticmethod
+    def vertex_values(mesh):
+        return {"vertex_color": mesh.color, "vertex_opacity": mesh.opacity}
+
+    def read_params(self, shapes):
+        return self.Params(concat([s.attribute_buffer("vertex_color") for s in shapes]),
+                           concat([s.attribute_buffer("vertex_opacity") for s in shapes]))
+
+    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+        return self.Attributes(dr.gather(mi.Color3f, params.color, i, active, mode=reduce),
+                               dr.gather(mi.Float, params.opacity, i, active, mode=reduce))
+
+    def segment(self, params, length, a0, a1):
+        C, T = segment_integral(length, a0.c, a1.c, a0.s, a1.s, self.n_sub)
+        # The midpoint sums of the sub-intervals: exact for a linear extinction.
+        tau = length * (a0.s + a1.s) * 0.5
+        return C, T, tau
+
+
+class Absorption(OpticalModel):
+    """Extinction only (X-ray attenuation): per-vertex extinction ``s``, linear
+    inside a tet, no emission. A segment's transmittance is exact:
+    ``exp(-length (s0 + s1) / 2)``; the image is the transmittance (its
+    ``alpha`` is ``1 - T``)."""
+
+    class Attributes:
+        DRJIT_STRUCT = {"s": mi.Float}
+
+        def __init__(self, s=None):
+            self.s = s
+
+    class Params:
+        DRJIT_STRUCT = {"opacity": mi.Float}
+
+        def __init__(self, opacity=None):
+            self.opacity = opacity
+
+    vertex_attributes = (("vertex_opacity", 1),)
+
+    @staticmethod
+    def vertex_values(mesh):
+        return {"vertex_opacity": mesh.opacity}
+
+    def read_params(self, shapes):
+        return self.Params(concat([s.attribute_buffer("vertex_opacity") for s in shapes]))
+
+    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+        return self.Attributes(dr.gather(mi.Float, params.opacity, i, active, mode=reduce))
+
+    def segment(self, params, length, a0, a1):
+        tau = length * (a0.s + a1.s) * 0.5
+        return dr.zeros(mi.Color3f, dr.width(length)), dr.exp(-tau), tau
