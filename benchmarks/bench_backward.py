@@ -2,7 +2,7 @@
 primal ``mi.render``, measured in the same run.
 
 Scene: the jittered ``cells^3`` grid (64^3 = 1.57M tets) with the blob field,
-``res x res`` pixel-centre rays, default tetvr settings. The loss is the L2
+``res x res`` pixel-center rays, default tetvr settings. The loss is the L2
 distance to a target image rendered with perturbed colors and opacities;
 gradients go to ``vertex_color``, ``vertex_opacity`` and ``vertex_positions``.
 ``mi.render`` with gradients runs the primal pass, then Mitsuba's
@@ -17,21 +17,15 @@ Usage::
 """
 from __future__ import annotations
 
-import argparse
-import os
-import sys
+from common import grid_scene, header, make_parser, timed, write_json
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = make_parser(__doc__, repeat=3, quick="--cells 16 --res 64")
     p.add_argument("--cells", type=int, default=64, help="grid cells per axis (default 64)")
     p.add_argument("--res", type=int, default=256, help="image width = height (default 256)")
-    p.add_argument("--repeat", type=int, default=3, help="timed runs (median; default 3)")
-    p.add_argument("--quick", action="store_true", help="smoke run: --cells 16 --res 64")
     p.add_argument("--modes", default="auto,local,direct",
                    help="reduce modes to compare (default auto,local,direct)")
-    p.add_argument("--variant", default="llvm_ad_rgb")
     a = p.parse_args(argv)
     if a.quick:
         a.cells, a.res = 16, 64
@@ -46,14 +40,11 @@ import mitsuba as mi  # noqa: E402
 mi.set_variant(ARGS.variant)
 import mi_tetvr  # noqa: E402,F401
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import grid_scene, header, timed  # noqa: E402
-
 KEYS = ("volume.vertex_color", "volume.vertex_opacity", "volume.vertex_positions")
 
 
 def main(a):
-    header("backward benchmark")
+    info = header("backward benchmark")
     scene, v, tets, color, opacity = grid_scene(a.cells, a.res)
     print(f"mesh: {a.cells}^3 cells, {len(tets):,} tets; image {a.res}x{a.res}, 1 spp")
     params = mi.traverse(scene)
@@ -135,6 +126,12 @@ def main(a):
     print(f"render + backward / primal render: {results[best] / p_med:.2f}x "
           f"(reduce_mode={best}; 'auto' = expand on LLVM when the buffers fit "
           f"dr.expand_threshold() = {dr.expand_threshold():,} entries)")
+    write_json(a, info, {
+        "mesh": dict(cells=a.cells, tets=len(tets)), "image": dict(res=a.res, spp=1),
+        "rows": [dict(name=name, first_s=f, median_s=m, over_primal=m / p_med, runs_s=al)
+                 for name, f, m, al in rows],
+        "best_reduce_mode": best, "render_backward_over_primal": results[best] / p_med,
+        "expand_threshold": dr.expand_threshold()})
 
 
 if __name__ == "__main__":

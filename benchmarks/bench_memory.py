@@ -3,7 +3,7 @@ ray crosses (the adjoint re-walks the rays and records nothing), against
 Dr.Jit's AD through a recorded (evaluated) loop, which stores every step.
 
 One mesh (the jittered ``cells^3`` grid with the blob field) and one image
-(``res x res`` pixel-centre rays), two opacity scales:
+(``res x res`` pixel-center rays), two opacity scales:
 
 - *transparent*: the blob field as is; rays cross the whole grid (~100 tets
   at 64^3) with no early termination;
@@ -31,22 +31,17 @@ Usage::
 """
 from __future__ import annotations
 
-import argparse
-import os
-import sys
+from common import grid_scene, header, make_parser, write_json
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = make_parser(__doc__, repeat=None, quick="--cells 16 --res 32 --ref-res 16")
     p.add_argument("--cells", type=int, default=64, help="grid cells per axis (default 64)")
     p.add_argument("--res", type=int, default=128, help="image width = height (default 128)")
     p.add_argument("--ref-res", type=int, default=128,
                    help="image size for the recorded-loop reference (default 128: the same rays)")
     p.add_argument("--opaque", type=float, default=200.0,
                    help="opacity of the opaque case, per unit length (default 200)")
-    p.add_argument("--quick", action="store_true", help="smoke run: --cells 16 --res 32 --ref-res 16")
-    p.add_argument("--variant", default="llvm_ad_rgb")
     a = p.parse_args(argv)
     if a.quick:
         a.cells, a.res, a.ref_res = 16, 32, 16
@@ -62,9 +57,6 @@ import numpy as np  # noqa: E402
 mi.set_variant(ARGS.variant)
 import mi_tetvr  # noqa: E402,F401
 from mi_tetvr.render.walk import trace  # noqa: E402
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import grid_scene, header  # noqa: E402
 
 KEYS = ("volume.vertex_color", "volume.vertex_opacity", "volume.vertex_positions")
 MB = 1024.0 ** 2
@@ -141,7 +133,7 @@ def recorded_memory(scene, params, ray):
 
 
 def main(a):
-    header("memory benchmark")
+    info = header("memory benchmark")
     scene, v, tets, color, opacity = grid_scene(a.cells, a.res)
     params = mi.traverse(scene)
     print(f"mesh: {a.cells}^3 cells, {len(tets):,} tets, {len(v):,} vertices; "
@@ -178,6 +170,15 @@ def main(a):
               f"; ~{(ref0 - ref1) * (a.res / a.ref_res) ** 2:.0f} MB at {a.res}x{a.res}")
     print(f"recorded loop: transparent / opaque = {ref0 / max(ref1, 1e-9):.1f}x "
           f"(+{ref0 - ref1:.1f} MB on {a.ref_res}x{a.ref_res} rays{scaled})")
+    write_json(a, info, {
+        "mesh": dict(cells=a.cells, tets=len(tets), vertices=len(v)),
+        "image": dict(res=a.res, ref_res=a.ref_res),
+        "cases": [dict(case=name, tets_per_ray_mean=mt, tets_per_ray_max=xt, adjoint_mb=adj,
+                       recorded_loop_mb=ref, recorded_bytes_per_ray_per_max_step=ref * MB / (n_ref * xt))
+                  for name, mt, xt, adj, ref in rows],
+        "adjoint_transparent_minus_opaque_mb": adj0 - adj1,
+        "recorded_transparent_over_opaque": ref0 / max(ref1, 1e-9),
+        "recorded_transparent_minus_opaque_mb": ref0 - ref1})
 
 
 if __name__ == "__main__":

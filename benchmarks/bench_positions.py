@@ -10,40 +10,55 @@ the safeguard shortened, and time.
 
 Usage::
 
-    python benchmarks/bench_positions.py                 # 300 steps per run
+    python benchmarks/bench_positions.py                 # 200 steps per run
     python benchmarks/bench_positions.py --steps 100 --lrs 0.1,1
+    python benchmarks/bench_positions.py --quick         # smoke run
 """
 from __future__ import annotations
 
-import argparse
 import tempfile
 import time
 from pathlib import Path
 
-import mitsuba as mi
-
-mi.set_variant("llvm_ad_rgb")
-import mi_tetvr  # noqa: E402,F401
-from mi_tetvr.recon.datasets import load_nerf  # noqa: E402
-from mi_tetvr.recon.fit import FitConfig, run  # noqa: E402
-from mi_tetvr.mesh.scenes import default_volume  # noqa: E402
-from mi_tetvr.transfer import TransferFunction  # noqa: E402
-from mi_tetvr.grid.volume import make_dataset, make_volume  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
+from common import header, make_parser, write_json
 
 
-def main():
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def parse_args(argv=None):
+    p = make_parser(__doc__, repeat=None,
+                    quick="--steps 5 --res 16 --views 4 --resolution 4 --lrs 0.3")
     p.add_argument("--steps", type=int, default=200)
     p.add_argument("--res", type=int, default=64)
     p.add_argument("--views", type=int, default=32)
     p.add_argument("--resolution", type=int, default=16, help="grid cells along the largest axis")
     p.add_argument("--lrs", default="0.03,0.1,0.3,1.0",
                    help="position learning rates in cell sizes per step")
-    a = p.parse_args()
+    a = p.parse_args(argv)
+    if a.quick:
+        a.steps, a.res, a.views, a.resolution, a.lrs = 5, 16, 4, 4, "0.3"
+    return a
+
+
+ARGS = parse_args()
+
+import mitsuba as mi  # noqa: E402
+
+mi.set_variant(ARGS.variant)
+import mi_tetvr  # noqa: E402,F401
+from mi_tetvr.recon.datasets import load_nerf  # noqa: E402
+from mi_tetvr.recon.config import FitConfig  # noqa: E402
+from mi_tetvr.recon.pipeline import run  # noqa: E402
+from mi_tetvr.mesh.scenes import default_volume  # noqa: E402
+from mi_tetvr.transfer import read_transfer_function  # noqa: E402
+from mi_tetvr.grid import make_dataset, make_volume  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main(a):
+    info = header("position fitting benchmark")
+    rows = []
     tmp = Path(tempfile.mkdtemp(prefix="bench_positions_"))
-    tf = TransferFunction.from_file(ROOT / "scenes" / "tf_default.json")
+    tf = read_transfer_function(ROOT / "scenes" / "tf_default.json")
     make_dataset(make_volume(default_volume(64)), tf, views=a.views, res=a.res,
                  out_dir=tmp / "data", test_views=8, fov=30, progress=False)
     data = load_nerf(tmp / "data")
@@ -59,12 +74,17 @@ def main():
     for i, (name, cfg) in enumerate(runs):
         t0 = time.perf_counter()
         m = run(data, tmp / f"run{i}", cfg, resume=False, progress=False, log=lambda *x: None)
+        dt = time.perf_counter() - t0
         print(f"{name:32s} {cfg.lr_position:7.2f} {m['mean']['psnr']:9.2f} "
               f"{m['inverted_tets']:9d} {m['shortened_position_steps']:10d} "
-              f"{time.perf_counter() - t0:9.1f}", flush=True)
+              f"{dt:9.1f}", flush=True)
+        rows.append(dict(run=name, lr_position=cfg.lr_position, test_psnr=m["mean"]["psnr"],
+                         inverted=m["inverted_tets"], shortened=m["shortened_position_steps"],
+                         time_s=dt))
     print(f"({m['vertices']:,} vertices, {m['tets']:,} tets; {a.steps} steps of 4 views at "
           f"{a.res}x{a.res}; 'shortened' counts vertex steps cut by the safeguard)")
+    write_json(a, info, {"vertices": m["vertices"], "tets": m["tets"], "rows": rows})
 
 
 if __name__ == "__main__":
-    main()
+    main(ARGS)

@@ -2,12 +2,12 @@
 
 Scene: a jittered regular tet grid (``cells^3`` cells, 6 Kuhn tets each; 64^3
 = 1.57M tets) over [-1, 1]^3 carrying :func:`mi_tetvr.mesh.generate.blob_field`,
-seen by a perspective camera, one ray per pixel through the pixel centre,
+seen by a perspective camera, one ray per pixel through the pixel center,
 no early ray termination (``min_transmittance = 0``), so every ray crosses the
 whole mesh.
 
 1. **tetvr**: ``mi.render`` with the ``tetvr`` integrator (stratified sampler
-   without jitter, so its rays are the pixel-centre rays), and
+   without jitter, so its rays are the pixel-center rays), and
    :func:`mi_tetvr.render.walk.trace` called directly on the same rays
    (which gives the number of tets crossed). Both are timed warm (one run to
    compile, then the median of ``--repeat`` runs).
@@ -28,21 +28,18 @@ Usage::
 """
 from __future__ import annotations
 
-import argparse
-import os
 import sys
 import time
 
 import numpy as np
 
+from common import grid_scene, header, make_parser, timed, write_json
+
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = make_parser(__doc__, repeat=3, quick="--cells 16 --res 128")
     p.add_argument("--cells", type=int, default=64, help="grid cells per axis (default 64)")
     p.add_argument("--res", type=int, default=512, help="image width = height (default 512)")
-    p.add_argument("--repeat", type=int, default=3, help="timed runs (median; default 3)")
-    p.add_argument("--quick", action="store_true", help="smoke run: --cells 16 --res 128")
     p.add_argument("--jitter", type=float, default=0.15,
                    help="vertex jitter in cell sizes (default 0.15; > ~0.2 inverts Kuhn tets)")
     p.add_argument("--scale", type=float, default=1.0, help="blob_field opacity scale (default 1)")
@@ -50,7 +47,6 @@ def parse_args(argv=None):
     p.add_argument("--eps", type=float, default=1e-5,
                    help="baseline: offset past each hit, relative to the bbox diagonal "
                         "(default 1e-5, like tetvr's retrace_epsilon)")
-    p.add_argument("--variant", default="llvm_ad_rgb")
     a = p.parse_args(argv)
     if a.quick:
         a.cells, a.res = 16, 128
@@ -72,16 +68,13 @@ from mi_tetvr.render.walk import WalkSettings, trace  # noqa: E402
 mi_tetvr.register()
 from mi_tetvr.render.buffers import scene_tetmeshes  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import grid_scene, header, timed  # noqa: E402
-
 
 # ----------------------------------------------------------------------------
 # Scene
 # ----------------------------------------------------------------------------
 
 def pixel_rays(sensor, res):
-    """One normalized ray through each pixel centre (row-major, like the film)."""
+    """One normalized ray through each pixel center (row-major, like the film)."""
     idx = dr.arange(mi.UInt32, res * res)
     x = mi.Float(idx % res) + 0.5
     y = mi.Float(idx // res) + 0.5
@@ -174,7 +167,8 @@ def rgb_np(C):
 
 def main(a):
     res, n_rays = a.res, a.res * a.res
-    header("render benchmark")
+    info = header("render benchmark")
+    results = {}
 
     # -- mesh ----------------------------------------------------------------
     t0 = time.perf_counter()
@@ -187,6 +181,9 @@ def main(a):
           f"{topo.n_tets:,} tets, {len(topo.boundary_faces):,} boundary faces, "
           f"{topo.n_flipped} flipped, {int(topo.flat.sum())} flat "
           f"(tetmesh scene built in {t_tv_scene:.1f} s)")
+    results["mesh"] = dict(cells=a.cells, jitter=a.jitter, vertices=len(v), tets=topo.n_tets,
+                           boundary_faces=len(topo.boundary_faces), flipped=topo.n_flipped,
+                           flat=int(topo.flat.sum()), scene_s=t_tv_scene)
 
     t0 = time.perf_counter()
     faces = unique_faces(topo.tets.astype(np.int64), topo.neighbors)
@@ -195,6 +192,8 @@ def main(a):
     print(f"baseline mesh: {len(faces):,} unique triangles in one Mitsuba mesh "
           f"(scene + BVH built in {t_bl_scene:.1f} s)")
     print(f"image: {res}x{res} = {n_rays:,} rays, n_sub = {a.n_sub}, no early termination")
+    results["baseline_mesh"] = dict(triangles=len(faces), scene_s=t_bl_scene)
+    results["image"] = dict(res=res, rays=n_rays, n_sub=a.n_sub)
     print()
 
     sensor = tv_scene.sensors()[0]
@@ -255,7 +254,7 @@ def main(a):
     print(f"rays through the mesh: {n_hit_rays:,} of {n_rays:,}; "
           f"tets per such ray: mean {n_steps / max(n_hit_rays, 1):.1f}, "
           f"max {int(steps_np.max())}; mean transmittance {float(np.asarray(T_tv).mean()):.3f}")
-    print(f"check mi.render image vs trace() on the pixel-centre rays: "
+    print(f"check mi.render image vs trace() on the pixel-center rays: "
           f"max |diff| = {d_img:.2e}")
     print(f"check baseline vs tetvr: max |dC| = {diff.max():.2e} "
           f"(mean {diff.mean():.1e}, {int(bad.sum())} rays > 1e-3), "
@@ -264,6 +263,16 @@ def main(a):
           f"{n_segs:,} segments ({n_segs - n_steps:+,}; "
           f"rays with a different count: {int(np.count_nonzero(np.maximum(hits_np.astype(np.int64) - 1, 0) != steps_np)):,})")
     print()
+    results["rays"] = dict(through_mesh=n_hit_rays, tets_per_ray_mean=n_steps / max(n_hit_rays, 1),
+                           tets_per_ray_max=int(steps_np.max()),
+                           mean_transmittance=float(np.asarray(T_tv).mean()))
+    results["checks"] = dict(
+        render_vs_trace_max_diff=float(d_img), baseline_vs_tetvr_max_dC=float(diff.max()),
+        baseline_vs_tetvr_mean_dC=float(diff.mean()), rays_dC_over_1e3=int(bad.sum()),
+        baseline_vs_tetvr_max_dT=float(dT.max()), tetvr_steps=n_steps, baseline_hits=n_hits,
+        baseline_segments=n_segs,
+        rays_with_different_count=int(np.count_nonzero(
+            np.maximum(hits_np.astype(np.int64) - 1, 0) != steps_np)))
 
     # -- table ------------------------------------------------------------------
     def fmt_times(ts):
@@ -282,8 +291,13 @@ def main(a):
     print()
     print(f"baseline / tetvr time ratio: {b_med / w_med:.2f}x (trace()), "
           f"{b_med / r_med:.2f}x (mi.render)")
+    results["methods"] = [dict(method=" ".join(name.split()), first_s=first, median_s=med, steps=n,
+                               msteps_per_s=n / med / 1e6, mrays_per_s=n_rays / med / 1e6,
+                               runs_s=ts) for name, first, med, n, ts in rows]
+    results["baseline_over_tetvr"] = dict(trace=b_med / w_med, render=b_med / r_med)
     print(f"('steps' = tet segments integrated; baseline segments = hits - 1 per ray; "
           f"1st run includes tracing + LLVM compilation; median of {a.repeat} warm runs)")
+    write_json(a, info, results)
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Inversion-safeguard benchmark: :func:`mi_tetvr.recon.regularizer.safe_step` on a
+"""Inversion-safeguard benchmark: :func:`mi_tetvr.recon.safeguard.safe_step` on a
 jittered (0.2 of a cell, all tets positive) grid of ~1M tets (56^3 cells, 6 tets each = 1.05M tets).
 
 Three steps, each a random per-vertex Gaussian step of standard deviation
@@ -14,29 +14,32 @@ printed too (the column "x vol pass" is the ratio). Timings (minimum of
 Usage::
 
     python benchmarks/bench_safeguard.py            # 56^3 cells (1.05M tets)
-    python benchmarks/bench_safeguard.py --cells 16 # smoke run
+    python benchmarks/bench_safeguard.py --quick    # 16^3 cells smoke run
 """
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import time
 
 import numpy as np
 
+from common import header_info, make_parser, write_json
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.topology import signed_volumes
-from mi_tetvr.recon.regularizer import safe_step
+from mi_tetvr.recon.safeguard import safe_step
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = make_parser(__doc__, variant=False, repeat=3, quick="--cells 16")
     p.add_argument("--cells", type=int, default=56)
     p.add_argument("--ratio", type=float, default=0.1, help="min_volume_ratio")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--repeat", type=int, default=3, help="timed runs (the minimum is shown)")
     a = p.parse_args(argv)
+    if a.quick:
+        a.cells = 16
+    info = header_info("safe_step benchmark")
+    rows = []
     print(f"# mi_tetvr safe_step benchmark (numpy {np.__version__}, python "
           f"{platform.python_version()}, {os.cpu_count()} CPU cores)")
     v, t = grid_mesh(a.cells, jitter=0.2, seed=a.seed)
@@ -66,6 +69,13 @@ def main(argv=None):
             print(f"{sigma:6.2f} {raw:13d} {'per-vertex' if per_vertex else 'global':>10} "
                   f"{dt * 1e3:8.0f} {dt / t_vol:10.1f} {n_short:10d} "
                   f"{int(np.count_nonzero(vol <= 0)):9d} {float((vol / v0).min()):9.3f}")
+            rows.append(dict(sigma=sigma, raw_inverted=raw,
+                             mode="per-vertex" if per_vertex else "global", time_ms=dt * 1e3,
+                             over_volume_pass=dt / t_vol, shortened=n_short,
+                             inverted=int(np.count_nonzero(vol <= 0)),
+                             min_ratio=float((vol / v0).min()), runs_ms=[x * 1e3 for x in times]))
+    write_json(a, info, {"mesh": dict(cells=a.cells, vertices=len(v), tets=len(t)),
+                         "signed_volumes_ms": t_vol * 1e3, "rows": rows})
 
 
 if __name__ == "__main__":

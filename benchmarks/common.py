@@ -1,34 +1,220 @@
-"""Shared pieces of the benchmarks: the grid scene, the camera, timing.
+"""Shared pieces of the benchmarks: the command line, the header and the JSON
+results, timing, the grid scene and the camera.
 
-Import after ``mi.set_variant()``.
+A benchmark builds its command line with :func:`make_parser` (the common
+options ``--variant``, ``--repeat``, ``--quick``, ``--json PATH``) and adds its
+own options; a Dr.Jit benchmark sets the Mitsuba variant before it imports
+``mi_tetvr`` (this module imports neither at import time). What it prints it
+also collects as numbers and hands to :func:`write_json`, which writes, when
+``--json PATH`` is given::
+
+    {
+      "benchmark": "render",         # the script's name without "bench_"
+      "header": {                    # header_info(): what the printed header says
+        "title": ..., "date": ...,   # ISO 8601, UTC
+        "python": ..., "numpy": ..., "mi_tetvr": ..., "mitsuba": ..., "drjit": ...,
+        "variant": ...,              # null for the numpy benchmarks
+        "device": ..., "cpu": ..., "cpu_count": ..., "drjit_threads": ...
+      },
+      "args": {...},                 # the parsed options
+      "results": {...}               # the benchmark's printed numbers (seconds, counts, ...)
+    }
 """
 from __future__ import annotations
 
+import argparse
+import datetime
+import json
 import os
 import platform
 import statistics
+import subprocess
+import sys
 import time
-
-import drjit as dr
-import mitsuba as mi
-
-import mi_tetvr
-from mi_tetvr.mesh.generate import blob_field, grid_mesh
+from importlib import metadata
+from pathlib import Path
 
 CAM_ORIGIN = [2.6, 1.8, 3.4]
 CAM_FOV = 33.0
 
 
-def header(title):
-    print(f"# mi_tetvr {title}  (mitsuba {mi.__version__}, drjit {dr.__version__}, "
-          f"variant {mi.variant()})")
-    print(f"# device: {platform.processor() or platform.machine()}, "
-          f"{os.cpu_count()} CPU cores, Dr.Jit thread pool size {dr.thread_count()}; "
-          f"python {platform.python_version()}")
+# ----------------------------------------------------------------------------
+# Command line, header, JSON
+# ----------------------------------------------------------------------------
 
+def make_parser(doc, *, variant=True, repeat=3, quick=None):
+    """The benchmarks' argument parser with the common options.
+
+    Parameters
+    ----------
+    doc : str
+        The benchmark's module docstring: its first paragraph is the
+        description, the rest the epilog of ``--help``.
+    variant : bool
+        Offer ``--variant`` (default ``llvm_ad_rgb``); False for the numpy
+        benchmarks.
+    repeat : int or None
+        Default of ``--repeat`` (timed runs); None where the benchmark has no
+        repeated timing.
+    quick : str, optional
+        What ``--quick`` (a smoke run) stands for, for ``--help``.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        Common options: ``--variant``, ``--repeat``, ``--quick`` and
+        ``--json PATH``; the benchmark adds its own and applies ``--quick``.
+    """
+    head, _, rest = doc.strip().partition("\n\n")
+    p = argparse.ArgumentParser(description=head, epilog=rest or None,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    if variant:
+        p.add_argument("--variant", default="llvm_ad_rgb",
+                       help="Mitsuba variant (default llvm_ad_rgb; or cuda_ad_rgb)")
+    if repeat is not None:
+        p.add_argument("--repeat", type=int, default=repeat,
+                       help=f"timed runs (default {repeat})")
+    p.add_argument("--quick", action="store_true",
+                   help="smoke run" + (f": {quick}" if quick else ""))
+    p.add_argument("--json", metavar="PATH",
+                   help="also write the header and the results as JSON to PATH")
+    return p
+
+
+def _variant():
+    """The Mitsuba variant if one is set (without importing Mitsuba)."""
+    mi = sys.modules.get("mitsuba")
+    return mi.variant() if mi is not None else None
+
+
+def _version(dist):
+    try:
+        return metadata.version(dist)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def _cpu_name():
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _gpu_name():
+    try:
+        r = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+                           capture_output=True, text=True, timeout=10)
+        return r.stdout.strip().splitlines()[0] if r.returncode == 0 and r.stdout.strip() else None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def header_info(title):
+    """Versions, variant, device and date, as a dict (see the module docstring)."""
+    import numpy as np
+    variant = _variant()
+    cpu = _cpu_name()
+    info = {"title": title,
+            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "python": platform.python_version(), "numpy": np.__version__,
+            "mi_tetvr": _version("mi_tetvr"), "mitsuba": _version("mitsuba"),
+            "drjit": _version("drjit"), "variant": variant,
+            "device": cpu, "cpu": cpu, "cpu_count": os.cpu_count(), "drjit_threads": None}
+    if variant is not None:
+        import drjit as dr
+        info["drjit_threads"] = dr.thread_count()
+        if variant.startswith("cuda"):
+            info["device"] = _gpu_name() or "CUDA GPU"
+    return info
+
+
+def header(title):
+    """Print the header of a Dr.Jit benchmark; returns :func:`header_info`."""
+    info = header_info(title)
+    print(f"# mi_tetvr {title}  (mitsuba {info['mitsuba']}, drjit {info['drjit']}, "
+          f"variant {info['variant']})")
+    print(f"# device: {info['device']}, {info['cpu_count']} CPU cores, Dr.Jit thread pool "
+          f"size {info['drjit_threads']}; python {info['python']}")
+    return info
+
+
+def _plain(x):
+    """JSON form of numpy scalars and arrays, paths."""
+    if hasattr(x, "tolist"):
+        return x.tolist()
+    if isinstance(x, Path):
+        return str(x)
+    raise TypeError(f"not JSON serializable: {type(x).__name__}")
+
+
+def write_json(args, header, results):
+    """Write ``{"benchmark", "header", "args", "results"}`` to ``args.json``
+    (nothing without ``--json``)."""
+    if not getattr(args, "json", None):
+        return
+    name = Path(sys.argv[0]).stem.removeprefix("bench_")
+    out = {"benchmark": name, "header": header, "args": vars(args), "results": results}
+    path = Path(args.json)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=2, default=_plain) + "\n")
+    print(f"# results written to {path}")
+
+
+# ----------------------------------------------------------------------------
+# Timing
+# ----------------------------------------------------------------------------
+
+def sync():
+    """Wait for Dr.Jit's queued work when a Mitsuba variant is set (a numpy
+    benchmark has none: nothing to wait for)."""
+    if _variant() is not None:
+        import drjit as dr
+        dr.sync_thread()
+
+
+def timed(fn, repeat, warmup=True):
+    """Time ``fn()``.
+
+    With ``warmup`` (Dr.Jit: the first run includes tracing and compilation)
+    one run, then ``repeat`` warm runs; without it, ``repeat`` runs, the first
+    of which is also reported as the first run.
+
+    Returns
+    -------
+    (first-run seconds, median seconds of the timed runs, the timed runs, the
+    last result)
+    """
+    sync()
+    times = []
+    first = None
+    out = None
+    if warmup:
+        t0 = time.perf_counter()
+        out = fn()
+        sync()
+        first = time.perf_counter() - t0
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        sync()
+        times.append(time.perf_counter() - t0)
+    if first is None:
+        first = times[0]
+    return first, statistics.median(times), times, out
+
+
+# ----------------------------------------------------------------------------
+# Scene (needs a Mitsuba variant)
+# ----------------------------------------------------------------------------
 
 def sensor_dict(res):
-    """Perspective camera looking at the origin, one pixel-centre ray per pixel."""
+    """Perspective camera looking at the origin, one pixel-center ray per pixel."""
+    import mitsuba as mi
     return {
         "type": "perspective",
         "fov": CAM_FOV,
@@ -44,6 +230,10 @@ def grid_scene(cells, res, jitter=0.15, scale=1.0, **integrator):
     """The jittered ``cells^3`` grid over [-1, 1]^3 carrying the blob field, in
     a scene with the tetvr integrator (``integrator`` are its properties).
     Returns (scene, vertices, tets, color, opacity)."""
+    import mitsuba as mi
+
+    import mi_tetvr
+    from mi_tetvr.mesh.generate import blob_field, grid_mesh
     v, tets = grid_mesh(cells, jitter=jitter)
     color, opacity = blob_field(v, scale)
     scene = mi.load_dict({
@@ -53,20 +243,3 @@ def grid_scene(cells, res, jitter=0.15, scale=1.0, **integrator):
         "volume": mi_tetvr.tetmesh_dict(v, tets, color, opacity),
     })
     return scene, v, tets, color, opacity
-
-
-def timed(fn, repeat):
-    """(first-run seconds incl. compilation, median of ``repeat`` warm runs,
-    the warm runs, the last result)."""
-    dr.sync_thread()
-    t0 = time.perf_counter()
-    out = fn()
-    dr.sync_thread()
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        dr.sync_thread()
-        times.append(time.perf_counter() - t0)
-    return first, statistics.median(times), times, out

@@ -6,16 +6,20 @@ Usage::
     mi.set_variant("llvm_ad_rgb")   # or "cuda_ad_rgb"
     import mi_tetvr                 # registers the `tetmesh` shape and `tetvr` integrator
 
-The numpy parts (:mod:`mi_tetvr.mesh`, :mod:`mi_tetvr.mesh.io`,
-:mod:`mi_tetvr.transfer`, :mod:`mi_tetvr.mesh.refine`, :mod:`mi_tetvr.mesh.initial`)
-work without a Mitsuba variant. If no variant is set at import, call
-:func:`register` after :func:`mitsuba.set_variant`.
+Sub-packages (see the README's *Architecture*):
 
-Reconstruction: :mod:`mi_tetvr.recon.datasets` (NeRF / COLMAP data sets and cameras),
-:mod:`mi_tetvr.grid.volume` (scalar grids and the grid ray marcher),
-:mod:`mi_tetvr.mesh.initial` (initial meshes), :mod:`mi_tetvr.recon.regularizer`
-(tet quality, inversion safeguard), :mod:`mi_tetvr.mesh.refine` (coarse-to-fine
-splits) and :mod:`mi_tetvr.recon.fit` (the training loop behind ``mi-tetvr fit``).
+* :mod:`mi_tetvr.mesh` -- tet meshes in numpy: topology, files, generators,
+  refinement, initial meshes (no Mitsuba variant needed);
+* :mod:`mi_tetvr.render` -- the Dr.Jit renderer: the tet walk, optical models,
+  the adjoint (needs a variant);
+* :mod:`mi_tetvr.grid` -- regular-grid volumes and the grid ray marcher;
+* :mod:`mi_tetvr.recon` -- cameras, data sets, the training loop behind
+  ``mi-tetvr fit``, metrics;
+* :mod:`mi_tetvr.transfer` -- transfer functions and their files;
+  :mod:`mi_tetvr.color` -- the sRGB curve.
+
+If no variant is set at import, call :func:`register` after
+:func:`mitsuba.set_variant`.
 """
 from __future__ import annotations
 
@@ -23,16 +27,17 @@ import importlib
 import sys
 
 from .mesh import MeshError, TetMesh, Topology, build_topology, quality, read_tetmesh, write_tetmesh
-from .transfer import TransferFunction
+from .transfer import TransferFunction, read_transfer_function
 
 __all__ = ["register", "tetmesh_dict", "read_tetmesh", "write_tetmesh", "MeshError",
-           "TetMesh", "Topology", "build_topology", "quality", "TransferFunction"]
+           "TetMesh", "Topology", "build_topology", "quality", "TransferFunction",
+           "read_transfer_function"]
 
 _registered_variant = None
 
 #: Modules that bind Mitsuba/Dr.Jit types at import, in dependency order.
 _VARIANT_MODULES = ("render.segment", "render.buffers", "render.geometry", "render.optical",
-                    "render.adjoint", "render.walk", "grid.volume", "recon.regularizer",
+                    "render.adjoint", "render.walk", "render", "grid.marcher", "recon.regularizer",
                     "plugins.tetmesh", "plugins.tetvr")
 
 

@@ -30,9 +30,15 @@ def _set_variant(name):
     return mi
 
 
-def write_image(path, rgb, alpha=None):
-    """Write linear RGB (h, w, 3) [+ alpha (h, w)] as EXR (linear, R G B A,
-    RGB over a black background is premultiplied) or PNG/JPG (sRGB, RGB only)."""
+def _write_render(path, rgb, alpha=None):
+    """Write a render: linear RGB (h, w, 3) [+ alpha (h, w)] as EXR (linear,
+    R G B [A], premultiplied) or PNG/JPG (RGB over black, 8-bit sRGB through
+    Mitsuba's conversion, no alpha).
+
+    Data-set images go through :func:`mi_tetvr.recon.images.write_image`
+    instead, whose PNGs keep alpha (straight) so that they read back as the
+    same premultiplied RGBA; a render's PNG is a picture to look at.
+    """
     import mitsuba as mi
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -75,7 +81,7 @@ def cmd_render(a):
     rgb = img[..., :3]
     alpha = img[..., 3] if img.shape[-1] > 3 else None
     for out in a.output:
-        write_image(out, rgb, alpha)
+        _write_render(out, rgb, alpha)
     print(f"rendered {scene_path} at {img.shape[1]}x{img.shape[0]} (load {t1 - t0:.1f} s, "
           f"render {t2 - t1:.1f} s) -> {', '.join(a.output)}")
 
@@ -127,7 +133,8 @@ def _load_data(path, downscale, holdout):
 
 def cmd_fit(a):
     _set_variant(a.variant)
-    from mi_tetvr.recon.fit import FitConfig, run
+    from mi_tetvr.recon.config import FitConfig
+    from mi_tetvr.recon.pipeline import run
     try:
         cfg = FitConfig.from_file(a.config) if a.config else FitConfig()
         overrides = {k: getattr(a, k) for k in (
@@ -142,7 +149,7 @@ def cmd_fit(a):
         sys.exit(f"mi-tetvr: {e}")
     data = _load_data(a.data, cfg.downscale, a.holdout)
     print(f"{a.data}: {len(data.train)} training and {len(data.test)} test views "
-          f"({data.train[0].width}x{data.train[0].height})")
+          f"({data.train[0].camera.width}x{data.train[0].camera.height})")
     try:
         metrics = run(data, a.out, cfg, resume=not a.restart)
     except KeyboardInterrupt:
@@ -155,7 +162,7 @@ def cmd_fit(a):
 
 def cmd_eval(a):
     _set_variant(a.variant)
-    from mi_tetvr.recon.fit import evaluate_mesh
+    from mi_tetvr.recon.pipeline import evaluate_mesh
     data = _load_data(a.data, a.downscale, a.holdout)
     metrics = evaluate_mesh(a.mesh, data, background=_background(a.background),
                             split=a.split)
@@ -169,12 +176,12 @@ def cmd_eval(a):
 
 def cmd_make_dataset(a):
     _set_variant(a.variant)
-    from mi_tetvr.transfer import TransferFunction
-    from mi_tetvr.grid.volume import load_volume, make_dataset
+    from mi_tetvr.transfer import read_transfer_function
+    from mi_tetvr.grid import load_volume, make_dataset
     try:
         vr = None if a.value_range is None else tuple(float(x) for x in a.value_range.split(","))
         volume = load_volume(a.volume, value_range=vr)
-        tf = TransferFunction.from_file(a.tf)
+        tf = read_transfer_function(a.tf)
     except (ValueError, FileNotFoundError) as e:
         sys.exit(f"mi-tetvr: {e}")
     make_dataset(volume, tf, views=a.views, res=a.res, out_dir=a.out, test_views=a.test_views,
@@ -234,7 +241,8 @@ def main(argv=None):
     f = sub.add_parser("fit", help="reconstruct a tet-mesh volume from a multi-view data set")
     f.add_argument("data", help="NeRF-style folder (transforms*.json) or COLMAP model folder")
     f.add_argument("--out", required=True, help="output folder (also the checkpoint)")
-    f.add_argument("--config", help="JSON file of fit settings (see mi_tetvr.recon.fit.FitConfig)")
+    f.add_argument("--config",
+                   help="JSON file of fit settings (see mi_tetvr.recon.config.FitConfig)")
     f.add_argument("--init", help="grid (default), tetwild, delaunay or a mesh file")
     f.add_argument("--resolution", type=int, help="cells along the largest axis (default 32)")
     f.add_argument("--iterations", type=int, help="optimizer steps (default 1500)")

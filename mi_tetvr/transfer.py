@@ -1,12 +1,12 @@
-"""1D transfer functions that pre-shade a scalar field into per-vertex colour and opacity.
+"""1D transfer functions that pre-shade a scalar field into per-vertex color and opacity.
 
 A :class:`TransferFunction` holds two independent sets of piecewise-linear
 control points on the normalised scalar axis ``[0, 1]``:
 
-* colour points ``color_positions`` (p,) with ``colors`` (p, 3) in **linear RGB**;
+* color points ``color_positions`` (p,) with ``colors`` (p, 3) in **linear RGB**;
 * opacity points ``opacity_positions`` (q,) with ``opacities`` (q,).
 
-Colour is always stored and interpolated in linear RGB.  The opacity is the
+Color is always stored and interpolated in linear RGB.  The opacity is the
 extinction coefficient per unit length used by the emission-absorption
 renderer (before the global ``opacity_scale`` of :meth:`TransferFunction.shade`).
 Outside the span of the control points the function is constant, equal to the
@@ -16,6 +16,10 @@ jump position itself the value after the jump is returned.
 
 File formats
 ------------
+:func:`read_transfer_function` reads either format by its suffix
+(:func:`read_difftetvr_xml`, :func:`read_json`); :func:`write_json` writes the
+project's.
+
 DiffTetVR / sgl XML (``.xml``)::
 
     <TransferFunction colorspace="sRGB" interpolation_colorspace="Linear RGB">
@@ -29,7 +33,7 @@ DiffTetVR / sgl XML (``.xml``)::
 
 ``color_data`` is one of ``ubyte`` (0..255, the sgl default when the attribute
 is absent), ``ushort`` (0..65535), ``float`` (0..1) or ``float_255`` (0..255).
-``colorspace`` is the space the colour values are given in: ``sRGB`` (default;
+``colorspace`` is the space the color values are given in: ``sRGB`` (default;
 converted with :func:`srgb_to_linear`) or ``Linear RGB`` (used as is).  This
 module always interpolates in linear RGB; a file whose
 ``interpolation_colorspace`` is not ``Linear RGB`` is loaded with a
@@ -45,11 +49,11 @@ Project JSON (``.json``)::
 
 ``colorspace`` is ``"linear"`` (default when absent) or ``"srgb"``; it applies
 to the ``r, g, b`` values (sRGB values are converted with
-:func:`srgb_to_linear` on load).  :meth:`TransferFunction.to_json` always
-writes ``"linear"``.
+:func:`srgb_to_linear` on load).  :func:`write_json` always writes
+``"linear"``.
 
 DiffDVR's JSON settings files (the ``tfEditor`` block) are deliberately *not*
-supported: their colours are CIELAB, interpolated in CIELAB, with a separate
+supported: their colors are CIELAB, interpolated in CIELAB, with a separate
 ``opacityScaling`` and a Gaussian-mixture mode, so they are not representable
 by linear-RGB piecewise-linear control points without resampling.  DiffTetVR
 ships resampled conversions of the same tooth transfer functions as XML
@@ -69,7 +73,8 @@ import numpy as np
 
 from mi_tetvr.color import srgb_to_linear
 
-__all__ = ["TransferFunction"]
+__all__ = ["TransferFunction", "read_transfer_function", "read_difftetvr_xml", "read_json",
+           "write_json", "json_dict"]
 
 PathType = Union[str, "PathLike[str]"]
 
@@ -116,10 +121,10 @@ class TransferFunction:
     Parameters
     ----------
     color_positions : array_like, shape (p,)
-        Positions of the colour control points, in ``[0, 1]``, non-decreasing
+        Positions of the color control points, in ``[0, 1]``, non-decreasing
         (equal neighbours encode a jump).
     colors : array_like, shape (p, 3)
-        Linear-RGB colours at the colour control points; finite and >= 0.
+        Linear-RGB colors at the color control points; finite and >= 0.
     opacity_positions : array_like, shape (q,)
         Positions of the opacity control points, in ``[0, 1]``, non-decreasing.
     opacities : array_like, shape (q,)
@@ -130,7 +135,7 @@ class TransferFunction:
     ------
     ValueError
         On wrong shapes, empty point sets, non-finite values, positions outside
-        ``[0, 1]`` or decreasing, negative colours or negative opacities.
+        ``[0, 1]`` or decreasing, negative colors or negative opacities.
 
     Notes
     -----
@@ -179,205 +184,6 @@ class TransferFunction:
         self.opacity_positions = opos
         self.opacities = opas
 
-    # ------------------------------------------------------------------ I/O
-    @classmethod
-    def from_file(cls, path: PathType) -> "TransferFunction":
-        """Load a transfer function, dispatching on the file suffix.
-
-        Parameters
-        ----------
-        path : str or os.PathLike
-            ``.xml`` (DiffTetVR / sgl format) or ``.json`` (project format);
-            the suffix is matched case-insensitively.
-
-        Returns
-        -------
-        TransferFunction
-
-        Raises
-        ------
-        ValueError
-            If the suffix is neither ``.xml`` nor ``.json``, or the file is
-            malformed.
-        """
-        suffix = Path(path).suffix.lower()
-        if suffix == ".xml":
-            return cls.from_xml(path)
-        if suffix == ".json":
-            return cls.from_json(path)
-        raise ValueError(
-            f"unknown transfer function file suffix {Path(path).suffix!r} for "
-            f"{str(path)!r}; expected '.xml' (DiffTetVR) or '.json'"
-        )
-
-    @classmethod
-    def from_xml(cls, path: PathType) -> "TransferFunction":
-        """Load a DiffTetVR / sgl ``<TransferFunction>`` XML file.
-
-        Colours are converted to linear RGB according to the ``colorspace``
-        and ``color_data`` attributes (see the module docstring).
-
-        Parameters
-        ----------
-        path : str or os.PathLike
-
-        Returns
-        -------
-        TransferFunction
-
-        Raises
-        ------
-        ValueError
-            On XML syntax errors, a wrong root tag, missing point lists or
-            attributes, unknown ``colorspace`` / ``color_data`` values, or
-            invalid control points.
-        """
-        try:
-            root = ET.parse(path).getroot()
-        except ET.ParseError as exc:
-            raise ValueError(f"{str(path)!r}: malformed XML: {exc}") from None
-        if root.tag != "TransferFunction":
-            raise ValueError(
-                f"{str(path)!r}: root element must be <TransferFunction>, got <{root.tag}>"
-            )
-
-        colorspace = root.get("colorspace", "sRGB")
-        if colorspace not in ("sRGB", "Linear RGB"):
-            raise ValueError(
-                f"{str(path)!r}: unknown colorspace {colorspace!r}; "
-                "expected 'sRGB' or 'Linear RGB'"
-            )
-        interp = root.get("interpolation_colorspace", "sRGB")
-        if interp != "Linear RGB":
-            warnings.warn(
-                f"{str(path)!r}: interpolation_colorspace={interp!r}, but colours are "
-                "always interpolated in linear RGB here; results between control "
-                "points differ from DiffTetVR",
-                UserWarning,
-                stacklevel=2,
-            )
-
-        color_node = root.find("ColorPoints")
-        if color_node is None:
-            raise ValueError(f"{str(path)!r}: missing <ColorPoints>")
-        color_data = color_node.get("color_data", "ubyte")
-        if color_data not in _COLOR_DATA_DIVISORS:
-            raise ValueError(
-                f"{str(path)!r}: unknown color_data {color_data!r}; expected one of "
-                f"{sorted(_COLOR_DATA_DIVISORS)}"
-            )
-        if root.find("OpacityPoints") is None:
-            raise ValueError(f"{str(path)!r}: missing <OpacityPoints>")
-
-        def attr(node: ET.Element, key: str) -> float:
-            value = node.get(key)
-            if value is None:
-                raise ValueError(f"{str(path)!r}: <{node.tag}> lacks attribute {key!r}")
-            try:
-                return float(value)
-            except ValueError:
-                raise ValueError(
-                    f"{str(path)!r}: <{node.tag}> attribute {key}={value!r} is not a number"
-                ) from None
-
-        color_nodes = color_node.findall("ColorPoint")
-        cpos = [attr(n, "position") for n in color_nodes]
-        cols = np.array(
-            [[attr(n, "r"), attr(n, "g"), attr(n, "b")] for n in color_nodes],
-            dtype=np.float64,
-        ).reshape(-1, 3)
-        cols = cols / _COLOR_DATA_DIVISORS[color_data]
-        if colorspace == "sRGB":
-            cols = srgb_to_linear(cols)
-
-        opacity_nodes = root.findall("OpacityPoints/OpacityPoint")
-        opos = [attr(n, "position") for n in opacity_nodes]
-        opas = [attr(n, "opacity") for n in opacity_nodes]
-        try:
-            return cls(cpos, cols, opos, opas)
-        except ValueError as exc:
-            raise ValueError(f"{str(path)!r}: {exc}") from None
-
-    @classmethod
-    def from_json(cls, path: PathType) -> "TransferFunction":
-        """Load the project's JSON format (see the module docstring).
-
-        Parameters
-        ----------
-        path : str or os.PathLike
-
-        Returns
-        -------
-        TransferFunction
-
-        Raises
-        ------
-        ValueError
-            On malformed JSON, missing keys, rows of the wrong length, an
-            unknown ``colorspace``, invalid control points, or a DiffDVR
-            settings file (not supported; use DiffTetVR's XML conversion).
-        """
-        try:
-            with open(path, "r", encoding="utf-8") as f:
-                data = json.load(f)
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{str(path)!r}: malformed JSON: {exc}") from None
-        if not isinstance(data, dict):
-            raise ValueError(f"{str(path)!r}: top-level JSON value must be an object")
-        if "tfEditor" in data:
-            raise ValueError(
-                f"{str(path)!r} is a DiffDVR settings file (CIELAB colours interpolated "
-                "in CIELAB, separate opacityScaling); it is not supported. Use the "
-                "DiffTetVR XML conversion of the same transfer function instead."
-            )
-        for key in ("color", "opacity"):
-            if key not in data:
-                raise ValueError(f"{str(path)!r}: missing key {key!r}")
-        colorspace = str(data.get("colorspace", "linear")).lower()
-        if colorspace not in ("linear", "srgb"):
-            raise ValueError(
-                f"{str(path)!r}: unknown colorspace {data.get('colorspace')!r}; "
-                "expected 'linear' or 'srgb'"
-            )
-
-        if not _rows_ok(data["color"], 4):
-            raise ValueError(f"{str(path)!r}: 'color' must be a non-empty list of [pos, r, g, b] rows")
-        if not _rows_ok(data["opacity"], 2):
-            raise ValueError(f"{str(path)!r}: 'opacity' must be a non-empty list of [pos, a] rows")
-        color = np.array(data["color"], dtype=np.float64)
-        opacity = np.array(data["opacity"], dtype=np.float64)
-
-        cols = color[:, 1:]
-        if colorspace == "srgb":
-            cols = srgb_to_linear(cols)
-        try:
-            return cls(color[:, 0], cols, opacity[:, 0], opacity[:, 1])
-        except ValueError as exc:
-            raise ValueError(f"{str(path)!r}: {exc}") from None
-
-    def to_json(self, path: PathType) -> None:
-        """Write the project's JSON format with ``"colorspace": "linear"``.
-
-        Floats are written with full (round-trip exact) precision.
-
-        Parameters
-        ----------
-        path : str or os.PathLike
-        """
-        data = {
-            "colorspace": "linear",
-            "color": [
-                [float(p), float(c[0]), float(c[1]), float(c[2])]
-                for p, c in zip(self.color_positions, self.colors)
-            ],
-            "opacity": [
-                [float(p), float(a)] for p, a in zip(self.opacity_positions, self.opacities)
-            ],
-        }
-        with open(path, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=2)
-            f.write("\n")
-
     # ----------------------------------------------------------- evaluation
     def __call__(self, t) -> Tuple[np.ndarray, np.ndarray]:
         """Evaluate the transfer function.
@@ -391,7 +197,7 @@ class TransferFunction:
         Returns
         -------
         color : numpy.ndarray, float64, shape (n, 3)
-            Linear-RGB colour (``t.shape + (3,)`` in general).
+            Linear-RGB color (``t.shape + (3,)`` in general).
         opacity : numpy.ndarray, float64, shape (n,)
             Opacity (``t.shape`` in general).
 
@@ -413,7 +219,7 @@ class TransferFunction:
     def shade(
         self, scalar, value_range=None, opacity_scale: float = 1.0
     ) -> Tuple[np.ndarray, np.ndarray]:
-        """Pre-shade a per-vertex scalar field into colour and opacity.
+        """Pre-shade a per-vertex scalar field into color and opacity.
 
         ``t = (scalar - lo) / (hi - lo)`` is evaluated with :meth:`__call__`
         (so values outside ``value_range`` clamp); if ``hi == lo`` every
@@ -432,7 +238,7 @@ class TransferFunction:
         Returns
         -------
         color : numpy.ndarray, float64, shape (n, 3)
-            Linear-RGB colour per vertex.
+            Linear-RGB color per vertex.
         opacity : numpy.ndarray, float64, shape (n,)
             ``opacity_scale`` times the transfer-function opacity per vertex.
 
@@ -477,6 +283,213 @@ class TransferFunction:
             f"TransferFunction({self.color_positions.shape[0]} color points, "
             f"{self.opacity_positions.shape[0]} opacity points)"
         )
+
+
+# ------------------------------------------------------------------------ files
+def read_transfer_function(path: PathType) -> TransferFunction:
+    """Read a transfer function file, dispatching on its suffix.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        ``.xml`` (DiffTetVR / sgl format, :func:`read_difftetvr_xml`) or
+        ``.json`` (project format, :func:`read_json`); the suffix is matched
+        case-insensitively.
+
+    Returns
+    -------
+    TransferFunction
+
+    Raises
+    ------
+    ValueError
+        If the suffix is neither ``.xml`` nor ``.json``, or the file is
+        malformed.
+    """
+    suffix = Path(path).suffix.lower()
+    if suffix == ".xml":
+        return read_difftetvr_xml(path)
+    if suffix == ".json":
+        return read_json(path)
+    raise ValueError(
+        f"unknown transfer function file suffix {Path(path).suffix!r} for "
+        f"{str(path)!r}; expected '.xml' (DiffTetVR) or '.json'"
+    )
+
+
+def read_difftetvr_xml(path: PathType) -> TransferFunction:
+    """Load a DiffTetVR / sgl ``<TransferFunction>`` XML file.
+
+    Colors are converted to linear RGB according to the ``colorspace``
+    and ``color_data`` attributes (see the module docstring).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    TransferFunction
+
+    Raises
+    ------
+    ValueError
+        On XML syntax errors, a wrong root tag, missing point lists or
+        attributes, unknown ``colorspace`` / ``color_data`` values, or
+        invalid control points.
+    """
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise ValueError(f"{str(path)!r}: malformed XML: {exc}") from None
+    if root.tag != "TransferFunction":
+        raise ValueError(
+            f"{str(path)!r}: root element must be <TransferFunction>, got <{root.tag}>"
+        )
+
+    colorspace = root.get("colorspace", "sRGB")
+    if colorspace not in ("sRGB", "Linear RGB"):
+        raise ValueError(
+            f"{str(path)!r}: unknown colorspace {colorspace!r}; "
+            "expected 'sRGB' or 'Linear RGB'"
+        )
+    interp = root.get("interpolation_colorspace", "sRGB")
+    if interp != "Linear RGB":
+        warnings.warn(
+            f"{str(path)!r}: interpolation_colorspace={interp!r}, but colors are "
+            "always interpolated in linear RGB here; results between control "
+            "points differ from DiffTetVR",
+            UserWarning,
+            stacklevel=2,
+        )
+
+    color_node = root.find("ColorPoints")
+    if color_node is None:
+        raise ValueError(f"{str(path)!r}: missing <ColorPoints>")
+    color_data = color_node.get("color_data", "ubyte")
+    if color_data not in _COLOR_DATA_DIVISORS:
+        raise ValueError(
+            f"{str(path)!r}: unknown color_data {color_data!r}; expected one of "
+            f"{sorted(_COLOR_DATA_DIVISORS)}"
+        )
+    if root.find("OpacityPoints") is None:
+        raise ValueError(f"{str(path)!r}: missing <OpacityPoints>")
+
+    def attr(node: ET.Element, key: str) -> float:
+        value = node.get(key)
+        if value is None:
+            raise ValueError(f"{str(path)!r}: <{node.tag}> lacks attribute {key!r}")
+        try:
+            return float(value)
+        except ValueError:
+            raise ValueError(
+                f"{str(path)!r}: <{node.tag}> attribute {key}={value!r} is not a number"
+            ) from None
+
+    color_nodes = color_node.findall("ColorPoint")
+    cpos = [attr(n, "position") for n in color_nodes]
+    cols = np.array(
+        [[attr(n, "r"), attr(n, "g"), attr(n, "b")] for n in color_nodes],
+        dtype=np.float64,
+    ).reshape(-1, 3)
+    cols = cols / _COLOR_DATA_DIVISORS[color_data]
+    if colorspace == "sRGB":
+        cols = srgb_to_linear(cols)
+
+    opacity_nodes = root.findall("OpacityPoints/OpacityPoint")
+    opos = [attr(n, "position") for n in opacity_nodes]
+    opas = [attr(n, "opacity") for n in opacity_nodes]
+    try:
+        return TransferFunction(cpos, cols, opos, opas)
+    except ValueError as exc:
+        raise ValueError(f"{str(path)!r}: {exc}") from None
+
+
+def read_json(path: PathType) -> TransferFunction:
+    """Load the project's JSON format (see the module docstring).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    TransferFunction
+
+    Raises
+    ------
+    ValueError
+        On malformed JSON, missing keys, rows of the wrong length, an
+        unknown ``colorspace``, invalid control points, or a DiffDVR
+        settings file (not supported; use DiffTetVR's XML conversion).
+    """
+    try:
+        with open(path, "r", encoding="utf-8") as f:
+            data = json.load(f)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{str(path)!r}: malformed JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{str(path)!r}: top-level JSON value must be an object")
+    if "tfEditor" in data:
+        raise ValueError(
+            f"{str(path)!r} is a DiffDVR settings file (CIELAB colors interpolated "
+            "in CIELAB, separate opacityScaling); it is not supported. Use the "
+            "DiffTetVR XML conversion of the same transfer function instead."
+        )
+    for key in ("color", "opacity"):
+        if key not in data:
+            raise ValueError(f"{str(path)!r}: missing key {key!r}")
+    colorspace = str(data.get("colorspace", "linear")).lower()
+    if colorspace not in ("linear", "srgb"):
+        raise ValueError(
+            f"{str(path)!r}: unknown colorspace {data.get('colorspace')!r}; "
+            "expected 'linear' or 'srgb'"
+        )
+
+    if not _rows_ok(data["color"], 4):
+        raise ValueError(f"{str(path)!r}: 'color' must be a non-empty list of [pos, r, g, b] rows")
+    if not _rows_ok(data["opacity"], 2):
+        raise ValueError(f"{str(path)!r}: 'opacity' must be a non-empty list of [pos, a] rows")
+    color = np.array(data["color"], dtype=np.float64)
+    opacity = np.array(data["opacity"], dtype=np.float64)
+
+    cols = color[:, 1:]
+    if colorspace == "srgb":
+        cols = srgb_to_linear(cols)
+    try:
+        return TransferFunction(color[:, 0], cols, opacity[:, 0], opacity[:, 1])
+    except ValueError as exc:
+        raise ValueError(f"{str(path)!r}: {exc}") from None
+
+
+def json_dict(tf: TransferFunction) -> dict:
+    """The project's JSON format of ``tf`` as a dict (``"colorspace": "linear"``,
+    floats as Python floats)."""
+    return {
+        "colorspace": "linear",
+        "color": [
+            [float(p), float(c[0]), float(c[1]), float(c[2])]
+            for p, c in zip(tf.color_positions, tf.colors)
+        ],
+        "opacity": [
+            [float(p), float(a)] for p, a in zip(tf.opacity_positions, tf.opacities)
+        ],
+    }
+
+
+def write_json(tf: TransferFunction, path: PathType) -> None:
+    """Write ``tf`` in the project's JSON format with ``"colorspace": "linear"``.
+
+    Floats are written with full (round-trip exact) precision.
+
+    Parameters
+    ----------
+    tf : TransferFunction
+    path : str or os.PathLike
+    """
+    with open(path, "w", encoding="utf-8") as f:
+        json.dump(json_dict(tf), f, indent=2)
+        f.write("\n")
 
 
 def _rows_ok(rows, width: int) -> bool:

@@ -9,7 +9,7 @@ Model (per ray, direction normalised so that t is a distance):
   its four barycentric coordinates are >= 0; along the ray each coordinate is an
   affine function ``lambda_i(t) = a_i + t * b_i`` so this is exactly Cyrus-Beck
   clipping against the four face half-spaces.  Only ``0 <= t <= t_max`` counts.
-* inside tet ``j`` the colour and the extinction are the barycentric interpolation
+* inside tet ``j`` the color and the extinction are the barycentric interpolation
   of the vertex values, hence linear along the segment ``[t0, t1]``.
 * segment emission ``C_seg = int_0^L sigma(s) c(s) exp(-tau(s)) ds`` with the optical
   depth ``tau(s)`` (a quadratic) in closed form, integrated with composite

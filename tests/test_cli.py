@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 import mitsuba as mi
-from conftest import ROOT
+from tests.helpers import ROOT
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.io import write_tetmesh
-from mi_tetvr.mesh.topology import TetMesh
+from mi_tetvr.mesh.tetmesh import TetMesh
 from mi_tetvr.mesh.scenes import make_scene_meshes
 
 SCENES = ["default", "transfer_function", "nonconvex", "two_meshes", "inside"]

@@ -1,19 +1,16 @@
 """Tests for mi_tetvr.transfer (fast, CPU only)."""
 
 import json
-import sys
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from mi_tetvr.transfer import (TransferFunction, read_difftetvr_xml, read_json,
+                               read_transfer_function, write_json)
+from mi_tetvr.color import srgb_to_linear
+from tests.helpers import DATA
 
-from mi_tetvr.transfer import TransferFunction  # noqa: E402
-from mi_tetvr.color import srgb_to_linear  # noqa: E402
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 TF_DIR = DATA / "transfer-functions" / "difftetvr"
 DIFFTETVR_XMLS = ["Grey.xml", "Tooth1.xml", "Tooth3Gauss.xml", "Tooth3Linear.xml"]
 
@@ -24,7 +21,7 @@ def _need_data():
 
 
 def _simple_tf():
-    # colour: red at 0, green at 0.5, blue at 1; opacity: 0 at 0.2, 1 at 0.6
+    # color: red at 0, green at 0.5, blue at 1; opacity: 0 at 0.2, 1 at 0.6
     return TransferFunction(
         [0.0, 0.5, 1.0],
         [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
@@ -171,13 +168,13 @@ def test_unknown_suffix(tmp_path):
     p = tmp_path / "tf.txt"
     p.write_text("x")
     with pytest.raises(ValueError, match="unknown transfer function file suffix"):
-        TransferFunction.from_file(p)
+        read_transfer_function(p)
 
 
 # ------------------------------------------------------------------ XML
 def test_grey_xml():
     _need_data()
-    tf = TransferFunction.from_file(TF_DIR / "Grey.xml")
+    tf = read_transfer_function(TF_DIR / "Grey.xml")
     c, o = tf([0.0, 1.0])
     np.testing.assert_allclose(c[0], [srgb_to_linear(53853 / 65535)] * 3, rtol=1e-12)
     np.testing.assert_allclose(c[1], [srgb_to_linear(49151 / 65535)] * 3, rtol=1e-12)
@@ -189,7 +186,7 @@ def test_all_difftetvr_xmls_load(name):
     _need_data()
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # all ship interpolation_colorspace="Linear RGB"
-        tf = TransferFunction.from_xml(TF_DIR / name)
+        tf = read_difftetvr_xml(TF_DIR / name)
     assert tf.colors.shape[1] == 3
     assert tf.colors.shape[0] == tf.color_positions.shape[0] >= 2
     assert tf.opacities.shape == tf.opacity_positions.shape
@@ -200,7 +197,7 @@ def test_all_difftetvr_xmls_load(name):
 
 def test_tooth3linear_values():
     _need_data()
-    tf = TransferFunction.from_xml(TF_DIR / "Tooth3Linear.xml")
+    tf = read_difftetvr_xml(TF_DIR / "Tooth3Linear.xml")
     c, o = tf([1.0, 0.3])
     np.testing.assert_allclose(o, [0.7300000190734863, 0.0])
     want = srgb_to_linear([0.9999960064888, 0.9999998807907104, 0.999989926815033])
@@ -231,7 +228,7 @@ def test_xml_color_data_modes_and_linear_colorspace(tmp_path):
     ]
     for i, (cs, cd, v, want) in enumerate(cases):
         p = _write(tmp_path, f"t{i}.xml", body.format(cs=cs, cd=cd, v=v))
-        c, o = TransferFunction.from_file(p)([0.0])
+        c, o = read_transfer_function(p)([0.0])
         assert c[0, 0] == pytest.approx(want, abs=1e-8), (cs, cd, v)
         assert o[0] == 0.5
 
@@ -243,19 +240,19 @@ def test_xml_errors_and_warning(tmp_path):
     )
     p = _write(tmp_path, "a.xml", f'<TransferFunction colorspace="sRGB">{good_points}</TransferFunction>')
     with pytest.warns(UserWarning, match="interpolation_colorspace"):
-        TransferFunction.from_xml(p)
+        read_difftetvr_xml(p)
 
     p = _write(tmp_path, "b.xml", f'<TransferFunction colorspace="HSV" interpolation_colorspace="Linear RGB">{good_points}</TransferFunction>')
     with pytest.raises(ValueError, match="unknown colorspace"):
-        TransferFunction.from_xml(p)
+        read_difftetvr_xml(p)
 
     p = _write(tmp_path, "c.xml", f"<Foo>{good_points}</Foo>")
     with pytest.raises(ValueError, match="root element"):
-        TransferFunction.from_xml(p)
+        read_difftetvr_xml(p)
 
     p = _write(tmp_path, "d.xml", "<TransferFunction><OpacityPoints>")
     with pytest.raises(ValueError, match="malformed XML"):
-        TransferFunction.from_xml(p)
+        read_difftetvr_xml(p)
 
     p = _write(
         tmp_path,
@@ -265,7 +262,7 @@ def test_xml_errors_and_warning(tmp_path):
         '<ColorPoints color_data="float"><ColorPoint position="0" r="1" g="1" b="1"/></ColorPoints></TransferFunction>',
     )
     with pytest.raises(ValueError, match="non-decreasing"):
-        TransferFunction.from_xml(p)
+        read_difftetvr_xml(p)
 
 
 # ----------------------------------------------------------------- JSON
@@ -277,20 +274,20 @@ def test_json_round_trip(tmp_path):
         [0.0, 0.0, 0.9, 0.25],
     )
     p = tmp_path / "tf.json"
-    tf.to_json(p)
+    write_json(tf, p)
     data = json.loads(p.read_text())
     assert data["colorspace"] == "linear"
-    tf2 = TransferFunction.from_file(p)
+    tf2 = read_transfer_function(p)
     for name in ("color_positions", "colors", "opacity_positions", "opacities"):
         np.testing.assert_array_equal(getattr(tf2, name), getattr(tf, name))
 
 
 def test_json_round_trip_of_xml(tmp_path):
     _need_data()
-    tf = TransferFunction.from_xml(TF_DIR / "Tooth3Gauss.xml")
+    tf = read_difftetvr_xml(TF_DIR / "Tooth3Gauss.xml")
     p = tmp_path / "g.json"
-    tf.to_json(p)
-    tf2 = TransferFunction.from_json(p)
+    write_json(tf, p)
+    tf2 = read_json(p)
     t = np.linspace(-0.1, 1.1, 101)
     for a, b in zip(tf(t), tf2(t)):
         np.testing.assert_array_equal(a, b)
@@ -299,10 +296,10 @@ def test_json_round_trip_of_xml(tmp_path):
 def test_json_srgb_and_default_colorspace(tmp_path):
     p = _write(tmp_path, "s.json", json.dumps(
         {"color": [[0, 0.5, 0.5, 0.5]], "opacity": [[0, 1]], "colorspace": "srgb"}))
-    c, _ = TransferFunction.from_json(p)([0.0])
+    c, _ = read_json(p)([0.0])
     np.testing.assert_allclose(c[0], [0.21404114] * 3, atol=1e-8)
     p = _write(tmp_path, "l.json", json.dumps({"color": [[0, 0.5, 0.5, 0.5]], "opacity": [[0, 1]]}))
-    c, _ = TransferFunction.from_json(p)([0.0])
+    c, _ = read_json(p)([0.0])
     np.testing.assert_allclose(c[0], [0.5] * 3)
 
 
@@ -321,13 +318,13 @@ def test_json_srgb_and_default_colorspace(tmp_path):
 def test_json_bad_input(tmp_path, obj, match):
     p = _write(tmp_path, "bad.json", json.dumps(obj))
     with pytest.raises(ValueError, match=match):
-        TransferFunction.from_json(p)
+        read_json(p)
 
 
 def test_json_malformed(tmp_path):
     p = _write(tmp_path, "m.json", "{not json")
     with pytest.raises(ValueError, match="malformed JSON"):
-        TransferFunction.from_file(p)
+        read_transfer_function(p)
 
 
 def test_diffdvr_json_rejected_with_hint():
@@ -335,4 +332,4 @@ def test_diffdvr_json_rejected_with_hint():
     if not p.is_file():
         pytest.skip("DiffDVR json not available")
     with pytest.raises(ValueError, match="DiffTetVR XML"):
-        TransferFunction.from_file(p)
+        read_transfer_function(p)

@@ -1,6 +1,6 @@
 """The tutorial ``tutorials/fit_color_opacity.py`` in a shrunk setting: the
 loss must fall well below what unchanged (zero-gradient) parameters give, the
-outputs must be written, and the fitted colours and opacities must move
+outputs must be written, and the fitted colors and opacities must move
 towards the target's."""
 import importlib.util
 from pathlib import Path
@@ -9,13 +9,15 @@ import numpy as np
 import pytest
 
 import mi_tetvr
+from tests.helpers import ROOT, VARIANT
 
-TUTORIAL = Path(__file__).resolve().parents[1] / "tutorials" / "fit_color_opacity.py"
+TUTORIAL = ROOT / "tutorials" / "fit_color_opacity.py"
 
 # 4^3 cells (125 vertices, 384 tets), 2 views of 24x24 px, 30 Adam steps: about
-# 3 s on two cores. Measured: loss ratio 0.037, colour MAE 0.206 -> 0.110,
+# 3 s on two cores. Measured: loss ratio 0.037, color MAE 0.206 -> 0.110,
 # opacity MAE 0.371 -> 0.230.
-ARGS = ["--cells", "4", "--views", "2", "--res", "24", "--iters", "30", "--quiet"]
+ARGS = ["--cells", "4", "--views", "2", "--res", "24", "--iters", "30", "--quiet",
+        "--variant", VARIANT]
 
 
 def load_tutorial():
@@ -60,14 +62,14 @@ def test_outputs_written(fit):
 
 
 def test_parameters_move_towards_target(fit):
-    seen = fit["seen"]  # colour received a gradient in the first iteration
+    seen = fit["seen"]  # color received a gradient in the first iteration
     assert seen.sum() > 0.5 * len(seen)
     c_fit, c_ref = fit["color_fit"], fit["color_ref"]
     assert np.all((c_fit >= 0) & (c_fit <= 1)) and np.all(fit["opacity_fit"] >= 0)
     err_init = np.abs(0.5 - c_ref)[seen].mean()  # the initial grey
     err_fit = np.abs(c_fit - c_ref)[seen].mean()
     assert err_fit < 0.75 * err_init, (err_init, err_fit)
-    # The vertices the images constrain most (top quarter by colour gradient)
+    # The vertices the images constrain most (top quarter by color gradient)
     # get much closer.
     top = np.argsort(-fit["color_sensitivity"])[:len(seen) // 4]
     assert np.abs(c_fit - c_ref)[top].mean() < 0.7 * np.abs(0.5 - c_ref)[top].mean()

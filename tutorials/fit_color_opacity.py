@@ -1,12 +1,12 @@
-"""Tutorial: fit the per-vertex colour and opacity of a tet mesh to images.
+"""Tutorial: fit the per-vertex color and opacity of a tet mesh to images.
 
 This is inverse volume rendering in the ordinary Mitsuba 3 way, with the
 ``tetmesh`` shape and the ``tetvr`` integrator of ``mi_tetvr``:
 
-1. A *target* volume (a tet mesh with spatially varying colour and opacity) is
+1. A *target* volume (a tet mesh with spatially varying color and opacity) is
    rendered from a few cameras around it. Every image has four channels:
    R, G, B and the integrator's ``alpha`` AOV (accumulated opacity 1 - T).
-2. A second scene has the *same* mesh but a constant grey colour and a low
+2. A second scene has the *same* mesh but a constant grey color and a low
    constant opacity: this is where the optimization starts.
 3. ``mi.traverse`` exposes ``<id>.vertex_color`` and ``<id>.vertex_opacity``;
    an ``mi.ad.Adam`` optimizer owns them, and each iteration renders every
@@ -69,7 +69,7 @@ KEY_OPACITY = f"{MESH_ID}.vertex_opacity"
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(
-        description="Fit per-vertex colour and opacity of a tet mesh to multi-view "
+        description="Fit per-vertex color and opacity of a tet mesh to multi-view "
                     "RGBA images (mi_tetvr tutorial).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--cells", type=int, default=8,
@@ -82,10 +82,10 @@ def parse_args(argv=None):
     p.add_argument("--target-spp", type=int, default=16,
                    help="samples per pixel of the target images")
     p.add_argument("--iters", type=int, default=60, help="optimization steps")
-    p.add_argument("--lr", type=float, default=0.05, help="Adam learning rate of the colour")
+    p.add_argument("--lr", type=float, default=0.05, help="Adam learning rate of the color")
     p.add_argument("--lr-opacity", type=float, default=0.15,
                    help="Adam learning rate of the opacity (extinction per unit length, "
-                        "which spans a larger range than the colour)")
+                        "which spans a larger range than the color)")
     p.add_argument("--init-color", type=float, default=0.5, help="initial grey level")
     p.add_argument("--init-opacity", type=float, default=0.1, help="initial opacity")
     p.add_argument("--loss", choices=("l2", "l1"), default="l2", help="image loss")
@@ -105,12 +105,12 @@ def parse_args(argv=None):
 # ---------------------------------------------------------------------------
 
 def target_field(vertices):
-    """Colour and opacity of the target volume at the vertices.
+    """Color and opacity of the target volume at the vertices.
 
-    The colour varies smoothly everywhere (in [0.1, 0.9], linear RGB); the
+    The color varies smoothly everywhere (in [0.1, 0.9], linear RGB); the
     opacity is a low background plus the soft blobs of
     :func:`mi_tetvr.mesh.generate.blob_field`, so that the whole volume is
-    semi-transparent and every vertex's colour shows in some image.
+    semi-transparent and every vertex's color shows in some image.
     """
     from mi_tetvr.mesh.generate import blob_field
     x, y, z = np.asarray(vertices, float).T
@@ -204,7 +204,7 @@ def save_loss_plot(path, history, noise_floor):
 
 
 def save_comparison(path, target, initial, fitted):
-    """Target / initial / fitted of one view: sRGB colour on top, alpha below."""
+    """Target / initial / fitted of one view: sRGB color on top, alpha below."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -215,7 +215,7 @@ def save_comparison(path, target, initial, fitted):
         axes[0, col].set_title(title)
         axes[1, col].imshow(np.array(img)[..., 3], cmap="gray", vmin=0, vmax=1,
                             interpolation="nearest")
-    axes[0, 0].set_ylabel("colour (sRGB)")
+    axes[0, 0].set_ylabel("color (sRGB)")
     axes[1, 0].set_ylabel("alpha")
     for ax in axes.ravel():
         ax.set_xticks([])
@@ -244,7 +244,7 @@ def main(argv=None):
 
     # -- 1. The target --------------------------------------------------------
     # A jittered grid of tets over [-1, 1]^3; the geometry is shared by the
-    # target and the fit, only colour and opacity are unknown.
+    # target and the fit, only color and opacity are unknown.
     vertices, tets = grid_mesh(args.cells, jitter=args.jitter, seed=0)
     color_ref, opacity_ref = target_field(vertices)
     n = len(vertices)
@@ -295,11 +295,11 @@ def main(argv=None):
         if not math.isfinite(total):
             raise FloatingPointError(f"the loss became {total} at iteration {it}")
         if it == 0:
-            # Vertices whose colour influences some pixel of some view.
+            # Vertices whose color influences some pixel of some view.
             sensitivity = np.abs(np.array(dr.grad(opt[KEY_COLOR]))).reshape(n, 3).sum(1)
             seen = sensitivity > 0
         opt.step()
-        # Keep the parameters physical: colour in [0, 1], opacity >= 0.
+        # Keep the parameters physical: color in [0, 1], opacity >= 0.
         opt[KEY_COLOR] = dr.clip(opt[KEY_COLOR], 0.0, 1.0)
         opt[KEY_OPACITY] = dr.maximum(opt[KEY_OPACITY], 0.0)
         params.update(opt)
@@ -316,8 +316,8 @@ def main(argv=None):
     color_fit = np.array(params[KEY_COLOR], np.float64).reshape(n, 3)
     opacity_fit = np.array(params[KEY_OPACITY], np.float64).reshape(n)
 
-    # How far the parameters are from the truth. A vertex's colour can only
-    # be recovered if some camera sees it (its colour got a gradient in the
+    # How far the parameters are from the truth. A vertex's color can only
+    # be recovered if some camera sees it (its color got a gradient in the
     # first iteration); the error counts those vertices.
     if seen.any():
         color_err_init = float(np.mean(np.abs(args.init_color - color_ref)[seen]))
@@ -342,7 +342,7 @@ def main(argv=None):
     ratio = final_loss / history[0]
     print(f"initial loss {history[0]:.4e}   final loss {final_loss:.4e}   "
           f"ratio {ratio:.4f}   (noise floor {noise_floor:.2e})")
-    print(f"colour MAE ({np.count_nonzero(seen)} of {n} vertices seen) "
+    print(f"color MAE ({np.count_nonzero(seen)} of {n} vertices seen) "
           f"{color_err_init:.4f} -> {color_err_fit:.4f}; "
           f"opacity MAE {opacity_err_init:.4f} -> {opacity_err_fit:.4f}")
     print(f"wrote {', '.join(str(f) for f in files.values())}  ({seconds:.1f} s)")

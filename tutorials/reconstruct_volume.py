@@ -37,10 +37,11 @@ mi.set_variant("llvm_ad_rgb")
 
 import mi_tetvr  # noqa: E402,F401  (registers tetmesh and tetvr)
 from mi_tetvr.recon.datasets import load_nerf  # noqa: E402
-from mi_tetvr.recon.fit import FitConfig, coarse_to_fine, run  # noqa: E402
+from mi_tetvr.recon.config import FitConfig, coarse_to_fine  # noqa: E402
+from mi_tetvr.recon.pipeline import run  # noqa: E402
 from mi_tetvr.mesh.scenes import default_volume  # noqa: E402
-from mi_tetvr.transfer import TransferFunction  # noqa: E402
-from mi_tetvr.grid.volume import make_dataset, make_volume  # noqa: E402
+from mi_tetvr.transfer import read_transfer_function  # noqa: E402
+from mi_tetvr.grid import make_dataset, make_volume  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -60,7 +61,7 @@ def main(argv=None):
     log = (lambda *x: None) if a.quiet else print
 
     # 1. Ground truth images from a scalar volume and a transfer function.
-    tf = TransferFunction.from_file(ROOT / "scenes" / "tf_default.json")
+    tf = read_transfer_function(ROOT / "scenes" / "tf_default.json")
     volume = make_volume(default_volume(a.volume_size))
     make_dataset(volume, tf, views=a.views, res=a.res, out_dir=out / "data", test_views=4,
                  fov=30, progress=not a.quiet)
@@ -68,7 +69,7 @@ def main(argv=None):
     # 2. Load it like any NeRF-style data set.
     data = load_nerf(out / "data")
     log(f"{len(data.train)} training / {len(data.test)} test views of "
-        f"{data.train[0].width}x{data.train[0].height}")
+        f"{data.train[0].camera.width}x{data.train[0].camera.height}")
 
     # 3a. Uniform grid: colors and opacities only, 5 stages' worth of steps.
     base = FitConfig(views_per_step=4, lr_color=0.03, lr_opacity=0.1, n_sub=4)

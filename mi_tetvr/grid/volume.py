@@ -1,7 +1,8 @@
-"""Scalar volumes on regular grids, a Dr.Jit grid ray marcher and multi-view data sets.
+"""Scalar volumes on regular grids: the :class:`Volume`, trilinear sampling, readers and writers.
 
-This module provides the ground truth for reconstruction (images of a regular-grid scalar
-volume under a transfer function) and the grid baseline for comparisons with the tet renderer.
+A volume is the ground truth for reconstruction (its images under a transfer function,
+rendered by :mod:`mi_tetvr.grid.marcher` and written as a data set by
+:mod:`mi_tetvr.grid.dataset`). Numpy only: works without a Mitsuba variant.
 
 Conventions
 -----------
@@ -16,7 +17,7 @@ Samples are nodes
     ``[origin, origin + (n - 1) * spacing]`` (the same field a tet mesh on the grid nodes
     with linear interpolation represents, up to the trilinear vs. linear difference).
 World placement
-    :func:`make_volume` / :func:`load_volume` centre the box at the origin and scale it
+    :func:`make_volume` / :func:`load_volume` center the box at the origin and scale it
     uniformly so that its largest extent is 2, i.e. it lies in ``[-1, 1]^3`` and touches
     ``+-1`` along its longest axis; the voxel aspect ratio from the file's spacing is kept.
     Grid x, y, z are world x, y, z.
@@ -25,67 +26,25 @@ Normalisation
     range (default: ``(min, max)`` of the data; pass ``value_range=`` to fix it, e.g.
     ``(0, 255)`` for uint8) and clipped to ``[0, 1]``.  ``Volume.data_range`` records
     ``(lo, hi)``.
-Rendering model (post-classification emission-absorption)
-    Along a ray the box is entered at ``t0`` and left at ``t1`` (slab test); the marcher
-    takes steps of ``dt = step * min(spacing)`` (``step`` in voxels, default 0.25; the last
-    step is shortened to end exactly at ``t1``) and samples the **midpoint** of each step:
-    the scalar is interpolated trilinearly, *then* the transfer function gives the linear-RGB
-    colour ``c`` and the extinction ``sigma`` (``TransferFunction`` opacity times
-    ``opacity_scale``, per unit length in the world units of the ``[-1, 1]`` placement).
-    Per step ``a = exp(-sigma * h)``, ``C += T * c * (1 - a)``, ``T *= a`` (the exact
-    integral for ``c`` and ``sigma`` held constant over the step, as in the tet renderer's
-    sub-intervals).  The output is premultiplied linear RGB over black plus
-    ``alpha = 1 - T``.  Rays stop early once ``T < min_transmittance`` (default 1e-4, the
-    tet integrator's default).  The midpoint rule makes the transmittance exact for an
-    extinction linear along the step; the error is O(dt^2) in general.
-Transfer function
-    Evaluated exactly inside Dr.Jit from its piecewise-linear control points (no lookup
-    table): ``t = (s - lo) / (hi - lo)`` with ``value_range=(lo, hi)`` (default ``(0, 1)``,
-    i.e. the normalised scalar), clamped like :meth:`TransferFunction.__call__`.
-Cameras
-    :class:`mi_tetvr.recon.datasets.View` (without image): camera-to-world in **Mitsuba axes**
-    (camera looks along +z, +y is up in the image, +x is *left* in the image; what
-    ``mi.ScalarTransform4f().look_at`` builds) and pinhole intrinsics in pixels.  Pixel
-    ``(px, py)`` (``py`` from the top) is sampled at its centre.
-Data sets (NeRF-synthetic convention)
-    ``transforms_{train,test}.json`` with ``camera_angle_x`` (radians), ``fl_x, fl_y, cx,
-    cy, w, h`` (pixels) and per frame ``file_path`` (``./train/r_0``, without extension as in
-    NeRF-synthetic; the image is ``train/r_0.png``) and ``transform_matrix`` (OpenGL
-    camera-to-world).  Images are 8-bit RGBA PNG with **straight** (un-premultiplied) alpha
-    and sRGB-encoded colour: ``rgb_png = srgb(C / alpha)``, ``alpha_png = alpha``.
 """
 from __future__ import annotations
 
-import dataclasses
 import gzip
-import json
-import math
 import re
 import struct
 import zlib
 from dataclasses import dataclass, field
 from os import PathLike
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple, Union
+from typing import Tuple, Union
 
-import drjit as dr
-import mitsuba as mi
 import numpy as np
 
-from mi_tetvr.recon.datasets import Dataset, View, look_at, write_nerf
-from mi_tetvr.transfer import TransferFunction
-
-__all__ = [
-    "Volume", "make_volume", "load_volume", "write_cvol", "write_mhd",
-    "look_at", "fibonacci_cameras", "random_cameras", "default_fov",
-    "render_volume", "render_rays", "camera_rays", "GridField", "TFEval",
-    "make_dataset", "trilinear_numpy",
-]
+__all__ = ["Volume", "make_volume", "load_volume", "write_cvol", "write_mhd", "trilinear_numpy"]
 
 PathType = Union[str, "PathLike[str]"]
 
 
-# ============================================================================ volumes
 @dataclass
 class Volume:
     """A scalar field on a regular grid, placed in world space.
@@ -418,368 +377,3 @@ def load_volume(path: PathType, shape=None, dtype=None, spacing=None,
     if spacing is not None:
         sp = spacing
     return make_volume(v, spacing=sp, value_range=value_range, source=str(path))
-
-
-# ============================================================================ cameras
-def default_fov(radius: float, margin: float = 1.05) -> float:
-    """Horizontal fov (degrees) whose cone at distance ``radius`` holds the sphere of
-    radius ``margin * sqrt(3)`` around the origin (the ``[-1, 1]^3`` box)."""
-    r = min(margin * math.sqrt(3.0) / radius, 1.0)
-    return math.degrees(2.0 * math.asin(r))
-
-
-def _res(res) -> Tuple[int, int]:
-    if isinstance(res, (int, np.integer)):
-        return int(res), int(res)
-    w, h = res
-    return int(w), int(h)
-
-
-def _frame(up):
-    u = np.asarray(up, np.float64)
-    u = u / np.linalg.norm(u)
-    a = np.eye(3)[np.argmin(np.abs(u))]
-    e1 = np.cross(u, a)
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(u, e1), u
-
-
-def fibonacci_cameras(n: int, radius: float = 4.0, res=256, fov: Optional[float] = None,
-                      up=(0.0, 0.0, 1.0), target=(0.0, 0.0, 0.0),
-                      hemisphere: bool = False) -> List[View]:
-    """``n`` cameras on a Fibonacci sphere of ``radius`` around ``target``, looking at it.
-
-    The sphere's pole is ``up`` (also the cameras' up vector; at the poles another one is
-    chosen, see :func:`look_at`).  ``hemisphere=True`` keeps to the ``up`` side.
-    ``fov`` (horizontal, degrees) defaults to :func:`default_fov` (frames ``[-1, 1]^3``).
-    """
-    if n < 1:
-        raise ValueError(f"n must be >= 1, got {n}")
-    w, h = _res(res)
-    fov = default_fov(radius) if fov is None else float(fov)
-    i = np.arange(n) + 0.5
-    z = 1.0 - i / n if hemisphere else 1.0 - 2.0 * i / n
-    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    phi = math.pi * (3.0 - math.sqrt(5.0)) * i
-    e1, e2, e3 = _frame(up)
-    dirs = (r * np.cos(phi))[:, None] * e1 + (r * np.sin(phi))[:, None] * e2 + z[:, None] * e3
-    t = np.asarray(target, np.float64)
-    return [View.look_at(f"cam{i}", t + radius * d, t, up, w, h, fov_x=fov)
-            for i, d in enumerate(dirs)]
-
-
-def random_cameras(n: int, radius: float = 4.0, res=256, fov: Optional[float] = None,
-                   seed: int = 0, up=(0.0, 0.0, 1.0), target=(0.0, 0.0, 0.0),
-                   hemisphere: bool = False) -> List[View]:
-    """``n`` cameras at uniformly random points of a sphere (``numpy.random.default_rng(seed)``),
-    looking at ``target``; arguments as :func:`fibonacci_cameras`."""
-    w, h = _res(res)
-    fov = default_fov(radius) if fov is None else float(fov)
-    rng = np.random.default_rng(seed)
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    u = np.asarray(up, np.float64) / np.linalg.norm(up)
-    if hemisphere:
-        d = np.where((d @ u)[:, None] < 0, d - 2 * (d @ u)[:, None] * u, d)
-    t = np.asarray(target, np.float64)
-    return [View.look_at(f"cam{i}", t + radius * x, t, up, w, h, fov_x=fov)
-            for i, x in enumerate(d)]
-
-
-# ============================================================================ Dr.Jit
-def _check_variant():
-    if mi.variant() is None:
-        raise RuntimeError("mi_tetvr.grid.volume: call mitsuba.set_variant(...) first "
-                           "(e.g. 'llvm_ad_rgb' or 'cuda_ad_rgb')")
-
-
-class TFEval:
-    """A :class:`TransferFunction` evaluated exactly inside Dr.Jit.
-
-    The piecewise-linear function with non-decreasing positions ``p`` and values ``v`` is
-    written as the telescoping sum ``v_0 + sum_i (v_{i+1} - v_i) w_i(t)`` with
-    ``w_i = clamp((t - p_i) / (p_{i+1} - p_i), 0, 1)`` (a step ``t >= p_i`` at a jump), which
-    equals ``numpy.interp`` with clamping and the after-jump value at a jump.
-
-    Parameters
-    ----------
-    tf : TransferFunction
-    value_range : (lo, hi)
-        Scalar values mapped to the TF's 0 and 1 (default ``(0, 1)``).
-    opacity_scale : float
-        Factor on the TF opacity (extinction per unit world length).
-    """
-
-    def __init__(self, tf: TransferFunction, value_range=(0.0, 1.0), opacity_scale=1.0):
-        lo, hi = (float(x) for x in value_range)
-        if not (np.isfinite(lo) and np.isfinite(hi)) or hi < lo:
-            raise ValueError(f"value_range must be finite with lo <= hi, got {value_range!r}")
-        s = float(opacity_scale)
-        if not np.isfinite(s) or s < 0:
-            raise ValueError(f"opacity_scale must be finite and >= 0, got {opacity_scale!r}")
-        self.tf, self.lo, self.hi, self.opacity_scale = tf, lo, hi, s
-
-    @staticmethod
-    def _pl(t, pos, vals):
-        out = float(vals[0])
-        for i in range(len(pos) - 1):
-            dv = float(vals[i + 1] - vals[i])
-            if dv == 0.0:
-                continue
-            p0, p1 = float(pos[i]), float(pos[i + 1])
-            if p1 > p0:
-                w = dr.clip((t - p0) * (1.0 / (p1 - p0)), 0.0, 1.0)
-            else:
-                w = dr.select(t >= p0, 1.0, 0.0)
-            out = out + dv * w
-        return out
-
-    def __call__(self, s):
-        """Colour (Color3f, linear RGB) and extinction (Float) for scalar values ``s`` (Float)."""
-        t = (s - self.lo) * (1.0 / (self.hi - self.lo)) if self.hi > self.lo else s * 0.0
-        t = dr.clip(t, 0.0, 1.0)
-        tf = self.tf
-        c = mi.Color3f(*[mi.Float(0.0) + self._pl(t, tf.color_positions, tf.colors[:, k])
-                         for k in range(3)])
-        sigma = mi.Float(0.0) + self._pl(t, tf.opacity_positions, tf.opacities)
-        return c, sigma * self.opacity_scale
-
-
-class GridField:
-    """A :class:`Volume`'s samples in a flat Dr.Jit buffer, with trilinear lookup.
-
-    ``buffer`` (``mi.Float``, x fastest) may be replaced by a differentiable array.
-    """
-
-    def __init__(self, volume: Volume):
-        _check_variant()
-        nx, ny, nz = volume.shape
-        self.shape = (nx, ny, nz)
-        self.buffer = mi.Float(np.ascontiguousarray(volume.values, np.float32).ravel())
-        self.origin = [float(v) for v in volume.origin]
-        self.inv_spacing = [1.0 / float(v) for v in volume.spacing]
-        lo, hi = volume.bounds()
-        self.bbox = mi.ScalarBoundingBox3f(lo.tolist(), hi.tolist())
-
-    def eval(self, p):
-        """Trilinear interpolation at world points ``p`` (Point3f); clamps outside the box."""
-        nx, ny, nz = self.shape
-        g = [(p[a] - self.origin[a]) * self.inv_spacing[a] for a in range(3)]
-        g = [dr.clip(g[a], 0.0, float(self.shape[a] - 1)) for a in range(3)]
-        i0 = [dr.minimum(mi.Int32(dr.floor(g[a])), self.shape[a] - 2) for a in range(3)]
-        f = [g[a] - mi.Float(i0[a]) for a in range(3)]
-        base = i0[0] + nx * (i0[1] + ny * i0[2])
-        sx, sy, sz = 1, nx, nx * ny
-        b = self.buffer
-
-        def v(o):
-            return dr.gather(mi.Float, b, base + o)
-
-        c00 = dr.lerp(v(0), v(sx), f[0])
-        c10 = dr.lerp(v(sy), v(sy + sx), f[0])
-        c01 = dr.lerp(v(sz), v(sz + sx), f[0])
-        c11 = dr.lerp(v(sz + sy), v(sz + sy + sx), f[0])
-        return dr.lerp(dr.lerp(c00, c10, f[1]), dr.lerp(c01, c11, f[1]), f[2])
-
-
-@dr.syntax
-def _march(field: GridField, tfe: TFEval, o, d, dt: float, min_transmittance: float):
-    """The marching loop (see the module docstring for the model)."""
-    bbox = mi.BoundingBox3f(mi.Point3f(field.bbox.min), mi.Point3f(field.bbox.max))
-    hit, t0, t1 = bbox.ray_intersect(mi.Ray3f(o, d))
-    t = dr.maximum(t0, 0.0)
-    active = mi.Bool(hit) & (t1 > t)
-    T = mi.Float(1.0)
-    C = mi.Color3f(0.0)
-    while dr.hint(active, label="volume_march"):
-        h = dr.minimum(dt, t1 - t)
-        s = field.eval(o + d * (t + 0.5 * h))
-        c, sigma = tfe(s)
-        a = dr.exp(-sigma * h)
-        C += T * (1.0 - a) * c
-        T *= a
-        t += dt
-        active &= (t < t1) & (T > min_transmittance)
-    return C, 1.0 - T
-
-
-def render_rays(field, tf, origins, directions, step: float = 0.25, value_range=(0.0, 1.0),
-                opacity_scale: float = 1.0, min_transmittance: float = 1e-4):
-    """March rays through a grid volume (the Dr.Jit core).
-
-    Parameters
-    ----------
-    field : Volume or GridField
-    tf : TransferFunction or TFEval
-    origins, directions : Point3f / Vector3f, or (k, 3) arrays
-        Ray origins and directions (normalised here).
-    step : float
-        Step length in voxels (times the smallest world spacing).
-    value_range, opacity_scale
-        See :class:`TFEval` (ignored when ``tf`` is already a ``TFEval``).
-    min_transmittance : float
-        Early termination threshold.
-
-    Returns
-    -------
-    (Color3f, Float)
-        Premultiplied linear RGB and alpha ``= 1 - T`` per ray.
-    """
-    _check_variant()
-    if isinstance(field, Volume):
-        field = GridField(field)
-    if not isinstance(tf, TFEval):
-        tf = TFEval(tf, value_range, opacity_scale)
-    if step <= 0:
-        raise ValueError(f"step must be > 0, got {step}")
-    if not isinstance(origins, mi.Point3f):
-        origins = mi.Point3f(*np.asarray(origins, np.float32).reshape(-1, 3).T)
-    if not isinstance(directions, mi.Vector3f):
-        directions = mi.Vector3f(*np.asarray(directions, np.float32).reshape(-1, 3).T)
-    directions = dr.normalize(directions)
-    dt = float(step) / max(field.inv_spacing)
-    return _march(field, tf, origins, directions, dt, float(min_transmittance))
-
-
-def camera_rays(camera):
-    """Rays through the pixel centres of a :class:`~mi_tetvr.recon.datasets.View` or a Mitsuba
-    sensor.
-
-    Returns ``(origins Point3f, directions Vector3f, width, height)``, pixels in row-major
-    order from the top-left.
-    """
-    _check_variant()
-    if isinstance(camera, View):
-        w, h = camera.width, camera.height
-        idx = dr.arange(mi.UInt32, w * h)
-        px, py = mi.Float(idx % w) + 0.5, mi.Float(idx // w) + 0.5
-        # Mitsuba camera axes: +x to the image's left, +y up.
-        x = (camera.cx - px) / camera.fx
-        y = (camera.cy - py) / camera.fy
-        m = np.asarray(camera.to_world, np.float64)
-        R = [[float(m[r, c]) for c in range(3)] for r in range(3)]
-        d = mi.Vector3f(R[0][0] * x + R[0][1] * y + R[0][2],
-                        R[1][0] * x + R[1][1] * y + R[1][2],
-                        R[2][0] * x + R[2][1] * y + R[2][2])
-        o = mi.Point3f(*[float(v) for v in m[:3, 3]])
-        o = dr.zeros(mi.Point3f, w * h) + o
-        return o, dr.normalize(d), w, h
-    sensor = camera
-    w, h = (int(v) for v in sensor.film().size())
-    idx = dr.arange(mi.UInt32, w * h)
-    uv = mi.Point2f((mi.Float(idx % w) + 0.5) / w, (mi.Float(idx // w) + 0.5) / h)
-    ray, _ = sensor.sample_ray(0.0, 0.0, uv, mi.Point2f(0.5, 0.5))
-    return mi.Point3f(ray.o), mi.Vector3f(ray.d), w, h
-
-
-def render_volume(volume, tf, camera, step: float = 0.25, value_range=(0.0, 1.0),
-                  opacity_scale: float = 1.0, min_transmittance: float = 1e-4) -> np.ndarray:
-    """Render a grid volume from one view.
-
-    Parameters
-    ----------
-    volume : Volume or GridField
-    tf : TransferFunction or TFEval
-    camera : View or mitsuba Sensor (e.g. ``mi.load_dict(view.sensor_dict())``)
-    step, value_range, opacity_scale, min_transmittance
-        See :func:`render_rays`.
-
-    Returns
-    -------
-    (height, width, 4) float32
-        Premultiplied linear RGB and alpha.
-    """
-    o, d, w, h = camera_rays(camera)
-    C, alpha = render_rays(volume, tf, o, d, step=step, value_range=value_range,
-                           opacity_scale=opacity_scale, min_transmittance=min_transmittance)
-    out = np.stack([np.asarray(C[0]), np.asarray(C[1]), np.asarray(C[2]),
-                    np.asarray(alpha)], axis=-1)
-    return out.reshape(h, w, 4).astype(np.float32)
-
-
-# ============================================================================ data sets
-def _tf_dict(tf: TransferFunction) -> dict:
-    return {"colorspace": "linear",
-            "color": [[float(p), *map(float, c)] for p, c in zip(tf.color_positions, tf.colors)],
-            "opacity": [[float(p), float(a)] for p, a in zip(tf.opacity_positions, tf.opacities)]}
-
-
-def make_dataset(volume: Volume, tf: TransferFunction, views: Union[int, Sequence[View]],
-                 res=256, out_dir: PathType = "dataset",
-                 test_views: Union[int, Sequence[View]] = 8, radius: float = 4.0,
-                 fov: Optional[float] = None, seed: int = 0, step: float = 0.25,
-                 value_range=(0.0, 1.0), opacity_scale: float = 1.0,
-                 min_transmittance: float = 1e-4, up=(0.0, 0.0, 1.0),
-                 progress: bool = True) -> dict:
-    """Render train and test views of a grid volume into a NeRF-convention data set.
-
-    Parameters
-    ----------
-    volume : Volume
-    tf : TransferFunction
-    views : int or list of View
-        Training cameras, or their number (on a Fibonacci sphere, :func:`fibonacci_cameras`).
-    res : int or (w, h)
-        Image size for generated cameras.
-    out_dir : path
-        Receives ``transforms_train.json``, ``transforms_test.json``, ``volume_info.json``,
-        ``train/r_<i>.png`` and ``test/r_<i>.png``.
-    test_views : int or list of View
-        Test cameras, or their number (uniformly random on the sphere, ``seed``).
-    radius, fov, up
-        Camera sphere radius, horizontal fov in degrees (default :func:`default_fov`), up.
-    seed : int
-        Seed of the random test cameras.
-    step, value_range, opacity_scale, min_transmittance
-        See :func:`render_rays`.
-    progress : bool
-        Show a tqdm progress bar.
-
-    Returns
-    -------
-    dict
-        ``"train"``, ``"test"``: (n, h, w, 4) float32 premultiplied linear RGBA renders;
-        ``"cameras_train"``, ``"cameras_test"``: lists of :class:`View` (with their
-        images); ``"out_dir"``.
-    """
-    from tqdm import tqdm
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    if isinstance(views, (int, np.integer)):
-        views = fibonacci_cameras(int(views), radius, res, fov, up=up)
-    if isinstance(test_views, (int, np.integer)):
-        test_views = random_cameras(int(test_views), radius, res, fov, seed=seed, up=up) \
-            if test_views > 0 else []
-    field = GridField(volume)
-    tfe = TFEval(tf, value_range, opacity_scale)
-    result = {"out_dir": str(out)}
-    bar = tqdm(total=len(views) + len(test_views), desc="render views", disable=not progress)
-    posed = {}
-    for split, cams in (("train", views), ("test", test_views)):
-        posed[split] = []
-        for i, cam in enumerate(cams):
-            img = render_volume(field, tfe, cam, step=step, min_transmittance=min_transmittance)
-            posed[split].append(dataclasses.replace(cam, name=f"r_{i}", image=img))
-            bar.update(1)
-        result[split] = (np.stack([p.image for p in posed[split]]) if cams
-                         else np.zeros((0, 0, 0, 4), np.float32))
-        result[f"cameras_{split}"] = posed[split]
-    bar.close()
-    write_nerf(Dataset(posed["train"], posed["test"]), out)
-    info = {"volume": volume.info(), "transfer_function": _tf_dict(tf),
-            "value_range": [float(v) for v in value_range],
-            "opacity_scale": float(opacity_scale), "step_voxels": float(step),
-            "step_world": float(step * float(np.min(volume.spacing))),
-            "min_transmittance": float(min_transmittance),
-            "model": "post-classification emission-absorption, midpoint rule, "
-                     "premultiplied linear RGB over black, alpha = 1 - T",
-            "png": "RGBA 8-bit, sRGB colour, straight alpha",
-            "cameras": {"radius": float(radius), "fov_x_deg": float(views[0].fov_x) if views
-                        else None, "up": [float(v) for v in up], "seed": int(seed),
-                        "train": "fibonacci sphere" if views else None,
-                        "n_train": len(views), "n_test": len(test_views),
-                        "test": "uniform random on the sphere"}}
-    with open(out / "volume_info.json", "w", encoding="utf-8") as f:
-        json.dump(info, f, indent=2)
-    return result

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mi_tetvr.mesh.topology import TetMesh
+from mi_tetvr.mesh.tetmesh import TetMesh
 
 #: Kuhn (Freudenthal) split of a cube into 6 tets sharing the main diagonal;
 #: corners are numbered i*4 + j*2 + k for offsets (i, j, k) in {0, 1}^3;

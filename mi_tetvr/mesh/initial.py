@@ -11,23 +11,10 @@ Free functions over numpy arrays. Every initializer returns
   closed surface.
 * :func:`delaunay_init` -- Delaunay tetrahedralization of sparse points (e.g.
   COLMAP's), after statistical outlier removal.
-* :func:`visual_hull_bounds` -- the box enclosing the visual hull of alpha
-  masks, to give the initializers their region; :func:`project_points` is the
-  pinhole projection it uses.
 
-Camera convention (Mitsuba's ``perspective`` sensor, verified against
-``Sensor.sample_ray`` in ``tests/test_initmesh.py``): camera space has +z
-forward, +y up and **+x to the left** of the image; ``to_world`` maps camera
-to world space. Pixel coordinates are continuous, (0, 0) is the top-left
-corner of the image, x grows to the right and y downwards, and the centre of
-pixel (row i, column j) is (j + 0.5, i + 0.5). Hence::
-
-    u = cx - fx * x_cam / z_cam,    v = cy - fy * y_cam / z_cam
-
-For a Mitsuba sensor of width W, height H and horizontal field of view
-``fov`` (``fov_axis='x'``): ``fx = fy = W / (2 tan(fov / 2))``,
-``cx = W (0.5 - principal_point_offset_x)`` and
-``cy = H (0.5 - principal_point_offset_y)``.
+The box they fill comes from the data: :mod:`mi_tetvr.recon.hull` (visual
+hull of alpha masks, what the cameras see) or
+:meth:`mi_tetvr.recon.datasets.Dataset.bounds`.
 """
 from __future__ import annotations
 
@@ -39,29 +26,18 @@ from pathlib import Path
 import numpy as np
 
 from mi_tetvr.mesh.generate import grid_mesh
-from mi_tetvr.mesh.topology import FLAT_TOLERANCE, MeshError, signed_volumes
+from mi_tetvr.mesh.topology import (FLAT_TOLERANCE, MeshError, bbox_diagonal, check_bounds,
+                                    orient_tets, signed_volumes)
 
 __all__ = ["grid_init", "tetwild_init", "delaunay_init", "box_surface",
-           "remove_outliers", "project_points", "visual_hull_bounds",
-           "initial_bounds_from_cameras",
+           "remove_outliers",
            "orient_and_compact"]
 
 
 # --------------------------------------------------------------------------- helpers
-def _as_bounds(bounds):
-    b = np.asarray(bounds, dtype=np.float64)
-    if b.shape != (2, 3):
-        raise ValueError(f"bounds must have shape (2, 3) (min and max corner), got {b.shape}")
-    if not np.all(np.isfinite(b)):
-        raise ValueError("bounds must be finite")
-    if np.any(b[1] <= b[0]):
-        raise ValueError(f"bounds must have max > min on every axis, got {b.tolist()}")
-    return b
-
-
 def orient_and_compact(vertices, tets, flat_tol=None):
-    """Orient tets positively, optionally drop (near-)flat ones, and drop
-    unreferenced vertices.
+    """Orient tets positively (:func:`~mi_tetvr.mesh.orient_tets`), optionally
+    drop (near-)flat ones, and drop unreferenced vertices.
 
     Parameters
     ----------
@@ -81,15 +57,11 @@ def orient_and_compact(vertices, tets, flat_tol=None):
     """
     v = np.asarray(vertices, dtype=np.float64)
     t = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
-    vol = signed_volumes(v, t)
-    if flat_tol is not None and len(t):
-        used = v[np.unique(t)]
-        diag = float(np.linalg.norm(np.ptp(used, axis=0))) or 1.0
-        keep = np.abs(vol) > flat_tol * diag ** 3
-        t, vol = t[keep], vol[keep]
-    t = t.copy()
-    neg = vol < 0
-    t[neg] = t[neg][:, [0, 1, 3, 2]]
+    if flat_tol is None:
+        t = orient_tets(v, t, 0.0).tets
+    else:
+        oriented = orient_tets(v, t, flat_tol, diagonal=bbox_diagonal(v[np.unique(t)]))
+        t = oriented.tets[~oriented.flat]
     used, inv = np.unique(t, return_inverse=True)
     return v[used].copy(), inv.reshape(-1, 4).astype(np.int64)
 
@@ -118,7 +90,7 @@ def grid_init(bounds, resolution: int, jitter: float = 0.0, seed: int = 0):
     tets : (6 nx ny nz, 4) int64
         Kuhn split of each cell (:data:`mi_tetvr.mesh.generate.KUHN_TETS`).
     """
-    b = _as_bounds(bounds)
+    b = check_bounds(bounds)
     resolution = int(resolution)
     if resolution < 1:
         raise ValueError(f"resolution must be >= 1, got {resolution}")
@@ -145,7 +117,7 @@ def box_surface(bounds):
     """
     import trimesh
 
-    return trimesh.creation.box(bounds=_as_bounds(bounds))
+    return trimesh.creation.box(bounds=check_bounds(bounds))
 
 
 def _load_surface(surface):
@@ -372,185 +344,3 @@ def delaunay_init(points, outlier_std: float | None = 2.0, k_neighbors: int = 8,
     if len(t) == 0:
         raise MeshError("every Delaunay tet is flat: the points are (nearly) coplanar")
     return v, t
-
-
-# --------------------------------------------------------------------------- visual hull
-def project_points(points, view):
-    """Project world points into a pinhole view (Mitsuba's camera convention).
-
-    Parameters
-    ----------
-    points : (k, 3) float
-    view : object
-        With attributes ``to_world`` (4, 4) camera-to-world (Mitsuba: +z
-        forward, +y up, +x to the image's left) and ``fx, fy, cx, cy`` in
-        pixels.
-
-    Returns
-    -------
-    uv : (k, 2) float64
-        Continuous pixel coordinates (x right, y down; (0, 0) is the image's
-        top-left corner; pixel centres at half-integers). NaN-free; meaningless
-        where ``depth <= 0``.
-    depth : (k,) float64
-        ``z`` in camera space (> 0 in front of the camera).
-    """
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    to_world = np.asarray(view.to_world, dtype=np.float64).reshape(4, 4)
-    w2c = np.linalg.inv(to_world)
-    pc = p @ w2c[:3, :3].T + w2c[:3, 3]
-    z = pc[:, 2]
-    safe = np.where(np.abs(z) > 1e-300, z, 1e-300)
-    u = float(view.cx) - float(view.fx) * pc[:, 0] / safe
-    v = float(view.cy) - float(view.fy) * pc[:, 1] / safe
-    return np.stack([u, v], axis=1), z
-
-
-def _camera_centres_dirs(views):
-    c, d = [], []
-    for view in views:
-        m = np.asarray(view.to_world, dtype=np.float64).reshape(4, 4)
-        c.append(m[:3, 3])
-        f = m[:3, 2]
-        d.append(f / np.linalg.norm(f))
-    return np.array(c), np.array(d)
-
-
-def _image_size(view):
-    img = getattr(view, "image", None)
-    if img is not None:
-        return int(np.shape(img)[1]), int(np.shape(img)[0])
-    return int(view.width), int(view.height)
-
-
-def initial_bounds_from_cameras(views):
-    """A generous box for the visual hull, from the cameras alone.
-
-    Assumes object-centric views (cameras looking at a common target and
-    seeing all of the object). The centre is the point closest (least
-    squares) to all optical axes; the half-size is the half-extent that
-    every image covers at the nearest camera's distance,
-    ``min_i D_i * min_i(cx / fx, (W - cx) / fx, cy / fy, (H - cy) / fy)``,
-    so that (with ``outside='keep'``) most of the box is seen, and can be
-    carved, by every view. For
-    forward-facing captures (near-parallel axes) the centre is put ahead of
-    the cameras by their spread. Pass explicit bounds otherwise.
-
-    Parameters
-    ----------
-    views : sequence of objects with ``to_world`` (4, 4), ``fx, fy, cx, cy``
-        and ``image`` (H, W, ...) or ``width, height``
-
-    Returns
-    -------
-    (2, 3) float64
-    """
-    c, d = _camera_centres_dirs(views)
-    # least squares: sum_i (I - d_i d_i^T) (x - c_i) = 0, regularized towards
-    # the camera centroid for (near-)parallel axes
-    proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-    lam = 1e-3 * len(c)
-    a = proj.sum(0) + lam * np.eye(3)
-    b = np.einsum("kij,kj->i", proj, c) + lam * c.mean(0)
-    centre = np.linalg.solve(a, b)
-    if len(c) == 1 or np.linalg.cond(proj.sum(0)) > 1e6:
-        spread = max(float(np.ptp(c, axis=0).max()), 1.0) if len(c) > 1 else 1.0
-        centre = c.mean(0) + d.mean(0) * spread
-    dist = np.linalg.norm(c - centre, axis=1)
-    tans = []
-    for view in views:
-        w, h = _image_size(view)
-        cx, cy = float(view.cx), float(view.cy)
-        tans.append(min(min(cx, w - cx) / float(view.fx), min(cy, h - cy) / float(view.fy)))
-    r = max(float(dist.min()) * min(tans), 1e-6)
-    return np.stack([centre - r, centre + r])
-
-
-def _carve(views, bounds, resolution, threshold, min_views, outside):
-    b = _as_bounds(bounds)
-    res = int(resolution)
-    h = (b[1] - b[0]) / res
-    axes = [b[0, a] + (np.arange(res) + 0.5) * h[a] for a in range(3)]
-    centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    keep = np.ones(len(centres), bool)
-    seen = np.zeros(len(centres), np.int64)
-    for view in views:
-        if getattr(view, "image", None) is None:
-            raise ValueError("visual_hull_bounds needs every view's image (alpha mask)")
-        img = np.asarray(view.image)
-        alpha = img[..., 3] if img.ndim == 3 else img
-        hgt, wid = alpha.shape[:2]
-        uv, z = project_points(centres, view)
-        col, row = np.floor(uv[:, 0]), np.floor(uv[:, 1])
-        inside = (z > 0) & (col >= 0) & (col < wid) & (row >= 0) & (row < hgt)
-        if outside == "carve":
-            keep &= inside
-        idx = np.flatnonzero(inside)
-        fg = alpha[row[idx].astype(np.int64), col[idx].astype(np.int64)] > threshold
-        keep[idx[~fg]] = False
-        seen[idx] += 1
-    keep &= seen >= min_views
-    return centres[keep], h
-
-
-def visual_hull_bounds(views, threshold: float = 0.05, resolution: int = 64,
-                       initial_bounds=None, min_views: int | None = None, passes: int = 2,
-                       outside: str = "keep"):
-    """The box enclosing the visual hull of alpha masks.
-
-    A voxel grid over ``initial_bounds`` is carved: a voxel is kept when its
-    centre projects (see :func:`project_points`) onto a pixel with
-    ``alpha > threshold`` in every view whose image it falls in, and falls
-    in at least ``min_views`` images. Views it projects outside of (or
-    behind) do not carve it (``outside='keep'``; ``'carve'`` removes it,
-    right when every view sees the whole object). Later passes carve again at the same resolution
-    over the previous pass's result, tightening the box.
-
-    Parameters
-    ----------
-    views : sequence of objects
-        Each with ``image`` (H, W, 4) (alpha in channel 3; an (H, W) array is
-        taken as the alpha itself), ``to_world`` (4, 4) camera-to-world,
-        ``fx, fy, cx, cy`` in pixels (and ``width, height``, unused: the
-        image's shape is authoritative).
-    threshold : float
-        Alpha above which a pixel is foreground.
-    resolution : int
-        Voxels per axis.
-    initial_bounds : (2, 3) float, optional
-        Region to carve; default :func:`initial_bounds_from_cameras`.
-    min_views : int, optional
-        Views a voxel must be seen in to be kept; default ``min(2,
-        len(views))``. (A voxel seen by a single view is constrained only by
-        that view's silhouette cone: behind or beside the other cameras, such
-        voxels would otherwise survive far from the object.)
-    passes : int
-        Carving passes (>= 1).
-    outside : {'keep', 'carve'}
-        What a view does to voxels outside its image or behind it.
-
-    Returns
-    -------
-    (2, 3) float64
-        Bounds of the kept voxels (their full extent) padded by one voxel.
-
-    Raises
-    ------
-    ValueError
-        No voxel survives (masks empty, or cameras not looking at the box).
-    """
-    views = list(views)
-    if not views:
-        raise ValueError("visual_hull_bounds needs at least one view")
-    if min_views is None:
-        min_views = min(2, len(views))
-    if outside not in ("keep", "carve"):
-        raise ValueError(f"outside must be 'keep' or 'carve', got {outside!r}")
-    b = initial_bounds_from_cameras(views) if initial_bounds is None else _as_bounds(initial_bounds)
-    for _ in range(max(1, int(passes))):
-        kept, h = _carve(views, b, resolution, threshold, min_views, outside)
-        if len(kept) == 0:
-            raise ValueError("no voxel of the visual hull survives: empty masks, or the "
-                             "cameras do not see the initial bounds")
-        b = np.stack([kept.min(0) - 1.5 * h, kept.max(0) + 1.5 * h])
-    return b

@@ -14,8 +14,9 @@ from pathlib import Path
 import meshio
 import numpy as np
 
-from mi_tetvr.mesh.topology import MeshError, TetMesh
-from mi_tetvr.transfer import TransferFunction
+from mi_tetvr.mesh.tetmesh import TetMesh
+from mi_tetvr.mesh.topology import MeshError
+from mi_tetvr.transfer import TransferFunction, read_transfer_function
 
 #: meshio cell types that are volume cells but not linear tets.
 _OTHER_VOLUME_CELLS = {"hexahedron", "hexahedron20", "hexahedron27", "wedge", "wedge15",
@@ -79,7 +80,7 @@ def read_tetmesh(path, *, color: str = "color", opacity: str = "opacity",
     opa = pd.pop(opacity, None)
     if transfer_function is not None:
         tf = transfer_function if isinstance(transfer_function, TransferFunction) \
-            else TransferFunction.from_file(transfer_function)
+            else read_transfer_function(transfer_function)
         if scalar is None:
             cands = [k for k, v in pd.items() if v.ndim == 1 or v.shape[1:] == (1,)]
             if len(cands) != 1:

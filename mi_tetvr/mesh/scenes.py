@@ -8,9 +8,9 @@ import numpy as np
 
 from mi_tetvr.mesh.generate import blob_field, blob_mesh, grid_mesh
 from mi_tetvr.mesh.io import write_tetmesh
-from mi_tetvr.mesh.topology import TetMesh
+from mi_tetvr.mesh.tetmesh import TetMesh
 
-SCENES_DIR = Path(__file__).resolve().parents[1] / "scenes"
+SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
 
 
 def make_scene_meshes(directory=None, force=False):

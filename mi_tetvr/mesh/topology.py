@@ -1,8 +1,14 @@
-"""Tetrahedral mesh topology and validation (numpy).
+"""Tetrahedral mesh primitives, validation and topology (numpy).
 
 This module is the only place where topology is made. Everything downstream
 (the ``tetmesh`` shape, the ``tetvr`` integrator, file I/O) takes its
-``Topology`` from :func:`build_topology`.
+``Topology`` from :func:`build_topology`. It is also the one home of the
+per-tet primitives the rest of the project shares: the local face and edge
+tables (:data:`FACES`, :data:`EDGES`), signed volumes, orientation
+(:func:`orient_tets`, :func:`flip_tets`), face keys (:func:`face_keys`), edge
+lengths and quality, and input validation (:func:`validate_arrays`). All are
+free functions over arrays; :class:`~mi_tetvr.mesh.TetMesh` exposes them as
+cached properties.
 
 Conventions
 -----------
@@ -11,6 +17,10 @@ Conventions
 * Local face ``i`` is the face opposite local vertex ``i``. Its vertices, in
   the order of :data:`FACES`, wind counter-clockwise seen from outside a
   positively oriented tet (the right-hand normal points outward).
+* The six local edges are :data:`EDGES`, in the order ``01, 02, 03, 12, 13,
+  23``; every per-edge array of shape ``(m, 6)`` follows it.
+* Swapping local vertices 2 and 3 reverses a tet's orientation
+  (:func:`flip_tets`); the other vertex slots keep their vertex.
 * ``neighbors[t, i]`` is the tet across face ``i`` of tet ``t`` (``-1`` on the
   boundary) and ``neighbor_faces[t, i]`` the local index of that face in the
   neighbour.
@@ -18,12 +28,21 @@ Conventions
 from __future__ import annotations
 
 import dataclasses
+import typing
 import warnings
 
 import numpy as np
 
+__all__ = ["FACES", "EDGES", "FLAT_TOLERANCE", "MeshError", "Topology", "Orientation",
+           "check_bounds", "signed_volumes", "bbox_diagonal", "flip_tets", "orient_tets", "face_keys",
+           "edge_lengths", "mean_edge_length", "quality", "validate_arrays",
+           "validate_attributes", "build_topology", "geometry_summary", "format_summary"]
+
 #: Local vertex indices of face i (opposite vertex i), outward-oriented.
 FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int64)
+
+#: Local vertex indices of the six edges of a tet: 01, 02, 03, 12, 13, 23.
+EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int64)
 
 #: Relative tolerance (of the bounding-box diagonal cubed) below which a tet
 #: counts as flat (zero volume).
@@ -39,6 +58,19 @@ def _preview(idx, limit=10):
     idx = np.asarray(idx).ravel()
     s = ", ".join(str(int(i)) for i in idx[:limit])
     return s + (f", ... ({len(idx)} in all)" if len(idx) > limit else "")
+
+
+def check_bounds(bounds) -> np.ndarray:
+    """An axis-aligned box ``[[xmin, ymin, zmin], [xmax, ymax, zmax]]`` as a
+    (2, 3) float64 array; ``ValueError`` unless finite with max > min on every axis."""
+    b = np.asarray(bounds, dtype=np.float64)
+    if b.shape != (2, 3):
+        raise ValueError(f"bounds must have shape (2, 3) (min and max corner), got {b.shape}")
+    if not np.all(np.isfinite(b)):
+        raise ValueError("bounds must be finite")
+    if np.any(b[1] <= b[0]):
+        raise ValueError(f"bounds must have max > min on every axis, got {b.tolist()}")
+    return b
 
 
 def signed_volumes(vertices, tets):
@@ -58,40 +90,247 @@ def signed_volumes(vertices, tets):
     return np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
 
 
-def validate_arrays(vertices, tets):
-    """Check shapes, finiteness and index ranges; returns float64 vertices and
-    int64 tets. Raises :class:`MeshError` with the offending indices."""
-    vertices = np.asarray(vertices)
+def bbox_diagonal(vertices) -> float:
+    """Length of the bounding-box diagonal of points, the length flatness
+    tolerances scale with (1 where it is zero or there are no points).
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+
+    Returns
+    -------
+    float
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    if len(v) == 0:
+        return 1.0
+    return float(np.linalg.norm(np.ptp(v, axis=0))) or 1.0
+
+
+def flip_tets(tets, mask):
+    """Reverse the orientation of some tets by swapping local vertices 2 and 3.
+
+    Parameters
+    ----------
+    tets : (m, 4) int
+    mask : (m,) bool
+        Tets to flip.
+
+    Returns
+    -------
+    (m, 4) int
+        A copy (same dtype) with the masked tets flipped; their local
+        vertices 0 and 1 keep their slot.
+    """
+    out = np.array(tets, copy=True)
+    mask = np.asarray(mask, dtype=bool)
+    out[mask] = out[mask][:, [0, 1, 3, 2]]
+    return out
+
+
+class Orientation(typing.NamedTuple):
+    """Result of :func:`orient_tets`.
+
+    Attributes
+    ----------
+    tets : (m, 4) int
+        The tets with every inverted, non-flat one flipped.
+    volumes : (m,) float64
+        Signed volumes of the *input* tets.
+    flipped : (m,) bool
+        Tets that were flipped (``volumes < 0`` and not flat).
+    flat : (m,) bool
+        Tets with ``|volume| <= flat_tol * diagonal**3`` (left as given).
+    """
+    tets: np.ndarray
+    volumes: np.ndarray
+    flipped: np.ndarray
+    flat: np.ndarray
+
+
+def orient_tets(vertices, tets, flat_tol=FLAT_TOLERANCE, *, diagonal=None) -> Orientation:
+    """Orient tets positively by flipping the inverted ones.
+
+    A tet counts as flat when ``|volume| <= flat_tol * diagonal**3`` (or its
+    volume is NaN); flat tets keep their vertex order (the sign of their volume is rounding
+    noise), every other tet with a negative volume is flipped
+    (:func:`flip_tets`). ``flat_tol = 0`` flips every tet with a negative
+    volume and counts only exact zeros as flat.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    tets : (m, 4) int
+    flat_tol : float
+        Relative flatness tolerance, default :data:`FLAT_TOLERANCE`.
+    diagonal : float, optional
+        Length the tolerance scales with; default :func:`bbox_diagonal` of
+        all ``vertices`` (referenced or not).
+
+    Returns
+    -------
+    Orientation
+        ``(tets, volumes, flipped, flat)``; ``tets`` is a copy.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
     tets = np.asarray(tets)
-    if vertices.ndim != 2 or vertices.shape[1] != 3:
-        raise MeshError(f"vertices must have shape (n, 3), got {vertices.shape}")
+    vol = signed_volumes(vertices, tets)
+    if diagonal is None:
+        diagonal = bbox_diagonal(vertices)
+    flat = ~(np.abs(vol) > flat_tol * diagonal ** 3)  # NaN volumes count as flat
+    flipped = (vol < 0) & ~flat
+    return Orientation(flip_tets(tets, flipped), vol, flipped, flat)
+
+
+def face_keys(faces):
+    """A key per triangle that does not depend on the order of its vertices.
+
+    Parameters
+    ----------
+    faces : (k, 3) int
+        Triangles, e.g. the faces of tets, ``tets[:, FACES].reshape(-1, 3)``.
+
+    Returns
+    -------
+    (k,) int64
+        Equal exactly for triangles with the same three vertices, and
+        ordered as the sorted vertex triples are (lexicographically): the
+        sorted triple packed into 63 bits when every index is below 2**21,
+        else the rank of the sorted triple among the distinct ones.
+    """
+    s = np.sort(np.asarray(faces, dtype=np.int64).reshape(-1, 3), axis=1)
+    if len(s) == 0:
+        return np.zeros(0, np.int64)
+    if s.max() < 2 ** 21:  # pack the triple into one int64: much faster unique
+        return (s[:, 0] << 42) | (s[:, 1] << 21) | s[:, 2]
+    return np.unique(s, axis=0, return_inverse=True)[1].ravel().astype(np.int64)
+
+
+def _edge_vectors(vertices, tets):
+    """(m, 6, 3) float64: ``p_i - p_j`` for each local edge ``(i, j)`` of :data:`EDGES`."""
+    v, t = np.asarray(vertices, dtype=np.float64), np.asarray(tets)
+    return v[t[:, EDGES[:, 0]]] - v[t[:, EDGES[:, 1]]]
+
+
+def edge_lengths(vertices, tets):
+    """Lengths of the six edges of each tet, in the order of :data:`EDGES`.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    tets : (m, 4) int
+
+    Returns
+    -------
+    (m, 6) float64
+        An edge shared by several tets appears once per tet.
+    """
+    return np.linalg.norm(_edge_vectors(vertices, tets), axis=-1)
+
+
+def mean_edge_length(vertices, tets) -> float:
+    """Mean of :func:`edge_lengths` over all tets and their six edges (an
+    edge shared by ``k`` tets counts ``k`` times): the mesh's cell size.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    tets : (m, 4) int
+
+    Returns
+    -------
+    float
+    """
+    return float(edge_lengths(vertices, tets).mean())
+
+
+def quality(vertices, tets):
+    """Parthasarathy's smooth quality measure ``6 sqrt(2) V / l_rms^3`` per tet
+    (1 for the regular tet, 0 for flat ones, negative when inverted).
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    tets : (m, 4) int
+
+    Returns
+    -------
+    (m,) float64
+        NaN for a tet whose four vertices coincide.
+    """
+    d = _edge_vectors(vertices, tets)
+    l2 = sum(np.sum(d[:, k] ** 2, axis=1) for k in range(len(EDGES))) / 6.0
+    v = signed_volumes(vertices, tets)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = 6.0 * np.sqrt(2.0) * v / np.maximum(l2, 1e-300) ** 1.5
+    return q
+
+
+def validate_arrays(vertices, tets, *, strict=True, allow_empty=False):
+    """Check the arrays of a tet mesh; returns float64 vertices and int64 tets.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float or None
+        ``None`` checks ``tets`` alone (then without the index range).
+    tets : (m, 4) int
+    strict : bool
+        True: every check below, and the arrays returned are copies. False:
+        the cheap checks only (shapes, at least one tet, index range), and
+        no copies where the dtypes already match; for algorithms that take
+        a mesh as it comes (refinement, the regularizer).
+    allow_empty : bool
+        Accept a mesh without tets.
+
+    Returns
+    -------
+    vertices : (n, 3) float64 or None
+    tets : (m, 4) int64
+
+    Raises
+    ------
+    MeshError
+        Wrong shapes, no tets; indices out of range; with ``strict`` also
+        non-integer indices, non-finite positions, a repeated vertex in a tet
+        or duplicate tets. The message names the offending indices.
+    """
+    if vertices is not None:
+        vertices = np.asarray(vertices) if strict else np.asarray(vertices, dtype=np.float64)
+        if vertices.ndim != 2 or vertices.shape[1] != 3:
+            raise MeshError(f"vertices must have shape (n, 3), got {vertices.shape}")
+    tets = np.asarray(tets)
     if tets.ndim != 2 or tets.shape[1] != 4:
         raise MeshError(
             f"tets must have shape (m, 4) (linear tetrahedra), got {tets.shape}")
-    if len(tets) == 0:
+    if len(tets) == 0 and not allow_empty:
         raise MeshError("the mesh has no tetrahedra")
-    if not np.issubdtype(tets.dtype, np.integer):
+    if strict and not np.issubdtype(tets.dtype, np.integer):
         if not np.all(np.isfinite(tets)) or np.any(tets != np.round(tets)):
             raise MeshError("tet indices must be integers")
-    tets = tets.astype(np.int64)
-    vertices = vertices.astype(np.float64)
-    bad = np.flatnonzero(~np.all(np.isfinite(vertices), axis=1))
-    if len(bad):
-        raise MeshError(f"non-finite (NaN/inf) vertex positions at vertices {_preview(bad)}")
-    bad = np.flatnonzero(np.any((tets < 0) | (tets >= len(vertices)), axis=1))
-    if len(bad):
-        raise MeshError(
-            f"tet vertex indices out of range [0, {len(vertices)}) in tets {_preview(bad)}")
-    s = np.sort(tets, axis=1)
-    bad = np.flatnonzero(np.any(s[:, 1:] == s[:, :-1], axis=1))
-    if len(bad):
-        raise MeshError(f"tets with a repeated vertex index: {_preview(bad)}")
-    _, first, counts = np.unique(s, axis=0, return_index=True, return_counts=True)
-    if np.any(counts > 1):
-        dup_keys = np.flatnonzero(counts > 1)
-        inv = np.unique(s, axis=0, return_inverse=True)[1].ravel()
-        bad = np.flatnonzero(np.isin(inv, dup_keys))
-        raise MeshError(f"duplicate tets (same four vertices): {_preview(bad)}")
+    tets = tets.astype(np.int64, copy=strict)
+    if vertices is None:
+        return None, tets
+    if strict:
+        vertices = vertices.astype(np.float64)
+        bad = np.flatnonzero(~np.all(np.isfinite(vertices), axis=1))
+        if len(bad):
+            raise MeshError(f"non-finite (NaN/inf) vertex positions at vertices {_preview(bad)}")
+    n = len(vertices)
+    if len(tets) and (tets.min() < 0 or tets.max() >= n):
+        bad = np.flatnonzero(np.any((tets < 0) | (tets >= n), axis=1))
+        raise MeshError(f"tet vertex indices out of range [0, {n}) in tets {_preview(bad)}")
+    if strict:
+        s = np.sort(tets, axis=1)
+        bad = np.flatnonzero(np.any(s[:, 1:] == s[:, :-1], axis=1))
+        if len(bad):
+            raise MeshError(f"tets with a repeated vertex index: {_preview(bad)}")
+        _, counts = np.unique(s, axis=0, return_counts=True)
+        if np.any(counts > 1):
+            dup_keys = np.flatnonzero(counts > 1)
+            inv = np.unique(s, axis=0, return_inverse=True)[1].ravel()
+            bad = np.flatnonzero(np.isin(inv, dup_keys))
+            raise MeshError(f"duplicate tets (same four vertices): {_preview(bad)}")
     return vertices, tets
 
 
@@ -182,12 +421,7 @@ def _match_faces(tets):
     where fa, fb are the flat face indices of each interior face pair."""
     m = len(tets)
     faces = tets[:, FACES].reshape(-1, 3)
-    keys = np.sort(faces, axis=1)
-    if keys.max() < 2 ** 21:  # pack the triple into one int64: much faster unique
-        keys = (keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2]
-        _, inv, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    else:
-        _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    _, inv, counts = np.unique(face_keys(faces), return_inverse=True, return_counts=True)
     inv = inv.ravel()
     if np.any(counts > 2):
         bad_keys = np.flatnonzero(counts > 2)
@@ -247,12 +481,7 @@ def build_topology(vertices, tets, *, warn=True) -> Topology:
     """
     vertices, tets = validate_arrays(vertices, tets)
     m = len(tets)
-    vol = signed_volumes(vertices, tets)
-    diag = float(np.linalg.norm(np.ptp(vertices, axis=0))) or 1.0
-    flat = np.abs(vol) <= FLAT_TOLERANCE * diag ** 3
-    flip = (vol < 0) & ~flat
-    tets = tets.copy()
-    tets[flip] = tets[flip][:, [0, 1, 3, 2]]
+    tets, vol, flip, flat = orient_tets(vertices, tets)
     faces, neighbors, neighbor_faces, fa, fb = _match_faces(tets)
 
     # Flat tets have no geometric orientation: orient them so that the faces
@@ -272,7 +501,7 @@ def build_topology(vertices, tets, *, warn=True) -> Topology:
             break
         oriented |= to_flip | newly
         if to_flip.any():
-            tets[to_flip] = tets[to_flip][:, [0, 1, 3, 2]]
+            tets = flip_tets(tets, to_flip)
             faces, neighbors, neighbor_faces, fa, fb = _match_faces(tets)
 
     par = _face_parity(faces)
@@ -304,33 +533,6 @@ def build_topology(vertices, tets, *, warn=True) -> Topology:
         flat=flat,
         n_flipped=n_flipped,
     )
-
-
-def quality(vertices, tets):
-    """Parthasarathy's smooth quality measure ``6 sqrt(2) V / l_rms^3`` per tet
-    (1 for the regular tet, 0 for flat ones, negative when inverted).
-
-    Parameters
-    ----------
-    vertices : (n, 3) float
-    tets : (m, 4) int
-
-    Returns
-    -------
-    (m,) float64
-    """
-    p = np.asarray(vertices, dtype=np.float64)[np.asarray(tets)]
-    edges = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
-    l2 = sum(np.sum((p[:, i] - p[:, j]) ** 2, axis=1) for i, j in edges) / 6.0
-    v = signed_volumes(vertices, tets)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        q = 6.0 * np.sqrt(2.0) * v / np.maximum(l2, 1e-300) ** 1.5
-    return q
-
-
-#: Defaults for meshes that lack an attribute: white emission, unit extinction.
-DEFAULT_COLOR = (1.0, 1.0, 1.0)
-DEFAULT_OPACITY = 1.0
 
 
 def geometry_summary(vertices, topology: Topology) -> dict:
@@ -369,55 +571,3 @@ def format_summary(d: dict) -> str:
 
     width = max((len(k) for k in d), default=0)
     return "\n".join(f"{k:<{width}}  {fmt(v)}" for k, v in d.items())
-
-
-class TetMesh:
-    """A tetrahedral mesh with per-vertex color and opacity (numpy).
-
-    Parameters
-    ----------
-    vertices : (n, 3) float
-    tets : (m, 4) int
-    color : (n, 3) float, optional
-        Linear RGB emission per unit extinction; default :data:`DEFAULT_COLOR`.
-    opacity : (n,) float, optional
-        Extinction per unit length (>= 0); default :data:`DEFAULT_OPACITY`.
-    point_data : dict of str -> (n, ...) array, optional
-        Other per-vertex arrays (kept for writing and for selection).
-
-    Topology is built lazily, once, by :func:`build_topology`.
-    """
-
-    def __init__(self, vertices, tets, color=None, opacity=None, point_data=None):
-        self.vertices, self.tets = validate_arrays(vertices, tets)
-        n = len(self.vertices)
-        color, opacity = validate_attributes(n, color, opacity)
-        self.color = np.tile(np.asarray(DEFAULT_COLOR, float), (n, 1)) if color is None else color
-        self.opacity = np.full(n, DEFAULT_OPACITY) if opacity is None else opacity
-        self.point_data = dict(point_data or {})
-        self._topology = None
-
-    @property
-    def topology(self) -> Topology:
-        if self._topology is None:
-            self._topology = build_topology(self.vertices, self.tets)
-        return self._topology
-
-    @property
-    def bounds(self):
-        """(2, 3) float64: min and max corner."""
-        return np.stack([self.vertices.min(0), self.vertices.max(0)])
-
-    def transformed(self, matrix):
-        """A copy with vertices mapped by a 4x4 affine matrix."""
-        m = np.asarray(matrix, dtype=np.float64)
-        v = self.vertices @ m[:3, :3].T + m[:3, 3]
-        return TetMesh(v, self.tets, self.color, self.opacity, self.point_data)
-
-    def summary(self) -> dict:
-        """:func:`geometry_summary` plus the ranges of color and opacity and
-        the point-data arrays."""
-        return {**geometry_summary(self.vertices, self.topology),
-                "color_range": [float(self.color.min()), float(self.color.max())],
-                "opacity_range": [float(self.opacity.min()), float(self.opacity.max())],
-                "point_data": {k: list(np.shape(v)) for k, v in self.point_data.items()}}

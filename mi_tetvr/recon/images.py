@@ -105,7 +105,7 @@ def write_image(path, image: np.ndarray) -> None:
     """Write a premultiplied linear RGBA image.
 
     ``.exr``: linear, premultiplied, float32 (exact). ``.png``: 8-bit sRGB with straight alpha
-    (colour un-premultiplied where alpha > 0, 0 where alpha = 0). ``.jpg``: 8-bit sRGB composited
+    (color un-premultiplied where alpha > 0, 0 where alpha = 0). ``.jpg``: 8-bit sRGB composited
     over black, alpha dropped.
 
     Parameters

@@ -1,1 +1,48 @@
-"""TODO"""
+"""The renderer in Dr.Jit: the tet walk, its optical models and its adjoint.
+
+Modules, from the bottom up:
+
+* :mod:`~mi_tetvr.render.segment`: segment integrals (emission-absorption
+  with sub-intervals) and clipping a segment to ``[t_begin, t_end]``;
+* :mod:`~mi_tetvr.render.buffers`: the flat buffers the walk reads and the
+  one encoding of neighbour links (``4 * tet + face``);
+* :mod:`~mi_tetvr.render.geometry`: the ray frame, the consistent edge
+  predicate, face crossings, one step through a tet, entry through the
+  boundary;
+* :mod:`~mi_tetvr.render.optical`: optical models (what a crossing
+  interpolates, how a segment is integrated);
+* :mod:`~mi_tetvr.render.walk`: the traversal (boundary entry, the walk,
+  re-entry, a start point inside a mesh);
+* :mod:`~mi_tetvr.render.adjoint`: the derivative modes of the walk.
+
+The ``tetmesh`` shape and ``tetvr`` integrator (``mi_tetvr.plugins``) are thin
+wrappers over these. Importing this package needs a Mitsuba variant
+(``mi.set_variant('llvm_ad_rgb')`` or ``'cuda_ad_rgb'``).
+"""
+import mitsuba as _mi
+
+if _mi.variant() is None:
+    raise ImportError("mi_tetvr.render needs a Mitsuba variant: call "
+                      "mitsuba.set_variant('llvm_ad_rgb') (or 'cuda_ad_rgb') first")
+
+from mi_tetvr.render.adjoint import Adjoint  # noqa: E402
+from mi_tetvr.render.buffers import (FACE_ORDER, MeshBuffers, TetScene, index_buffers,  # noqa: E402
+                                     offset_links, pack_links, scene_tetmeshes,
+                                     shape_index_arrays, tet_scene, unpack_link)
+from mi_tetvr.render.geometry import (crossing, edge_function, face_crossing,  # noqa: E402
+                                      face_entry, face_weights, project, ray_frame, tet_face,
+                                      walk_step)
+from mi_tetvr.render.optical import Absorption, EmissionAbsorption, OpticalModel  # noqa: E402
+from mi_tetvr.render.segment import accumulate, clip_segment, segment_integral  # noqa: E402
+from mi_tetvr.render.walk import WalkSettings, locate, trace, walk  # noqa: E402
+
+__all__ = [
+    "Adjoint",
+    "FACE_ORDER", "MeshBuffers", "TetScene", "index_buffers", "offset_links", "pack_links",
+    "scene_tetmeshes", "shape_index_arrays", "tet_scene", "unpack_link",
+    "crossing", "edge_function", "face_crossing", "face_entry", "face_weights", "project",
+    "ray_frame", "tet_face", "walk_step",
+    "Absorption", "EmissionAbsorption", "OpticalModel",
+    "accumulate", "clip_segment", "segment_integral",
+    "WalkSettings", "locate", "trace", "walk",
+]

@@ -123,8 +123,12 @@ def _face_corners(buf, face, o, u, v, active):
     return ids, P, tuple(project(Pi, o, u, v) for Pi in P)
 
 
-#: Steps of the walk over the boundary surface in :func:`face_entry`.
-BOUNDARY_WALK_STEPS = 4
+#: Steps of the walk over the boundary surface in :func:`face_entry`. The
+#: ray tracer reports a face that contains the hit point up to round-off, so
+#: the face the walk wants shares a vertex with it; around a vertex of
+#: valence k the walk needs at most k/2 steps (4 were too few for fans of
+#: front faces around vertices on a sheared box's edges).
+BOUNDARY_WALK_STEPS = 8
 
 
 def face_entry(buf, face, o, u, v, d, active):

@@ -22,7 +22,7 @@ With ``g = (1 - A) / x`` and ``h = A - g`` (so ``C = (1 - A) c0 + h (c0 - c1)``)
 
 and ``h / x -> -1/2 + x/3 - x^2/8`` as ``x -> 0``, so at zero opacity the
 derivative is the finite limit ``dC/dx = (c0 + c1) / 2`` (the series branch
-gives it exactly; ``tests/test_kernels.py`` checks these against float64).
+gives it exactly; ``tests/render/test_segment.py`` checks these against float64).
 A segment's transmittance is ``exp(-tau)`` with ``tau = length (s0 + s1) / 2``
 (the midpoint rule is exact for linear extinction), so ``dT = -T dtau``.
 """

@@ -6,16 +6,17 @@ import numpy as np
 import pytest
 
 from mi_tetvr.mesh.generate import grid_mesh
-from mi_tetvr.mesh.topology import MeshError, TetMesh, build_topology, signed_volumes
-from mi_tetvr.mesh.refine import (LOCAL_EDGES, bisection_order, prune_empty, prune_mesh, refine_mesh,
-                             select_by_attribute, select_top_fraction, split_vertices)
+from mi_tetvr.mesh.tetmesh import TetMesh
+from mi_tetvr.mesh.topology import EDGES, MeshError, build_topology, signed_volumes
+from mi_tetvr.mesh.refine import (bisection_order, prune_empty, prune_mesh, refine_mesh,
+                                  select_by_attribute, select_top_fraction, split_vertices)
 
 ORDERS = ("longest", "hash")
 
 
 # --------------------------------------------------------------------------- helpers
 def edge_keys(tets, n):
-    e = np.sort(tets[:, LOCAL_EDGES].reshape(-1, 2), axis=1)
+    e = np.sort(tets[:, EDGES].reshape(-1, 2), axis=1)
     return np.unique(e[:, 0] * n + e[:, 1])
 
 
@@ -114,7 +115,7 @@ def reference_refine(v, t, selected, rank_of):
     {(parent, sorted child)} and the midpoint table it used."""
     n = len(v)
     sel = set(int(i) for i in np.atleast_1d(selected))
-    edges = sorted({tuple(sorted((int(x[i]), int(x[j])))) for x in t for i, j in LOCAL_EDGES
+    edges = sorted({tuple(sorted((int(x[i]), int(x[j])))) for x in t for i, j in EDGES
                     if x[i] in sel or x[j] in sel})
     mid = {e: n + k for k, e in enumerate(edges)}
     out = set()

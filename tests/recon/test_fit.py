@@ -1,8 +1,7 @@
-"""The reconstruction loop (``mi_tetvr.recon.fit``) on a tiny data set rendered by
+"""The reconstruction loop (``mi_tetvr.recon.pipeline``) on a tiny data set rendered by
 the grid ray marcher: the fit improves held-out PSNR, writes its outputs,
 resumes exactly where it stopped, and saves when interrupted."""
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,12 +9,14 @@ import pytest
 import mitsuba as mi
 
 from mi_tetvr.recon.datasets import load_nerf
-from mi_tetvr.recon.fit import FitConfig, Trainer, evaluate_mesh, initial_mesh, run
+from mi_tetvr.recon.config import FitConfig, coarse_to_fine
+from mi_tetvr.recon.pipeline import evaluate_mesh, initial_mesh, next_stage, run
+from mi_tetvr.recon.trainer import Trainer
 from mi_tetvr.mesh.scenes import default_volume
-from mi_tetvr.transfer import TransferFunction
-from mi_tetvr.grid.volume import make_dataset, make_volume
+from mi_tetvr.transfer import read_transfer_function
+from mi_tetvr.grid import make_dataset, make_volume
+from tests.helpers import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 CFG = FitConfig(resolution=4, iterations=24, views_per_step=2, lr_color=0.08, lr_opacity=0.3,
                 n_sub=2, jitter=False, checkpoint_every=4, log_every=4)
 
@@ -23,7 +24,7 @@ CFG = FitConfig(resolution=4, iterations=24, views_per_step=2, lr_color=0.08, lr
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
     out = tmp_path_factory.mktemp("data")
-    tf = TransferFunction.from_file(ROOT / "scenes" / "tf_default.json")
+    tf = read_transfer_function(ROOT / "scenes" / "tf_default.json")
     make_dataset(make_volume(default_volume(16)), tf, views=6, res=16, out_dir=out,
                  test_views=2, fov=30, progress=False)
     return load_nerf(out)
@@ -46,7 +47,7 @@ def test_fit_improves_and_writes_outputs(data, tmp_path):
     assert saved["step"] == CFG.iterations and saved["inverted_tets"] == 0
     # Scoring the written mesh again gives the same numbers (world units kept).
     again = evaluate_mesh(tmp_path / "mesh.vtu", data, n_sub=CFG.n_sub)["mean"]["psnr"]
-    # make-dataset data are point samples at pixel centres: detected, no jitter.
+    # make-dataset data are point samples at pixel centers: detected, no jitter.
     assert not Trainer(data, V, T, FitConfig()).jitter
     assert again == pytest.approx(saved["mean"]["psnr"], abs=0.05)
 
@@ -126,7 +127,6 @@ def test_coarse_to_fine_stages_and_resume(data, tmp_path, monkeypatch):
 def test_next_stage_prunes_splits_and_carries_state(data):
     """Pruning drops exactly the empty tets, the split grows the mesh, and
     colors, opacities and Adam moments follow the vertices."""
-    from mi_tetvr.recon.fit import next_stage
     cfg = CFG.updated(stages=[{"iterations": 2, "prune": 1e-3, "split": 0.1},
                               {"iterations": 2}])
     V, T = initial_mesh(cfg, data)
@@ -138,14 +138,15 @@ def test_next_stage_prunes_splits_and_carries_state(data):
     S[V[:, 0] < -1e-9] = 0.0
     trainer.opt["volume.vertex_opacity"] = mi.Float(S)
     trainer.params.update(trainer.opt)
-    before = trainer.moments()
+    before = trainer.opt.moments()
     nxt = next_stage(trainer, cfg, log=lambda *a: None)
     Vn, Tn, Cn, Sn = nxt.arrays()
     empty = (S[trainer.tets] <= 1e-3 / trainer.h).all(1)
-    assert empty.any() and nxt.stage == 1 and nxt.step_index == 2 and nxt.stage_start == 2
+    assert empty.any() and nxt.state.stage == 1 and nxt.state.step == 2
+    assert nxt.state.stage_start == 2
     assert len(Tn) > int((~empty).sum())  # pruned, then split
     assert np.all(Sn[Tn].max(1) > 0)      # no empty tet left
-    after = nxt.moments()
+    after = nxt.opt.moments()
     for k in ("volume.vertex_color", "volume.vertex_opacity"):
         assert after[k][0] == before[k][0]                 # Adam's step count carried
         assert after[k][1].shape[0] == len(Vn)              # moments on the new vertices
@@ -184,8 +185,84 @@ def test_config_errors(tmp_path):
     assert cfg.resolution == 8 and cfg.lr_color == 0.1 and cfg.loss == "l2"
     with pytest.raises(ValueError, match="unknown stage settings"):
         FitConfig().updated(stages=[{"iterations": 5, "lr": 1}])
-    from mi_tetvr.recon.fit import coarse_to_fine
     st = FitConfig().updated(stages=coarse_to_fine(rounds=2, steps=10, split=0.05)).stage_list()
     assert [s["iterations"] for s in st] == [10] * 5
     assert [s["split"] for s in st] == [0, 0.05, 0, 0.05, 0]
     assert [s["lr_position"] > 0 for s in st] == [False, True, False, True, False]
+
+
+# -- optimizer state and compositing --------------------------------------------------------
+def adam_of(n, seed, rates=None):
+    """A VertexAdam over n vertices (3 colors and 1 opacity each) after three
+    steps with fixed gradients."""
+    import drjit as dr
+    from mi_tetvr.recon.optim import VertexAdam
+    rng = np.random.default_rng(seed)
+    params = {"m.vertex_color": mi.Float(rng.uniform(0, 1, 3 * n)),
+              "m.vertex_opacity": mi.Float(rng.uniform(0, 1, n))}
+    opt = VertexAdam(params, rates or {"m.vertex_color": 0.1, "m.vertex_opacity": 0.2}, n)
+    for _ in range(3):
+        w = {k: mi.Float(rng.normal(size=dr.width(v))) for k, v in params.items()}
+        dr.backward(sum(dr.sum(w[k] * dr.square(opt[k])) for k in opt))
+        opt.step(lr_scale=0.5)
+    return opt
+
+
+def test_optimizer_state_round_trip(tmp_path):
+    """Moments saved to numpy (and an .npz) and loaded into a fresh optimizer
+    are the same, and the optimizer then takes the same step."""
+    import drjit as dr
+    opt = adam_of(5, seed=1)
+    np.savez(tmp_path / "s.npz", **opt.state_dict())
+    fresh = adam_of(5, seed=1)  # same values, other moments once reset
+    fresh.set_moments({k: (0, np.zeros_like(m), np.zeros_like(v))
+                       for k, (t, m, v) in fresh.moments().items()})
+    fresh.load_state_dict(np.load(tmp_path / "s.npz"))
+    for k, (t, m, v) in opt.moments().items():
+        t2, m2, v2 = fresh.moments()[k]
+        assert t == t2 == 3 and m.shape == m2.shape == (5, 3 if "color" in k else 1)
+        np.testing.assert_array_equal(m2, m)
+        np.testing.assert_array_equal(v2, v)
+    for o in (opt, fresh):
+        dr.backward(sum(dr.sum(dr.square(o[k])) for k in o))
+        o.step()
+    for k in opt:
+        np.testing.assert_array_equal(np.array(fresh[k]), np.array(opt[k]))
+
+
+def test_optimizer_moments_carry_over_vertex_change():
+    """Per-vertex moments move onto a mesh with more vertices (as after a
+    split): the step count is kept, new vertices get their given moments."""
+    old = adam_of(4, seed=2)
+    carried = {}
+    for k, (t, m, v) in old.moments().items():
+        # Two new vertices, each the midpoint of vertices 0 and 1 / 2 and 3.
+        carried[k] = (t, np.concatenate([m, (m[[0, 2]] + m[[1, 3]]) / 2]),
+                      np.concatenate([v, (v[[0, 2]] + v[[1, 3]]) / 2]))
+    new = adam_of(6, seed=3)
+    new.set_moments({**carried, "other.key": (1, np.zeros(1), np.zeros(1))})  # ignored
+    for k, (t, m, v) in new.moments().items():
+        assert t == carried[k][0] == 3 and m.shape[0] == 6
+        np.testing.assert_allclose(m, carried[k][1], rtol=1e-6)
+        np.testing.assert_allclose(v[4], (v[0] + v[1]) / 2, rtol=1e-6)
+    with pytest.raises(ValueError, match="moments"):
+        adam_of(5, seed=4).set_moments(carried)  # 6 vertices' moments for 5
+
+
+def test_composite_numpy_and_drjit():
+    """One compositing for numpy images and Dr.Jit tensors."""
+    from mi_tetvr.recon.metrics import composite
+    rng = np.random.default_rng(0)
+    rgba = rng.uniform(0, 1, (3, 5, 4)).astype(np.float32)
+    rgba[..., :3] *= rgba[..., 3:4]
+    for bg in (None, 1.0, [0.2, 0.5, 1.0], np.array([0.2, 0.5, 1.0], np.float32)):
+        want = rgba[..., :3] + (1 - rgba[..., 3:4]) * (0.0 if bg is None else np.asarray(bg))
+        out = composite(rgba, bg)
+        assert isinstance(out, np.ndarray) and out.shape == (3, 5, 3)
+        np.testing.assert_allclose(out, want, rtol=1e-6)
+        tensor = composite(mi.TensorXf(rgba), bg)
+        assert isinstance(tensor, mi.TensorXf) and tensor.shape == (3, 5, 3)
+        np.testing.assert_allclose(np.array(tensor), want, rtol=1e-6)
+    # numpy: float64 unless the background is a numpy array, whose dtype is kept.
+    assert composite(rgba, [1, 1, 1]).dtype == np.float64
+    assert composite(rgba, np.ones(3, np.float32)).dtype == np.float32

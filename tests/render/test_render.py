@@ -5,9 +5,9 @@ import warnings
 import numpy as np
 import pytest
 
-from conftest import make_scene, rays_at, render_rays
+from tests.helpers import make_scene, rays_at, render_rays
 from mi_tetvr.mesh.generate import grid_mesh
-from reference import reference_render
+from tests.reference import reference_render
 
 TOL = 3e-3  # default settings against the reference (colors in [0, 1])
 

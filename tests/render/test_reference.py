@@ -1,14 +1,10 @@
 """Checks of the brute-force reference renderer against closed forms / scipy quadrature."""
 
-import os
-import sys
-
 import numpy as np
 import pytest
 from scipy import integrate
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from reference import reference_render  # noqa: E402
+from tests.reference import reference_render
 
 UNIT_TET_V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float)
 UNIT_TET_T = np.array([[0, 1, 2, 3]])
@@ -25,7 +21,7 @@ def _unit_tet_general_ray():
     return o, dr, o + u_in * dr, o + u_out * dr, (u_out - u_in) * np.linalg.norm(dr)
 
 
-# (1) constant colour and opacity ---------------------------------------------------------
+# (1) constant color and opacity ---------------------------------------------------------
 @pytest.mark.parametrize("a", [0.0, 0.3, 2.0, 25.0, 1e4])
 def test_constant_single_tet(a):
     c = np.array([0.2, 0.5, 0.9])
@@ -54,7 +50,7 @@ def test_zero_opacity_and_miss():
     np.testing.assert_array_equal(alpha[1:], 0.0)
 
 
-# (3) linear colour, constant opacity ------------------------------------------------------
+# (3) linear color, constant opacity ------------------------------------------------------
 def _affine_color(p):
     M = np.array([[0.7, -0.2, 0.4], [0.1, 0.9, -0.3], [-0.5, 0.3, 0.8]])
     return p @ M.T + np.array([0.2, 0.1, 0.6])
@@ -72,7 +68,7 @@ def test_linear_color_constant_opacity(a):
     np.testing.assert_allclose(alpha[0], 1 - A, rtol=1e-12)
 
 
-# (4) constant colour, linear opacity ------------------------------------------------------
+# (4) constant color, linear opacity ------------------------------------------------------
 @pytest.mark.parametrize("scale", [0.01, 1.0, 20.0, 5e3])
 def test_constant_color_linear_opacity(scale):
     c = np.array([0.9, 0.4, 0.05])
@@ -180,7 +176,7 @@ def _kuhn_cube():
     return corners, np.array(tets)
 
 
-# affine colour / opacity: exactly representable on any tet mesh
+# affine color / opacity: exactly representable on any tet mesh
 def _cube_sig(p):
     return 0.5 + 1.5 * p[..., 0] + 0.7 * p[..., 1] + 2.0 * p[..., 2]
 
@@ -210,7 +206,7 @@ def _cube_chord_expect(o, d, sig_f=_cube_sig, col_f=_cube_col):
 
 
 def test_cube_subdivision_affine_fields_vs_scipy():
-    """Cube split into 6 Kuhn tets with affine colour/opacity == 1D quadrature over the chord."""
+    """Cube split into 6 Kuhn tets with affine color/opacity == 1D quadrature over the chord."""
     corners, tets = _kuhn_cube()
     rng = np.random.default_rng(7)
     o = rng.uniform(-1, 2, (6, 3))

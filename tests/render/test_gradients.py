@@ -6,7 +6,7 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 import mi_tetvr
-from conftest import make_scene, rays_at
+from tests.helpers import make_scene, rays_at
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.topology import build_topology
 

@@ -6,13 +6,13 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import make_scene, rays_at
+from tests.helpers import make_scene, rays_at
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.render.adjoint import Adjoint
 from mi_tetvr.render.buffers import TetScene
 from mi_tetvr.render.optical import Absorption
 from mi_tetvr.render.walk import trace
-from reference import reference_render
+from tests.reference import reference_render
 
 
 @pytest.fixture(scope="module")

@@ -1,13 +1,9 @@
-"""Initial meshes: grid, fTetWild, Delaunay, visual-hull bounds, reports."""
+"""Initial meshes: grid, fTetWild, Delaunay, reports."""
 
 import numpy as np
 import pytest
 
-import mitsuba as mi
-
-from mi_tetvr.recon import datasets
-from mi_tetvr.mesh.initial import (delaunay_init, grid_init,
-                               project_points, tetwild_init, visual_hull_bounds)
+from mi_tetvr.mesh.initial import delaunay_init, grid_init, tetwild_init
 from mi_tetvr.mesh.topology import (MeshError, build_topology, format_summary, geometry_summary,
                            signed_volumes)
 
@@ -117,128 +113,6 @@ def test_delaunay_degenerate_lattice_stays_conforming():
     assert np.abs(v - p[np.argmin(np.linalg.norm(v[:, None] - p[None], axis=2), 1)]).max() < 0.01
     assert abs(vol.sum() - 1) < 0.01
     assert abs(_boundary_area(v, topo) - 6) < 0.05     # only the cube's faces are boundary
-
-
-# ----------------------------------------------------------------------------- cameras
-def View(image, to_world, fx, fy, cx, cy, width, height):
-    return datasets.View("v", image, to_world, fx, fy, cx, cy, width, height)
-
-
-def _look_at(origin, target, up):
-    return np.array(mi.ScalarTransform4f().look_at(origin=origin, target=target, up=up).matrix,
-                    dtype=np.float64)
-
-
-def test_projection_matches_mitsuba():
-    W, H, fov = 40, 30, 50.0
-    for off in [(0.0, 0.0), (0.1, -0.05)]:
-        to_world = _look_at([1.0, 2.0, 3.0], [0.2, 0.0, -0.1], [0.0, 1.0, 0.0])
-        sensor = mi.load_dict({
-            "type": "perspective", "fov": fov, "fov_axis": "x",
-            "principal_point_offset_x": off[0], "principal_point_offset_y": off[1],
-            "to_world": mi.ScalarTransform4f(to_world),
-            "film": {"type": "hdrfilm", "width": W, "height": H}})
-        f = W / 2 / np.tan(np.radians(fov) / 2)
-        cx, cy = W * (0.5 - off[0]), H * (0.5 - off[1])
-        view = View(np.zeros((H, W, 4)), to_world, f, f, cx, cy, W, H)
-        pos = np.array([[0.1, 0.2], [0.5, 0.5], [0.9, 0.7], [0.03, 0.95]])
-        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(pos[:, 0], pos[:, 1]), mi.Point2f(0.5, 0.5))
-        o, d = np.array(ray.o, np.float64).T, np.array(ray.d, np.float64).T
-        for dist in (0.5, 2.0, 7.0):
-            uv, depth = project_points(o + dist * d, view)
-            assert np.all(depth > 0)
-            np.testing.assert_allclose(uv, pos * [W, H], atol=1e-3)
-    # camera space: +z forward, +y up, +x to the image's LEFT
-    c2w = np.array(mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, 1],
-                                                  up=[0, 1, 0]).matrix)
-    view = View(None, c2w, 10.0, 10.0, 20.0, 15.0, 40, 30)
-    uv, _ = project_points(np.array([[1.0, 0, 5], [0, 1.0, 5]]), view)
-    assert uv[0, 0] < 20 and np.isclose(uv[0, 1], 15)      # +x: left
-    assert uv[1, 1] < 15 and np.isclose(uv[1, 0], 20)      # +y: up (row 0 is the top)
-
-
-def test_rendered_silhouette_matches_projection():
-    # Mitsuba's image rows: row 0 at the top; a sphere off-centre up-left in
-    # camera space lands where project_points puts it
-    W, H, fov = 24, 16, 45.0
-    to_world = _look_at([0.0, 0.0, 5.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-    centre, radius = np.array([-0.6, 0.4, 0.0]), 0.35
-    scene = mi.load_dict({
-        "type": "scene", "integrator": {"type": "direct"},
-        "sensor": {"type": "perspective", "fov": fov, "to_world": mi.ScalarTransform4f(to_world),
-                   "film": {"type": "hdrfilm", "width": W, "height": H, "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent", "sample_count": 4}},
-        "ball": {"type": "sphere", "center": centre.tolist(), "radius": radius,
-                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}}})
-    img = np.array(mi.render(scene))[..., 0]
-    f = W / 2 / np.tan(np.radians(fov) / 2)
-    view = View(None, to_world, f, f, W / 2, H / 2, W, H)
-    mask = _sphere_mask(view, W, H, centre, radius)
-    rendered = img > 0.5
-    assert rendered.sum() > 5
-    iou = (mask & rendered).sum() / (mask | rendered).sum()
-    assert iou > 0.8, iou
-
-
-def _pixel_rays(view, W, H):
-    j, i = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-    d_cam = np.stack([(view.cx - j) / view.fx, (view.cy - i) / view.fy, np.ones_like(j)], -1)
-    m = np.asarray(view.to_world)
-    d = d_cam @ m[:3, :3].T
-    return m[:3, 3], d / np.linalg.norm(d, axis=-1, keepdims=True)
-
-
-def _sphere_mask(view, W, H, centre, radius):
-    o, d = _pixel_rays(view, W, H)
-    oc = o - centre
-    b = d @ oc
-    disc = b ** 2 - (oc @ oc - radius ** 2)
-    return (disc >= 0) & (-b + np.sqrt(np.maximum(disc, 0)) > 0)
-
-
-def _box_mask(view, W, H, lo, hi):
-    o, d = _pixel_rays(view, W, H)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t0, t1 = (lo - o) / d, (hi - o) / d
-    tn = np.nanmax(np.minimum(t0, t1), axis=-1)
-    tf = np.nanmin(np.maximum(t0, t1), axis=-1)
-    return (tn <= tf) & (tf > 0)
-
-
-def _six_views(mask_fn, W=40, H=32, dist=4.0):
-    f = W / 2 / np.tan(np.radians(40.0) / 2)
-    dirs = [([1, 0, 0], [0, 1, 0]), ([-1, 0, 0], [0, 1, 0]), ([0, 1, 0], [0, 0, 1]),
-            ([0, -1, 0], [0, 0, 1]), ([0, 0, 1], [0, 1, 0]), ([0, 0, -1], [0, 1, 0])]
-    views = []
-    for dvec, up in dirs:
-        c2w = _look_at((dist * np.asarray(dvec, float)).tolist(), [0.0, 0.0, 0.0], up)
-        view = View(None, c2w, f, f, W / 2, H / 2, W, H)
-        alpha = mask_fn(view, W, H).astype(np.float64)
-        view.image = np.concatenate([np.zeros((H, W, 3)), alpha[..., None]], -1)
-        views.append(view)
-    return views
-
-
-def test_visual_hull_bounds_sphere_and_box():
-    centre, radius = np.array([0.2, -0.1, 0.15]), 0.5
-    views = _six_views(lambda v, W, H: _sphere_mask(v, W, H, centre, radius))
-    b = visual_hull_bounds(views, resolution=32)
-    lo, hi = centre - radius, centre + radius
-    assert np.all(b[0] <= lo) and np.all(b[1] >= hi)
-    assert np.all(b[1] - b[0] < 1.4 * 2 * radius), b
-    # an explicit initial box larger than what the views see: voxels outside
-    # the images must be carved for a tight box (every view sees the object)
-    lo, hi = np.array([-0.3, -0.6, -0.2]), np.array([0.5, 0.2, 0.4])
-    views = _six_views(lambda v, W, H: _box_mask(v, W, H, lo, hi))
-    b = visual_hull_bounds(views, resolution=32, initial_bounds=[[-2, -2, -2], [2, 2, 2]],
-                           outside="carve")
-    assert np.all(b[0] <= lo) and np.all(b[1] >= hi)
-    assert np.all((b[1] - b[0]) < (hi - lo) + 0.4), b
-    # empty masks: nothing survives
-    for v in views:
-        v.image[..., 3] = 0
-    with pytest.raises(ValueError):
-        visual_hull_bounds(views, resolution=8)
 
 
 # ----------------------------------------------------------------------------- report

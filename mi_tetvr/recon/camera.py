@@ -1,0 +1,542 @@
+"""Pinhole cameras: the one place where the camera convention is written.
+
+A :class:`Camera` is a pinhole camera: image size, focal lengths and principal point in pixels,
+and a rigid camera-to-world matrix in Mitsuba's axes. It projects points, generates rays (as
+numpy arrays with :meth:`Camera.rays`, as a Dr.Jit ``mi.Ray3f`` with :meth:`Camera.rays_drjit`),
+builds the Mitsuba ``perspective`` sensor that reproduces it exactly
+(:meth:`Camera.sensor_dict`) and converts from and to the OpenGL (NeRF) and OpenCV (COLMAP)
+camera axes. :func:`fibonacci_cameras` and :func:`random_cameras` place cameras on a sphere
+around a target. Everything but :meth:`Camera.rays_drjit` and :meth:`Camera.sensor_dict` is
+numpy and works without a Mitsuba variant.
+
+Conventions
+-----------
+Camera frame (Mitsuba)
+    The camera looks along **+z**, **+y is up** in the image and **+x is to the image's left**;
+    this is the frame ``mi.ScalarTransform4f().look_at`` builds and the one of Mitsuba's
+    ``perspective`` sensor. ``Camera.to_world`` is the rigid (4, 4) camera-to-world matrix in
+    this frame: its columns are the camera's left, up and forward axes and its center.
+Other camera frames
+    OpenGL / NeRF / instant-ngp cameras look along -z, y up, x right:
+    ``to_world = c2w_opengl @ OPENGL_TO_MITSUBA`` with ``OPENGL_TO_MITSUBA = diag(-1, 1, -1, 1)``.
+    OpenCV / COLMAP cameras look along +z, y down, x right:
+    ``to_world = c2w_opencv @ OPENCV_TO_MITSUBA`` with ``OPENCV_TO_MITSUBA = diag(-1, -1, 1, 1)``;
+    COLMAP stores the world-to-camera ``[R | t]``, so ``c2w_opencv = inv([R | t])``. Both
+    matrices are involutions: ``c2w_opengl = to_world @ OPENGL_TO_MITSUBA`` (and likewise for
+    OpenCV).
+Pixel coordinates
+    Continuous image coordinates ``(u, v)`` have the **top-left corner of the image at (0, 0)**,
+    ``u`` to the right and ``v`` down; the center of pixel ``(i, j)`` (column, row) is at
+    ``(i + 0.5, j + 0.5)``. This is COLMAP's convention, the one of instant-ngp / nerfstudio's
+    ``cx, cy`` (default ``w / 2``) and the one of Mitsuba's film (pixel ``i`` covers film
+    positions ``[i, i + 1) / W``). Hence downscaling by an integer factor ``f`` divides
+    ``fx, fy, cx, cy`` by ``f`` exactly (after cropping the right / bottom remainder ``W % f``,
+    ``H % f``, which does not move the origin), and an image stored at another size scales
+    ``fx, cx`` by the width ratio and ``fy, cy`` by the height ratio.
+Projection
+    A camera-frame point ``(x, y, z)`` lands at ``u = cx - fx * x / z``, ``v = cy - fy * y / z``;
+    ``z`` (> 0 in front of the camera) is its depth. The ray through ``(u, v)`` has the
+    camera-frame direction ``((cx - u) / fx, (cy - v) / fy, 1)``, normalized. An OpenCV
+    intrinsic matrix ``K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` projects in the OpenCV
+    frame of ``c2w_opencv``.
+Rays
+    Rays start at the camera center and have unit directions. Without explicit pixel positions
+    they go through every pixel center, in row-major order from the top-left pixel
+    (``k = row * width + column``), so that ``(k, ...)`` arrays reshape to ``(H, W, ...)``.
+Mitsuba sensor
+    ``perspective`` with ``fov_axis='x'``, ``fov = 2 atan(W / (2 fx))`` (degrees) and
+    ``principal_point_offset_x = 0.5 - cx / W``, ``principal_point_offset_y = 0.5 - cy / H``.
+    Mitsuba adds the offsets (in units of the film width / height) to the film position before
+    the centered projection, so a film position ``u`` looks where a centered camera's ``u + ox W``
+    would (``tests/recon/test_camera.py`` checks this with ``sensor.sample_ray``). Mitsuba's
+    perspective camera has square pixels, so ``fx != fy`` is refused (relative tolerance
+    ``square_rtol``).
+Generated cameras
+    :func:`fibonacci_cameras` and :func:`random_cameras` put cameras on a sphere of ``radius``
+    around ``target``, looking at it with the image center as principal point;
+    :func:`default_fov` is the horizontal field of view that frames the ``[-1, 1]^3`` box
+    from distance ``radius``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import List, Optional, Tuple
+
+import numpy as np
+
+from mi_tetvr.recon.images import check_factor
+
+__all__ = ["Camera", "look_at", "as_rigid", "default_fov", "fibonacci_cameras",
+           "random_cameras", "OPENGL_TO_MITSUBA", "OPENCV_TO_MITSUBA"]
+
+#: ``c2w_opengl @ OPENGL_TO_MITSUBA`` is Mitsuba's ``to_world`` (and vice versa: an involution).
+OPENGL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
+#: ``c2w_opencv @ OPENCV_TO_MITSUBA`` is Mitsuba's ``to_world`` (COLMAP cameras).
+OPENCV_TO_MITSUBA = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+# --------------------------------------------------------------------------------------------
+# Poses
+# --------------------------------------------------------------------------------------------
+
+def look_at(origin, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world matrix in Mitsuba axes, as ``mi.ScalarTransform4f().look_at``.
+
+    If ``up`` is (nearly) parallel to the view direction, another up vector (the world axis
+    least aligned with the view direction) is used.
+
+    Parameters
+    ----------
+    origin, target, up : (3,) float
+
+    Returns
+    -------
+    (4, 4) float64
+    """
+    o = np.asarray(origin, np.float64)
+    d = np.asarray(target, np.float64) - o
+    d /= np.linalg.norm(d)
+    u = np.asarray(up, np.float64)
+    u = u / np.linalg.norm(u)
+    if abs(np.dot(u, d)) > 0.999:
+        u = np.eye(3)[np.argmin(np.abs(d))]
+    left = np.cross(u, d)
+    left /= np.linalg.norm(left)
+    new_up = np.cross(d, left)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, new_up, d, o
+    return m
+
+
+def as_rigid(m, what: str = "camera", tol: float = 1e-3) -> np.ndarray:
+    """Check that a camera-to-world matrix is rigid and snap its rotation to SO(3).
+
+    Parameters
+    ----------
+    m : (4, 4) or (3, 4) float
+    what : str
+        Names the matrix in the error message.
+    tol : float
+        Largest accepted deviation of ``R^T R`` from the identity and of the last row from
+        ``(0, 0, 0, 1)``.
+
+    Returns
+    -------
+    (4, 4) float64
+        The nearest rotation (polar decomposition) and the same translation.
+
+    Raises
+    ------
+    ValueError
+        Wrong shape, or scale, shear or reflection beyond ``tol`` (Mitsuba sensors must be
+        rigid).
+    """
+    m = np.asarray(m, np.float64)
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0, 0, 0, 1]])
+    if m.shape != (4, 4):
+        raise ValueError(f"{what}: expected a 4x4 (or 3x4) matrix, got shape {m.shape}")
+    r = m[:3, :3]
+    if np.abs(r.T @ r - np.eye(3)).max() > tol or np.linalg.det(r) < 0 \
+            or np.abs(m[3] - [0, 0, 0, 1]).max() > tol:
+        raise ValueError(f"{what}: camera-to-world matrix is not a rotation + translation "
+                         f"(scale, shear or reflection); Mitsuba sensors must be rigid")
+    u, _, vt = np.linalg.svd(r)
+    out = np.eye(4)
+    out[:3, :3] = u @ vt
+    out[:3, 3] = m[:3, 3]
+    return out
+
+
+def _quat_xyzw_to_matrix(q) -> np.ndarray:
+    x, y, z, w = np.asarray(q, np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+# --------------------------------------------------------------------------------------------
+# Camera
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class Camera:
+    """A pinhole camera (see the module docstring for the convention).
+
+    Attributes
+    ----------
+    width, height : int
+        Image size in pixels.
+    fx, fy : float
+        Focal lengths in pixels.
+    cx, cy : float
+        Principal point in pixels, top-left image corner at (0, 0), pixel centers at +0.5.
+    to_world : (4, 4) float64
+        Rigid Mitsuba camera-to-world matrix (camera looks along +z, y up, x to the left).
+    """
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    to_world: np.ndarray
+
+    def __post_init__(self):
+        self.width, self.height = int(self.width), int(self.height)
+        self.fx, self.fy = float(self.fx), float(self.fy)
+        self.cx, self.cy = float(self.cx), float(self.cy)
+        self.to_world = np.asarray(self.to_world, dtype=np.float64).reshape(4, 4)
+
+    # -- constructors -----------------------------------------------------------------------
+    @classmethod
+    def look_at(cls, origin, target, up, width: int, height: int, *,
+                fov_x: Optional[float] = None, fx: Optional[float] = None,
+                cx: Optional[float] = None, cy: Optional[float] = None) -> "Camera":
+        """A camera at ``origin`` looking at ``target`` (:func:`look_at`), square pixels.
+
+        Parameters
+        ----------
+        origin, target, up : (3,) float
+        width, height : int
+        fov_x : float, optional
+            Horizontal field of view in degrees (give this or ``fx``).
+        fx : float, optional
+            Focal length in pixels (``fy = fx``).
+        cx, cy : float, optional
+            Principal point (default: the image center ``width / 2, height / 2``).
+        """
+        if (fov_x is None) == (fx is None):
+            raise ValueError("give exactly one of fov_x (degrees) and fx (pixels)")
+        if fx is None:
+            fx = 0.5 * width / math.tan(math.radians(fov_x) / 2)
+        return cls(width, height, fx, fx, width / 2 if cx is None else cx,
+                   height / 2 if cy is None else cy, look_at(origin, target, up))
+
+    @classmethod
+    def from_opengl(cls, c2w, width: int, height: int, fx: float, fy: float, cx: float,
+                    cy: float) -> "Camera":
+        """A camera from an OpenGL camera-to-world matrix (NeRF, instant-ngp: looks along -z,
+        y up, x right): ``to_world = c2w @ OPENGL_TO_MITSUBA``.
+
+        Parameters
+        ----------
+        c2w : (4, 4) float
+        width, height : int
+        fx, fy, cx, cy : float
+        """
+        return cls(width, height, fx, fy, cx, cy,
+                   np.asarray(c2w, np.float64).reshape(4, 4) @ OPENGL_TO_MITSUBA)
+
+    @classmethod
+    def from_opencv(cls, c2w, width: int, height: int, fx: float, fy: float, cx: float,
+                    cy: float) -> "Camera":
+        """A camera from an OpenCV camera-to-world matrix (looks along +z, y down, x right):
+        ``to_world = c2w @ OPENCV_TO_MITSUBA``.
+
+        Parameters
+        ----------
+        c2w : (4, 4) float
+        width, height : int
+        fx, fy, cx, cy : float
+        """
+        return cls(width, height, fx, fy, cx, cy,
+                   np.asarray(c2w, np.float64).reshape(4, 4) @ OPENCV_TO_MITSUBA)
+
+    @classmethod
+    def from_colmap(cls, quat_xyzw, translation, width: int, height: int, fx: float,
+                    fy: float, cx: float, cy: float) -> "Camera":
+        """A camera from COLMAP's world-to-camera pose (OpenCV axes).
+
+        The quaternion is normalized first (COLMAP's text format stores rounded ones), so the
+        pose is exactly rigid, and inverted as a rigid transform:
+        ``c2w_opencv = [[R^T, -R^T t], [0, 1]]``.
+
+        Parameters
+        ----------
+        quat_xyzw : (4,) float
+            Rotation as a quaternion in pycolmap's ``(x, y, z, w)`` order
+            (``image.cam_from_world.rotation.quat``; COLMAP's ``images.txt`` writes
+            ``QW QX QY QZ``).
+        translation : (3,) float
+        width, height : int
+        fx, fy, cx, cy : float
+        """
+        r = _quat_xyzw_to_matrix(quat_xyzw)
+        t = np.asarray(translation, np.float64).reshape(3)
+        c2w = np.eye(4)
+        c2w[:3, :3], c2w[:3, 3] = r.T, -r.T @ t
+        return cls.from_opencv(c2w, width, height, fx, fy, cx, cy)
+
+    # -- other axes and intrinsics ---------------------------------------------------------
+    @property
+    def c2w_opengl(self) -> np.ndarray:
+        """(4, 4) float64: camera-to-world in OpenGL axes (NeRF's ``transform_matrix``)."""
+        return self.to_world @ OPENGL_TO_MITSUBA
+
+    @property
+    def c2w_opencv(self) -> np.ndarray:
+        """(4, 4) float64: camera-to-world in OpenCV axes (COLMAP's, inverted)."""
+        return self.to_world @ OPENCV_TO_MITSUBA
+
+    @property
+    def center(self) -> np.ndarray:
+        """(3,) float64: camera position in world space."""
+        return self.to_world[:3, 3].copy()
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) float64: OpenCV intrinsic matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``
+        (for the OpenCV camera frame of :attr:`c2w_opencv`)."""
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    @property
+    def fov_x(self) -> float:
+        """Horizontal field of view in degrees, ``2 atan(width / (2 fx))``."""
+        return math.degrees(2.0 * math.atan(0.5 * self.width / self.fx))
+
+    def downscaled(self, factor: int) -> "Camera":
+        """The camera of the image area-averaged by an integer ``factor``.
+
+        The right / bottom remainder (``width % factor`` etc.) is cropped, which keeps the
+        top-left origin, so ``fx, fy, cx, cy`` scale by ``1 / factor`` exactly.
+        """
+        f = check_factor(factor)
+        return Camera(self.width // f, self.height // f, self.fx / f, self.fy / f, self.cx / f,
+                      self.cy / f, self.to_world.copy())
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """The camera of the same picture stored at ``width x height`` pixels: ``fx, cx``
+        scale by ``width / self.width``, ``fy, cy`` by ``height / self.height``."""
+        sx, sy = width / self.width, height / self.height
+        return Camera(width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy,
+                      self.to_world.copy())
+
+    # -- projection and rays ----------------------------------------------------------------
+    def project(self, points) -> Tuple[np.ndarray, np.ndarray]:
+        """Project world points with the pinhole model.
+
+        Parameters
+        ----------
+        points : (k, 3) float
+
+        Returns
+        -------
+        uv : (k, 2) float64
+            Continuous pixel coordinates (top-left corner at 0, pixel centers at +0.5).
+            NaN-free; meaningless where ``depth <= 0``.
+        depth : (k,) float64
+            ``z`` in the camera frame (> 0 in front of the camera).
+        """
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        r, c = self.to_world[:3, :3], self.to_world[:3, 3]
+        q = (p - c) @ r          # rows: R^T (p - c), the camera frame
+        z = q[:, 2]
+        safe = np.where(np.abs(z) > 1e-300, z, 1e-300)
+        uv = np.stack([self.cx - self.fx * q[:, 0] / safe, self.cy - self.fy * q[:, 1] / safe], 1)
+        return uv, z
+
+    def pixel_centers(self) -> np.ndarray:
+        """(height * width, 2) float64: the centers ``(column + 0.5, row + 0.5)`` of all
+        pixels, row-major from the top-left pixel."""
+        j, i = np.divmod(np.arange(self.width * self.height), self.width)
+        return np.stack([i + 0.5, j + 0.5], 1)
+
+    def rays(self, uv=None) -> Tuple[np.ndarray, np.ndarray]:
+        """Rays through pixel positions, as numpy arrays.
+
+        Parameters
+        ----------
+        uv : (k, 2) float, optional
+            Continuous pixel coordinates; default :meth:`pixel_centers`.
+
+        Returns
+        -------
+        origins : (k, 3) float64
+            The camera center.
+        directions : (k, 3) float64
+            Unit world-space directions.
+        """
+        uv = self.pixel_centers() if uv is None else np.asarray(uv, np.float64).reshape(-1, 2)
+        d = np.stack([(self.cx - uv[:, 0]) / self.fx, (self.cy - uv[:, 1]) / self.fy,
+                      np.ones(len(uv))], 1)
+        d = d @ self.to_world[:3, :3].T
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return np.broadcast_to(self.to_world[:3, 3], d.shape).copy(), d
+
+    def rays_drjit(self, uv=None):
+        """Rays through pixel positions, as a Dr.Jit ``mi.Ray3f`` (needs a Mitsuba variant).
+
+        Parameters
+        ----------
+        uv : mi.Point2f or (k, 2) float, optional
+            Continuous pixel coordinates; default: every pixel center, in the order of
+            :meth:`pixel_centers`.
+
+        Returns
+        -------
+        mi.Ray3f
+            Origins at the camera center, unit directions.
+        """
+        import drjit as dr
+        import mitsuba as mi
+        if mi.variant() is None:
+            raise RuntimeError("Camera.rays_drjit: call mitsuba.set_variant(...) first "
+                               "(e.g. 'llvm_ad_rgb' or 'cuda_ad_rgb')")
+        if uv is None:
+            idx = dr.arange(mi.UInt32, self.width * self.height)
+            u, v = mi.Float(idx % self.width) + 0.5, mi.Float(idx // self.width) + 0.5
+        else:
+            if not isinstance(uv, mi.Point2f):
+                uv = mi.Point2f(*np.asarray(uv, np.float32).reshape(-1, 2).T)
+            u, v = uv.x, uv.y
+        x = (self.cx - u) / self.fx
+        y = (self.cy - v) / self.fy
+        r = [[float(self.to_world[i, j]) for j in range(3)] for i in range(3)]
+        d = mi.Vector3f(r[0][0] * x + r[0][1] * y + r[0][2],
+                        r[1][0] * x + r[1][1] * y + r[1][2],
+                        r[2][0] * x + r[2][1] * y + r[2][2])
+        o = mi.Point3f(*[float(c) for c in self.to_world[:3, 3]])
+        o = dr.zeros(mi.Point3f, dr.width(d)) + o
+        return mi.Ray3f(o, dr.normalize(d))
+
+    # -- Mitsuba ----------------------------------------------------------------------------
+    def sensor_dict(self, spp: int = 1, sampler: str = "independent", *,
+                    near_clip: Optional[float] = None, far_clip: Optional[float] = None,
+                    square_rtol: float = 1e-6) -> dict:
+        """A Mitsuba ``perspective`` sensor that reproduces this camera exactly.
+
+        ``fov_axis='x'``, ``fov = 2 atan(width / (2 fx))`` in degrees,
+        ``principal_point_offset_x = 0.5 - cx / width``,
+        ``principal_point_offset_y = 0.5 - cy / height``, an ``hdrfilm`` of ``width x height``
+        with a ``box`` filter and ``pixel_format='rgb'`` (the integrator's AOVs, e.g. ``alpha``,
+        are appended by ``mi.render``).
+
+        Parameters
+        ----------
+        spp : int
+            Samples per pixel of the sampler.
+        sampler : str
+            Mitsuba sampler plugin name.
+        near_clip, far_clip : float, optional
+            Passed to the sensor when given.
+        square_rtol : float
+            Mitsuba's perspective camera has square pixels: ``|fx - fy| > square_rtol * fx``
+            raises ``ValueError``.
+
+        Returns
+        -------
+        dict
+            For ``mi.load_dict`` (needs a Mitsuba variant to be set).
+        """
+        import mitsuba as mi
+        if abs(self.fx - self.fy) > square_rtol * abs(self.fx):
+            raise ValueError(
+                f"non-square pixels (fx={self.fx}, fy={self.fy}) cannot be represented by "
+                f"Mitsuba's perspective sensor; resample the image so that fx == fy, or raise "
+                f"square_rtol to accept fy := fx")
+        d = {
+            "type": "perspective",
+            "fov_axis": "x",
+            "fov": self.fov_x,
+            "principal_point_offset_x": 0.5 - self.cx / self.width,
+            "principal_point_offset_y": 0.5 - self.cy / self.height,
+            "to_world": mi.ScalarTransform4f(self.to_world.tolist()),
+            "sampler": {"type": sampler, "sample_count": int(spp)},
+            "film": {"type": "hdrfilm", "width": self.width, "height": self.height,
+                     "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+        }
+        if near_clip is not None:
+            d["near_clip"] = float(near_clip)
+        if far_clip is not None:
+            d["far_clip"] = float(far_clip)
+        return d
+
+
+# --------------------------------------------------------------------------------------------
+# Generated cameras
+# --------------------------------------------------------------------------------------------
+
+def default_fov(radius: float, margin: float = 1.05) -> float:
+    """Horizontal field of view (degrees) whose cone at distance ``radius`` holds the sphere
+    of radius ``margin * sqrt(3)`` around the origin (the ``[-1, 1]^3`` box)."""
+    r = min(margin * math.sqrt(3.0) / radius, 1.0)
+    return math.degrees(2.0 * math.asin(r))
+
+
+def _resolution(res) -> Tuple[int, int]:
+    if isinstance(res, (int, np.integer)):
+        return int(res), int(res)
+    w, h = res
+    return int(w), int(h)
+
+
+def _frame(up):
+    u = np.asarray(up, np.float64)
+    u = u / np.linalg.norm(u)
+    a = np.eye(3)[np.argmin(np.abs(u))]
+    e1 = np.cross(u, a)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(u, e1), u
+
+
+def fibonacci_cameras(n: int, radius: float = 4.0, res=256, fov: Optional[float] = None,
+                      up=(0.0, 0.0, 1.0), target=(0.0, 0.0, 0.0),
+                      hemisphere: bool = False) -> List[Camera]:
+    """``n`` cameras on a Fibonacci sphere of ``radius`` around ``target``, looking at it.
+
+    Parameters
+    ----------
+    n : int
+    radius : float
+    res : int or (width, height)
+    fov : float, optional
+        Horizontal field of view in degrees; default :func:`default_fov` (frames
+        ``[-1, 1]^3``).
+    up : (3,) float
+        The sphere's pole and the cameras' up vector (at the poles another one is chosen, see
+        :func:`look_at`).
+    target : (3,) float
+    hemisphere : bool
+        Keep to the ``up`` side.
+
+    Returns
+    -------
+    list of Camera
+    """
+    if n < 1:
+        raise ValueError(f"n must be >= 1, got {n}")
+    w, h = _resolution(res)
+    fov = default_fov(radius) if fov is None else float(fov)
+    i = np.arange(n) + 0.5
+    z = 1.0 - i / n if hemisphere else 1.0 - 2.0 * i / n
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    phi = math.pi * (3.0 - math.sqrt(5.0)) * i
+    e1, e2, e3 = _frame(up)
+    dirs = (r * np.cos(phi))[:, None] * e1 + (r * np.sin(phi))[:, None] * e2 + z[:, None] * e3
+    t = np.asarray(target, np.float64)
+    return [Camera.look_at(t + radius * d, t, up, w, h, fov_x=fov) for d in dirs]
+
+
+def random_cameras(n: int, radius: float = 4.0, res=256, fov: Optional[float] = None,
+                   seed: int = 0, up=(0.0, 0.0, 1.0), target=(0.0, 0.0, 0.0),
+                   hemisphere: bool = False) -> List[Camera]:
+    """``n`` cameras at uniformly random points of a sphere (``numpy.random.default_rng(seed)``),
+    looking at ``target``; the other arguments as :func:`fibonacci_cameras`.
+
+    Returns
+    -------
+    list of Camera
+    """
+    w, h = _resolution(res)
+    fov = default_fov(radius) if fov is None else float(fov)
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    u = np.asarray(up, np.float64) / np.linalg.norm(up)
+    if hemisphere:
+        d = np.where((d @ u)[:, None] < 0, d - 2 * (d @ u)[:, None] * u, d)
+    t = np.asarray(target, np.float64)
+    return [Camera.look_at(t + radius * x, t, up, w, h, fov_x=fov) for x in d]

@@ -1,0 +1,67 @@
+"""A run's checkpoint: everything needed to continue it exactly.
+
+One ``.npz`` file holds the mesh (``vertices``, ``tets``, ``color``,
+``opacity``), the run's state (``step``, ``stage``, ``stage_start``,
+``elapsed``, ``shortened``, the ``history`` and the view-picking ``rng`` as
+JSON), the ``config`` (JSON, for the record) and Adam's state
+(``<key>:t``, ``<key>:m``, ``<key>:v`` per optimized parameter). A run
+resumed from it takes the same views, seeds and steps as one that never
+stopped.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from mi_tetvr.recon.config import FitConfig
+from mi_tetvr.recon.trainer import RunState, Trainer
+
+__all__ = ["save_checkpoint", "load_checkpoint"]
+
+
+def save_checkpoint(trainer: Trainer, path):
+    """Write ``trainer``'s mesh, run state and optimizer state to ``path``
+    (``.npz``). Atomic: the file is written next to ``path`` and then moved
+    over it, so an interrupted save never corrupts the previous checkpoint."""
+    vertices, tets, color, opacity = trainer.arrays()
+    state = trainer.state
+    tmp = Path(path).with_suffix(".tmp.npz")
+    np.savez(tmp, vertices=vertices, tets=tets, color=color, opacity=opacity, step=state.step,
+             stage=state.stage, stage_start=state.stage_start, elapsed=state.elapsed,
+             shortened=state.shortened, history=json.dumps(state.history),
+             config=json.dumps(dataclasses.asdict(trainer.config)),
+             rng=json.dumps(state.rng.bit_generator.state), **trainer.opt.state_dict())
+    tmp.replace(path)
+
+
+def load_checkpoint(path, dataset, config: FitConfig) -> Trainer:
+    """The trainer saved in ``path``, ready to continue.
+
+    Parameters
+    ----------
+    path : str or Path
+        A file written by :func:`save_checkpoint`.
+    dataset : mi_tetvr.recon.datasets.Dataset
+        The run's data set.
+    config : FitConfig
+        The run's settings (all stages); the trainer gets those of the saved stage.
+
+    Returns
+    -------
+    Trainer
+        With the saved mesh and parameters, run state (step, stage, history,
+        random generator, elapsed time) and Adam moments.
+    """
+    ckpt = np.load(path)
+    rng = np.random.default_rng(config.seed)
+    rng.bit_generator.state = json.loads(str(ckpt["rng"]))
+    state = RunState(rng=rng, step=int(ckpt["step"]), stage=int(ckpt["stage"]),
+                     stage_start=int(ckpt["stage_start"]), elapsed=float(ckpt["elapsed"]),
+                     shortened=int(ckpt["shortened"]), history=json.loads(str(ckpt["history"])))
+    trainer = Trainer(dataset, ckpt["vertices"], ckpt["tets"], config.for_stage(state.stage),
+                      ckpt["color"], ckpt["opacity"], state=state)
+    trainer.opt.load_state_dict(ckpt)
+    return trainer

@@ -1,0 +1,131 @@
+"""Settings of a reconstruction (``mi-tetvr fit --config FILE.json``).
+
+Units. Colors are linear RGB. Opacity is extinction per unit length in the
+data set's world units; since the right scale depends on the scene's size, the
+opacity settings are given per *cell*: ``init_opacity`` and ``lr_opacity`` are
+optical depths across one cell of size ``h`` (the initial mesh's mean edge
+length), i.e. they are divided by ``h``. Position learning rates are in units
+of ``h`` too.
+
+Targets. Images are premultiplied linear RGB plus alpha (what ``tetvr``
+renders over black, with its ``alpha`` AOV). With ``background=None`` the fit
+matches RGBA; with a background color it matches RGB composited over it
+(``rgb + (1 - alpha) * background``), as for NeRF's white-background renders.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+__all__ = ["FitConfig", "coarse_to_fine"]
+
+
+@dataclass
+class FitConfig:
+    """Settings of a reconstruction (all have working defaults)."""
+    init: str = "grid"                 # grid | tetwild | delaunay | path to a mesh file
+    resolution: int = 32               # cells along the largest axis (grid, tetwild)
+    bounds: list | None = None         # [[x0, y0, z0], [x1, y1, z1]]; default: from the data
+    iterations: int = 1500
+    time_budget: float | None = None   # minutes; stops in time and still saves
+    views_per_step: int = 4
+    lr_color: float = 0.02
+    lr_opacity: float = 0.05           # optical depth per cell, per step
+    lr_position: float = 0.0           # cell sizes per step; 0 = positions fixed
+    decay: float = 0.1                 # learning rates fall exponentially to decay * lr
+    loss: str = "l2"                   # l1 | l2
+    background: list | None = None     # None: fit RGBA; else composite over this color
+    init_color: float = 0.5
+    init_opacity: float = 0.05         # optical depth per cell
+    regularizer: float = 10.0          # weight lambda of the tet-quality term (DiffTetVR
+    regularizer_beta: float = 100.0    # Eq. 21, their values); used when positions move
+    freeze_boundary: bool = True       # keep boundary vertices fixed when positions move
+    safeguard: bool = True             # shorten position steps that would invert a tet
+    n_sub: int = 4                     # sub-intervals per tet segment while fitting
+    spp: int = 1
+    jitter: bool | None = None         # random sub-pixel positions; False: pixel centers (for
+                                       # targets rendered through pixel centers); None: False
+                                       # for data sets made by make-dataset, else True
+    downscale: int = 1
+    seed: int = 0
+    checkpoint_every: int = 100
+    log_every: int = 10
+    # Coarse-to-fine: a list of stages run one after the other, each
+    # {"iterations": N, "lr_position": x (0: colors and opacities only),
+    #  "split": fraction of vertices to refine after the stage,
+    #  "prune": opacity threshold (optical depth per cell) to drop empty tets after it}.
+    # None: one stage of ``iterations`` steps with ``lr_position``.
+    stages: list | None = None
+    target_tets: int | None = None     # no more splits once the mesh has this many tets
+    select: str = "gradient"           # refinement criterion: gradient | color | opacity
+
+    @classmethod
+    def from_file(cls, path):
+        """Read a JSON config (keys as the field names; unknown keys are an error)."""
+        data = json.loads(Path(path).read_text())
+        return cls().updated(**data)
+
+    def updated(self, **kw):
+        """A validated copy with the given settings changed (``None`` values
+        leave a setting as it is); unknown names are an error."""
+        names = {f.name for f in dataclasses.fields(self)}
+        bad = sorted(set(kw) - names)
+        if bad:
+            raise ValueError(f"unknown fit settings {bad}; known: {sorted(names)}")
+        cfg = dataclasses.replace(self, **{k: v for k, v in kw.items() if v is not None})
+        cfg.validate()
+        return cfg
+
+    def validate(self):
+        """Raise ``ValueError`` on a setting out of range."""
+        if self.loss not in ("l1", "l2"):
+            raise ValueError(f"loss must be 'l1' or 'l2', got {self.loss!r}")
+        for name in ("iterations", "views_per_step", "resolution", "n_sub", "spp", "downscale"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1")
+        for name in ("lr_color", "lr_opacity", "lr_position", "init_opacity", "regularizer"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0")
+        if not 0 < self.decay <= 1:
+            raise ValueError("decay must be in (0, 1]")
+        if self.background is not None and len(self.background) != 3:
+            raise ValueError("background must be three linear RGB values")
+        if self.select not in ("gradient", "color", "opacity"):
+            raise ValueError(f"select must be gradient, color or opacity, got {self.select!r}")
+        for st in self.stage_list():
+            bad = sorted(set(st) - {"iterations", "lr_position", "split", "prune"})
+            if bad:
+                raise ValueError(f"unknown stage settings {bad}: use iterations, lr_position, "
+                                 f"split, prune")
+            if int(st.get("iterations", 0)) < 0 or not 0 <= st.get("split", 0) <= 1:
+                raise ValueError(f"bad stage {st}: iterations >= 0, split in [0, 1]")
+
+    def stage_list(self):
+        """The stages as dicts with all keys (see ``stages``)."""
+        raw = self.stages or [{"iterations": self.iterations, "lr_position": self.lr_position}]
+        return [{"iterations": int(st.get("iterations", 0)),
+                 "lr_position": float(st.get("lr_position", 0.0)),
+                 "split": float(st.get("split", 0.0)),
+                 "prune": st.get("prune", None), **{k: v for k, v in st.items() if k not in
+                                                    ("iterations", "lr_position", "split",
+                                                     "prune")}}
+                for st in raw]
+
+    def for_stage(self, i):
+        """The settings one stage trains with (its iterations and position rate)."""
+        st = self.stage_list()[i]
+        return dataclasses.replace(self, iterations=max(st["iterations"], 1),
+                                   lr_position=st["lr_position"])
+
+
+def coarse_to_fine(rounds=3, steps=300, lr_position=0.05, split=0.05, final=None):
+    """DiffTetVR's schedule: colors only, then colors and positions, then a
+    split of the top ``split`` fraction of vertices; ``rounds`` times, and a
+    last colors-only stage of ``final`` steps (default ``steps``)."""
+    stages = []
+    for _ in range(rounds):
+        stages += [{"iterations": steps}, {"iterations": steps, "lr_position": lr_position,
+                                           "split": split}]
+    return stages + [{"iterations": steps if final is None else final}]

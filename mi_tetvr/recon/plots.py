@@ -1,0 +1,69 @@
+"""Pictures of a reconstruction: renders next to their targets, and the
+training loss and PSNR over time."""
+from __future__ import annotations
+
+import numpy as np
+
+from mi_tetvr.recon.metrics import composite
+
+__all__ = ["save_comparison", "plot_history"]
+
+
+def save_comparison(path, pred_rgba, target_rgba, background):
+    """Write a render and its target side by side as an sRGB PNG.
+
+    Parameters
+    ----------
+    path : str or Path
+    pred_rgba, target_rgba : (h, w, 4) float
+        Premultiplied linear RGBA, shown composited over ``background``.
+    background : None or (3,) float
+        Linear RGB (``None``: black).
+    """
+    from PIL import Image
+
+    from mi_tetvr.color import linear_to_srgb
+    row = np.concatenate([composite(pred_rgba, background), composite(target_rgba, background)], 1)
+    img = (np.clip(linear_to_srgb(np.clip(row, 0, 1)), 0, 1) * 255 + 0.5).astype(np.uint8)
+    Image.fromarray(img).save(path)
+
+
+def plot_history(history, path, test_psnr=None):
+    """Plot the training loss and PSNR over time (minutes) to ``path``.
+
+    Parameters
+    ----------
+    history : dict
+        Lists ``time`` (s), ``loss`` and ``psnr`` (NaN when not an L2 loss), one entry per step.
+    path : str or Path
+    test_psnr : float, optional
+        Drawn as a horizontal line.
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(7, 4))
+    t = np.asarray(history["time"]) / 60.0
+    loss = np.asarray(history["loss"])
+    if len(loss):
+        ax.semilogy(t, loss, color="tab:blue", alpha=0.3, lw=0.8)
+        k = max(1, len(loss) // 50)
+        smooth = np.convolve(loss, np.ones(k) / k, mode="valid")
+        ax.semilogy(t[k - 1:], smooth, color="tab:blue", label="training loss")
+    ax.set_xlabel("time [min]")
+    ax.set_ylabel("loss", color="tab:blue")
+    ps = np.asarray(history["psnr"], np.float64)
+    if len(ps) and np.isfinite(ps).any():
+        ax2 = ax.twinx()
+        k = max(1, len(ps) // 50)
+        ax2.plot(t[k - 1:], np.convolve(ps, np.ones(k) / k, mode="valid"), color="tab:red",
+                 label="training PSNR")
+        if test_psnr is not None:
+            ax2.axhline(test_psnr, color="tab:red", ls="--", lw=0.8,
+                        label=f"test PSNR {test_psnr:.2f} dB")
+        ax2.set_ylabel("PSNR [dB] (RGBA or composited RGB)", color="tab:red")
+        ax2.legend(loc="lower right")
+    ax.set_title("mi-tetvr fit")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

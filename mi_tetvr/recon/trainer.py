@@ -1,0 +1,240 @@
+"""One stage of a reconstruction: a tet mesh's vertex colors, opacities and
+(optionally) positions fitted to images with known cameras.
+
+The loop is the ordinary Mitsuba one: ``mi.traverse`` the scene, Adam with
+one learning rate per parameter kind (:class:`~mi_tetvr.recon.optim.VertexAdam`),
+``mi.render`` of a few views per step, an image loss, ``dr.backward``, an
+optimizer step. Around it: values kept in range, an exponential learning-rate
+decay over the stage, the tet-quality regularizer and an inversion safeguard
+for positions. The stages, checkpoints and outputs of a whole run are
+:mod:`mi_tetvr.recon.pipeline` and :mod:`mi_tetvr.recon.checkpoint`; units and
+targets are those of :mod:`mi_tetvr.recon.config`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_tetvr.mesh.topology import mean_edge_length
+from mi_tetvr.recon.config import FitConfig
+from mi_tetvr.recon.metrics import composite, image_metrics
+from mi_tetvr.recon.optim import VertexAdam
+
+__all__ = ["Trainer", "RunState", "MESH_ID", "K_COLOR", "K_OPACITY", "K_POSITION",
+           "pixel_center_data"]
+
+#: Parameter keys of the fitted mesh in the scene.
+MESH_ID = "volume"
+K_COLOR = f"{MESH_ID}.vertex_color"
+K_OPACITY = f"{MESH_ID}.vertex_opacity"
+K_POSITION = f"{MESH_ID}.vertex_positions"
+
+
+def pixel_center_data(dataset):
+    """True for data sets rendered through pixel centers (``mi-tetvr
+    make-dataset`` writes ``volume_info.json``), whose pixels are point
+    samples rather than pixel averages."""
+    root = getattr(dataset, "root", None)
+    return root is not None and (Path(root) / "volume_info.json").is_file()
+
+
+@dataclass
+class RunState:
+    """Where a run stands; it carries over from stage to stage and is what a
+    checkpoint restores besides the mesh and the optimizer."""
+    rng: np.random.Generator     # picks the views of each step
+    step: int = 0                # optimizer steps taken over the whole run
+    stage: int = 0               # index into ``FitConfig.stage_list()``
+    stage_start: int = 0         # the step at which this stage began
+    elapsed: float = 0.0         # seconds of training
+    shortened: int = 0           # vertex steps the inversion safeguard shortened
+    history: dict = field(default_factory=lambda: {"step": [], "time": [], "loss": [],
+                                                   "psnr": []})
+
+
+class Trainer:
+    """One stage of a reconstruction: the scene, the optimizer and the run's state.
+
+    Parameters
+    ----------
+    dataset : mi_tetvr.recon.datasets.Dataset
+        Training and test views (premultiplied linear RGBA images + cameras).
+    vertices : (n, 3) float
+    tets : (m, 4) int
+        The mesh to fit.
+    config : FitConfig
+        The stage's settings (:meth:`FitConfig.for_stage`).
+    color : (n, 3) float, optional
+    opacity : (n,) float, optional
+        Starting values (default: ``config.init_color`` and
+        ``config.init_opacity`` per cell).
+    state : RunState, optional
+        The run so far (default: a new run seeded with ``config.seed``).
+
+    Attributes
+    ----------
+    tets : (m, 4) int64
+        The tets, consistently oriented.
+    h : float
+        The mesh's mean edge length: the unit of the opacity and position settings.
+    params : mitsuba.SceneParameters
+    opt : VertexAdam
+    state : RunState
+    """
+
+    def __init__(self, dataset, vertices, tets, config: FitConfig, color=None, opacity=None,
+                 state: RunState | None = None):
+        import mi_tetvr
+        from mi_tetvr.mesh.topology import build_topology
+
+        self.config = config
+        self.dataset = dataset
+        self.state = state or RunState(rng=np.random.default_rng(config.seed))
+        topology = build_topology(vertices, tets)
+        self.tets = topology.tets.astype(np.int64)
+        self.boundary = np.unique(topology.boundary_faces)
+        self.h = mean_edge_length(vertices, self.tets)
+        n = len(vertices)
+        if color is None:
+            color = np.full((n, 3), config.init_color)
+        if opacity is None:
+            opacity = np.full(n, config.init_opacity / self.h)
+        self.scene = mi.load_dict({
+            "type": "scene",
+            "integrator": {"type": "tetvr", "n_sub": config.n_sub},
+            MESH_ID: mi_tetvr.tetmesh_dict(vertices, self.tets, color, opacity),
+        })
+        self.params = mi.traverse(self.scene)
+        self.jitter = config.jitter if config.jitter is not None else not pixel_center_data(dataset)
+        sampler = "independent" if self.jitter else "stratified"
+        self.sensors = {}
+        for v in dataset.train + dataset.test:
+            d = v.camera.sensor_dict(spp=config.spp, sampler=sampler)
+            if not self.jitter:
+                d["sampler"]["jitter"] = False
+            self.sensors[id(v)] = mi.load_dict(d)
+        self.targets = {id(v): mi.TensorXf(np.ascontiguousarray(v.image, np.float32))
+                        for v in dataset.train}
+        rates = {K_COLOR: config.lr_color, K_OPACITY: config.lr_opacity / self.h}
+        if config.lr_position > 0:
+            rates[K_POSITION] = config.lr_position * self.h
+        self.opt = VertexAdam(self.params, rates, n)
+        self.params.update(self.opt)
+        self.regularizer = None
+        if config.regularizer > 0 and config.lr_position > 0:
+            from mi_tetvr.recon.regularizer import QualityRegularizer
+            self.regularizer = QualityRegularizer(self.tets, beta=config.regularizer_beta,
+                                                  weight=config.regularizer)
+
+    # -- one step ---------------------------------------------------------------
+    def render(self, view, params=None, seed=0, spp=None):
+        """(h, w, 4) tensor of a view: premultiplied RGB and alpha (with
+        gradients when ``params`` is given)."""
+        return mi.render(self.scene, params, sensor=self.sensors[id(view)],
+                         spp=spp or self.config.spp, seed=seed, seed_grad=seed + 1)
+
+    def loss(self, image, view):
+        """Image loss (L1 or L2, mean over pixels and channels) of a render
+        against a training view: on RGBA, or on RGB over the config's
+        background."""
+        target = self.targets[id(view)]
+        bg = self.config.background
+        diff = image - target if bg is None else composite(image, bg) - composite(target, bg)
+        if self.config.loss == "l1":
+            return dr.mean(dr.abs(diff), axis=None)
+        return dr.mean(dr.square(diff), axis=None)
+
+    def step(self):
+        """One optimizer step over ``views_per_step`` random training views;
+        returns the mean image loss."""
+        cfg, state = self.config, self.state
+        train = self.dataset.train
+        pick = state.rng.choice(len(train), min(cfg.views_per_step, len(train)), replace=False)
+        total = 0.0
+        for j, i in enumerate(pick):
+            view = train[i]
+            seed = (state.step * 131 + j * 7919 + cfg.seed * 104729) % (2 ** 31)
+            image = self.render(view, self.params, seed=2 * seed)
+            loss = self.loss(image, view) / len(pick)
+            dr.backward(loss)
+            total += float(loss.array[0])
+        if self.regularizer is not None:
+            dr.backward(self.regularizer(self.opt[K_POSITION]))
+        old = np.array(self.opt[K_POSITION]).reshape(-1, 3) if K_POSITION in self.opt else None
+        # The learning rates fall exponentially to ``decay`` times their base over the stage.
+        frac = min((state.step - state.stage_start) / max(cfg.iterations, 1), 1.0)
+        self.opt.step(lr_scale=cfg.decay ** frac)
+        self.opt[K_COLOR] = dr.clip(self.opt[K_COLOR], 0.0, 1.0)
+        self.opt[K_OPACITY] = dr.maximum(self.opt[K_OPACITY], 0.0)
+        if old is not None:
+            self._safe_positions(old)
+        self.params.update(self.opt)
+        state.step += 1
+        return total
+
+    def _safe_positions(self, old):
+        """Freeze the boundary (optionally) and shorten steps that would
+        invert a tet."""
+        from mi_tetvr.recon.safeguard import safe_step
+        new = np.array(self.opt[K_POSITION], np.float64).reshape(-1, 3)
+        delta = new - old
+        if self.config.freeze_boundary:
+            delta[self.boundary] = 0.0
+        if self.config.safeguard:
+            delta, n_short = safe_step(old, self.tets, delta)
+            self.state.shortened += int(n_short)
+        self.opt[K_POSITION] = mi.Float((old + delta).astype(np.float32).ravel())
+
+    # -- the mesh ---------------------------------------------------------------
+    def arrays(self):
+        """Current ``(vertices (n, 3), tets (m, 4), color (n, 3), opacity (n,))``
+        as numpy arrays."""
+        vertices = np.array(self.params[K_POSITION], np.float64).reshape(-1, 3)
+        color = np.array(self.params[K_COLOR], np.float64).reshape(-1, 3)
+        opacity = np.array(self.params[K_OPACITY], np.float64)
+        return vertices, self.tets, color, opacity
+
+    def inverted_tets(self):
+        """Number of tets with a non-positive volume."""
+        from mi_tetvr.mesh.topology import signed_volumes
+        vertices, tets, _, _ = self.arrays()
+        return int((signed_volumes(vertices, tets) <= 0).sum())
+
+    def vertex_scores(self, views, criterion="gradient"):
+        """Per-vertex refinement scores: absolute image-loss gradients summed
+        over ``views`` without stepping (AbsGS-style), of colors (``color``),
+        opacities in optical depth per cell (``opacity``) or both
+        (``gradient``). Returns (n,) float."""
+        n = self.opt.n_vertices
+        score = np.zeros(n)
+        for j, view in enumerate(views):
+            for k in (K_COLOR, K_OPACITY):
+                dr.clear_grad(self.opt[k])
+            image = self.render(view, self.params, seed=2 * (10 ** 6 + j))
+            dr.backward(self.loss(image, view))
+            if criterion in ("gradient", "color"):
+                score += np.abs(np.array(dr.grad(self.opt[K_COLOR]))).reshape(n, 3).sum(1)
+            if criterion in ("gradient", "opacity"):
+                score += np.abs(np.array(dr.grad(self.opt[K_OPACITY]))) / self.h
+        self.opt.clear_grads()
+        return score
+
+    # -- evaluation -------------------------------------------------------------
+    def render_view(self, view, seed=0):
+        """Numpy (h, w, 4) render of a view (no gradients); with jittered
+        sampling, 16 samples per pixel approximate the pixel average."""
+        spp = 16 if self.jitter else 1
+        with dr.suspend_grad():
+            return np.array(self.render(view, None, seed=seed, spp=spp))
+
+    def evaluate(self, views):
+        """PSNR, SSIM and MSE per view (RGB over the config's background) and
+        their mean: ``{"views": {name: metrics}, "mean": metrics}``."""
+        bg = self.config.background
+        per = {v.name: image_metrics(self.render_view(v), v.image, bg) for v in views}
+        mean = {k: float(np.mean([m[k] for m in per.values()])) for k in ("psnr", "ssim", "mse")}
+        return {"views": per, "mean": mean}

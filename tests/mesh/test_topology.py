@@ -1,0 +1,345 @@
+"""Topology, validation and file I/O of tet meshes (numpy only)."""
+import warnings
+
+import meshio
+import numpy as np
+import pytest
+
+from mi_tetvr.mesh.generate import grid_mesh
+from mi_tetvr.mesh.io import read_tetmesh, write_tetmesh
+from mi_tetvr.mesh.tetmesh import TetMesh
+from mi_tetvr.mesh.topology import (EDGES, FACES, MeshError, bbox_diagonal, build_topology,
+                                    edge_lengths, face_keys, flip_tets, mean_edge_length,
+                                    orient_tets, quality, signed_volumes, validate_arrays)
+
+
+def reverse_some(t, fraction, seed):
+    """Copy of tets with a random fraction given in reversed orientation."""
+    flip = np.random.default_rng(seed).random(len(t)) < fraction
+    t = t.copy()
+    t[flip] = t[flip][:, [1, 0, 2, 3]]
+    return t, flip
+
+
+def test_topology_properties():
+    v, t = grid_mesh(3, jitter=0.15, seed=0)
+    t, flip = reverse_some(t, 0.3, seed=0)
+    with pytest.warns(UserWarning, match="inverted"):
+        topo = build_topology(v, t)
+    assert topo.n_flipped == flip.sum()
+    assert np.all(signed_volumes(v, topo.tets) > 0)
+    # Neighbour links are symmetric and the shared faces have the same vertices.
+    m = topo.n_tets
+    for i in range(4):
+        inner = topo.neighbors[:, i] >= 0
+        nb, nf = topo.neighbors[inner, i], topo.neighbor_faces[inner, i]
+        assert np.all(topo.neighbors[nb, nf] == np.flatnonzero(inner))
+        a = np.sort(topo.tets[inner][:, FACES[i]], axis=1)
+        b = np.sort(topo.tets[nb[:, None], FACES[nf]], axis=1)
+        assert np.array_equal(a, b)
+    # Boundary faces point outward and cover the box surface (area 24).
+    f = v[topo.boundary_faces]
+    n = np.cross(f[:, 1] - f[:, 0], f[:, 2] - f[:, 0])
+    inward = v[topo.tets[topo.boundary_tets]].mean(1) - f.mean(1)
+    assert np.all(np.einsum("ij,ij->i", n, inward) < 0)
+    assert np.linalg.norm(n, axis=1).sum() / 2 == pytest.approx(24.0)
+    assert (topo.neighbors < 0).sum() == len(topo.boundary_faces)
+    assert np.all(topo.boundary_adjacency >= 0)  # closed surface
+    assert topo.volumes.sum() == pytest.approx(8.0)
+    assert m == 6 * 27
+
+
+def test_quality_regular_tet():
+    v = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+    # this vertex order is negatively oriented (det < 0)
+    assert signed_volumes(v, [[0, 1, 2, 3]])[0] < 0
+    assert quality(v, [[0, 2, 1, 3]])[0] == pytest.approx(1.0)
+    assert quality(v, [[0, 1, 2, 3]])[0] == pytest.approx(-1.0)
+
+
+@pytest.mark.parametrize("tets, match", [
+    ([[0, 1, 2, 9]], "out of range"),
+    ([[0, 1, 2, -1]], "out of range"),
+    ([[0, 1, 2, 2]], "repeated vertex"),
+    ([[0, 1, 2, 3], [3, 2, 1, 0]], "duplicate tets"),
+    ([[0, 1, 2]], "shape"),
+])
+def test_bad_tets(tets, match):
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    with pytest.raises(MeshError, match=match):
+        build_topology(v, np.array(tets))
+
+
+def test_bad_vertices_and_attributes():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    t = [[0, 1, 2, 3]]
+    bad = v.copy()
+    bad[2, 1] = np.nan
+    with pytest.raises(MeshError, match="non-finite.*vertices 2"):
+        TetMesh(bad, t)
+    with pytest.raises(MeshError, match="negative opacity.*vertices 1"):
+        TetMesh(v, t, opacity=[0, -1, 0, 0])
+    with pytest.raises(MeshError, match="color must have shape"):
+        TetMesh(v, t, color=np.zeros((4, 2)))
+    with pytest.raises(MeshError, match="non-finite color"):
+        TetMesh(v, t, color=np.full((4, 3), np.inf))
+
+
+def test_non_manifold_face():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -1], [1, 1, 1]], float)
+    with pytest.raises(MeshError, match="shared by more than two tets"):
+        build_topology(v, np.array([[0, 1, 2, 3], [0, 1, 2, 4], [0, 1, 2, 5]]))
+
+
+def test_folded_mesh_is_refused():
+    # Two tets on the same side of their shared face overlap.
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.2, 0.2, 0.5]], float)
+    with pytest.raises(MeshError, match="folds over itself"):
+        build_topology(v, np.array([[0, 1, 2, 3], [0, 1, 2, 4]]))
+
+
+def test_flat_tets_oriented_consistently():
+    v, t = grid_mesh(2)
+    v = v.copy()
+    v[np.isclose(v[:, 0], 0.0), 0] = -1.0  # collapse a layer: 24 flat tets
+    t, _ = reverse_some(t, 0.5, seed=1)
+    with pytest.warns(UserWarning, match="24 zero-volume"):
+        topo = build_topology(v, t)
+    assert topo.flat.sum() == 24
+    # Every interior face is shared with opposite windings after orientation.
+    from mi_tetvr.mesh.topology import _face_parity
+    faces = topo.tets[:, FACES].reshape(-1, 3)
+    inner = np.flatnonzero(topo.neighbors.ravel() >= 0)
+    other = topo.neighbors.ravel()[inner] * 4 + topo.neighbor_faces.ravel()[inner]
+    assert np.all(_face_parity(faces[inner]) != _face_parity(faces[other]))
+
+
+@pytest.mark.parametrize("suffix", [".vtu", ".vtk"])
+def test_io_round_trip(tmp_path, suffix):
+    v, t = grid_mesh(2, jitter=0.1)
+    rng = np.random.default_rng(2)
+    mesh = TetMesh(v, t, rng.random((len(v), 3)), rng.random(len(v)))
+    p = tmp_path / f"m{suffix}"
+    write_tetmesh(p, mesh)
+    back = read_tetmesh(p)
+    np.testing.assert_allclose(back.vertices, mesh.vertices)
+    assert np.array_equal(back.tets, mesh.tets)
+    np.testing.assert_allclose(back.color, mesh.color)
+    np.testing.assert_allclose(back.opacity, mesh.opacity)
+
+
+@pytest.mark.parametrize("suffix", [".msh", ".mesh"])
+def test_geometry_only_formats(tmp_path, suffix):
+    v, t = grid_mesh(2, jitter=0.1)
+    p = tmp_path / f"m{suffix}"
+    with pytest.warns(UserWarning, match="only the geometry"):
+        write_tetmesh(p, TetMesh(v, t))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        back = read_tetmesh(p)
+    np.testing.assert_allclose(back.vertices, v)
+    assert np.array_equal(back.tets, t)
+
+
+def test_medit_geometry_and_defaults(tmp_path):
+    v, t = grid_mesh(1)
+    p = tmp_path / "m.mesh"
+    meshio.write(p, meshio.Mesh(v, [("tetra", t)]))
+    m = read_tetmesh(p)
+    assert np.array_equal(m.tets, t)
+    assert np.all(m.color == 1.0) and np.all(m.opacity == 1.0)  # documented defaults
+
+
+def test_quadratic_and_other_cells(tmp_path):
+    v, t = grid_mesh(1)
+    mid = np.zeros((len(t), 6), int)  # mid-edge nodes (ignored)
+    p = tmp_path / "q.vtu"
+    meshio.write(p, meshio.Mesh(v, [("tetra10", np.concatenate([t, mid], 1))]))
+    with pytest.warns(UserWarning, match="linearized"):
+        m = read_tetmesh(p)
+    assert np.array_equal(m.tets, t)
+    p = tmp_path / "h.vtu"
+    meshio.write(p, meshio.Mesh(v, [("hexahedron", np.arange(8)[None])]))
+    with pytest.raises(MeshError, match="hexahedron"):
+        read_tetmesh(p)
+
+
+def test_transfer_function_shading(tmp_path):
+    from mi_tetvr.transfer import TransferFunction
+    v, t = grid_mesh(1)
+    s = np.linspace(0, 1, len(v))
+    p = tmp_path / "s.vtu"
+    meshio.write(p, meshio.Mesh(v, [("tetra", t)], point_data={"density": s}))
+    tf = TransferFunction([0, 1], [[0, 0, 0], [1, 0.5, 0.25]], [0, 1], [0, 2])
+    m = read_tetmesh(p, transfer_function=tf, opacity_scale=3.0)
+    np.testing.assert_allclose(m.opacity, 6.0 * s)
+    np.testing.assert_allclose(m.color, s[:, None] * [1, 0.5, 0.25])
+    with pytest.raises(MeshError, match="no point-data array"):
+        read_tetmesh(p, transfer_function=tf, scalar="nope")
+
+
+# --------------------------------------------------------------------------- primitives
+def test_edges_table():
+    """EDGES holds each of the six vertex pairs of a tet once, in the order
+    01, 02, 03, 12, 13, 23, and every face's edges are among them."""
+    pairs = [tuple(e) for e in EDGES.tolist()]
+    assert pairs == [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    assert len(set(map(frozenset, pairs))) == 6
+    for f in FACES.tolist():
+        for a, b in ((f[0], f[1]), (f[1], f[2]), (f[2], f[0])):
+            assert (min(a, b), max(a, b)) in pairs
+
+
+def test_edge_lengths():
+    v, t = grid_mesh(2, jitter=0.2, seed=3)
+    lengths = edge_lengths(v, t)
+    assert lengths.shape == (len(t), 6)
+    for k, (i, j) in enumerate(EDGES):
+        np.testing.assert_array_equal(lengths[:, k], np.linalg.norm(v[t[:, i]] - v[t[:, j]], axis=1))
+    assert mean_edge_length(v, t) == pytest.approx(lengths.mean())
+    # l_rms from the same edges gives quality 1 for the regular tet
+    reg = np.array([[1, 1, 1], [-1, 1, -1], [1, -1, -1], [-1, -1, 1]], float)
+    np.testing.assert_allclose(edge_lengths(reg, [[0, 1, 2, 3]]), np.sqrt(8.0))
+
+
+def test_flip_tets():
+    v, t = grid_mesh(2, jitter=0.1, seed=2)
+    mask = np.random.default_rng(0).random(len(t)) < 0.5
+    out = flip_tets(t, mask)
+    assert out is not t and out.dtype == t.dtype
+    vol, vol_out = signed_volumes(v, t), signed_volumes(v, out)
+    np.testing.assert_allclose(vol_out[mask], -vol[mask])
+    np.testing.assert_array_equal(out[~mask], t[~mask])
+    np.testing.assert_array_equal(out[:, :2], t[:, :2])
+    np.testing.assert_array_equal(np.sort(out, axis=1), np.sort(t, axis=1))
+
+
+def test_orient_tets_against_signed_volumes():
+    v, t = grid_mesh(3, jitter=0.15, seed=0)
+    t, flip = reverse_some(t, 0.4, seed=5)
+    vol = signed_volumes(v, t)
+    o = orient_tets(v, t)
+    np.testing.assert_array_equal(o.volumes, vol)
+    np.testing.assert_array_equal(o.flipped, vol < 0)
+    np.testing.assert_array_equal(o.flipped, flip)
+    assert not o.flat.any()
+    assert np.all(signed_volumes(v, o.tets) > 0)
+    np.testing.assert_allclose(signed_volumes(v, o.tets), np.abs(vol))
+    np.testing.assert_array_equal(o.tets[~o.flipped], t[~o.flipped])
+    # the orientation of build_topology is this one
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        np.testing.assert_array_equal(build_topology(v, t).tets, o.tets)
+
+
+def test_orient_tets_flat_tolerance():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.3, 0.3, -1e-9]], float)
+    t = np.array([[0, 2, 1, 3], [0, 1, 2, 4]])     # inverted, nearly flat (volume < 0)
+    vol = signed_volumes(v, t)
+    assert vol[0] < 0 and -1e-9 < vol[1] < 0
+    o = orient_tets(v, t, 1e-8)                      # the second one is flat: left as given
+    np.testing.assert_array_equal(o.flat, [False, True])
+    np.testing.assert_array_equal(o.flipped, [True, False])
+    np.testing.assert_array_equal(o.tets[1], t[1])
+    o = orient_tets(v, t, 0.0)                       # no tolerance: both flipped
+    np.testing.assert_array_equal(o.flipped, [True, True])
+    assert np.all(signed_volumes(v, o.tets) > 0)
+    # the tolerance scales with the given diagonal (default: the bounding box's)
+    assert bbox_diagonal(v) == pytest.approx(np.sqrt(3.0))
+    assert orient_tets(v, t, 1e-8, diagonal=1e-3).flat.tolist() == [False, False]
+    assert bbox_diagonal(np.zeros((0, 3))) == 1.0 and bbox_diagonal(np.ones((3, 3))) == 1.0
+
+
+def test_face_keys():
+    rng = np.random.default_rng(4)
+    tri = rng.integers(0, 30, (400, 3))
+    tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])]
+    keys = face_keys(tri)
+    perm = tri[:, rng.permutation(3)]
+    np.testing.assert_array_equal(face_keys(perm), keys)        # order of the vertices
+    s = np.sort(tri, axis=1)
+    same = (s[:, None] == s[None]).all(-1)
+    np.testing.assert_array_equal(keys[:, None] == keys[None], same)
+    # keys sort as the sorted triples do, also above 2**21 vertices (other encoding)
+    big = s + 2 ** 21
+    for k in (keys, face_keys(big)):
+        np.testing.assert_array_equal(np.argsort(k, kind="stable"),
+                                      np.lexsort((s[:, 2], s[:, 1], s[:, 0])))
+    assert face_keys(np.zeros((0, 3), int)).shape == (0,)
+    # the faces of a conforming mesh: each interior key twice, boundary keys once
+    v, t = grid_mesh(2)
+    _, counts = np.unique(face_keys(t[:, FACES].reshape(-1, 3)), return_counts=True)
+    assert set(counts.tolist()) == {1, 2}
+    assert np.count_nonzero(counts == 1) == len(build_topology(v, t).boundary_faces)
+
+
+def test_validate_arrays_modes():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    t = np.array([[0, 1, 2, 3]], np.int64)
+    vs, ts = validate_arrays(v, t)
+    assert vs is not v and ts is not t                     # strict: copies
+    vl, tl = validate_arrays(v, t, strict=False)
+    assert vl is v and tl is t                             # cheap: no copies
+    assert validate_arrays(None, t, strict=False)[0] is None
+    with pytest.raises(MeshError, match="no tetrahedra"):
+        validate_arrays(v, np.zeros((0, 4), int), strict=False)
+    assert len(validate_arrays(v, np.zeros((0, 4), int), strict=False, allow_empty=True)[1]) == 0
+    with pytest.raises(MeshError, match="out of range.*in tets 1"):
+        validate_arrays(v, [[0, 1, 2, 3], [0, 1, 2, 4]], strict=False)
+    with pytest.raises(MeshError, match="shape"):
+        validate_arrays(None, [[0, 1, 2]], strict=False)
+    # the strict checks are skipped in the cheap mode
+    validate_arrays(v, [[0, 1, 2, 2]], strict=False)
+    with pytest.raises(MeshError, match="repeated vertex"):
+        validate_arrays(v, [[0, 1, 2, 2]])
+    with pytest.raises(MeshError, match="must be integers"):
+        validate_arrays(v, [[0, 1, 2, 2.5]])
+
+
+# --------------------------------------------------------------------------- TetMesh
+def test_tetmesh_cached_properties():
+    v, t = grid_mesh(2, jitter=0.15, seed=1)
+    t, _ = reverse_some(t, 0.3, seed=2)
+    mesh = TetMesh(v, t)
+    np.testing.assert_array_equal(mesh.volumes, signed_volumes(v, t))
+    np.testing.assert_array_equal(mesh.quality, quality(v, t))
+    np.testing.assert_array_equal(mesh.edge_lengths, edge_lengths(v, t))
+    assert mesh.mean_edge_length == mean_edge_length(v, t)
+    np.testing.assert_array_equal(mesh.bounds, [v.min(0), v.max(0)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        topo = mesh.topology
+        np.testing.assert_array_equal(topo.tets, build_topology(v, t).tets)
+    # computed once, kept, read-only
+    assert mesh.topology is topo and mesh.volumes is mesh.volumes
+    with pytest.raises(ValueError):
+        mesh.volumes[0] = 1.0
+    with pytest.raises(AttributeError):
+        mesh.quality = None
+    # assigning the arrays validates them and drops the caches
+    old_volumes = mesh.volumes
+    mesh.vertices = 2.0 * v
+    assert mesh.volumes is not old_volumes
+    np.testing.assert_allclose(mesh.volumes, 8.0 * old_volumes)
+    assert mesh.mean_edge_length == pytest.approx(2.0 * mean_edge_length(v, t))
+    with pytest.warns(UserWarning, match="inverted"):
+        assert mesh.topology is not topo
+    mesh.tets = topo.tets
+    assert np.all(mesh.volumes > 0) and mesh.tets.dtype == np.int64
+    with pytest.raises(MeshError, match="out of range"):
+        mesh.tets = [[0, 1, 2, len(v)]]
+    with pytest.raises(ValueError, match="keep their shape"):
+        mesh.vertices = v[:-1]
+    # arrays are copied on construction
+    assert mesh.vertices is not v and not np.shares_memory(TetMesh(v, t).vertices, v)
+
+
+def test_mesh_package_imports_without_variant():
+    """The mesh sub-package is numpy only: its public API imports without a
+    Mitsuba variant and without the renderer."""
+    import subprocess
+    import sys
+    code = ("import sys, mi_tetvr.mesh as m; [getattr(m, n) for n in m.__all__]; "
+            "assert 'mi_tetvr.render' not in sys.modules; "
+            "assert 'mi_tetvr.render.walk' not in sys.modules")
+    subprocess.run([sys.executable, "-c", code], check=True)
