@@ -19,5 +19,5 @@ if [ "${1:-}" != "--install" ]; then
     mi-tetvr render scenes/default.xml -o out/default.exr -o out/default.png
     mi-tetvr make-dataset scenes/volumes/default.npy --tf scenes/tf_default.json \
         --views 32 --test-views 8 --res 64 --fov 30 --out out/default_data
-    mi-tetvr fit out/default_data --out out/default_fit --restart --config scenes/fit_default.json
+    mi-tetvr fit out/default_data --out out/default_fit --restart --time-budget 1
 fi

@@ -139,7 +139,8 @@ def cmd_fit(a):
         cfg = FitConfig.from_file(a.config) if a.config else FitConfig()
         overrides = {k: getattr(a, k) for k in (
             "init", "resolution", "iterations", "time_budget", "views_per_step", "lr_color",
-            "lr_opacity", "lr_position", "loss", "regularizer", "downscale", "seed", "n_sub")}
+            "lr_opacity", "lr_position", "loss", "loss_space", "regularizer", "downscale", "seed",
+            "n_sub")}
         if a.background is not None:
             overrides["background"] = _background(a.background)
         if a.freeze_boundary is not None:
@@ -155,9 +156,10 @@ def cmd_fit(a):
     except KeyboardInterrupt:
         sys.exit("mi-tetvr: interrupted; progress saved (run the same command to resume)")
     m = metrics["mean"]
-    print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} over {len(metrics['views'])} "
-          f"view(s) [{metrics['split']}]; {metrics['tets']:,} tets, {metrics['seconds']:.0f} s "
-          f"-> {Path(a.out) / 'mesh.vtu'}")
+    print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} (sRGB) over "
+          f"{len(metrics['views'])} view(s) [{metrics['split']}]; {metrics['tets']:,} tets, "
+          f"{metrics['step']:,} steps, {metrics['wall_seconds']:.0f} s -> "
+          f"{Path(a.out) / 'mesh.vtu'}")
 
 
 def cmd_eval(a):
@@ -169,7 +171,8 @@ def cmd_eval(a):
     for name, m in metrics["views"].items():
         print(f"  {name:<24s} PSNR {m['psnr']:6.2f} dB  SSIM {m['ssim']:.4f}")
     m = metrics["mean"]
-    print(f"mean PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} ({len(metrics['views'])} views)")
+    print(f"mean PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} (sRGB; linear PSNR "
+          f"{m['psnr_linear']:.2f} dB) ({len(metrics['views'])} views)")
     if a.json:
         Path(a.json).write_text(json.dumps(metrics, indent=2))
 
@@ -244,15 +247,20 @@ def main(argv=None):
     f.add_argument("--config",
                    help="JSON file of fit settings (see mi_tetvr.recon.config.FitConfig)")
     f.add_argument("--init", help="grid (default), tetwild, delaunay or a mesh file")
-    f.add_argument("--resolution", type=int, help="cells along the largest axis (default 32)")
-    f.add_argument("--iterations", type=int, help="optimizer steps (default 1500)")
-    f.add_argument("--time-budget", type=float, help="minutes; stops in time and saves")
+    f.add_argument("--resolution", type=int, help="grid cells along the largest axis "
+                   "(default: chosen for --time-budget, else 32)")
+    f.add_argument("--iterations", type=int,
+                   help="optimizer steps (default 1500; ignored with --time-budget)")
+    f.add_argument("--time-budget", type=float,
+                   help="minutes for the whole run: mesh size and steps are fitted to it")
     f.add_argument("--views-per-step", type=int)
     f.add_argument("--lr-color", type=float)
     f.add_argument("--lr-opacity", type=float, help="optical depth per cell and step")
     f.add_argument("--lr-position", type=float, help="cell sizes per step; 0 = fixed")
     f.add_argument("--regularizer", type=float, help="tet-quality weight (with positions)")
     f.add_argument("--loss", choices=["l1", "l2"])
+    f.add_argument("--loss-space", choices=["linear", "srgb"],
+                   help="compare linear RGB or the sRGB pictures the metrics score")
     f.add_argument("--background", help="none (fit RGBA, default), white, black or r,g,b")
     f.add_argument("--freeze-boundary", action=argparse.BooleanOptionalAction, default=None)
     f.add_argument("--downscale", type=int, help="shrink images by this factor")

@@ -32,6 +32,16 @@ def srgb_to_linear(c):
 
 def linear_to_srgb(c):
     """Convert linear RGB to sRGB-encoded values (the inverse of
-    :func:`srgb_to_linear`); float64, same shape, inputs clipped at 0."""
+    :func:`srgb_to_linear`), inputs clipped at 0.
+
+    A Dr.Jit array or tensor gives one of the same type (differentiable; the
+    slope is finite at 0), anything else a float64 numpy array.
+    """
+    if type(c).__module__.startswith("drjit"):
+        import drjit as dr
+        c = dr.maximum(c, 0.0)
+        # dr.maximum keeps the power's derivative finite on the linear branch.
+        high = 1.055 * dr.power(dr.maximum(c, 0.0031308), 1.0 / 2.4) - 0.055
+        return dr.select(c <= 0.0031308, c * 12.92, high)
     c = np.maximum(np.asarray(c, dtype=np.float64), 0.0)
     return np.where(c <= 0.0031308, c * 12.92, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)

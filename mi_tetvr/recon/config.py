@@ -26,16 +26,20 @@ __all__ = ["FitConfig", "coarse_to_fine"]
 class FitConfig:
     """Settings of a reconstruction (all have working defaults)."""
     init: str = "grid"                 # grid | tetwild | delaunay | path to a mesh file
-    resolution: int = 32               # cells along the largest axis (grid, tetwild)
+    resolution: int | None = None      # cells along the largest axis (grid, tetwild); None:
+                                       # chosen for the time budget, 32 without one
     bounds: list | None = None         # [[x0, y0, z0], [x1, y1, z1]]; default: from the data
-    iterations: int = 1500
-    time_budget: float | None = None   # minutes; stops in time and still saves
-    views_per_step: int = 4
+    iterations: int = 1500             # with a time budget: only the stages' time shares
+    time_budget: float | None = None   # minutes for the whole run, outputs included: the
+                                       # steps (and the mesh size, unless set) fill it
+    views_per_step: int = 2
     lr_color: float = 0.02
     lr_opacity: float = 0.05           # optical depth per cell, per step
     lr_position: float = 0.0           # cell sizes per step; 0 = positions fixed
     decay: float = 0.1                 # learning rates fall exponentially to decay * lr
     loss: str = "l2"                   # l1 | l2
+    loss_space: str = "srgb"           # linear | srgb: compare linear RGB, or the sRGB
+                                       # pictures the metrics score (alpha stays linear)
     background: list | None = None     # None: fit RGBA; else composite over this color
     init_color: float = 0.5
     init_opacity: float = 0.05         # optical depth per cell
@@ -82,9 +86,13 @@ class FitConfig:
         """Raise ``ValueError`` on a setting out of range."""
         if self.loss not in ("l1", "l2"):
             raise ValueError(f"loss must be 'l1' or 'l2', got {self.loss!r}")
+        if self.loss_space not in ("linear", "srgb"):
+            raise ValueError(f"loss_space must be 'linear' or 'srgb', got {self.loss_space!r}")
         for name in ("iterations", "views_per_step", "resolution", "n_sub", "spp", "downscale"):
-            if int(getattr(self, name)) < 1:
+            if getattr(self, name) is not None and int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1")
+        if self.time_budget is not None and not self.time_budget > 0:
+            raise ValueError("time_budget must be > 0 minutes")
         for name in ("lr_color", "lr_opacity", "lr_position", "init_opacity", "regularizer"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0")

@@ -1,8 +1,11 @@
 """Image metrics as the field reports them, and compositing over a background.
 
 Images are premultiplied linear RGBA (what ``tetvr`` renders over black, with
-its ``alpha`` AOV). PSNR and SSIM are computed on RGB composited over a
-background and clipped to [0, 1].
+its ``alpha`` AOV). PSNR and SSIM are computed as NeRF, 3D Gaussian splatting
+and DiffTetVR report them: on the RGB composited over a background, clipped
+to [0, 1] and sRGB-encoded (the 8-bit picture one looks at). The PSNR of the
+linear values is kept as ``psnr_linear``; on dark volume renders it is
+several dB higher than the sRGB figure, so the two must not be compared.
 """
 from __future__ import annotations
 
@@ -10,7 +13,9 @@ import math
 
 import numpy as np
 
-__all__ = ["composite", "psnr", "ssim", "image_metrics"]
+from mi_tetvr.color import linear_to_srgb
+
+__all__ = ["composite", "display_rgb", "psnr", "ssim", "image_metrics"]
 
 
 def composite(rgba, background=None):
@@ -47,28 +52,42 @@ def psnr(mse):
 
 
 def ssim(a, b):
-    """Structural similarity of two (h, w, 3) RGB images with values in [0, 1]."""
+    """Structural similarity of two (h, w, 3) RGB images with values in [0, 1]
+    (scikit-image's 7x7 window, smaller for images under 7 pixels; NaN under 3)."""
     from skimage.metrics import structural_similarity
-    return float(structural_similarity(a, b, channel_axis=2, data_range=1.0))
+    win = min(7, a.shape[0], a.shape[1])
+    win -= 1 - win % 2
+    if win < 3:
+        return float("nan")
+    return float(structural_similarity(a, b, channel_axis=2, data_range=1.0, win_size=win))
+
+
+def display_rgb(rgba, background=None):
+    """The picture of a premultiplied linear RGBA image that the metrics
+    compare: RGB over ``background`` (linear, ``None``: black), clipped to
+    [0, 1], sRGB-encoded; (h, w, 3) float64."""
+    bg = None if background is None else np.asarray(background, np.float64)
+    return linear_to_srgb(np.clip(composite(np.asarray(rgba, np.float64), bg), 0.0, 1.0))
 
 
 def image_metrics(pred_rgba, target_rgba, background):
-    """PSNR, SSIM and MSE of RGB composited over ``background``.
+    """PSNR and SSIM of the sRGB pictures (:func:`display_rgb`) of two images.
 
     Parameters
     ----------
     pred_rgba, target_rgba : (h, w, 4) float
         Premultiplied linear RGBA.
     background : None or (3,) float
-        Linear RGB (``None``: black). The composited images are clipped to
-        [0, 1] and compared in float64.
+        Linear RGB (``None``: black).
 
     Returns
     -------
-    dict with ``psnr`` (dB), ``ssim`` and ``mse``.
+    dict with ``psnr`` (dB) and ``ssim`` of the sRGB pictures, ``mse`` of
+    theirs, and ``psnr_linear`` of the clipped linear RGB.
     """
-    bg = None if background is None else np.asarray(background, np.float64)
-    a = np.clip(composite(pred_rgba, bg), 0, 1)
-    b = np.clip(composite(target_rgba, bg), 0, 1)
+    a, b = display_rgb(pred_rgba, background), display_rgb(target_rgba, background)
     mse = float(np.mean((a - b) ** 2))
-    return {"psnr": psnr(mse), "ssim": ssim(a, b), "mse": mse}
+    bg = None if background is None else np.asarray(background, np.float64)
+    lin = [np.clip(composite(np.asarray(x, np.float64), bg), 0, 1) for x in (pred_rgba, target_rgba)]
+    return {"psnr": psnr(mse), "ssim": ssim(a, b), "mse": mse,
+            "psnr_linear": psnr(float(np.mean((lin[0] - lin[1]) ** 2)))}

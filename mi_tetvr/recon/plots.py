@@ -61,7 +61,7 @@ def plot_history(history, path, test_psnr=None):
         if test_psnr is not None:
             ax2.axhline(test_psnr, color="tab:red", ls="--", lw=0.8,
                         label=f"test PSNR {test_psnr:.2f} dB")
-        ax2.set_ylabel("PSNR [dB] (RGBA or composited RGB)", color="tab:red")
+        ax2.set_ylabel("PSNR [dB] (sRGB, over the background)", color="tab:red")
         ax2.legend(loc="lower right")
     ax.set_title("mi-tetvr fit")
     fig.tight_layout()

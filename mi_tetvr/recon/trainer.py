@@ -19,6 +19,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_tetvr.color import linear_to_srgb
 from mi_tetvr.mesh.topology import mean_edge_length
 from mi_tetvr.recon.config import FitConfig
 from mi_tetvr.recon.metrics import composite, image_metrics
@@ -137,44 +138,70 @@ class Trainer:
         return mi.render(self.scene, params, sensor=self.sensors[id(view)],
                          spp=spp or self.config.spp, seed=seed, seed_grad=seed + 1)
 
+    def _compared(self, image):
+        """What the loss compares of an (h, w, 4) image: RGBA, or RGB over the
+        config's background; in ``srgb`` space the RGB sRGB-encoded."""
+        bg = self.config.background
+        if self.config.loss_space == "linear":
+            return image if bg is None else composite(image, bg)
+        rgb = linear_to_srgb(composite(image, bg))
+        if bg is not None:
+            return rgb
+        return dr.concat([rgb, image[..., 3:4]], axis=-1)
+
     def loss(self, image, view):
         """Image loss (L1 or L2, mean over pixels and channels) of a render
-        against a training view: on RGBA, or on RGB over the config's
-        background."""
-        target = self.targets[id(view)]
-        bg = self.config.background
-        diff = image - target if bg is None else composite(image, bg) - composite(target, bg)
+        against a training view (see :meth:`_compared`)."""
+        diff = self._compared(image) - self._compared(self.targets[id(view)])
         if self.config.loss == "l1":
             return dr.mean(dr.abs(diff), axis=None)
         return dr.mean(dr.square(diff), axis=None)
 
-    def step(self):
-        """One optimizer step over ``views_per_step`` random training views;
-        returns the mean image loss."""
+    def metric_mse(self, image, view):
+        """MSE of the sRGB pictures the metrics score (RGB over the config's
+        background, black without one), no gradient: the training PSNR."""
+        bg = self.config.background
+        with dr.suspend_grad():
+            a = linear_to_srgb(dr.clip(composite(dr.detach(image), bg), 0.0, 1.0))
+            b = linear_to_srgb(dr.clip(composite(self.targets[id(view)], bg), 0.0, 1.0))
+            return dr.mean(dr.square(a - b), axis=None)
+
+    def step(self, progress=None):
+        """One optimizer step over ``views_per_step`` random training views.
+
+        ``progress`` is the fraction of the stage done, in [0, 1], which sets
+        the learning-rate decay (default: steps taken over
+        ``config.iterations``; a time-budgeted run passes its time fraction).
+        Returns the mean image loss and the mean MSE of the views' sRGB
+        pictures (:meth:`metric_mse`).
+        """
         cfg, state = self.config, self.state
         train = self.dataset.train
         pick = state.rng.choice(len(train), min(cfg.views_per_step, len(train)), replace=False)
-        total = 0.0
+        total, metric = 0.0, 0.0
         for j, i in enumerate(pick):
             view = train[i]
             seed = (state.step * 131 + j * 7919 + cfg.seed * 104729) % (2 ** 31)
             image = self.render(view, self.params, seed=2 * seed)
             loss = self.loss(image, view) / len(pick)
+            mse = self.metric_mse(image, view)
             dr.backward(loss)
             total += float(loss.array[0])
+            metric += float(mse.array[0]) / len(pick)
         if self.regularizer is not None:
             dr.backward(self.regularizer(self.opt[K_POSITION]))
         old = np.array(self.opt[K_POSITION]).reshape(-1, 3) if K_POSITION in self.opt else None
         # The learning rates fall exponentially to ``decay`` times their base over the stage.
-        frac = min((state.step - state.stage_start) / max(cfg.iterations, 1), 1.0)
-        self.opt.step(lr_scale=cfg.decay ** frac)
+        if progress is None:
+            progress = (state.step - state.stage_start) / max(cfg.iterations, 1)
+        self.opt.step(lr_scale=cfg.decay ** min(max(progress, 0.0), 1.0))
         self.opt[K_COLOR] = dr.clip(self.opt[K_COLOR], 0.0, 1.0)
         self.opt[K_OPACITY] = dr.maximum(self.opt[K_OPACITY], 0.0)
         if old is not None:
             self._safe_positions(old)
         self.params.update(self.opt)
         state.step += 1
-        return total
+        return total, metric
 
     def _safe_positions(self, old):
         """Freeze the boundary (optionally) and shorten steps that would
@@ -236,5 +263,6 @@ class Trainer:
         their mean: ``{"views": {name: metrics}, "mean": metrics}``."""
         bg = self.config.background
         per = {v.name: image_metrics(self.render_view(v), v.image, bg) for v in views}
-        mean = {k: float(np.mean([m[k] for m in per.values()])) for k in ("psnr", "ssim", "mse")}
+        mean = {k: float(np.mean([m[k] for m in per.values()]))
+                for k in ("psnr", "ssim", "mse", "psnr_linear")}
         return {"views": per, "mean": mean}

@@ -1,0 +1,24 @@
+"""The reconstruction suite (benchmarks/fit_suite.py), shrunk: the project's own
+volume, 6 views of 24x24, a 6-second budget."""
+import importlib.util
+
+import numpy as np
+
+from tests.helpers import ROOT, VARIANT
+
+
+def test_fit_suite_quick(tmp_path):
+    spec = importlib.util.spec_from_file_location("fit_suite", ROOT / "benchmarks" / "fit_suite.py")
+    suite = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(suite)
+    res = suite.main(["--quick", "--out", str(tmp_path), "--variant", VARIANT,
+                      "--json", str(tmp_path / "suite.json")])["default"]
+    assert (tmp_path / "suite.json").is_file() and (tmp_path / "default_fit" / "mesh.vtu").is_file()
+    assert np.isfinite(res["psnr"]) and 0 < res["ssim"] <= 1 and res["steps"] >= 5
+    # (the budget's use is tested in tests/recon/test_fit.py, without the
+    # calibration that takes much of a 6-second budget)
+    assert 0 < res["optimization_seconds"] <= res["budget_seconds"]
+    # the no-fitting grid has about the fit's vertex count
+    nofit = res["no_fitting"]
+    assert abs(nofit["vertices"] - res["vertices"]) < 0.25 * res["vertices"]
+    assert np.isfinite(nofit["psnr"])
