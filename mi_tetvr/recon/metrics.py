@@ -62,12 +62,22 @@ def ssim(a, b):
     return float(structural_similarity(a, b, channel_axis=2, data_range=1.0, win_size=win))
 
 
+def _over_background(rgba, background):
+    """RGB over ``background`` clipped to [0, 1]: float64 numpy for a numpy
+    image, the same Dr.Jit tensor type for a Dr.Jit one."""
+    if isinstance(rgba, np.ndarray) or not type(rgba).__module__.startswith("drjit"):
+        bg = None if background is None else np.asarray(background, np.float64)
+        return np.clip(composite(np.asarray(rgba, np.float64), bg), 0.0, 1.0)
+    import drjit as dr
+    return dr.clip(composite(rgba, background), 0.0, 1.0)
+
+
 def display_rgb(rgba, background=None):
     """The picture of a premultiplied linear RGBA image that the metrics
     compare: RGB over ``background`` (linear, ``None``: black), clipped to
-    [0, 1], sRGB-encoded; (h, w, 3) float64."""
-    bg = None if background is None else np.asarray(background, np.float64)
-    return linear_to_srgb(np.clip(composite(np.asarray(rgba, np.float64), bg), 0.0, 1.0))
+    [0, 1], sRGB-encoded; (h, w, 3) float64 for a numpy image, the same
+    tensor type for a Dr.Jit one."""
+    return linear_to_srgb(_over_background(rgba, background))
 
 
 def image_metrics(pred_rgba, target_rgba, background):
@@ -85,9 +95,8 @@ def image_metrics(pred_rgba, target_rgba, background):
     dict with ``psnr`` (dB) and ``ssim`` of the sRGB pictures, ``mse`` of
     theirs, and ``psnr_linear`` of the clipped linear RGB.
     """
-    a, b = display_rgb(pred_rgba, background), display_rgb(target_rgba, background)
+    lin = [_over_background(x, background) for x in (pred_rgba, target_rgba)]
+    a, b = linear_to_srgb(lin[0]), linear_to_srgb(lin[1])
     mse = float(np.mean((a - b) ** 2))
-    bg = None if background is None else np.asarray(background, np.float64)
-    lin = [np.clip(composite(np.asarray(x, np.float64), bg), 0, 1) for x in (pred_rgba, target_rgba)]
     return {"psnr": psnr(mse), "ssim": ssim(a, b), "mse": mse,
             "psnr_linear": psnr(float(np.mean((lin[0] - lin[1]) ** 2)))}

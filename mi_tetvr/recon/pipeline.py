@@ -12,6 +12,7 @@ fitting RGBA).
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import json
 import time
@@ -206,6 +207,7 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
                    disable=not progress, unit="step", dynamic_ncols=True)
     steps_begin, train_begin = trainer.state.step, time.perf_counter()
     seconds = trainer.state.elapsed
+    recent_mse = collections.deque(maxlen=config.log_every)   # sRGB MSE of the last steps
     interrupted = False
     try:
         while True:
@@ -222,9 +224,10 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
                 h["time"].append(state.elapsed)
                 h["loss"].append(loss)
                 h["psnr"].append(psnr(mse))
+                recent_mse.append(mse)
                 bar.update(dt if clock else 1)
                 if state.step % config.log_every == 0 or state.step == 1:
-                    recent = float(np.mean([10 ** (-p / 10) for p in h["psnr"][-config.log_every:]]))
+                    recent = float(np.mean(recent_mse))
                     bar.set_postfix(step=state.step, loss=f"{h['loss'][-1]:.3g}",
                                     psnr=f"{psnr(recent):.2f}", tets=f"{len(trainer.tets):,}")
                 if state.step % config.checkpoint_every == 0:

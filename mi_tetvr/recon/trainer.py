@@ -22,7 +22,7 @@ import numpy as np
 from mi_tetvr.color import linear_to_srgb
 from mi_tetvr.mesh.topology import mean_edge_length
 from mi_tetvr.recon.config import FitConfig
-from mi_tetvr.recon.metrics import composite, image_metrics
+from mi_tetvr.recon.metrics import composite, display_rgb, image_metrics
 from mi_tetvr.recon.optim import VertexAdam
 
 __all__ = ["Trainer", "RunState", "MESH_ID", "K_COLOR", "K_OPACITY", "K_POSITION",
@@ -162,8 +162,8 @@ class Trainer:
         background, black without one), no gradient: the training PSNR."""
         bg = self.config.background
         with dr.suspend_grad():
-            a = linear_to_srgb(dr.clip(composite(dr.detach(image), bg), 0.0, 1.0))
-            b = linear_to_srgb(dr.clip(composite(self.targets[id(view)], bg), 0.0, 1.0))
+            a = display_rgb(dr.detach(image), bg)
+            b = display_rgb(self.targets[id(view)], bg)
             return dr.mean(dr.square(a - b), axis=None)
 
     def step(self, progress=None):

@@ -42,7 +42,6 @@ def test_fit_improves_and_writes_outputs(data, tmp_path):
     metrics = run(data, tmp_path, CFG, progress=False, log=lambda *a: None)
     after = metrics["mean"]
     assert after["psnr"] > before["psnr"] + 3.0, (before, after)
-    assert after["psnr_linear"] > before["psnr_linear"] + 2.0, (before, after)
     for name in ("mesh.vtu", "metrics.json", "progress.png", "config.json", "checkpoint.npz"):
         assert (tmp_path / name).is_file(), name
     assert len(list((tmp_path / "test").glob("*.png"))) == len(data.test)
