@@ -29,7 +29,7 @@ from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.topology import (FLAT_TOLERANCE, MeshError, bbox_diagonal, check_bounds,
                                     orient_tets, signed_volumes)
 
-__all__ = ["grid_init", "tetwild_init", "delaunay_init", "box_surface",
+__all__ = ["grid_init", "grid_shape", "grid_sample", "tetwild_init", "delaunay_init", "box_surface",
            "remove_outliers",
            "orient_and_compact"]
 
@@ -90,16 +90,66 @@ def grid_init(bounds, resolution: int, jitter: float = 0.0, seed: int = 0):
     tets : (6 nx ny nz, 4) int64
         Kuhn split of each cell (:data:`mi_tetvr.mesh.generate.KUHN_TETS`).
     """
+    if not 0.0 <= jitter < 0.5:
+        raise ValueError(f"jitter must be in [0, 0.5), got {jitter}")
+    b = check_bounds(bounds)
+    v, t = grid_mesh(grid_shape(b, resolution), b[0], b[1], jitter=jitter, seed=seed)
+    return v.astype(np.float64), t.astype(np.int64)
+
+
+def grid_shape(bounds, resolution: int):
+    """Cells per axis of :func:`grid_init`'s grid: ``resolution`` along the
+    box's largest axis, ``max(1, round(resolution * extent / largest))`` along
+    the others."""
     b = check_bounds(bounds)
     resolution = int(resolution)
     if resolution < 1:
         raise ValueError(f"resolution must be >= 1, got {resolution}")
-    if not 0.0 <= jitter < 0.5:
-        raise ValueError(f"jitter must be in [0, 0.5), got {jitter}")
     ext = b[1] - b[0]
-    shape = tuple(int(max(1, round(resolution * e / ext.max()))) for e in ext)
-    v, t = grid_mesh(shape, b[0], b[1], jitter=jitter, seed=seed)
-    return v.astype(np.float64), t.astype(np.int64)
+    return tuple(int(max(1, round(resolution * e / ext.max()))) for e in ext)
+
+
+def grid_sample(bounds, resolution: int, values, points):
+    """The piecewise-linear field of an (unjittered) :func:`grid_init` mesh at
+    arbitrary points: what a coarse grid's vertex values give a finer mesh.
+
+    Each cell's 6 Kuhn tets are the 6 orderings of the local coordinates
+    (Freudenthal), so a point's tet and barycentric weights follow from
+    sorting its coordinates in the cell. Points outside the box take the
+    value at the nearest point of the box.
+
+    Parameters
+    ----------
+    bounds, resolution
+        As given to :func:`grid_init`.
+    values : (n, ...) array
+        Per-vertex values in :func:`grid_init`'s vertex order.
+    points : (p, 3) float
+
+    Returns
+    -------
+    (p, ...) float64
+    """
+    b = check_bounds(bounds)
+    shape = np.asarray(grid_shape(b, resolution))
+    values = np.asarray(values, np.float64)
+    if len(values) != np.prod(shape + 1):
+        raise ValueError(f"{len(values)} values for a grid of {tuple(shape)} cells "
+                         f"({np.prod(shape + 1)} vertices)")
+    t = (np.asarray(points, np.float64).reshape(-1, 3) - b[0]) / (b[1] - b[0]) * shape
+    t = np.clip(t, 0.0, shape)
+    cell = np.minimum(np.floor(t), shape - 1).astype(np.int64)
+    f = t - cell
+    order = np.argsort(-f, axis=1, kind="stable")          # the path from corner 0 to 7
+    fs = np.take_along_axis(f, order, axis=1)
+    weights = np.column_stack([1.0 - fs[:, 0], fs[:, 0] - fs[:, 1], fs[:, 1] - fs[:, 2], fs[:, 2]])
+    stride = np.array([(shape[1] + 1) * (shape[2] + 1), shape[2] + 1, 1])
+    index = cell @ stride
+    out = weights[:, 0, None] * values[index].reshape(len(index), -1)
+    for k in range(3):
+        index = index + stride[order[:, k]]
+        out += weights[:, k + 1, None] * values[index].reshape(len(index), -1)
+    return out.reshape((len(index),) + values.shape[1:])
 
 
 # --------------------------------------------------------------------------- fTetWild

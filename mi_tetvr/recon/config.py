@@ -59,8 +59,11 @@ class FitConfig:
     # Coarse-to-fine: a list of stages run one after the other, each
     # {"iterations": N, "lr_position": x (0: colors and opacities only),
     #  "split": fraction of vertices to refine after the stage,
-    #  "prune": opacity threshold (optical depth per cell) to drop empty tets after it}.
-    # None: one stage of ``iterations`` steps with ``lr_position``.
+    #  "prune": opacity threshold (optical depth per cell) to drop empty tets after it,
+    #  "grid": resolution of a regular grid the stage trains on (``init`` grid only): the
+    #          previous stage's field is sampled onto it; the first stage's sets the start}.
+    # None: one stage of ``iterations`` steps with ``lr_position``; with a time budget and
+    # no resolution, a coarse grid and then the fine one (see mi_tetvr.recon.pipeline).
     stages: list | None = None
     target_tets: int | None = None     # no more splits once the mesh has this many tets
     select: str = "gradient"           # refinement criterion: gradient | color | opacity
@@ -102,11 +105,18 @@ class FitConfig:
             raise ValueError("background must be three linear RGB values")
         if self.select not in ("gradient", "color", "opacity"):
             raise ValueError(f"select must be gradient, color or opacity, got {self.select!r}")
-        for st in self.stage_list():
-            bad = sorted(set(st) - {"iterations", "lr_position", "split", "prune"})
+        for i, st in enumerate(self.stage_list()):
+            if i and st["grid"] is not None and any(
+                    p["split"] or p["prune"] is not None or p["lr_position"]
+                    for p in self.stage_list()[:i]):
+                raise ValueError("a stage with 'grid' must follow stages that keep the grid "
+                                 "(no split, prune or lr_position)")
+            bad = sorted(set(st) - {"iterations", "lr_position", "split", "prune", "grid"})
             if bad:
                 raise ValueError(f"unknown stage settings {bad}: use iterations, lr_position, "
-                                 f"split, prune")
+                                 f"split, prune, grid")
+            if st.get("grid") is not None and (self.init != "grid" or int(st["grid"]) < 1):
+                raise ValueError(f"bad stage {st}: 'grid' needs init 'grid' and a resolution >= 1")
             if int(st.get("iterations", 0)) < 0 or not 0 <= st.get("split", 0) <= 1:
                 raise ValueError(f"bad stage {st}: iterations >= 0, split in [0, 1]")
 
@@ -116,9 +126,9 @@ class FitConfig:
         return [{"iterations": int(st.get("iterations", 0)),
                  "lr_position": float(st.get("lr_position", 0.0)),
                  "split": float(st.get("split", 0.0)),
-                 "prune": st.get("prune", None), **{k: v for k, v in st.items() if k not in
-                                                    ("iterations", "lr_position", "split",
-                                                     "prune")}}
+                 "prune": st.get("prune", None), "grid": st.get("grid", None),
+                 **{k: v for k, v in st.items()
+                    if k not in ("iterations", "lr_position", "split", "prune", "grid")}}
                 for st in raw]
 
     def for_stage(self, i):

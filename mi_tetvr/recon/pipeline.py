@@ -27,7 +27,9 @@ from mi_tetvr.recon.plots import plot_history, save_comparison
 from mi_tetvr.recon.trainer import RunState, Trainer
 
 __all__ = ["run", "next_stage", "write_outputs", "evaluate_mesh", "initial_mesh", "data_bounds",
-           "calibrate", "resolution_for_budget", "DEFAULT_RESOLUTION", "BUDGET_STEPS"]
+           "calibrate", "resolution_for_budget", "budget_stages", "DEFAULT_RESOLUTION",
+           "BUDGET_STEPS", "COARSE_SHARE", "PIXELS_PER_VERTEX",
+           "resolution_limits"]
 
 
 #: Grid resolution without a time budget.
@@ -38,11 +40,21 @@ DEFAULT_RESOLUTION = 32
 #: engine CT with a 2-minute budget: planning 1,000 steps of 4 views picked a
 #: 12-cell grid, 23.6 dB; of 2 views a 54-cell grid, 32.5 dB.)
 BUDGET_STEPS = 500
+#: A time-budgeted run without a set resolution trains a grid of half the
+#: chosen resolution for this share of its steps, then the chosen grid starting
+#: from the coarse one's field (:func:`budget_stages`). (Measured on C60 with a
+#: 10-minute budget: ...)
+COARSE_SHARE = 0.25
 #: The two grid resolutions whose step times are measured, and the range the
 #: chosen resolution is kept in (the upper end also at most the image width
 #: over 1.5: finer cells than pixels see nothing more).
 CALIBRATION = (12, 20)
 RESOLUTION_RANGE = (12, 96)
+#: Training pixels per grid vertex at least. A grid with more unknowns than
+#: the views pin down matches the training views and not the others (C60, 48
+#: views of 128x128 and a 629k-vertex grid: 41.4 dB on training views, 39.1 dB
+#: held out, below a pre-shaded grid of that size).
+PIXELS_PER_VERTEX = 4
 
 
 def initial_mesh(config: FitConfig, dataset):
@@ -60,7 +72,7 @@ def initial_mesh(config: FitConfig, dataset):
             raise ValueError("init 'delaunay' needs sparse points (a COLMAP data set)")
         return initmesh.delaunay_init(dataset.points)
     bounds = data_bounds(config, dataset)
-    resolution = config.resolution or DEFAULT_RESOLUTION
+    resolution = config.stage_list()[0]["grid"] or config.resolution or DEFAULT_RESOLUTION
     if init == "grid":
         return initmesh.grid_init(bounds, resolution)
     edge = float(np.max(bounds[1] - bounds[0])) / resolution
@@ -118,13 +130,39 @@ def calibrate(config: FitConfig, dataset, seconds, log=print):
         for _ in range(3):
             trainer.step()
         measured.append((r, (time.perf_counter() - t0) / 3))
-    width = max(max(v.camera.width, v.camera.height) for v in dataset.train)
-    limits = (RESOLUTION_RANGE[0], max(RESOLUTION_RANGE[0], min(RESOLUTION_RANGE[1],
-                                                                 int(width / 1.5))))
-    r = resolution_for_budget(seconds, measured, limits=limits)
+    r = resolution_for_budget(seconds, measured, limits=resolution_limits(config, dataset))
     log("step time " + ", ".join(f"{t:.3f} s at grid {q}" for q, t in measured)
         + f": grid {r} for {seconds / 60:.1f} min of steps")
     return r
+
+
+def resolution_limits(config: FitConfig, dataset):
+    """The range of grid resolutions a time budget may choose from:
+    :data:`RESOLUTION_RANGE`, at most the training images' width over 1.5
+    (finer cells than pixels see nothing more) and at most
+    :data:`PIXELS_PER_VERTEX` training pixels per vertex."""
+    from mi_tetvr.mesh.initial import grid_shape
+    width = max(max(v.camera.width, v.camera.height) for v in dataset.train)
+    pixels = sum(v.camera.width * v.camera.height for v in dataset.train)
+    bounds = data_bounds(config, dataset)
+    top = min(RESOLUTION_RANGE[1], int(width / 1.5))
+    while top > RESOLUTION_RANGE[0] and \
+            np.prod(np.add(grid_shape(bounds, top), 1)) * PIXELS_PER_VERTEX > pixels:
+        top -= 1
+    return RESOLUTION_RANGE[0], max(RESOLUTION_RANGE[0], top)
+
+
+def budget_stages(config: FitConfig, resolution):
+    """The stages of a time-budgeted run on a grid of ``resolution``: a grid of
+    half that resolution for :data:`COARSE_SHARE` of the time, then the full
+    one (one stage when the half would be below the smallest calibrated grid).
+    The iterations are time weights."""
+    coarse = resolution // 2
+    if coarse < CALIBRATION[0]:
+        return [{"iterations": config.iterations, "grid": resolution}]
+    first = max(1, round(COARSE_SHARE * config.iterations))
+    return [{"iterations": first, "grid": coarse},
+            {"iterations": max(1, config.iterations - first), "grid": resolution}]
 
 
 def output_seconds(trainer: Trainer):
@@ -137,17 +175,18 @@ def output_seconds(trainer: Trainer):
 
 
 class _Clock:
-    """Where a time-budgeted run stands: the optimization ends at
-    ``deadline``; each stage gets the share of what is left that its
-    ``iterations`` weigh among the stages still to run."""
+    """Where a time-budgeted run stands: the run ends at ``end``, the
+    optimization ``reserve`` seconds earlier (the outputs of the stage's mesh,
+    :func:`output_seconds`); each stage gets the share of what is left that
+    its ``iterations`` weigh among the stages still to run."""
 
-    def __init__(self, deadline, weights):
-        self.deadline, self.weights = deadline, weights
+    def __init__(self, end, weights):
+        self.end, self.weights = end, weights
         self.stage_begin = self.stage_end = None
 
-    def begin_stage(self, stage):
+    def begin_stage(self, stage, reserve):
         now = time.perf_counter()
-        left = max(self.deadline - now, 0.0)
+        left = max(self.end - reserve - now, 0.0)
         share = self.weights[stage] / max(sum(self.weights[stage:]), 1e-9)
         self.stage_begin, self.stage_end = now, now + left * share
 
@@ -177,9 +216,13 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.npz"
-    stages = config.stage_list()
     budget = None if config.time_budget is None else 60.0 * config.time_budget
     if resume and ckpt_path.exists():
+        if config.resolution is None and config.stages is None:
+            # the mesh sizes and stages the run chose when it began
+            saved = json.loads(str(np.load(ckpt_path)["config"]))
+            config = dataclasses.replace(config, resolution=saved["resolution"],
+                                         stages=saved["stages"])
         trainer = load_checkpoint(ckpt_path, dataset, config)
         log(f"resumed from {ckpt_path} at step {trainer.state.step} "
             f"(stage {trainer.state.stage + 1})")
@@ -189,17 +232,23 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
             if budget is not None:
                 resolution = calibrate(config, dataset, 0.85 * budget, log)
             config = dataclasses.replace(config, resolution=resolution)
+            if budget is not None and config.init == "grid" and config.stages is None:
+                config = config.updated(stages=budget_stages(config, resolution))
+                log("stages: " + " -> ".join(f"grid {st['grid']}" for st in config.stages))
         vertices, tets = initial_mesh(config, dataset)
         log(format_summary(geometry_summary(vertices, build_topology(vertices, tets, warn=False))))
         trainer = Trainer(dataset, vertices, tets, config.for_stage(0))
     (out / "config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2))
+    stages = config.stage_list()
 
     clock = None
     if budget is not None:
-        deadline = t_start + budget - trainer.state.elapsed - output_seconds(trainer)
-        clock = _Clock(deadline, [max(st["iterations"], 1) for st in stages])
-        clock.begin_stage(trainer.state.stage)
-        bar = tqdm(total=round(max(deadline - time.perf_counter(), 0.0)), disable=not progress,
+        clock = _Clock(t_start + budget - trainer.state.elapsed,
+                       [max(st["iterations"], 1) for st in stages])
+        reserve = output_seconds(trainer)
+        clock.begin_stage(trainer.state.stage, reserve)
+        bar = tqdm(total=round(max(clock.end - reserve - time.perf_counter(), 0.0)),
+                   disable=not progress,
                    unit="s", dynamic_ncols=True,
                    bar_format="{l_bar}{bar}| {n:.0f}/{total} s [{elapsed}{postfix}]")
     else:
@@ -241,7 +290,7 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
                 break
             trainer = next_stage(trainer, config, log)
             if clock:
-                clock.begin_stage(trainer.state.stage)
+                clock.begin_stage(trainer.state.stage, output_seconds(trainer))
             save_checkpoint(trainer, ckpt_path)
     except KeyboardInterrupt:
         interrupted = True
@@ -267,8 +316,21 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
     over (new vertices start from their edge's midpoint values). Returns the
     next stage's trainer."""
     from mi_tetvr.mesh.refine import prune_empty, select_top_fraction, split_vertices
-    stage = config.stage_list()[trainer.state.stage]
+    stages = config.stage_list()
+    stage = stages[trainer.state.stage]
     vertices, tets, color, opacity = trainer.arrays()
+    state = dataclasses.replace(trainer.state, stage=trainer.state.stage + 1,
+                                stage_start=trainer.state.step)
+    grid = stages[state.stage]["grid"]
+    if grid is not None:
+        from mi_tetvr.mesh.initial import grid_init, grid_sample
+        bounds = data_bounds(config, trainer.dataset)
+        current = stage["grid"] or config.resolution
+        vertices, tets = grid_init(bounds, grid)
+        color, opacity = (grid_sample(bounds, current, a, vertices) for a in (color, opacity))
+        log(f"grid {current} -> {grid}: {len(tets):,} tets")
+        return Trainer(trainer.dataset, vertices, tets, config.for_stage(state.stage), color,
+                       opacity, state=state)
     moments = trainer.opt.moments()
     data = {"color": color, "opacity": opacity}
     for k, (_, m, v) in moments.items():
@@ -289,8 +351,6 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
         vertices, tets, data = res.vertices, res.tets, res.point_data
     # build_topology may re-orient tets but keeps the vertex order: the
     # per-vertex moments carry over directly.
-    state = dataclasses.replace(trainer.state, stage=trainer.state.stage + 1,
-                                stage_start=trainer.state.step)
     new = Trainer(trainer.dataset, vertices, tets, config.for_stage(state.stage), data["color"],
                   data["opacity"], state=state)
     new.opt.set_moments({k: (t, data[f"{k}:m"], data[f"{k}:v"])

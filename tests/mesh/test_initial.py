@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mi_tetvr.mesh.initial import delaunay_init, grid_init, tetwild_init
+from mi_tetvr.mesh.initial import delaunay_init, grid_init, grid_sample, tetwild_init
 from mi_tetvr.mesh.topology import (MeshError, build_topology, format_summary, geometry_summary,
                            signed_volumes)
 
@@ -47,6 +47,45 @@ def test_grid_init_counts_and_coverage():
     assert np.isclose(vol.sum(), 0.005)
     with pytest.raises(ValueError):
         grid_init([[0, 0, 0], [1, 0, 1]], 4)
+
+
+def _barycentric_field(v, t, values, points):
+    """Reference: the P1 field of (v, t) at points, by solving for every
+    tet's barycentric coordinates in float64 and taking the containing tet."""
+    P = v[t]
+    T = np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]], -1)
+    out = []
+    for p in points:
+        lam = np.linalg.solve(T, (p - P[:, 0])[..., None])[..., 0]
+        bary = np.column_stack([1 - lam.sum(1), lam])
+        i = np.argmax(bary.min(1))
+        assert bary[i].min() > -1e-9
+        out.append(bary[i] @ values[t[i]])
+    return np.array(out)
+
+
+def test_grid_sample_is_the_meshs_linear_field():
+    b = np.array([[-1.0, 0.0, 2.0], [3.0, 1.0, 4.2]])
+    v, t = grid_init(b, 5)
+    rng = np.random.default_rng(0)
+    values = rng.uniform(size=(len(v), 3))
+    pts = b[0] + rng.uniform(size=(300, 3)) * (b[1] - b[0])
+    pts[:20] = v[rng.choice(len(v), 20)]                     # on vertices, edges of cells
+    np.testing.assert_allclose(grid_sample(b, 5, values, pts),
+                               _barycentric_field(v, t, values, pts), atol=1e-12)
+    # (n,) values give (p,) results; outside the box the nearest point's value
+    s = values[:, 0]
+    out = np.array([[-5.0, 0.5, 3.0], [10.0, 10.0, 10.0]])
+    np.testing.assert_allclose(grid_sample(b, 5, s, out),
+                               grid_sample(b, 5, s, np.clip(out, b[0], b[1])))
+    # a grid of twice the resolution nests the coarse one's tets: its sampled
+    # field is the coarse field everywhere
+    fine, _ = grid_init(b, 10)
+    fine_values = grid_sample(b, 5, s, fine)
+    np.testing.assert_allclose(grid_sample(b, 10, fine_values, pts), grid_sample(b, 5, s, pts),
+                               atol=1e-12)
+    with pytest.raises(ValueError, match="values for a grid"):
+        grid_sample(b, 6, s, pts)
 
 
 # ----------------------------------------------------------------------------- fTetWild

@@ -10,8 +10,9 @@ import mitsuba as mi
 
 from mi_tetvr.recon.datasets import load_nerf
 from mi_tetvr.recon.config import FitConfig, coarse_to_fine
-from mi_tetvr.recon.pipeline import (evaluate_mesh, initial_mesh, next_stage,
-                                     resolution_for_budget, run)
+from mi_tetvr.recon.pipeline import (PIXELS_PER_VERTEX, budget_stages, evaluate_mesh,
+                                     initial_mesh, next_stage, resolution_for_budget,
+                                     resolution_limits, run)
 from mi_tetvr.recon.trainer import Trainer
 from mi_tetvr.mesh.scenes import default_volume
 from mi_tetvr.transfer import read_transfer_function
@@ -152,6 +153,56 @@ def test_next_stage_prunes_splits_and_carries_state(data):
     for k in ("volume.vertex_color", "volume.vertex_opacity"):
         assert after[k][0] == before[k][0]                 # Adam's step count carried
         assert after[k][1].shape[0] == len(Vn)              # moments on the new vertices
+
+
+def test_grid_stage_samples_the_coarse_field(data):
+    """A stage on a finer grid starts from the previous grid's field: its
+    vertex values are the coarse mesh's linear field at its vertices, and it
+    starts a fresh optimizer."""
+    from mi_tetvr.mesh.initial import grid_sample
+    cfg = CFG.updated(resolution=None, stages=[{"iterations": 2, "grid": 3},
+                                               {"iterations": 2, "grid": 6}])
+    V, T = initial_mesh(cfg, data)
+    trainer = Trainer(data, V, T, cfg.for_stage(0))
+    for _ in range(2):
+        trainer.step()
+    _, _, C, S = trainer.arrays()
+    nxt = next_stage(trainer, cfg, log=lambda *a: None)
+    Vn, Tn, Cn, Sn = nxt.arrays()
+    fine, fine_tets = initial_mesh(cfg.updated(stages=[{"grid": 6}]), data)
+    assert len(Tn) == len(fine_tets) == 8 * len(T) and nxt.state.stage == 1
+    np.testing.assert_allclose(Vn, fine, atol=1e-6)
+    bounds = np.stack([V.min(0), V.max(0)])
+    np.testing.assert_allclose(Cn, grid_sample(bounds, 3, C, Vn), atol=1e-6)
+    np.testing.assert_allclose(Sn, grid_sample(bounds, 3, S, Vn), rtol=1e-5, atol=1e-6)
+    assert all(t == 0 for t, _, _ in nxt.opt.moments().values())
+    with pytest.raises(ValueError, match="keep the grid"):
+        CFG.updated(stages=[{"iterations": 2, "split": 0.1}, {"iterations": 2, "grid": 6}])
+    with pytest.raises(ValueError, match="needs init 'grid'"):
+        CFG.updated(init="tetwild", stages=[{"grid": 6}])
+
+
+def test_budget_stages_and_resolution_limits(data):
+    """A budgeted run trains half the grid first, then the chosen one; the
+    chosen one has at most 1/PIXELS_PER_VERTEX vertices per training pixel."""
+    cfg = FitConfig(iterations=1000)
+    assert budget_stages(cfg, 60) == [{"iterations": 250, "grid": 30},
+                                      {"iterations": 750, "grid": 60}]
+    assert budget_stages(cfg, 20) == [{"iterations": 1000, "grid": 20}]
+    from types import SimpleNamespace as NS
+    views = [NS(camera=NS(width=100, height=100))] * 10
+    cube = CFG.updated(bounds=[[0, 0, 0], [1, 1, 1]])
+    # (r + 1)^3 vertices <= 10 * 100^2 / PIXELS_PER_VERTEX
+    r = int((10 * 100 ** 2 / PIXELS_PER_VERTEX) ** (1 / 3)) - 1
+    assert 12 < r < 100 / 1.5
+    assert resolution_limits(cube, NS(train=views)) == (12, r)
+    # a box half as deep has about half the vertices per resolution
+    slab = CFG.updated(bounds=[[0, 0, 0], [1, 1, 0.5]])
+    assert resolution_limits(slab, NS(train=views))[1] > r
+    # at most the image width over 1.5, at least the smallest grid
+    assert resolution_limits(cube, NS(train=[NS(camera=NS(width=30, height=30))] * 1000)) == \
+        (12, 20)
+    assert resolution_limits(cube, NS(train=views[:1])) == (12, 12)
 
 
 def test_time_budget_is_used_and_honoured(data, tmp_path):
