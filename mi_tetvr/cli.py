@@ -1,12 +1,12 @@
 """The ``mi-tetvr`` command line.
 
     mi-tetvr render SCENE.xml -o OUT.exr|.png [--spp N] [--res WxH] [--variant V]
-    mi-tetvr info MESH [--json]
+    mi-tetvr info MESH [--json] [--repair] [--cell-to-point]
     mi-tetvr make-scenes [DIR]
     mi-tetvr make-dataset VOLUME --tf TF --views N --res R --out DIR
     mi-tetvr fit DATA --out DIR [--config FILE.json] [--time-budget MIN] [...]
     mi-tetvr eval MESH DATA [--background R,G,B]
-    mi-tetvr refine MESH --select ATTRIBUTE --fraction F -o OUT
+    mi-tetvr refine MESH --select ATTRIBUTE [--rank magnitude|value] --fraction F -o OUT
 """
 from __future__ import annotations
 
@@ -56,25 +56,67 @@ def _write_render(path, rgb, alpha=None):
         raise SystemExit(f"mi-tetvr: unsupported image format '{suffix}' (use .exr or .png)")
 
 
+def scene_xml(path, res=None, shape_props=None):
+    """A Mitsuba XML scene as text, with every sensor's film set to ``res``
+    ``(width, height)`` (a film is added where a sensor has none) and
+    ``shape_props`` (name -> boolean) set on every ``tetmesh`` shape."""
+    import xml.etree.ElementTree as ET
+    root = ET.parse(path).getroot()
+
+    def put(parent, tag, name, value):
+        for el in parent.findall(tag):
+            if el.get("name") == name:
+                el.set("value", value)
+                return
+        ET.SubElement(parent, tag, name=name, value=value)
+
+    if res is not None:
+        sensors = root.iter("sensor")
+        for sensor in sensors:
+            film = sensor.find("film")
+            if film is None:
+                film = ET.SubElement(sensor, "film", type="hdrfilm")
+            put(film, "integer", "width", str(res[0]))
+            put(film, "integer", "height", str(res[1]))
+    for shape in root.iter("shape"):
+        if shape.get("type") == "tetmesh":
+            for name, value in (shape_props or {}).items():
+                put(shape, "boolean", name, "true" if value else "false")
+    return ET.tostring(root, encoding="unicode")
+
+
+def _plugin_error(e):
+    """The message of an error raised in a plugin's constructor: Mitsuba
+    passes on the Python traceback as text; its last line says what is wrong."""
+    text = str(e)
+    if "Traceback (most recent call last)" not in text:
+        return text
+    last = [line for line in text.splitlines() if line.strip()][-1]
+    name, _, message = last.partition(": ")
+    return f"{name.rsplit('.', 1)[-1]}: {message}" if message else last
+
+
 def cmd_render(a):
     mi = _set_variant(a.variant)
     scene_path = Path(a.scene)
     if not scene_path.exists():
         sys.exit(f"mi-tetvr: scene file not found: {scene_path}")
-    params = {}
+    res = None
     if a.res:
         try:
-            w, h = (int(x) for x in a.res.lower().split("x"))
+            res = tuple(int(x) for x in a.res.lower().split("x"))
+            if len(res) != 2 or min(res) < 1:
+                raise ValueError
         except ValueError:
             sys.exit(f"mi-tetvr: --res must look like 512x512, got '{a.res}'")
-        params.update(resx=w, resy=h)
     t0 = time.time()
     try:
-        scene = mi.load_file(str(scene_path), **params)
+        props = {k: True for k in ("repair", "cell_to_point") if getattr(a, k)}
+        text = scene_xml(scene_path, res, props)
+        mi.file_resolver().prepend(str(scene_path.resolve().parent))
+        scene = mi.load_string(text)
     except Exception as e:
-        sys.exit(f"mi-tetvr: cannot load {scene_path}: {e}")
-    if a.res and tuple(scene.sensors()[0].film().size()) != (w, h):
-        sys.exit("mi-tetvr: --res needs a scene whose film uses $resx/$resy defaults")
+        sys.exit(f"mi-tetvr: cannot load {scene_path}: {_plugin_error(e)}")
     t1 = time.time()
     img = np.array(mi.render(scene, spp=a.spp or 0))
     t2 = time.time()
@@ -86,19 +128,58 @@ def cmd_render(a):
           f"render {t2 - t1:.1f} s) -> {', '.join(a.output)}")
 
 
+def mesh_report(path, color="color", opacity="opacity", repair=False, cell_to_point=False):
+    """What ``info`` says of a mesh file: its summary, or when it cannot be
+    rendered, the problem (``problems``) and what ``--repair`` would drop
+    (``repair``). Raises only for a file that cannot be read at all."""
+    import warnings
+
+    from mi_tetvr.mesh.io import read_mesh_file, read_tetmesh, _tets_from_cells
+    from mi_tetvr.mesh.topology import MeshError, repair_tets
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        try:
+            mesh = read_tetmesh(path, color=color, opacity=opacity, repair=repair,
+                                cell_to_point=cell_to_point)
+            report = mesh.summary()
+        except MeshError as e:
+            raw = read_mesh_file(path)
+            try:
+                tets = _tets_from_cells(raw, path)
+            except MeshError:
+                raise e from None
+            keep, dropped = repair_tets(raw.points[:, :3], tets)
+            report = {"vertices": len(raw.points), "tets": len(tets),
+                      "problems": [str(e)],
+                      "repair": {"drops": int((~keep).sum()),
+                                 **{k: len(v) for k, v in dropped.items()
+                                    if k != "boundary_faces"},
+                                 "boundary_faces": dropped["boundary_faces"]}}
+    if said:
+        report["warnings"] = [str(w.message) for w in said]
+    return report
+
+
 def cmd_info(a):
-    from mi_tetvr.mesh.io import read_tetmesh
     try:
-        mesh = read_tetmesh(a.mesh, color=a.color, opacity=a.opacity)
-        s = mesh.summary()
+        s = mesh_report(a.mesh, a.color, a.opacity, a.repair, a.cell_to_point)
     except (ValueError, FileNotFoundError) as e:
+        if a.json:
+            print(json.dumps({"mesh": a.mesh, "error": str(e)}, indent=2))
+            sys.exit(1)
         sys.exit(f"mi-tetvr: {e}")
     if a.json:
         print(json.dumps(s, indent=2))
         return
     from mi_tetvr.mesh.topology import format_summary
     print(f"{a.mesh}")
-    print("\n".join("  " + line for line in format_summary(s).splitlines()))
+    arrays = s.pop("arrays", {})
+    notes = [f"{key[:-1]:<20} {text}" for key in ("problems", "warnings")
+             for text in s.pop(key, [])]
+    print("\n".join("  " + line for line in format_summary(s).splitlines() + notes))
+    for name, d in arrays.items():
+        rng = "" if d["range"] is None else f"  [{d['range'][0]:.6g}, {d['range'][1]:.6g}]"
+        print(f"  {d['kind']} array {name!r:<14} {tuple(d['shape'])}{rng}")
 
 
 def cmd_make_scenes(a):
@@ -108,9 +189,12 @@ def cmd_make_scenes(a):
 
 
 def _background(text):
-    """'white', 'black' or 'r,g,b' (linear) -> list, or None for RGBA fitting."""
+    """'white', 'black' or 'r,g,b' (linear) -> list, None for RGBA fitting,
+    'learn' for a learned environment."""
     if text is None or text == "none":
         return None
+    if text == "learn":
+        return text
     named = {"white": [1.0, 1.0, 1.0], "black": [0.0, 0.0, 0.0]}
     if text in named:
         return named[text]
@@ -119,7 +203,8 @@ def _background(text):
     except ValueError:
         vals = []
     if len(vals) != 3:
-        raise SystemExit(f"mi-tetvr: --background must be white, black, none or r,g,b; got {text!r}")
+        raise SystemExit(f"mi-tetvr: --background must be none, learn, white, black or r,g,b; "
+                         f"got {text!r}")
     return vals
 
 
@@ -166,6 +251,10 @@ def cmd_eval(a):
     _set_variant(a.variant)
     from mi_tetvr.recon.pipeline import evaluate_mesh
     data = _load_data(a.data, a.downscale, a.holdout)
+    if a.background == "learn":
+        sys.exit("mi-tetvr: eval scores the mesh over a constant background; a fit with a "
+                 "learned background scores itself (its metrics.json) and writes the "
+                 "background to background.exr")
     metrics = evaluate_mesh(a.mesh, data, background=_background(a.background),
                             split=a.split)
     for name, m in metrics["views"].items():
@@ -196,13 +285,21 @@ def cmd_refine(a):
     from mi_tetvr.mesh.io import read_tetmesh, write_tetmesh
     from mi_tetvr.mesh.refine import refine_mesh
     try:
-        mesh = read_tetmesh(a.mesh)
-        out = refine_mesh(mesh, a.select, a.fraction)
+        mesh = read_tetmesh(a.mesh, repair=a.repair, cell_to_point=a.cell_to_point)
+        out = refine_mesh(mesh, a.select, a.fraction, rank=a.rank)
     except (ValueError, FileNotFoundError, KeyError) as e:
         sys.exit(f"mi-tetvr: {e}")
     write_tetmesh(a.output, out)
     print(f"{a.mesh}: {len(mesh.tets):,} tets, {len(mesh.vertices):,} vertices -> "
           f"{len(out.tets):,} tets, {len(out.vertices):,} vertices -> {a.output}")
+
+
+def _mesh_flags(parser):
+    """The flags of the commands that read a mesh file."""
+    parser.add_argument("--repair", action="store_true",
+                        help="drop folded, flat and duplicate tets (reported)")
+    parser.add_argument("--cell-to-point", action="store_true",
+                        help="average per-cell arrays onto the vertices")
 
 
 def main(argv=None):
@@ -213,14 +310,17 @@ def main(argv=None):
     r.add_argument("-o", "--output", action="append", required=True,
                    help="output image (.exr: linear RGBA; .png: sRGB); repeatable")
     r.add_argument("--spp", type=int, default=0, help="samples per pixel (default: the scene's)")
-    r.add_argument("--res", help="resolution WxH (the scene's film must use $resx/$resy)")
+    r.add_argument("--res", help="resolution WxH of every sensor's film (default: the scene's)")
+    _mesh_flags(r)
     r.add_argument("--variant", default="llvm_ad_rgb", help="llvm_ad_rgb (default) or cuda_ad_rgb")
     r.set_defaults(func=cmd_render)
     i = sub.add_parser("info", help="counts, bounds, boundary, quality and attributes of a mesh")
     i.add_argument("mesh")
     i.add_argument("--color", default="color", help="color point-data name")
     i.add_argument("--opacity", default="opacity", help="opacity point-data name")
-    i.add_argument("--json", action="store_true")
+    i.add_argument("--json", action="store_true", help="print the report as JSON (always, "
+                   "also for a mesh with problems)")
+    _mesh_flags(i)
     i.set_defaults(func=cmd_info)
     m = sub.add_parser("make-scenes", help="(re)generate the meshes of the bundled scenes")
     m.add_argument("dir", nargs="?", default=None)
@@ -252,7 +352,8 @@ def main(argv=None):
     f.add_argument("--iterations", type=int,
                    help="optimizer steps (default 1500; ignored with --time-budget)")
     f.add_argument("--time-budget", type=float,
-                   help="minutes for the whole run: mesh size and steps are fitted to it")
+                   help="minutes for this command, outputs included: mesh size and steps "
+                   "are fitted to it (resuming a run gives it the budget again)")
     f.add_argument("--views-per-step", type=int)
     f.add_argument("--lr-color", type=float)
     f.add_argument("--lr-opacity", type=float, help="optical depth per cell and step")
@@ -261,7 +362,9 @@ def main(argv=None):
     f.add_argument("--loss", choices=["l1", "l2"])
     f.add_argument("--loss-space", choices=["linear", "srgb"],
                    help="compare linear RGB or the sRGB pictures the metrics score")
-    f.add_argument("--background", help="none (fit RGBA, default), white, black or r,g,b")
+    f.add_argument("--background", help="none (fit RGBA, default), learn (an environment map "
+                   "fitted with the volume: photos of a scene in its surroundings), white, "
+                   "black or r,g,b (linear)")
     f.add_argument("--freeze-boundary", action=argparse.BooleanOptionalAction, default=None)
     f.add_argument("--downscale", type=int, help="shrink images by this factor")
     f.add_argument("--holdout", type=int, default=8,
@@ -284,9 +387,14 @@ def main(argv=None):
     rf = sub.add_parser("refine", help="split the edges around the top vertices of a "
                         "point-data array")
     rf.add_argument("mesh")
-    rf.add_argument("--select", required=True, help="point-data array to rank vertices by")
+    rf.add_argument("--select", required=True, help="point-data array to rank vertices by "
+                    "(or color, opacity)")
+    rf.add_argument("--rank", choices=["magnitude", "value"], default="magnitude",
+                    help="magnitude (default): largest absolute values (vector norms) first, "
+                    "negative as much as positive; value: highest signed values first")
     rf.add_argument("--fraction", type=float, default=0.05, help="top fraction (default 0.05)")
     rf.add_argument("-o", "--output", required=True)
+    _mesh_flags(rf)
     rf.set_defaults(func=cmd_refine)
     a = p.parse_args(argv)
     a.func(a)

@@ -4,7 +4,8 @@
 
  * - filename
    - |string|
-   - Mesh file in any volume format meshio reads (.vtu, .vtk, .msh, .mesh, ...).
+   - Mesh file in any volume format meshio reads (.vtu, .vtk, .msh, .mesh, ...);
+     VTK reads the VTK formats meshio cannot.
  * - vertices, tets, color, opacity
    - |tensor|
    - Alternatively the arrays themselves: (n, 3) positions, (m, 4) indices,
@@ -30,12 +31,23 @@
  * - opacity_scale
    - |float|
    - Multiplies the transfer function's opacity. (Default: 1)
+ * - cell_to_point
+   - |bool|
+   - Average per-cell arrays onto the vertices, so that a cell array can be
+     the ``scalar_attribute`` or color. (Default: false)
+ * - repair
+   - |bool|
+   - Drop folded, flat and duplicate tets (a warning says which and what it
+     did to the boundary) instead of refusing the mesh. (Default: false)
  * - to_world
    - |transform|
    - Applied to the vertex positions at load. Opacity stays per unit length
      of world space. (Default: identity)
 
 Missing color defaults to white (1, 1, 1), missing opacity to 1 per unit length.
+``scalar_attribute``, ``value_min``/``value_max`` and ``opacity_scale``
+without a ``transfer_function``, or one of ``value_min``/``value_max``
+without the other, are errors.
 
 Differentiable parameters (``mi.traverse``): ``vertex_positions`` (3n),
 ``vertex_color`` (3n) and ``vertex_opacity`` (n). After changing them,
@@ -69,6 +81,9 @@ def mesh_from_properties(props) -> TetMesh:
         path = str(fs.resolve(props["filename"]))
         vmin = props.get("value_min", None)
         vmax = props.get("value_max", None)
+        if (vmin is None) != (vmax is None):
+            raise ValueError("tetmesh: give both value_min and value_max (or neither: the "
+                             "scalar field's range)")
         mesh = read_tetmesh(
             path,
             color=props.get("color_attribute", "color"),
@@ -78,6 +93,8 @@ def mesh_from_properties(props) -> TetMesh:
                                if "transfer_function" in props else None),
             value_range=None if vmin is None or vmax is None else (float(vmin), float(vmax)),
             opacity_scale=float(props.get("opacity_scale", 1.0)),
+            cell_to_point=bool(props.get("cell_to_point", False)),
+            repair=bool(props.get("repair", False)),
         )
     elif "vertices" in props and "tets" in props:
         opacity = _tensor(props, "opacity")

@@ -38,7 +38,8 @@ records nothing (see :mod:`mi_tetvr.render.walk`); the silhouette of the mesh
 
 The pixel value is ``C + T * background`` where ``C`` is the accumulated
 emission, ``T`` the transmittance and ``background`` the scene's environment
-emitter (black without one). The scene must contain only ``tetmesh`` shapes.
+emitter (black without one); the environment's parameters (an ``envmap``'s
+``data``) are differentiable too. The scene must contain only ``tetmesh`` shapes.
 ``sample()`` keeps the ``RBIntegrator`` contract and can be called on any rays.
 
 .. code-block:: python
@@ -144,10 +145,20 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
             adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(δL), δalpha)
         else:
             adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(0.0), mi.Float(0.0))
+        # The background term T * env(d): its derivative w.r.t. the
+        # environment's parameters (e.g. a learned envmap's texels), taken
+        # before the walk's forward mode consumes the input tangents.
+        with dr.resume_grad():
+            seen = mi.Float(T_fin) * self.background(scene, ray.d, active)
+            if mode == dr.ADMode.Backward and dr.grad_enabled(seen):
+                dr.backward_from(seen * mi.Color3f(δL))
+            d_seen = dr.forward_to(seen, flags=dr.ADFlag.ClearEdges) \
+                if mode == dr.ADMode.Forward and dr.grad_enabled(seen) else 0.0
         _, _, _, adj = trace(mode, scene, ts.detached(), ray, settings, active, adj, ts_ad=ts)
         if mode == dr.ADMode.Backward:
             return mi.Color3f(0.0), mi.Bool(True), [], None
-        return adj.dL, mi.Bool(True), [adj.dalpha] if self.alpha else [], None
+        dL = adj.dL + d_seen
+        return dL, mi.Bool(True), [adj.dalpha] if self.alpha else [], None
 
     def to_string(self):
         s = self.settings

@@ -101,3 +101,44 @@ def test_refine_command(tmp_path):
     assert len(out.tets) > len(T) and len(out.vertices) > len(V)
     r = run("refine", str(src), "--select", "nope", "-o", str(tmp_path / "x.vtu"))
     assert r.returncode != 0 and "nope" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_info_reports_problems_arrays_and_always_prints_json(tmp_path):
+    import meshio
+    from tests.mesh.test_io import folded_grid
+    v, t = folded_grid()
+    p = tmp_path / "folded.vtu"
+    meshio.write(p, meshio.Mesh(v, [("tetra", t)], cell_data={"stress": [np.arange(len(t))]}))
+    r = run("info", str(p), "--json")
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)
+    assert "folds over itself" in s["problems"][0] and "--repair" in s["problems"][0]
+    assert s["repair"]["folded"] == 2 and s["repair"]["drops"] == 2
+    r = run("info", str(p), "--repair", "--cell-to-point", "--json")
+    s = json.loads(r.stdout)
+    assert s["tets"] == len(t) - 2 and "repair dropped 2" in s["warnings"][0]
+    assert s["arrays"]["stress"]["kind"] == "point"
+    r = run("info", str(p), "--repair")
+    assert r.returncode == 0 and "cell array 'stress'" in r.stdout
+    r = run("info", str(tmp_path / "none.vtu"), "--json")
+    assert r.returncode == 1 and "not found" in json.loads(r.stdout)["error"]
+
+
+def test_render_res_on_a_fixed_film_and_repair(tmp_path):
+    """--res on a scene whose film has literal sizes; a folded mesh is refused
+    with the flag that loads it, and renders with that flag."""
+    import meshio
+    from tests.mesh.test_io import folded_grid
+    v, t = folded_grid()
+    meshio.write(tmp_path / "folded.vtu", meshio.Mesh(v, [("tetra", t)]))
+    text = (ROOT / "scenes" / "default.xml").read_text()
+    text = text.replace("$resx", "64").replace("$resy", "48")
+    text = text.replace("meshes/blob.vtu", "folded.vtu")
+    (tmp_path / "scene.xml").write_text(text)
+    out = tmp_path / "x.exr"
+    r = run("render", str(tmp_path / "scene.xml"), "-o", str(out), "--res", "24x16", "--spp", "1")
+    assert r.returncode != 0 and "--repair" in r.stderr and "Traceback" not in r.stderr
+    r = run("render", str(tmp_path / "scene.xml"), "-o", str(out), "--res", "24x16", "--spp",
+            "1", "--repair")
+    assert r.returncode == 0, r.stderr
+    assert np.array(mi.Bitmap(str(out))).shape == (16, 24, 4)

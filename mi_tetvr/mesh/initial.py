@@ -26,8 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_tetvr.mesh.generate import grid_mesh
-from mi_tetvr.mesh.topology import (FLAT_TOLERANCE, MeshError, bbox_diagonal, check_bounds,
-                                    orient_tets, signed_volumes)
+from mi_tetvr.mesh.topology import FLAT_TOLERANCE, MeshError, check_bounds, orient_tets
 
 __all__ = ["grid_init", "grid_shape", "grid_sample", "tetwild_init", "delaunay_init", "box_surface",
            "remove_outliers",
@@ -44,9 +43,8 @@ def orient_and_compact(vertices, tets, flat_tol=None):
     vertices : (n, 3) float
     tets : (m, 4) int
     flat_tol : float, optional
-        Tets with ``|volume| <= flat_tol * diag**3`` are removed, ``diag``
-        being the bounding-box diagonal of the referenced vertices. ``None``
-        keeps every tet.
+        Tets flat by this tolerance (:func:`~mi_tetvr.mesh.orient_tets`) are
+        removed. ``None`` keeps every tet.
 
     Returns
     -------
@@ -60,7 +58,7 @@ def orient_and_compact(vertices, tets, flat_tol=None):
     if flat_tol is None:
         t = orient_tets(v, t, 0.0).tets
     else:
-        oriented = orient_tets(v, t, flat_tol, diagonal=bbox_diagonal(v[np.unique(t)]))
+        oriented = orient_tets(v, t, flat_tol)
         t = oriented.tets[~oriented.flat]
     used, inv = np.unique(t, return_inverse=True)
     return v[used].copy(), inv.reshape(-1, 4).astype(np.int64)
@@ -304,7 +302,7 @@ def remove_outliers(points, outlier_std: float = 2.0, k_neighbors: int = 8):
 
 def delaunay_init(points, outlier_std: float | None = 2.0, k_neighbors: int = 8,
                   min_points: int = 20, padding: float | None = None,
-                  flat_tol: float = 1e-11, joggle: float = 1e-4, seed: int = 0):
+                  flat_tol: float = FLAT_TOLERANCE, joggle: float = 1e-4, seed: int = 0):
     """Delaunay tetrahedralization of sparse points (e.g. a COLMAP cloud).
 
     Parameters
@@ -323,9 +321,8 @@ def delaunay_init(points, outlier_std: float | None = 2.0, k_neighbors: int = 8,
         ``padding`` times its extent on every side, are added so that the
         hull covers the whole region.
     flat_tol : float
-        A tet is flat when ``|volume| <= flat_tol * diag**3`` (``diag``:
-        bounding-box diagonal). Default: 10 x
-        :data:`mi_tetvr.mesh.FLAT_TOLERANCE`.
+        A tet is flat when ``|volume| <= flat_tol * l**3``, ``l`` its longest
+        edge (:func:`~mi_tetvr.mesh.orient_tets`).
     joggle : float
         Delaunay of coplanar / cospherical points (lattices, box corners)
         yields flat tets. Simply deleting an interior flat tet would leave
@@ -369,8 +366,6 @@ def delaunay_init(points, outlier_std: float | None = 2.0, k_neighbors: int = 8,
         p = np.unique(np.concatenate([p, corners]), axis=0)
     if len(p) < 4:
         raise MeshError(f"Delaunay needs at least 4 points, {len(p)} remain")
-    diag = float(np.linalg.norm(np.ptp(p, axis=0)))
-    tol = flat_tol * diag ** 3
     rng = np.random.default_rng(seed)
     nn = None
     for attempt in range(5):
@@ -379,7 +374,7 @@ def delaunay_init(points, outlier_std: float | None = 2.0, k_neighbors: int = 8,
         except QhullError as e:
             raise MeshError(f"Delaunay failed (points coplanar or degenerate?): {e}") from e
         t = tri.simplices.astype(np.int64)
-        flat = np.abs(signed_volumes(p, t)) <= tol
+        flat = orient_tets(p, t, flat_tol).flat
         if not flat.any() or attempt == 4:
             break
         if nn is None:

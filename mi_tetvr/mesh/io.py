@@ -1,13 +1,24 @@
-"""Reading and writing tetrahedral meshes with meshio (.vtu, .vtk, .msh, .mesh, ...).
+"""Reading and writing tetrahedral meshes: meshio (.vtu, .vtk, .msh, .mesh,
+...), with VTK (through pyvista) reading every VTK format meshio cannot
+(legacy files with sections meshio misparses, string arrays, ...).
 
 Per-vertex point data ``color`` (n, 3, linear RGB) and ``opacity`` (n,
 extinction per unit length in the mesh's units) are read by default; other
 names are selectable. A mesh with only a scalar field can be pre-shaded at
 load with a :class:`~mi_tetvr.transfer.TransferFunction`. Missing attributes
 get :data:`~mi_tetvr.mesh.DEFAULT_COLOR` and :data:`~mi_tetvr.mesh.DEFAULT_OPACITY`.
+Per-cell arrays are kept as cell data, or averaged onto the vertices on
+request (``cell_to_point``); meshes with folded or degenerate tets load with
+``repair`` (:func:`~mi_tetvr.mesh.topology.repair_tets`).
+
+Errors are exceptions (:class:`~mi_tetvr.mesh.topology.MeshError` for a file
+that cannot be read as a tet mesh), never an exit.
 """
 from __future__ import annotations
 
+import contextlib
+import io
+import logging
 import warnings
 from pathlib import Path
 
@@ -15,9 +26,13 @@ import meshio
 import numpy as np
 
 from mi_tetvr.mesh.tetmesh import TetMesh
-from mi_tetvr.mesh.topology import MeshError
+from mi_tetvr.mesh.topology import MeshError, _preview, repair_tets
 from mi_tetvr.transfer import TransferFunction, read_transfer_function
 
+__all__ = ["read_tetmesh", "write_tetmesh", "read_mesh_file", "cell_to_point_data"]
+
+#: Suffixes that VTK reads when meshio cannot.
+_VTK_SUFFIXES = {".vtk", ".vtu", ".pvtu", ".vtkhdf", ".hdf", ".vtm"}
 #: meshio cell types that are volume cells but not linear tets.
 _OTHER_VOLUME_CELLS = {"hexahedron", "hexahedron20", "hexahedron27", "wedge", "wedge15",
                        "pyramid", "pyramid13", "polyhedron"}
@@ -46,9 +61,114 @@ def _tets_from_cells(mesh: meshio.Mesh, path) -> np.ndarray:
     return np.concatenate(tets).astype(np.int64)
 
 
+def _read_meshio(path) -> meshio.Mesh:
+    """meshio's reading; what it printed becomes the error's reason (meshio
+    exits with ``SystemExit`` on files it cannot parse)."""
+    said = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+            return meshio.read(path)
+    except (Exception, SystemExit) as e:
+        text = " ".join(said.getvalue().split())
+        raise MeshError(text or f"{type(e).__name__}: {e}") from None
+
+
+class _Quiet(logging.Filter):
+    """Drops the log records pyvista makes of VTK's errors (they become the
+    exception's message instead)."""
+
+    def filter(self, record):
+        return False
+
+
+def _read_vtk(path) -> meshio.Mesh:
+    """VTK's reading (any VTK format), as a meshio mesh."""
+    import pyvista as pv
+    quiet, root = _Quiet(), logging.getLogger()
+    root.addFilter(quiet)
+    try:
+        with pv.vtk_verbosity("off"), pv.VtkErrorCatcher() as caught:
+            try:
+                data = pv.read(path)
+            except Exception as e:
+                reasons = [ev.alert.strip() for ev in caught.events][:1] or [str(e)]
+                raise MeshError("; ".join(reasons)) from None
+    finally:
+        root.removeFilter(quiet)
+    if isinstance(data, pv.MultiBlock):
+        data = data.combine()
+    if data is None or data.n_cells == 0:
+        raise MeshError("no cells")
+    return pv.to_meshio(data.cast_to_unstructured_grid())
+
+
+def read_mesh_file(path) -> meshio.Mesh:
+    """A mesh file as meshio holds it: meshio first, VTK for the VTK formats
+    meshio fails on. Raises :class:`MeshError` with both reasons when
+    neither reads it, ``FileNotFoundError`` when it does not exist."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    try:
+        return _read_meshio(path)
+    except MeshError as e:
+        first = f"meshio: {e}"
+    if path.suffix.lower() not in _VTK_SUFFIXES:
+        raise MeshError(f"{path}: cannot read mesh ({first})")
+    try:
+        return _read_vtk(path)
+    except MeshError as e:
+        raise MeshError(f"{path}: cannot read mesh ({first}; VTK: {e})") from None
+
+
+def _numeric(arrays, where, path):
+    """The numeric arrays of a dict; the others (strings) are dropped with a warning."""
+    out, dropped = {}, []
+    for k, a in arrays.items():
+        a = np.asarray(a)
+        if np.issubdtype(a.dtype, np.number) or a.dtype == bool:
+            out[k] = a
+        else:
+            dropped.append(k)
+    if dropped:
+        warnings.warn(f"{path}: non-numeric {where} arrays {dropped} ignored", stacklevel=3)
+    return out
+
+
+def _tet_cell_data(mesh: meshio.Mesh, path):
+    """Cell arrays restricted to the tet blocks, in the order of the tets."""
+    keep = [i for i, b in enumerate(mesh.cells)
+            if b.type == "tetra" or b.type in _QUADRATIC_TETS]
+    out = {}
+    for k, blocks in mesh.cell_data.items():
+        parts = [np.asarray(blocks[i]) for i in keep]
+        if parts and all(p.shape[1:] == parts[0].shape[1:] for p in parts):
+            out[k] = np.concatenate(parts)
+    return _numeric(out, "cell", path)
+
+
+def cell_to_point_data(vertices, tets, cell_data):
+    """Per-tet arrays averaged onto the vertices (each vertex: the mean over
+    the tets around it), as VTK's ``vtkCellDataToPointData`` does (ParaView's
+    Cell Data to Point Data). Returns a dict of (n, ...) arrays."""
+    import pyvista as pv
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: np.asarray(tets)},
+                               np.asarray(vertices, np.float64))
+    for k, a in cell_data.items():
+        grid.cell_data[k] = np.asarray(a)
+    converted = grid.cell_data_to_point_data()
+    return {k: np.asarray(converted.point_data[k]) for k in cell_data}
+
+
+def _cell_hint(cell_data):
+    return (f"; cell arrays {sorted(cell_data)} become point arrays with cell_to_point"
+            if cell_data else "")
+
+
 def read_tetmesh(path, *, color: str = "color", opacity: str = "opacity",
                  scalar: str | None = None, transfer_function=None,
-                 value_range=None, opacity_scale: float = 1.0) -> TetMesh:
+                 value_range=None, opacity_scale: float = 1.0, cell_to_point: bool = False,
+                 repair: bool = False) -> TetMesh:
     """Read a tet mesh file.
 
     Parameters
@@ -66,16 +186,51 @@ def read_tetmesh(path, *, color: str = "color", opacity: str = "opacity",
         Scalar range mapped to [0, 1] (default: the field's min and max).
     opacity_scale : float
         Multiplies the transfer function's opacity (extinction per unit length).
+    cell_to_point : bool
+        Average every per-tet array onto the vertices (:func:`cell_to_point_data`),
+        so that it can be colored, shaded or selected like point data; a point
+        array of the same name wins. Default: cell arrays stay cell data.
+    repair : bool
+        Drop tets with a repeated vertex, duplicates, flat and folded tets
+        (:func:`~mi_tetvr.mesh.topology.repair_tets`), with a warning that
+        says which and what it did to the boundary. Default: such a mesh is
+        refused with an error naming the tets.
+
+    Raises
+    ------
+    FileNotFoundError
+    MeshError
+        A file neither meshio nor VTK reads (both reasons given), no tets,
+        cells that are not tets, an unknown or ambiguous array name.
     """
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"mesh file not found: {path}")
-    try:
-        mesh = meshio.read(path)
-    except Exception as e:  # meshio raises many types; name the file
-        raise MeshError(f"{path}: cannot read mesh ({type(e).__name__}: {e})") from e
+    if transfer_function is None:
+        unused = [n for n, v in (("scalar", scalar), ("value_range", value_range),
+                                 ("opacity_scale", None if opacity_scale == 1.0 else 1))
+                  if v is not None]
+        if unused:
+            raise ValueError(f"{', '.join(unused)} given but no transfer function to map "
+                             f"the scalar with: add one, or leave them out")
+    mesh = read_mesh_file(path)
     tets = _tets_from_cells(mesh, path)
-    pd = {k: np.asarray(v) for k, v in mesh.point_data.items()}
+    points = np.asarray(mesh.points, np.float64)[:, :3]
+    pd = _numeric({k: np.asarray(v) for k, v in mesh.point_data.items()}, "point", path)
+    cd = _tet_cell_data(mesh, path)
+    if repair:
+        keep, report = repair_tets(points, tets)
+        if not keep.all():
+            what = ", ".join(f"{len(report[k])} {k.replace('_', ' ')}" for k in
+                             ("folded", "flat", "duplicate", "repeated_vertex") if report[k])
+            b0, b1 = report["boundary_faces"]
+            warnings.warn(f"{path}: repair dropped {np.count_nonzero(~keep)} of {len(tets)} "
+                          f"tets ({what}; tets {_preview(np.flatnonzero(~keep))}); "
+                          f"boundary faces {b0} -> {b1}", stacklevel=2)
+            tets = tets[keep]
+            cd = {k: a[keep] for k, a in cd.items()}
+    if cell_to_point and cd:
+        converted = cell_to_point_data(points, tets, cd)
+        pd = {**converted, **pd}
+        cd = {}
     col = pd.pop(color, None)
     opa = pd.pop(opacity, None)
     if transfer_function is not None:
@@ -85,12 +240,12 @@ def read_tetmesh(path, *, color: str = "color", opacity: str = "opacity",
             cands = [k for k, v in pd.items() if v.ndim == 1 or v.shape[1:] == (1,)]
             if len(cands) != 1:
                 raise MeshError(f"{path}: choose the scalar field to shade "
-                                f"(scalar point arrays: {cands})")
+                                f"(scalar point arrays: {cands}{_cell_hint(cd)})")
             scalar = cands[0]
         if scalar not in pd:
             raise MeshError(f"{path}: no point-data array '{scalar}' "
-                            f"(available: {sorted(pd)})")
-        col, opa = tf.shade(pd[scalar].reshape(len(mesh.points)), value_range=value_range,
+                            f"(point arrays: {sorted(pd)}{_cell_hint(cd)})")
+        col, opa = tf.shade(pd[scalar].reshape(len(points)), value_range=value_range,
                             opacity_scale=opacity_scale)
     elif col is None and opa is None and pd:
         warnings.warn(f"{path}: no '{color}'/'{opacity}' point data; using default color "
@@ -98,7 +253,7 @@ def read_tetmesh(path, *, color: str = "color", opacity: str = "opacity",
                       "to shade one)", stacklevel=2)
     if col is not None and np.ndim(col) == 2 and np.shape(col)[1] == 4:
         col = np.asarray(col)[:, :3]
-    return TetMesh(mesh.points[:, :3], tets, col, opa, pd)
+    return TetMesh(points, tets, col, opa, pd, cd)
 
 
 def write_tetmesh(path, mesh: TetMesh, *, color: str = "color", opacity: str = "opacity"):
@@ -107,7 +262,8 @@ def write_tetmesh(path, mesh: TetMesh, *, color: str = "color", opacity: str = "
     pd = dict(mesh.point_data)
     pd[color] = np.asarray(mesh.color, dtype=np.float64)
     pd[opacity] = np.asarray(mesh.opacity, dtype=np.float64)
-    out = meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)], point_data=pd)
+    out = meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)], point_data=pd,
+                      cell_data={k: [np.asarray(a)] for k, a in mesh.cell_data.items()})
     path = Path(path)
     if path.suffix.lower() in _GEOMETRY_ONLY:
         warnings.warn(f"{path}: this format keeps only the geometry through meshio; "

@@ -449,12 +449,31 @@ def select_top_fraction(scores, fraction: float = 0.05) -> np.ndarray:
     return order[:k].astype(np.int64)
 
 
-def select_by_attribute(point_data, name: str, fraction: float = 0.05) -> np.ndarray:
-    """:func:`select_top_fraction` of the absolute values of ``point_data[name]``
-    (norm over trailing components)."""
+#: How :func:`select_by_attribute` ranks vertices.
+RANKS = ("magnitude", "value")
+
+
+def select_by_attribute(point_data, name: str, fraction: float = 0.05,
+                        rank: str = "magnitude") -> np.ndarray:
+    """The top ``fraction`` of vertices by ``point_data[name]``
+    (:func:`select_top_fraction`).
+
+    ``rank="magnitude"`` ranks by absolute value (the norm of a vector
+    array): large negative values count as much as large positive ones.
+    ``rank="value"`` ranks a scalar array by its signed value, highest first.
+    """
     if name not in point_data:
         raise KeyError(f"no point-data array '{name}' (available: {sorted(point_data)})")
-    return select_top_fraction(np.abs(np.asarray(point_data[name], dtype=np.float64)), fraction)
+    if rank not in RANKS:
+        raise ValueError(f"rank must be one of {RANKS}, got {rank!r}")
+    a = np.asarray(point_data[name], dtype=np.float64)
+    if rank == "magnitude":
+        return select_top_fraction(np.abs(a), fraction)
+    if a.ndim > 1 and a.shape[1:] != (1,):
+        raise ValueError(f"'{name}' has {a.shape[1:]} components per vertex: rank it by "
+                         f"magnitude")
+    a = a.reshape(len(a))
+    return select_top_fraction(a - a.min() if len(a) else a, fraction)
 
 
 # --------------------------------------------------------------------------- pruning
@@ -536,15 +555,16 @@ def _mesh_arrays(mesh: TetMesh):
 
 
 def refine_mesh(mesh: TetMesh, select: str, fraction: float = 0.05, *,
-                order: str = "longest") -> TetMesh:
-    """Refine around the top ``fraction`` of vertices by ``|mesh.point_data[select]|``
-    (``select`` may also be ``"color"`` or ``"opacity"``): every edge incident
+                order: str = "longest", rank: str = "magnitude") -> TetMesh:
+    """Refine around the top ``fraction`` of vertices by ``mesh.point_data[select]``
+    (``select`` may also be ``"color"`` or ``"opacity"``), ranked by magnitude
+    or by value (:func:`select_by_attribute`): every edge incident
     to a selected vertex is split at its midpoint (:func:`split_vertices`).
     Color, opacity and all point data are interpolated to the new vertices.
     Returns a new :class:`~mi_tetvr.mesh.TetMesh` (the input, copied, when
     nothing is selected)."""
     arrays = _mesh_arrays(mesh)
-    sel = select_by_attribute(arrays, select, fraction)
+    sel = select_by_attribute(arrays, select, fraction, rank)
     res = split_vertices(mesh.vertices, mesh.tets, sel, arrays, order=order)
     pd = dict(res.point_data)
     color, opacity = pd.pop("color"), pd.pop("opacity")

@@ -54,6 +54,10 @@ class TetMesh:
         Extinction per unit length (>= 0); default :data:`DEFAULT_OPACITY`.
     point_data : dict of str -> (n, ...) array, optional
         Other per-vertex arrays (kept for writing and for selection).
+    cell_data : dict of str -> (m, ...) array, optional
+        Per-tet arrays (listed and written; meshes derived by refinement drop
+        them; :func:`~mi_tetvr.mesh.io.read_tetmesh` converts them to point
+        data on request).
 
     Attributes
     ----------
@@ -63,6 +67,7 @@ class TetMesh:
     color : (n, 3) float64
     opacity : (n,) float64
     point_data : dict of str -> (n, ...) array
+    cell_data : dict of str -> (m, ...) array
 
     Notes
     -----
@@ -75,7 +80,8 @@ class TetMesh:
     :func:`~mi_tetvr.mesh.build_topology`.
     """
 
-    def __init__(self, vertices, tets, color=None, opacity=None, point_data=None):
+    def __init__(self, vertices, tets, color=None, opacity=None, point_data=None,
+                 cell_data=None):
         self._cache = {}
         self._vertices, self._tets = validate_arrays(vertices, tets)
         n = len(self._vertices)
@@ -83,6 +89,13 @@ class TetMesh:
         self.color = np.tile(np.asarray(DEFAULT_COLOR, float), (n, 1)) if color is None else color
         self.opacity = np.full(n, DEFAULT_OPACITY) if opacity is None else opacity
         self.point_data = dict(point_data or {})
+        self.cell_data = dict(cell_data or {})
+        for name, arrays, count in (("point", self.point_data, n),
+                                    ("cell", self.cell_data, len(self._tets))):
+            bad = {k: len(a) for k, a in arrays.items() if len(a) != count}
+            if bad:
+                raise ValueError(f"{name} data arrays {bad} do not have {count} entries "
+                                 f"(one per {'vertex' if name == 'point' else 'tet'})")
 
     # -- arrays ------------------------------------------------------------------
     @property
@@ -149,12 +162,18 @@ class TetMesh:
         """A copy with vertices mapped by a 4x4 affine matrix."""
         m = np.asarray(matrix, dtype=np.float64)
         v = self._vertices @ m[:3, :3].T + m[:3, 3]
-        return TetMesh(v, self._tets, self.color, self.opacity, self.point_data)
+        return TetMesh(v, self._tets, self.color, self.opacity, self.point_data, self.cell_data)
 
     def summary(self) -> dict:
         """:func:`~mi_tetvr.mesh.geometry_summary` plus the ranges of color and
-        opacity and the point-data arrays."""
+        opacity and the data arrays: ``arrays`` maps each name to its kind
+        (``point`` or ``cell``), shape and value range."""
+        def entry(kind, a):
+            a = np.asarray(a, np.float64)
+            return {"kind": kind, "shape": list(a.shape),
+                    "range": [float(np.nanmin(a)), float(np.nanmax(a))] if a.size else None}
         return {**geometry_summary(self._vertices, self.topology),
                 "color_range": [float(self.color.min()), float(self.color.max())],
                 "opacity_range": [float(self.opacity.min()), float(self.opacity.max())],
-                "point_data": {k: list(np.shape(v)) for k, v in self.point_data.items()}}
+                "arrays": {**{k: entry("point", a) for k, a in self.point_data.items()},
+                           **{k: entry("cell", a) for k, a in self.cell_data.items()}}}

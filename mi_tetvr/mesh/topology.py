@@ -33,10 +33,10 @@ import warnings
 
 import numpy as np
 
-__all__ = ["FACES", "EDGES", "FLAT_TOLERANCE", "MeshError", "Topology", "Orientation",
+__all__ = ["FACES", "EDGES", "FLAT_TOLERANCE", "SLIVER_QUALITY", "REPAIR_HINT", "MeshError", "Topology", "Orientation",
            "check_bounds", "signed_volumes", "bbox_diagonal", "flip_tets", "orient_tets", "face_keys",
            "edge_lengths", "mean_edge_length", "quality", "validate_arrays",
-           "validate_attributes", "build_topology", "geometry_summary", "format_summary"]
+           "validate_attributes", "build_topology", "repair_tets", "geometry_summary", "format_summary"]
 
 #: Local vertex indices of face i (opposite vertex i), outward-oriented.
 FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int64)
@@ -44,9 +44,23 @@ FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int64)
 #: Local vertex indices of the six edges of a tet: 01, 02, 03, 12, 13, 23.
 EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int64)
 
-#: Relative tolerance (of the bounding-box diagonal cubed) below which a tet
-#: counts as flat (zero volume).
-FLAT_TOLERANCE = 1e-12
+#: A tet counts as flat (zero volume) when its volume is at most this times
+#: its longest edge cubed: relative to its own size, so that the tiny tets of
+#: a graded mesh are not, while rounding noise (about 1e-16 times the
+#: coordinates' magnitude over the edge length) stays below it for tets up to
+#: 1e6 times smaller than their distance from the origin. (The regular tet
+#: has 0.118; a sliver of quality 1e-3 about 1e-4.)
+FLAT_TOLERANCE = 1e-9
+
+
+#: Tets of lower quality (:func:`quality`) that are not flat count as slivers
+#: in :func:`geometry_summary`: nearly flat, they render but make positions
+#: hard to optimize.
+SLIVER_QUALITY = 0.01
+
+#: How a refused mesh gets loaded: said by every refusal that repair fixes.
+REPAIR_HINT = ("drop them with repair (the tetmesh property repair=true, --repair on the "
+               "command line, or mi_tetvr.mesh.repair_tets)")
 
 
 class MeshError(ValueError):
@@ -91,8 +105,8 @@ def signed_volumes(vertices, tets):
 
 
 def bbox_diagonal(vertices) -> float:
-    """Length of the bounding-box diagonal of points, the length flatness
-    tolerances scale with (1 where it is zero or there are no points).
+    """Length of the bounding-box diagonal of points (1 where it is zero or
+    there are no points).
 
     Parameters
     ----------
@@ -149,24 +163,21 @@ class Orientation(typing.NamedTuple):
     flat: np.ndarray
 
 
-def orient_tets(vertices, tets, flat_tol=FLAT_TOLERANCE, *, diagonal=None) -> Orientation:
+def orient_tets(vertices, tets, flat_tol=FLAT_TOLERANCE) -> Orientation:
     """Orient tets positively by flipping the inverted ones.
 
-    A tet counts as flat when ``|volume| <= flat_tol * diagonal**3`` (or its
-    volume is NaN); flat tets keep their vertex order (the sign of their volume is rounding
-    noise), every other tet with a negative volume is flipped
-    (:func:`flip_tets`). ``flat_tol = 0`` flips every tet with a negative
-    volume and counts only exact zeros as flat.
+    A tet counts as flat when ``|volume| <= flat_tol * l**3``, ``l`` its
+    longest edge (or when its volume is NaN); flat tets keep their vertex
+    order (the sign of their volume is rounding noise), every other tet with
+    a negative volume is flipped (:func:`flip_tets`). ``flat_tol = 0`` flips
+    every tet with a negative volume and counts only exact zeros as flat.
 
     Parameters
     ----------
     vertices : (n, 3) float
     tets : (m, 4) int
     flat_tol : float
-        Relative flatness tolerance, default :data:`FLAT_TOLERANCE`.
-    diagonal : float, optional
-        Length the tolerance scales with; default :func:`bbox_diagonal` of
-        all ``vertices`` (referenced or not).
+        Flatness tolerance relative to each tet's size, default :data:`FLAT_TOLERANCE`.
 
     Returns
     -------
@@ -176,9 +187,8 @@ def orient_tets(vertices, tets, flat_tol=FLAT_TOLERANCE, *, diagonal=None) -> Or
     vertices = np.asarray(vertices, dtype=np.float64)
     tets = np.asarray(tets)
     vol = signed_volumes(vertices, tets)
-    if diagonal is None:
-        diagonal = bbox_diagonal(vertices)
-    flat = ~(np.abs(vol) > flat_tol * diagonal ** 3)  # NaN volumes count as flat
+    longest = edge_lengths(vertices, tets).max(axis=1) if len(tets) else np.zeros(0)
+    flat = ~(np.abs(vol) > flat_tol * longest ** 3)  # NaN volumes count as flat
     flipped = (vol < 0) & ~flat
     return Orientation(flip_tets(tets, flipped), vol, flipped, flat)
 
@@ -324,13 +334,14 @@ def validate_arrays(vertices, tets, *, strict=True, allow_empty=False):
         s = np.sort(tets, axis=1)
         bad = np.flatnonzero(np.any(s[:, 1:] == s[:, :-1], axis=1))
         if len(bad):
-            raise MeshError(f"tets with a repeated vertex index: {_preview(bad)}")
+            raise MeshError(f"tets with a repeated vertex index: {_preview(bad)}; {REPAIR_HINT}")
         _, counts = np.unique(s, axis=0, return_counts=True)
         if np.any(counts > 1):
             dup_keys = np.flatnonzero(counts > 1)
             inv = np.unique(s, axis=0, return_inverse=True)[1].ravel()
             bad = np.flatnonzero(np.isin(inv, dup_keys))
-            raise MeshError(f"duplicate tets (same four vertices): {_preview(bad)}")
+            raise MeshError(f"duplicate tets (same four vertices): {_preview(bad)}; "
+                            f"{REPAIR_HINT}")
     return vertices, tets
 
 
@@ -428,7 +439,7 @@ def _match_faces(tets):
         bad = np.flatnonzero(np.isin(inv, bad_keys)) // 4
         raise MeshError(
             f"{len(bad_keys)} face(s) shared by more than two tets (non-manifold mesh); "
-            f"tets involved: {_preview(np.unique(bad))}")
+            f"tets involved: {_preview(np.unique(bad))}; {REPAIR_HINT}")
     order = np.argsort(inv, kind="stable")
     sorted_inv = inv[order]
     start = np.flatnonzero(np.r_[True, sorted_inv[1:] != sorted_inv[:-1]])
@@ -510,7 +521,7 @@ def build_topology(vertices, tets, *, warn=True) -> Topology:
         raise MeshError(
             f"{n_inconsistent} interior face(s) are not shared with opposite orientation "
             f"even after orienting every tet: the mesh folds over itself "
-            f"(tets {_preview(np.unique(fa[par[fa] == par[fb]] // 4))})")
+            f"(tets {_preview(np.unique(fa[par[fa] == par[fb]] // 4))}); {REPAIR_HINT}")
     n_flipped = int(np.count_nonzero(flip))
     n_flat = int(np.count_nonzero(flat))
     if warn and n_flipped:
@@ -535,6 +546,90 @@ def build_topology(vertices, tets, *, warn=True) -> Topology:
     )
 
 
+def _bad_faces_per_tet(tets):
+    """(m,) number of faces of each oriented tet that are shared by more than
+    two tets or with the same orientation as its neighbour's (a fold)."""
+    m = len(tets)
+    faces = tets[:, FACES].reshape(-1, 3)
+    _, inv, counts = np.unique(face_keys(faces), return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    bad = counts[inv] > 2
+    order = np.argsort(inv, kind="stable")
+    start = np.flatnonzero(np.r_[True, inv[order][1:] != inv[order][:-1]])
+    pairs = start[counts[inv[order][start]] == 2]
+    fa, fb = order[pairs], order[pairs + 1]
+    par = _face_parity(faces)
+    same = par[fa] == par[fb]
+    bad[fa[same]] = bad[fb[same]] = True
+    return bad.reshape(m, 4).sum(axis=1), (fa[same], fb[same])
+
+
+def repair_tets(vertices, tets, flat_tol=FLAT_TOLERANCE, max_rounds=50):
+    """The tets to drop so that a mesh can be rendered, and why.
+
+    Dropped, in this order: tets with a repeated vertex; duplicates (the
+    first of each set stays); flat tets (:func:`orient_tets`); and folded
+    tets, which overlap their neighbours so that after orienting every tet a
+    shared face has the same orientation on both sides (or a face is shared
+    by more than two tets). Folded tets are removed greedily: each round the
+    tets with the most such faces go (an inverted tet inside a mesh has all
+    four); where every offender has one, the worse-shaped tet of each pair.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    tets : (m, 4) int
+
+    Returns
+    -------
+    keep : (m,) bool
+    report : dict
+        ``repeated_vertex``, ``duplicate``, ``flat``, ``folded``: indices of
+        the dropped tets (into ``tets``); ``boundary_faces``: ``[before,
+        after]``, the faces that belong to one tet only (a dropped interior tet
+        opens a hole whose faces count).
+    """
+    v = np.asarray(vertices, np.float64)
+    t = np.asarray(tets, np.int64).reshape(-1, 4)
+    m = len(t)
+    s = np.sort(t, axis=1)
+    repeated = np.any(s[:, 1:] == s[:, :-1], axis=1)
+    keep = ~repeated
+    _, first = np.unique(s, axis=0, return_index=True)
+    unique = np.zeros(m, bool)
+    unique[first] = True
+    duplicate = keep & ~unique
+    keep &= unique
+    flat = keep & orient_tets(v, t, flat_tol).flat
+    keep &= ~flat
+    folded = []
+    for _ in range(max_rounds):
+        idx = np.flatnonzero(keep)
+        oriented = orient_tets(v, t[idx], flat_tol).tets
+        count, (fa, fb) = _bad_faces_per_tet(oriented)
+        if not count.any():
+            break
+        if count.max() > 1:
+            drop = idx[count == count.max()]
+        else:   # the worse of each folded pair, and the tets of over-shared faces
+            q = np.abs(quality(v, oriented))
+            worse = np.where(q[fa // 4] <= q[fb // 4], fa // 4, fb // 4)
+            shared = np.setdiff1d(np.flatnonzero(count), np.r_[fa, fb] // 4)
+            drop = idx[np.union1d(worse, shared)]
+        folded.append(drop)
+        keep[drop] = False
+
+    def boundary(tt):
+        _, c = np.unique(face_keys(tt[:, FACES].reshape(-1, 3)), return_counts=True)
+        return int(np.count_nonzero(c == 1))
+
+    return keep, {"repeated_vertex": np.flatnonzero(repeated).tolist(),
+                  "duplicate": np.flatnonzero(duplicate).tolist(),
+                  "flat": np.flatnonzero(flat).tolist(),
+                  "folded": np.sort(np.concatenate(folded)).tolist() if folded else [],
+                  "boundary_faces": [boundary(t[~repeated]), boundary(t[keep])]}
+
+
 def geometry_summary(vertices, topology: Topology) -> dict:
     """Counts, bounding box, boundary, repairs and quality statistics of a mesh
     (``topology`` from :func:`build_topology` of ``vertices``)."""
@@ -549,6 +644,7 @@ def geometry_summary(vertices, topology: Topology) -> dict:
         "boundary_faces": int(len(topology.boundary_faces)),
         "inverted_tets_fixed": int(topology.n_flipped),
         "zero_volume_tets": int(np.count_nonzero(topology.flat)),
+        "slivers": int(np.count_nonzero((q < SLIVER_QUALITY) & ~topology.flat)),
         "bounds_min": v.min(0).tolist(),
         "bounds_max": v.max(0).tolist(),
         "volume": float(topology.volumes.sum()),

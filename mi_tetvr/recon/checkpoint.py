@@ -33,7 +33,8 @@ def save_checkpoint(trainer: Trainer, path):
              stage=state.stage, stage_start=state.stage_start, elapsed=state.elapsed,
              shortened=state.shortened, history=json.dumps(state.history),
              config=json.dumps(dataclasses.asdict(trainer.config)),
-             rng=json.dumps(state.rng.bit_generator.state), **trainer.opt.state_dict())
+             rng=json.dumps(state.rng.bit_generator.state), **trainer.opt.state_dict(),
+             **({} if trainer.environment() is None else {"environment": trainer.environment()}))
     tmp.replace(path)
 
 
@@ -62,6 +63,7 @@ def load_checkpoint(path, dataset, config: FitConfig) -> Trainer:
                      stage_start=int(ckpt["stage_start"]), elapsed=float(ckpt["elapsed"]),
                      shortened=int(ckpt["shortened"]), history=json.loads(str(ckpt["history"])))
     trainer = Trainer(dataset, ckpt["vertices"], ckpt["tets"], config.for_stage(state.stage),
-                      ckpt["color"], ckpt["opacity"], state=state)
+                      ckpt["color"], ckpt["opacity"], state=state,
+                      environment=ckpt["environment"] if "environment" in ckpt else None)
     trainer.opt.load_state_dict(ckpt)
     return trainer

@@ -30,8 +30,9 @@ class FitConfig:
                                        # chosen for the time budget, 32 without one
     bounds: list | None = None         # [[x0, y0, z0], [x1, y1, z1]]; default: from the data
     iterations: int = 1500             # with a time budget: only the stages' time shares
-    time_budget: float | None = None   # minutes for the whole run, outputs included: the
-                                       # steps (and the mesh size, unless set) fill it
+    time_budget: float | None = None   # minutes for the whole command, outputs included: the
+                                       # steps (and the mesh size, unless set) fill it; a
+                                       # resumed run gets it again
     views_per_step: int = 2
     lr_color: float = 0.02
     lr_opacity: float = 0.05           # optical depth per cell, per step
@@ -40,7 +41,9 @@ class FitConfig:
     loss: str = "l2"                   # l1 | l2
     loss_space: str = "srgb"           # linear | srgb: compare linear RGB, or the sRGB
                                        # pictures the metrics score (alpha stays linear)
-    background: list | None = None     # None: fit RGBA; else composite over this color
+    background: list | str | None = None  # None: fit RGBA; a color: composite over it;
+                                       # "learn": an environment map learned with the
+                                       # volume (photos of an object in its surroundings)
     init_color: float = 0.5
     init_opacity: float = 0.05         # optical depth per cell
     regularizer: float = 10.0          # weight lambda of the tet-quality term (DiffTetVR
@@ -101,8 +104,10 @@ class FitConfig:
                 raise ValueError(f"{name} must be >= 0")
         if not 0 < self.decay <= 1:
             raise ValueError("decay must be in (0, 1]")
-        if self.background is not None and len(self.background) != 3:
-            raise ValueError("background must be three linear RGB values")
+        if self.background is not None and self.background != "learn" and \
+                (isinstance(self.background, str) or len(self.background) != 3):
+            raise ValueError(f"background must be None, 'learn' or three linear RGB values, "
+                             f"got {self.background!r}")
         if self.select not in ("gradient", "color", "opacity"):
             raise ValueError(f"select must be gradient, color or opacity, got {self.select!r}")
         for i, st in enumerate(self.stage_list()):

@@ -37,6 +37,7 @@ import json
 import math
 import os
 import re
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -47,6 +48,7 @@ import numpy as np
 from mi_tetvr.recon.camera import Camera, as_rigid
 from mi_tetvr.recon.hull import frusta_bounds
 from mi_tetvr.recon.images import check_factor, downscale_image, read_image, write_image
+from mi_tetvr.recon.undistort import Lens, nerf_lens
 
 __all__ = ["View", "Dataset", "load_dataset", "load_nerf", "load_colmap", "write_nerf"]
 
@@ -186,9 +188,6 @@ class Dataset:
 # NeRF / instant-ngp
 # --------------------------------------------------------------------------------------------
 
-_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-
-
 def _resolve_image(root: Path, file_path: str) -> Path:
     p = Path(file_path)
     p = p if p.is_absolute() else root / p
@@ -239,13 +238,6 @@ def _nerf_frame_view(root: Path, meta: dict, frame: dict, downscale: int, load_i
     m = {**{k: v for k, v in meta.items() if k != "frames"}, **frame}
     if "file_path" not in frame:
         raise ValueError(f"{what}: frame without 'file_path'")
-    if any(float(m.get(k, 0.0)) != 0.0 for k in _DISTORTION_KEYS) or \
-            str(m.get("camera_model", "OPENCV")).upper() not in ("OPENCV", "PINHOLE",
-                                                                  "SIMPLE_PINHOLE"):
-        raise ValueError(f"{what}: frame '{frame['file_path']}' has lens distortion "
-                         f"(camera_model={m.get('camera_model')!r}, "
-                         f"{ {k: m[k] for k in _DISTORTION_KEYS if k in m} }); only pinhole "
-                         f"cameras are supported: undistort the images first")
     path = _resolve_image(root, frame["file_path"])
     image = read_image(path) if load_images else None
     if image is not None:
@@ -271,11 +263,19 @@ def _nerf_frame_view(root: Path, meta: dict, frame: dict, downscale: int, load_i
         fy = fx
     cx = float(m.get("cx", w / 2))
     cy = float(m.get("cy", h / 2))
-    c2w = as_rigid(frame["transform_matrix"], f"{what}: frame '{frame['file_path']}'")
-    camera = Camera.from_opengl(c2w, int(round(w)), int(round(h)), fx, fy, cx, cy)
     # Intrinsics refer to (w, h); images stored at another size get them rescaled.
     if img_w is not None and (img_w, img_h) != (w, h):
-        camera = camera.resized(img_w, img_h)
+        sx, sy = img_w / w, img_h / h
+        fx, fy, cx, cy, w, h = fx * sx, fy * sy, cx * sx, cy * sy, img_w, img_h
+    width, height = int(round(w)), int(round(h))
+    lens = nerf_lens(m, width, height, fx, fy, cx, cy, f"{what}: frame '{frame['file_path']}'")
+    if lens is not None:                      # distortion or non-square pixels: resample
+        fx, fy, cx, cy = lens.pinhole()
+        image = None if image is None else lens.undistort(image)
+    elif fx != fy:                            # square within SQUARE_RTOL
+        fx = fy = math.sqrt(fx * fy)
+    c2w = as_rigid(frame["transform_matrix"], f"{what}: frame '{frame['file_path']}'")
+    camera = Camera.from_opengl(c2w, width, height, fx, fy, cx, cy)
     view = View(Path(frame["file_path"]).stem if Path(frame["file_path"]).suffix.lower()
                 in _IMAGE_SUFFIXES_LOWER else Path(frame["file_path"]).name, camera, image)
     return view.downscaled(downscale) if downscale != 1 else view
@@ -294,7 +294,11 @@ def load_nerf(path, downscale: int = 1, holdout: Holdout = 8, *, load_images: bo
     w, h`` or ``camera_angle_x`` (``camera_angle_y``), per frame or top-level (a frame's keys
     win); missing ``cx, cy`` = image center, missing ``fl_y`` = ``fl_x``, missing ``w, h`` = the
     image size. Intrinsics given for another size than the stored image are rescaled to it.
-    Distortion coefficients (``k1 ... p2`` non-zero) are refused. ``transform_matrix`` is
+    Lens distortion (``camera_model`` ``OPENCV`` with ``k1, k2, p1, p2`` (``k3 .. k6``),
+    ``OPENCV_FISHEYE`` with ``k1 .. k4``) and focal lengths ``fl_x, fl_y`` more than 0.1 %
+    apart are resampled away at load into square-pixel pinhole images
+    (:mod:`mi_tetvr.recon.undistort`); closer focal lengths become their geometric mean.
+    Frames whose image is missing are skipped with a warning. ``transform_matrix`` is
     camera-to-world in OpenGL axes (looks along -z, y up; :meth:`Camera.from_opengl
     <mi_tetvr.recon.camera.Camera.from_opengl>`). A top-level ``aabb`` ``[[x0, y0, z0], [x1, y1,
     z1]]`` becomes ``Dataset.bbox``.
@@ -302,7 +306,8 @@ def load_nerf(path, downscale: int = 1, holdout: Holdout = 8, *, load_images: bo
     Parameters
     ----------
     path : str or Path
-        The data set folder or one of its json files.
+        The data set folder or a json file (any name: the frames of that file are the
+        training views, split by ``holdout``).
     downscale : int
         Integer area-averaging factor applied to each image as it is decoded (intrinsics divided
         exactly, see :meth:`Camera.downscaled <mi_tetvr.recon.camera.Camera.downscaled>`).
@@ -347,9 +352,23 @@ def load_nerf(path, downscale: int = 1, holdout: Holdout = 8, *, load_images: bo
         if bbox is None and "aabb" in meta and np.size(meta["aabb"]) == 6:
             bbox = np.asarray(meta["aabb"], np.float64).reshape(2, 3)
         frames = meta.get("frames", [])
-        out[split] = _pool_map(
-            lambda fr: _nerf_frame_view(root, meta, fr, downscale, load_images, str(fpath)),
-            frames)
+
+        def frame_view(fr):
+            try:
+                return _nerf_frame_view(root, meta, fr, downscale, load_images, str(fpath))
+            except FileNotFoundError as e:    # listed but not on disk: skipped
+                return e
+
+        views = _pool_map(frame_view, frames)
+        missing = [str(v).split("'")[1] for v in views if isinstance(v, FileNotFoundError)]
+        if missing:
+            warnings.warn(f"{fpath}: {len(missing)} of {len(frames)} frames have no image on "
+                          f"disk and are skipped ({', '.join(missing[:5])}"
+                          f"{', ...' if len(missing) > 5 else ''})", stacklevel=2)
+            if len(missing) == len(frames):
+                raise FileNotFoundError(f"{fpath}: none of its {len(frames)} frames has an "
+                                        f"image under {root}")
+        out[split] = [v for v in views if not isinstance(v, FileNotFoundError)]
     train, test = out.get("train", []), out.get("test")
     if test is None:
         train, test = _holdout_split(train, holdout)
@@ -446,32 +465,13 @@ def _find_colmap_model(path: Path) -> Path:
                             f"or in sparse/")
 
 
-def _pinhole_intrinsics(cam) -> tuple:
-    model = cam.model.name if hasattr(cam.model, "name") else str(cam.model)
-    p = np.asarray(cam.params, np.float64)
-    if model == "PINHOLE":
-        return tuple(p[:4])
-    if model == "SIMPLE_PINHOLE":
-        return p[0], p[0], p[1], p[2]
-    # Radial models with all-zero distortion are pinholes in disguise.
-    if model in ("SIMPLE_RADIAL", "RADIAL") and np.all(p[3:] == 0):
-        return p[0], p[0], p[1], p[2]
-    if model in ("OPENCV", "FULL_OPENCV") and np.all(p[4:] == 0):
-        return tuple(p[:4])
-    raise ValueError(
-        f"COLMAP camera {cam.camera_id} uses the {model} model (params {p.tolist()}); only "
-        f"PINHOLE and SIMPLE_PINHOLE cameras are supported. Undistort the images first, e.g. "
-        f"`colmap image_undistorter --image_path IMAGES --input_path SPARSE --output_path OUT "
-        f"--output_type COLMAP` (or pycolmap.undistort_images(OUT, SPARSE, IMAGES)), and load "
-        f"OUT, whose sparse model has PINHOLE cameras")
-
-
 def load_colmap(path, images=None, downscale: int = 1, holdout: Holdout = 8, *,
                 load_images: bool = True) -> Dataset:
     """Load a COLMAP sparse reconstruction (binary or text) with pycolmap.
 
-    Cameras must be PINHOLE or SIMPLE_PINHOLE (radial/OpenCV models with all-zero distortion are
-    accepted); other models raise ``ValueError`` telling to run ``colmap image_undistorter``.
+    Distorted cameras (``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``, ``FULL_OPENCV``,
+    ``OPENCV_FISHEYE``) and non-square pixels are resampled at load into square-pixel pinhole
+    images (:mod:`mi_tetvr.recon.undistort`).
     COLMAP's world-to-camera ``[R | t]`` (camera looks along +z, y down, x right) becomes the
     camera's pose through :meth:`Camera.from_colmap <mi_tetvr.recon.camera.Camera.from_colmap>`.
     COLMAP's pixel convention (top-left corner at 0, pixel centers at +0.5) is the one of
@@ -514,27 +514,27 @@ def load_colmap(path, images=None, downscale: int = 1, holdout: Holdout = 8, *,
     images = Path(images) if images is not None else None
     rec = pycolmap.Reconstruction(str(model))
 
-    entries = []
+    entries, lenses = [], {}
     for img in sorted(rec.images.values(), key=lambda im: im.name):
         has_pose = img.has_pose() if callable(getattr(img, "has_pose", None)) \
             else getattr(img, "has_pose", True)
         if not has_pose:
             continue
-        cam = rec.cameras[img.camera_id]
-        fx, fy, cx, cy = _pinhole_intrinsics(cam)
+        lens = lenses.setdefault(img.camera_id, Lens(rec.cameras[img.camera_id]))
         cfw = img.cam_from_world() if callable(img.cam_from_world) else img.cam_from_world
-        entries.append((img.name, Camera.from_colmap(
-            np.asarray(cfw.rotation.quat, np.float64), np.asarray(cfw.translation, np.float64),
-            cam.width, cam.height, fx, fy, cx, cy)))
+        entries.append((img.name, lens, np.asarray(cfw.rotation.quat, np.float64),
+                        np.asarray(cfw.translation, np.float64)))
 
     def make(e) -> View:
-        name, camera = e
+        name, lens, quat, translation = e
         image = None
         if load_images:
             image = read_image(images / name)
             ih, iw = image.shape[:2]
-            if (iw, ih) != (camera.width, camera.height):   # stored at another size
-                camera = camera.resized(iw, ih)
+            if (iw, ih) != (lens.width, lens.height):   # stored at another size
+                lens = lens.resized(iw, ih)
+            image = lens.undistort(image)
+        camera = Camera.from_colmap(quat, translation, lens.width, lens.height, *lens.pinhole())
         v = View(Path(name).stem, camera, image)
         return v.downscaled(downscale) if downscale != 1 else v
 
@@ -561,7 +561,7 @@ def load_dataset(path, downscale: int = 1, holdout: Holdout = 8, **kw) -> Datase
     if not p.exists():
         raise FileNotFoundError(f"data set not found: {p}")
     if p.is_file() and p.suffix == ".json":
-        return load_nerf(p.parent, downscale, holdout, **kw)
+        return load_nerf(p, downscale, holdout, **kw)
     if any(p.glob("transforms*.json")):
         return load_nerf(p, downscale, holdout, **kw)
     try:

@@ -34,11 +34,15 @@ class VertexAdam(Mapping):
     n_vertices : int
         Vertex count; each parameter holds ``n_vertices * c`` values (``c``
         per vertex).
+    shared : sequence of keys
+        Parameters that are not per vertex (a learned background): optimized
+        and checkpointed, but not in :meth:`moments`.
     """
 
-    def __init__(self, params, rates, n_vertices):
+    def __init__(self, params, rates, n_vertices, shared=()):
         self.rates = dict(rates)
         self.n_vertices = int(n_vertices)
+        self.shared = tuple(shared)
         self._adam = mi.ad.Adam(lr=next(iter(self.rates.values())))
         for k in self.rates:
             self._adam[k] = params[k]
@@ -85,6 +89,8 @@ class VertexAdam(Mapping):
         """
         out = {}
         for k in self.rates:
+            if k in self.shared:
+                continue
             t, m, v = self._adam.state[k][3][:3]
             out[k] = (int(np.asarray(t).ravel()[0]), np.array(m).reshape(self.n_vertices, -1),
                       np.array(v).reshape(self.n_vertices, -1))

@@ -29,7 +29,7 @@ from mi_tetvr.recon.trainer import RunState, Trainer
 __all__ = ["run", "next_stage", "write_outputs", "evaluate_mesh", "initial_mesh", "data_bounds",
            "calibrate", "resolution_for_budget", "budget_stages", "DEFAULT_RESOLUTION",
            "BUDGET_STEPS", "COARSE_SHARE", "PIXELS_PER_VERTEX",
-           "resolution_limits"]
+           "resolution_limits", "data_warnings"]
 
 
 #: Grid resolution without a time budget.
@@ -165,6 +165,28 @@ def budget_stages(config: FitConfig, resolution):
             {"iterations": max(1, config.iterations - first), "grid": resolution}]
 
 
+def data_warnings(config: FitConfig, dataset):
+    """What looks wrong about fitting ``dataset`` with ``config``: photos of a
+    scene in its surroundings (no transparent pixel, or cameras inside the
+    region fitted) with nothing that models what lies outside the box."""
+    if config.background == "learn":
+        return []
+    out = []
+    if config.background is None and all(float(v.image[..., 3].min()) >= 0.999
+                                          for v in dataset.train):
+        out.append("every training pixel is opaque, yet the fit matches alpha (background "
+                   "none): the volume must explain the surroundings too; for photos of a "
+                   "scene in its surroundings use --background learn")
+    lo, hi = data_bounds(config, dataset)
+    inside = [v.name for v in dataset.train
+              if np.all((v.camera.center >= lo) & (v.camera.center <= hi))]
+    if inside:
+        out.append(f"{len(inside)} camera(s) inside the fitted box ({', '.join(inside[:3])}"
+                   f"{', ...' if len(inside) > 3 else ''}): the scene looks unbounded; "
+                   f"--background learn models what lies outside the box")
+    return out
+
+
 def output_seconds(trainer: Trainer):
     """Estimated time of :func:`write_outputs`: one test render timed, times
     the views, with a margin for the files and plots."""
@@ -201,9 +223,11 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     Runs ``config``'s stages in order (one stage unless ``config.stages``);
     between stages the mesh may be refined and pruned (:func:`next_stage`).
     With ``config.time_budget`` the whole call (calibration, steps, outputs)
-    takes that long: the grid resolution, unless set, is chosen for the
-    machine's speed (:func:`calibrate`), the steps fill the time left after
-    the outputs, and the learning rates decay over each stage's share of it.
+    takes that long (a resumed run gets the budget again, for more steps):
+    the grid resolution, unless set, is chosen for the machine's speed
+    (:func:`calibrate`), a coarse grid trains first (:func:`budget_stages`),
+    the steps fill the time left after the outputs, and the learning rates
+    decay over each stage's share of it.
     A run interrupted (Ctrl-C) still writes the mesh and metrics
     (:func:`write_outputs`); ``resume=True`` continues from
     ``out_dir/checkpoint.npz``. ``progress`` shows a progress bar.
@@ -227,6 +251,8 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
         log(f"resumed from {ckpt_path} at step {trainer.state.step} "
             f"(stage {trainer.state.stage + 1})")
     else:
+        for text in data_warnings(config, dataset):
+            log(f"warning: {text}")
         if config.resolution is None and config.init in ("grid", "tetwild"):
             resolution = DEFAULT_RESOLUTION
             if budget is not None:
@@ -243,8 +269,7 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
 
     clock = None
     if budget is not None:
-        clock = _Clock(t_start + budget - trainer.state.elapsed,
-                       [max(st["iterations"], 1) for st in stages])
+        clock = _Clock(t_start + budget, [max(st["iterations"], 1) for st in stages])
         reserve = output_seconds(trainer)
         clock.begin_stage(trainer.state.stage, reserve)
         bar = tqdm(total=round(max(clock.end - reserve - time.perf_counter(), 0.0)),
@@ -330,7 +355,7 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
         color, opacity = (grid_sample(bounds, current, a, vertices) for a in (color, opacity))
         log(f"grid {current} -> {grid}: {len(tets):,} tets")
         return Trainer(trainer.dataset, vertices, tets, config.for_stage(state.stage), color,
-                       opacity, state=state)
+                       opacity, state=state, environment=trainer.environment())
     moments = trainer.opt.moments()
     data = {"color": color, "opacity": opacity}
     for k, (_, m, v) in moments.items():
@@ -352,19 +377,25 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
     # build_topology may re-orient tets but keeps the vertex order: the
     # per-vertex moments carry over directly.
     new = Trainer(trainer.dataset, vertices, tets, config.for_stage(state.stage), data["color"],
-                  data["opacity"], state=state)
+                  data["opacity"], state=state, environment=trainer.environment())
     new.opt.set_moments({k: (t, data[f"{k}:m"], data[f"{k}:v"])
                          for k, (t, _, _) in moments.items()})
     return new
 
 
 def write_outputs(trainer: Trainer, out: Path):
-    """Write ``mesh.vtu``, ``metrics.json``, ``test/*.png`` (render | target)
-    and ``progress.png`` to ``out``; returns the metrics."""
+    """Write ``mesh.vtu``, ``metrics.json``, ``test/*.png`` (render | target),
+    ``progress.png`` and, with a learned background, ``background.exr`` (its
+    latitude-longitude texels, linear RGB: Mitsuba's ``envmap`` with the
+    identity ``to_world`` renders it) to ``out``; returns the metrics."""
     from mi_tetvr.mesh.io import write_tetmesh
     from mi_tetvr.mesh.tetmesh import TetMesh
     vertices, tets, color, opacity = trainer.arrays()
     write_tetmesh(out / "mesh.vtu", TetMesh(vertices, tets, color, opacity))
+    if trainer.learned_background:
+        import mitsuba as mi
+        texels = trainer.environment()[:, 1:-1]      # without the envmap's wrap-around columns
+        mi.Bitmap(np.ascontiguousarray(texels)).write(str(out / "background.exr"))
     views = trainer.dataset.test or trainer.dataset.train[:1]
     metrics = trainer.evaluate(views)
     metrics.update(step=trainer.state.step, seconds=trainer.state.elapsed,
@@ -376,7 +407,7 @@ def write_outputs(trainer: Trainer, out: Path):
     renders.mkdir(exist_ok=True)
     for v in views:
         save_comparison(renders / f"{Path(v.name).stem}.png", trainer.render_view(v), v.image,
-                        trainer.config.background)
+                        trainer.background)
     plot_history(trainer.state.history, out / "progress.png", metrics["mean"]["psnr"])
     return metrics
 

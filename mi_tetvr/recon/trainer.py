@@ -26,13 +26,19 @@ from mi_tetvr.recon.metrics import composite, display_rgb, image_metrics
 from mi_tetvr.recon.optim import VertexAdam
 
 __all__ = ["Trainer", "RunState", "MESH_ID", "K_COLOR", "K_OPACITY", "K_POSITION",
-           "pixel_center_data"]
+           "K_ENVIRONMENT", "ENVIRONMENT_SIZE", "pixel_center_data"]
 
 #: Parameter keys of the fitted mesh in the scene.
 MESH_ID = "volume"
 K_COLOR = f"{MESH_ID}.vertex_color"
 K_OPACITY = f"{MESH_ID}.vertex_opacity"
 K_POSITION = f"{MESH_ID}.vertex_positions"
+#: The learned background (``background="learn"``): an ``envmap`` emitter's texels.
+K_ENVIRONMENT = "background.data"
+#: Its texels, width x height (latitude-longitude): the surroundings' colors
+#: from every direction, coarse (what lies outside the fitted box is blurred
+#: by the cameras' motion anyway).
+ENVIRONMENT_SIZE = (32, 16)
 
 
 def pixel_center_data(dataset):
@@ -75,6 +81,9 @@ class Trainer:
         ``config.init_opacity`` per cell).
     state : RunState, optional
         The run so far (default: a new run seeded with ``config.seed``).
+    environment : (h, w, 3) float, optional
+        The learned background's texels (``config.background == "learn"``;
+        default: the training images' mean color everywhere).
 
     Attributes
     ----------
@@ -88,7 +97,7 @@ class Trainer:
     """
 
     def __init__(self, dataset, vertices, tets, config: FitConfig, color=None, opacity=None,
-                 state: RunState | None = None):
+                 state: RunState | None = None, environment=None):
         import mi_tetvr
         from mi_tetvr.mesh.topology import build_topology
 
@@ -104,12 +113,21 @@ class Trainer:
             color = np.full((n, 3), config.init_color)
         if opacity is None:
             opacity = np.full(n, config.init_opacity / self.h)
-        self.scene = mi.load_dict({
-            "type": "scene",
-            "integrator": {"type": "tetvr", "n_sub": config.n_sub},
-            MESH_ID: mi_tetvr.tetmesh_dict(vertices, self.tets, color, opacity),
-        })
+        scene = {"type": "scene", "integrator": {"type": "tetvr", "n_sub": config.n_sub},
+                 MESH_ID: mi_tetvr.tetmesh_dict(vertices, self.tets, color, opacity)}
+        #: Whether the background is learned: then the renders already hold
+        #: it (``C + T * env``) and only their RGB is compared.
+        self.learned_background = config.background == "learn"
+        if self.learned_background:
+            mean = np.mean([v.image[..., :3].reshape(-1, 3).mean(0) for v in dataset.train], 0)
+            w, h = ENVIRONMENT_SIZE
+            scene[K_ENVIRONMENT.split(".")[0]] = {
+                "type": "envmap", "bitmap": mi.Bitmap(np.tile(mean, (h, w, 1)).astype(np.float32))}
+        self.scene = mi.load_dict(scene)
         self.params = mi.traverse(self.scene)
+        if environment is not None:
+            self.params[K_ENVIRONMENT] = mi.TensorXf(np.asarray(environment, np.float32))
+            self.params.update()
         self.jitter = config.jitter if config.jitter is not None else not pixel_center_data(dataset)
         sampler = "independent" if self.jitter else "stratified"
         self.sensors = {}
@@ -123,7 +141,9 @@ class Trainer:
         rates = {K_COLOR: config.lr_color, K_OPACITY: config.lr_opacity / self.h}
         if config.lr_position > 0:
             rates[K_POSITION] = config.lr_position * self.h
-        self.opt = VertexAdam(self.params, rates, n)
+        if self.learned_background:
+            rates[K_ENVIRONMENT] = config.lr_color
+        self.opt = VertexAdam(self.params, rates, n, shared=(K_ENVIRONMENT,))
         self.params.update(self.opt)
         self.regularizer = None
         if config.regularizer > 0 and config.lr_position > 0:
@@ -138,14 +158,22 @@ class Trainer:
         return mi.render(self.scene, params, sensor=self.sensors[id(view)],
                          spp=spp or self.config.spp, seed=seed, seed_grad=seed + 1)
 
+    @property
+    def background(self):
+        """The constant background the images are composited over for the
+        loss and the metrics: the config's, ``None`` (black) when fitting
+        RGBA or when the background is learned (the renders hold it)."""
+        return None if self.learned_background else self.config.background
+
     def _compared(self, image):
         """What the loss compares of an (h, w, 4) image: RGBA, or RGB over the
-        config's background; in ``srgb`` space the RGB sRGB-encoded."""
-        bg = self.config.background
+        config's background (or with the learned one); in ``srgb`` space the
+        RGB sRGB-encoded."""
+        bg, rgb_only = self.background, self.config.background is not None
         if self.config.loss_space == "linear":
-            return image if bg is None else composite(image, bg)
+            return composite(image, bg) if rgb_only else image
         rgb = linear_to_srgb(composite(image, bg))
-        if bg is not None:
+        if rgb_only:
             return rgb
         return dr.concat([rgb, image[..., 3:4]], axis=-1)
 
@@ -160,7 +188,7 @@ class Trainer:
     def metric_mse(self, image, view):
         """MSE of the sRGB pictures the metrics score (RGB over the config's
         background, black without one), no gradient: the training PSNR."""
-        bg = self.config.background
+        bg = self.background
         with dr.suspend_grad():
             a = display_rgb(dr.detach(image), bg)
             b = display_rgb(self.targets[id(view)], bg)
@@ -197,6 +225,8 @@ class Trainer:
         self.opt.step(lr_scale=cfg.decay ** min(max(progress, 0.0), 1.0))
         self.opt[K_COLOR] = dr.clip(self.opt[K_COLOR], 0.0, 1.0)
         self.opt[K_OPACITY] = dr.maximum(self.opt[K_OPACITY], 0.0)
+        if self.learned_background:
+            self.opt[K_ENVIRONMENT] = dr.maximum(self.opt[K_ENVIRONMENT], 0.0)
         if old is not None:
             self._safe_positions(old)
         self.params.update(self.opt)
@@ -224,6 +254,12 @@ class Trainer:
         color = np.array(self.params[K_COLOR], np.float64).reshape(-1, 3)
         opacity = np.array(self.params[K_OPACITY], np.float64)
         return vertices, self.tets, color, opacity
+
+    def environment(self):
+        """The learned background's texels as numpy, or ``None``."""
+        if not self.learned_background:
+            return None
+        return np.array(self.params[K_ENVIRONMENT], np.float32)
 
     def inverted_tets(self):
         """Number of tets with a non-positive volume."""
@@ -261,7 +297,7 @@ class Trainer:
     def evaluate(self, views):
         """PSNR, SSIM and MSE per view (RGB over the config's background) and
         their mean: ``{"views": {name: metrics}, "mean": metrics}``."""
-        bg = self.config.background
+        bg = self.background
         per = {v.name: image_metrics(self.render_view(v), v.image, bg) for v in views}
         mean = {k: float(np.mean([m[k] for m in per.values()]))
                 for k in ("psnr", "ssim", "mse", "psnr_linear")}

@@ -123,7 +123,8 @@ def tangent(ts_ad, ids, o, u, v, d, active):
     with dr.resume_grad():
         t, w = face_crossing(ts_ad.buf, ids, o, u, v, d, active)
         a = ts_ad.model.interpolate(ts_ad.params, ids, w, active)
-        return dr.forward_to(t, a)
+        # AllowNoGrad: the tangents may all be elsewhere (e.g. the environment's)
+        return dr.forward_to(t, a, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
 
 
 def segment(mode, ts, ts_ad, st, entry, exit, L, T, t_begin, t_stop, adj, pending,

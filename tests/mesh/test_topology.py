@@ -244,9 +244,14 @@ def test_orient_tets_flat_tolerance():
     o = orient_tets(v, t, 0.0)                       # no tolerance: both flipped
     np.testing.assert_array_equal(o.flipped, [True, True])
     assert np.all(signed_volumes(v, o.tets) > 0)
-    # the tolerance scales with the given diagonal (default: the bounding box's)
-    assert bbox_diagonal(v) == pytest.approx(np.sqrt(3.0))
-    assert orient_tets(v, t, 1e-8, diagonal=1e-3).flat.tolist() == [False, False]
+    # the tolerance is relative to each tet's own size: scaled down by 1e-6
+    # (far below the old 1e-12 x diagonal^3 cut-off) nothing changes
+    small = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.3, 0.3, -1e-9]]) * 1e-6
+    np.testing.assert_array_equal(orient_tets(small, t, 1e-8).flat, [False, True])
+    np.testing.assert_array_equal(orient_tets(small + 1e3, t, 1e-8).flat, [False, True])
+    # a graded mesh: tiny valid tets beside big ones are not flat by default
+    graded = np.concatenate([v[:4], v[:4] * 1e-5 + 0.5])
+    assert not orient_tets(graded, np.array([[0, 1, 2, 3], [4, 5, 6, 7]])).flat.any()
     assert bbox_diagonal(np.zeros((0, 3))) == 1.0 and bbox_diagonal(np.ones((3, 3))) == 1.0
 
 

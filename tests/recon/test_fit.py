@@ -214,6 +214,11 @@ def test_time_budget_is_used_and_honoured(data, tmp_path):
     assert metrics["wall_seconds"] <= 1.05 * budget, metrics["wall_seconds"]
     assert metrics["optimization_seconds"] >= 0.9 * budget, metrics
     assert metrics["step"] > CFG.iterations and (tmp_path / "mesh.vtu").is_file()
+    # the budget is per command: running it again resumes and takes it again
+    again = run(data, tmp_path, CFG.updated(time_budget=6.0 / 60), progress=False,
+                log=lambda *a: None)
+    assert 6.0 * 0.9 <= again["wall_seconds"] <= 6.0 * 1.05, again
+    assert again["step"] > metrics["step"]
 
 
 def test_resolution_for_budget_closed_form():
@@ -335,3 +340,37 @@ def test_composite_numpy_and_drjit():
     # numpy: float64 unless the background is a numpy array, whose dtype is kept.
     assert composite(rgba, [1, 1, 1]).dtype == np.float64
     assert composite(rgba, np.ones(3, np.float32)).dtype == np.float32
+
+
+def test_learned_background_explains_the_surroundings(data, tmp_path):
+    """Photos of the volume in front of colored surroundings (alpha 1
+    everywhere): fitting RGBA makes the volume explain the surroundings and
+    warns; a learned background scores far better on held-out views, is
+    written as an EXR and survives a resume."""
+    from mi_tetvr.recon.datasets import Dataset, View
+    from mi_tetvr.recon.pipeline import data_warnings
+    from mi_tetvr.recon.trainer import K_ENVIRONMENT
+    sky = np.array([0.2, 0.5, 0.8])
+
+    def photo(v):
+        rgb = v.image[..., :3] + (1 - v.image[..., 3:]) * sky
+        return View(v.name, v.camera, np.concatenate([rgb, np.ones_like(rgb[..., :1])], -1)
+                    .astype(np.float32))
+
+    photos = Dataset(train=[photo(v) for v in data.train], test=[photo(v) for v in data.test])
+    cfg = CFG.updated(iterations=40)
+    assert any("--background learn" in w for w in data_warnings(cfg, photos))
+    assert data_warnings(cfg.updated(background="learn"), photos) == []
+    plain = run(photos, tmp_path / "plain", cfg, progress=False, log=lambda *a: None)
+    learned = run(photos, tmp_path / "learn", cfg.updated(background="learn"), progress=False,
+                  log=lambda *a: None)
+    assert learned["mean"]["psnr"] > plain["mean"]["psnr"] + 3.0, (plain["mean"], learned["mean"])
+    env = np.array(mi.Bitmap(str(tmp_path / "learn" / "background.exr")))
+    assert env.shape[:2] == (16, 32) and env.min() >= 0
+    ck = np.load(tmp_path / "learn" / "checkpoint.npz")
+    np.testing.assert_allclose(ck["environment"][:, 1:-1], env, atol=1e-6)
+    # resumed: the environment and its optimizer state come back
+    from mi_tetvr.recon.checkpoint import load_checkpoint
+    trainer = load_checkpoint(tmp_path / "learn" / "checkpoint.npz", photos,
+                              cfg.updated(background="learn"))
+    np.testing.assert_allclose(np.array(trainer.params[K_ENVIRONMENT]), ck["environment"])
