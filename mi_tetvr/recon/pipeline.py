@@ -176,7 +176,7 @@ def data_warnings(config: FitConfig, dataset):
                                           for v in dataset.train):
         out.append("every training pixel is opaque, yet the fit matches alpha (background "
                    "none): the volume must explain the surroundings too; for photos of a "
-                   "scene in its surroundings use --background learn")
+                   "scene in its surroundings try --background learn")
     lo, hi = data_bounds(config, dataset)
     inside = [v.name for v in dataset.train
               if np.all((v.camera.center >= lo) & (v.camera.center <= hi))]

@@ -210,20 +210,25 @@ def test_grazing_rays_and_camera_inside():
     check_fd(inside, rng)
 
 
+def camera_scene(mesh, size, fov, **extra):
+    """A scene of one mesh seen by a square pixel-centred camera."""
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": "tetvr"},
+        "sensor": {"type": "perspective", "fov": fov,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[2.5, 1.5, 3.0],
+                                                              target=[0, 0, 0], up=[0, 1, 0]),
+                   "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
+                   "film": {"type": "hdrfilm", "width": size, "height": size,
+                            "rfilter": {"type": "box"}}},
+        "mesh0": mi_tetvr.tetmesh_dict(*mesh), **extra})
+
+
 def test_mi_render_workflow_forward_backward_and_fd():
     """Through mi.render: dr.backward and dr.forward of an RGBA image loss
     agree with each other and with finite differences of the rendered loss."""
     rng = np.random.default_rng(27)
     V, T, C, S = jittered(rng)
-    scene = mi.load_dict({
-        "type": "scene", "integrator": {"type": "tetvr"},
-        "sensor": {"type": "perspective", "fov": 40,
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[2.5, 1.5, 3.0],
-                                                              target=[0, 0, 0], up=[0, 1, 0]),
-                   "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
-                   "film": {"type": "hdrfilm", "width": 16, "height": 16,
-                            "rfilter": {"type": "box"}}},
-        "mesh0": mi_tetvr.tetmesh_dict(V, T, C, S)})
+    scene = camera_scene((V, T, C, S), 16, 40)
     params = mi.traverse(scene)
     w = mi.TensorXf(rng.normal(size=(16, 16, 4)).astype(np.float32))  # RGB and the alpha AOV
 
@@ -279,16 +284,7 @@ def test_environment_gradient_through_mi_render():
     rng = np.random.default_rng(29)
     V, T, C, S = jittered(rng, max_opacity=0.7)
     env = mi.Bitmap(rng.uniform(0.2, 1.0, (4, 8, 3)).astype(np.float32))
-    scene = mi.load_dict({
-        "type": "scene", "integrator": {"type": "tetvr"},
-        "sensor": {"type": "perspective", "fov": 60,
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[2.5, 1.5, 3.0],
-                                                              target=[0, 0, 0], up=[0, 1, 0]),
-                   "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
-                   "film": {"type": "hdrfilm", "width": 12, "height": 12,
-                            "rfilter": {"type": "box"}}},
-        "emitter": {"type": "envmap", "bitmap": env},
-        "mesh0": mi_tetvr.tetmesh_dict(V, T, C, S)})
+    scene = camera_scene((V, T, C, S), 12, 60, emitter={"type": "envmap", "bitmap": env})
     params = mi.traverse(scene)
     w = mi.TensorXf(rng.normal(size=(12, 12, 4)).astype(np.float32))
 
