@@ -87,7 +87,9 @@ def _read_vtk(path) -> meshio.Mesh:
     quiet, root = _Quiet(), logging.getLogger()
     root.addFilter(quiet)
     try:
-        with pv.vtk_verbosity("off"), pv.VtkErrorCatcher() as caught:
+        with pv.vtk_verbosity("off"), pv.VtkErrorCatcher() as caught, \
+                warnings.catch_warnings():
+            warnings.simplefilter("ignore")       # pyvista's own; VTK's errors are raised below
             try:
                 data = pv.read(path)
             except Exception as e:
