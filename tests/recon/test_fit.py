@@ -202,7 +202,7 @@ def test_budget_stages_and_resolution_limits(data):
     # at most the image width over 1.5, at least the smallest grid
     assert resolution_limits(cube, NS(train=[NS(camera=NS(width=30, height=30))] * 1000)) == \
         (12, 20)
-    assert resolution_limits(cube, NS(train=views[:1])) == (12, 12)
+    assert resolution_limits(cube, NS(train=[NS(camera=NS(width=30, height=30))])) == (12, 12)
 
 
 def test_time_budget_is_used_and_honoured(data, tmp_path):
