@@ -243,6 +243,10 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.npz"
     budget = None if config.time_budget is None else 60.0 * config.time_budget
+    if config.bounds is None and config.init in ("grid", "tetwild"):
+        # the region once (a visual hull is carved from every view): calibration,
+        # limits, warnings, the mesh and each grid stage read it, config.json keeps it
+        config = dataclasses.replace(config, bounds=data_bounds(config, dataset).tolist())
     if resume and ckpt_path.exists():
         if config.resolution is None and config.stages is None:
             # the mesh sizes and stages the run chose when it began
