@@ -5,9 +5,10 @@ shapes by walking the tet adjacency.
 
  * - n_sub
    - |int|
-   - Sub-intervals per tet segment (constant extinction at each sub-interval's
-     midpoint, linear color; DiffTetVR Alg. 1). The error falls as 1/n_sub^2 with the change of
-     optical depth across a tet. (Default: 8)
+   - Sub-intervals of the one approximated quantity of a tet segment, its mean
+     transmittance (colors and the transmittance are exact; constant extinction at each
+     sub-interval's midpoint as in DiffTetVR Alg. 1, extrapolated from n_sub / 2 for even
+     n_sub: the error falls as 1/n_sub^4). See :mod:`mi_tetvr.render.segment`. (Default: 4)
  * - min_transmittance
    - |float|
    - Early ray termination once the transmittance falls below this. (Default: 1e-4)
@@ -46,7 +47,7 @@ emitter (black without one); the environment's parameters (an ``envmap``'s
 
     'integrator': {
         'type': 'tetvr',
-        'n_sub': 8,
+        'n_sub': 4,
     }
 """
 from __future__ import annotations
@@ -56,6 +57,7 @@ import mitsuba as mi
 
 from mi_tetvr.render.adjoint import Adjoint
 from mi_tetvr.render.buffers import index_buffers, scene_tetmeshes, tet_scene
+from mi_tetvr.render.replay import PrimalStates, derivative_seed
 from mi_tetvr.render.walk import WalkSettings, trace
 
 
@@ -64,7 +66,7 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
 
     def __init__(self, props):
         super().__init__(props)
-        n_sub = int(props.get("n_sub", 8))
+        n_sub = int(props.get("n_sub", 4))
         if not 1 <= n_sub <= 64:
             raise ValueError(f"tetvr: n_sub must be in [1, 64], got {n_sub}")
         t_min = float(props.get("min_transmittance", 1e-4))
@@ -83,6 +85,9 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         self.settings = WalkSettings(t_min, max_steps, reduce=modes[reduce])
         self.alpha = bool(props.get("alpha", True))
         self._index_cache = None
+        self._states = PrimalStates()
+        self._record = None    # (key, inputs) while render() runs with gradients enabled
+        self._replay = None    # the kept primal state while a derivative pass runs
 
     def aov_names(self):
         return ["alpha"] if self.alpha else []
@@ -97,6 +102,57 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
             self._index_cache = (key, *index_buffers(shapes))
         _, idx, offsets = self._index_cache
         return tet_scene(shapes, idx, offsets, n_sub=self.n_sub)
+
+    @staticmethod
+    def differentiable_inputs(scene):
+        """The scene's arrays that the image depends on differentiably:
+        vertex positions, the optical models' vertex buffers and the
+        environment's parameters."""
+        out = []
+        for s in scene_tetmeshes(scene):
+            out.append(s.vertex_positions_buffer())
+            out += [s.attribute_buffer(name) for name, _ in s.optical_model.vertex_attributes]
+        env = scene.environment()
+        if env is not None:
+            out += [v for _, v in mi.traverse(env).items() if dr.is_array_v(v)]
+        return out
+
+    # The derivative passes reuse the primal render's rays and per-ray
+    # results instead of rendering it again (see mi_tetvr.render.replay).
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        with dr.resume_grad():
+            inputs = self.differentiable_inputs(scene)
+            tracked = any(dr.grad_enabled(x) for x in inputs)
+        if tracked:
+            self._record = (PrimalStates.key(scene, sensor, derivative_seed(seed), spp),
+                            int(seed), [dr.detach(x) for x in inputs])
+        try:
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
+        finally:
+            self._record = None
+
+    def _derivative_pass(self, base, scene, params, sensor, seed, spp, *grad_in):
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        kept = self._states.take(PrimalStates.key(scene, sensor, seed, spp),
+                                 [dr.detach(x) for x in self.differentiable_inputs(scene)])
+        if kept is None:
+            return base(scene, params, *grad_in, sensor, seed, spp)
+        primal_seed, self._replay = kept
+        try:
+            return base(scene, params, *grad_in, sensor, primal_seed, spp)
+        finally:
+            self._replay = None
+
+    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
+        return self._derivative_pass(super().render_backward, scene, params, sensor, seed, spp,
+                                     grad_in)
+
+    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
+        return self._derivative_pass(super().render_forward, scene, params, sensor, seed, spp)
 
     def background(self, scene, d, active):
         env = scene.environment()
@@ -133,8 +189,14 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         active = mi.Bool(active)
         bg = self.background(scene, ray.d, active)
         if mode == dr.ADMode.Primal:
-            C, T, _, _ = trace(mode, scene, ts, ray, settings, active)
-            L = C + T * bg
+            if self._replay is not None and dr.width(self._replay[1]) == dr.width(ray):
+                L, T = self._replay
+            else:
+                C, T, _, _ = trace(mode, scene, ts, ray, settings, active)
+                L = C + T * bg
+                if self._record is not None:
+                    key, primal_seed, inputs = self._record
+                    self._states.put(key, primal_seed, (L, T), inputs)
             return L, mi.Bool(True), [1.0 - T] if self.alpha else [], (L, T)
         if state_in is None:
             raise ValueError("tetvr: the derivative modes need the primal pass's state_in")

@@ -418,7 +418,7 @@ def write_outputs(trainer: Trainer, out: Path):
     return metrics
 
 
-def evaluate_mesh(mesh_path, dataset, background=None, n_sub=8, split="test"):
+def evaluate_mesh(mesh_path, dataset, background=None, n_sub=4, split="test"):
     """Score a mesh file on a data set's views (``split`` test or train):
     PSNR/SSIM per view and their mean (as :meth:`Trainer.evaluate`)."""
     from mi_tetvr.mesh.io import read_tetmesh

@@ -26,23 +26,23 @@ if _mi.variant() is None:
                       "mitsuba.set_variant('llvm_ad_rgb') (or 'cuda_ad_rgb') first")
 
 from mi_tetvr.render.adjoint import Adjoint  # noqa: E402
-from mi_tetvr.render.buffers import (FACE_ORDER, MeshBuffers, TetScene, index_buffers,  # noqa: E402
+from mi_tetvr.render.buffers import (MeshBuffers, TetScene, index_buffers,  # noqa: E402
                                      offset_links, pack_links, scene_tetmeshes,
                                      shape_index_arrays, tet_scene, unpack_link)
 from mi_tetvr.render.geometry import (crossing, edge_function, face_crossing,  # noqa: E402
                                       face_entry, face_weights, project, ray_frame, tet_face,
                                       walk_step)
 from mi_tetvr.render.optical import Absorption, EmissionAbsorption, OpticalModel  # noqa: E402
-from mi_tetvr.render.segment import accumulate, clip_segment, segment_integral  # noqa: E402
+from mi_tetvr.render.segment import clip_segment, interval_terms, segment_integral  # noqa: E402
 from mi_tetvr.render.walk import WalkSettings, locate, trace, walk  # noqa: E402
 
 __all__ = [
     "Adjoint",
-    "FACE_ORDER", "MeshBuffers", "TetScene", "index_buffers", "offset_links", "pack_links",
+    "MeshBuffers", "TetScene", "index_buffers", "offset_links", "pack_links",
     "scene_tetmeshes", "shape_index_arrays", "tet_scene", "unpack_link",
     "crossing", "edge_function", "face_crossing", "face_entry", "face_weights", "project",
     "ray_frame", "tet_face", "walk_step",
     "Absorption", "EmissionAbsorption", "OpticalModel",
-    "accumulate", "clip_segment", "segment_integral",
+    "clip_segment", "interval_terms", "segment_integral",
     "WalkSettings", "locate", "trace", "walk",
 ]

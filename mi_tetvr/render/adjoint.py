@@ -171,7 +171,6 @@ def segment(mode, ts, ts_ad, st, entry, exit, L, T, t_begin, t_stop, adj, pendin
     # Into the window (the entry face is the window's vertex set), then
     # scatter the vertex the exit face leaves behind.
     G = vertex_grad_type(model)
-    ik, ix, iy = st.exit
     drop = mi.UInt32(0)
     drop_g = dr.zeros(G)
     new_win, new_g = [], []
@@ -179,11 +178,11 @@ def segment(mode, ts, ts_ad, st, entry, exit, L, T, t_begin, t_stop, adj, pendin
         gj = win_g[j]
         for m in range(3):
             gj = tree_select(win[j] == st.entry[m], tree_add(gj, vg[m]), gj)
-        out = (win[j] != ix) & (win[j] != iy)
+        out = (win[j] != st.exit[0]) & (win[j] != st.exit[1]) & (win[j] != st.exit[2])
         drop = dr.select(out, win[j], drop)
         drop_g = tree_select(out, gj, drop_g)
         new_g.append(tree_select(out, dr.zeros(G), gj))
-        new_win.append(dr.select(out, ik, win[j]))
+        new_win.append(dr.select(out, st.apex, win[j]))
     scatter(ts_ad, drop, drop_g, active, reduce)
     return C_seg, T_seg, adj, (g_exit, new_win, new_g)
 

@@ -17,13 +17,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_tetvr.mesh.topology import FACES
-
-#: FACE_ORDER[4 f + j]: local vertex order seen from local face ``f``: the
-#: apex (the vertex opposite ``f``, i.e. ``f`` itself), then the face's three
-#: vertices in the outward order of :data:`~mi_tetvr.mesh.topology.FACES`.
-FACE_ORDER = np.concatenate([[f, *FACES[f]] for f in range(4)]).astype(np.uint32)
-
 
 def pack_links(tets, faces):
     """Links ``4 * tet + face`` (int64), ``-1`` where ``tets < 0``.
@@ -73,17 +66,14 @@ class MeshBuffers:
     faces : UInt32 (3 b)         boundary face vertices (outward)
     face_adj : Int32 (3 b)       boundary face across the edge opposite each corner
     positions : Float (3 n)      vertex positions (differentiable)
-    face_order : UInt32 (16)     :data:`FACE_ORDER`
     """
     DRJIT_STRUCT = {"tets": mi.UInt32, "nbr": mi.Int32, "boundary": mi.UInt32,
-                    "faces": mi.UInt32, "face_adj": mi.Int32, "positions": mi.Float,
-                    "face_order": mi.UInt32}
+                    "faces": mi.UInt32, "face_adj": mi.Int32, "positions": mi.Float}
 
     def __init__(self, tets=None, nbr=None, boundary=None, faces=None, face_adj=None,
-                 positions=None, face_order=None):
+                 positions=None):
         self.tets, self.nbr, self.boundary, self.faces = tets, nbr, boundary, faces
         self.face_adj, self.positions = face_adj, positions
-        self.face_order = mi.UInt32(FACE_ORDER) if face_order is None else face_order
 
     def position(self, i, active=True, reduce=dr.ReduceMode.Auto):
         """Position of vertex ``i``; ``reduce`` is the scatter strategy of the

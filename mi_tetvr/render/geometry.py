@@ -11,7 +11,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mi_tetvr.mesh.topology import FACES
 from mi_tetvr.render.buffers import unpack_link
+from mi_tetvr.render.pytree import tree_select
 
 # ----------------------------------------------------------------------------
 # Tet-walk step
@@ -83,38 +85,80 @@ def face_weights(e_a, e_b, e_c):
             dr.select(ok, wc * inv_n, third))
 
 
-def crossing(ids, P, p, o, d):
-    """Where the ray crosses the triangle of vertices ``ids`` (global indices),
-    given their positions ``P`` and projections ``p`` in the ray frame.
+class Corner:
+    """A vertex of the face a ray crosses, as the walk sees it: its global
+    index ``i`` (which fixes the canonical edge order), its projection ``p``
+    in the ray frame and its depth ``z = (P - o) . d`` along the ray.
 
-    Returns the ray parameter ``t`` and the barycentric weights. The weights
-    come from the same canonical edge functions as the walk's exit test, so a
-    face shared by two tets gives the same crossing from both sides.
-    """
-    (i0, i1, i2), (P0, P1, P2), (p0, p1, p2) = ids, P, p
-    e0, _ = edge_function(i1, p1, i2, p2)
-    e1, _ = edge_function(i2, p2, i0, p0)
-    e2, _ = edge_function(i0, p0, i1, p1)
-    w = face_weights(e0, e1, e2)
-    return dr.dot(w[0] * P0 + w[1] * P1 + w[2] * P2 - o, d), w
+    The walk carries the three corners of the face it entered through from
+    one tet to the next, so that a step reads only the one new vertex."""
+    DRJIT_STRUCT = {"i": mi.UInt32, "p": mi.Point2f, "z": mi.Float}
+
+    def __init__(self, i=None, p=None, z=None):
+        self.i, self.p, self.z = i, p, z
+
+
+def corner(i, P, o, u, v, d):
+    """The :class:`Corner` of vertex ``i`` at position ``P``."""
+    return Corner(i, project(P, o, u, v), dr.dot(P - o, d))
+
+
+def face_edges(c):
+    """The canonical edge functions of the triangle of :class:`Corner` s
+    ``c``, each of the edge opposite a corner: ``e(c1, c2), e(c2, c0), e(c0,
+    c1)``."""
+    return (edge_function(c[1].i, c[1].p, c[2].i, c[2].p)[0],
+            edge_function(c[2].i, c[2].p, c[0].i, c[0].p)[0],
+            edge_function(c[0].i, c[0].p, c[1].i, c[1].p)[0])
+
+
+def crossing_at(c, edges=None):
+    """Where the ray crosses the triangle of the :class:`Corner` s ``c``: the
+    ray parameter ``t`` and the barycentric weights. The weights come from
+    the same canonical edge functions as the walk's exit test
+    (:func:`face_edges`, or ``edges`` when known), so a face shared by two
+    tets gives the same crossing from both sides."""
+    w = face_weights(*(face_edges(c) if edges is None else edges))
+    return w[0] * c[0].z + w[1] * c[1].z + w[2] * c[2].z, w
+
+
+def crossing(ids, P, p, o, d):
+    """:func:`crossing_at` of the triangle of vertices ``ids`` (global
+    indices), given their positions ``P`` and projections ``p`` in the ray
+    frame."""
+    return crossing_at(tuple(Corner(i, pi, dr.dot(Pi - o, d)) for i, Pi, pi in zip(ids, P, p)))
+
+
+def face_corners(buf, ids, o, u, v, d, active=True, reduce=dr.ReduceMode.Auto):
+    """The :class:`Corner` s of the vertices ``ids``, gathered
+    (differentiably, when AD is enabled on the buffers)."""
+    return tuple(corner(i, buf.position(i, active, reduce), o, u, v, d) for i in ids)
 
 
 def face_crossing(buf, ids, o, u, v, d, active=True, reduce=dr.ReduceMode.Auto):
-    """``(t, w)`` where the ray crosses the triangle ``ids``: gathers the
-    vertices (differentiably, when AD is enabled on the buffers)."""
-    P = tuple(buf.position(i, active, reduce) for i in ids)
-    p = tuple(project(Pi, o, u, v) for Pi in P)
-    return crossing(ids, P, p, o, d)
+    """``(t, w)`` where the ray crosses the triangle ``ids`` (gathered)."""
+    return crossing_at(face_corners(buf, ids, o, u, v, d, active, reduce))
+
+
+def _pick(f, x):
+    """``x[f]`` for a ``UInt32`` ``f`` in 0..3 and a 4-tuple ``x``."""
+    return dr.select(f < 2, dr.select(f == 0, x[0], x[1]), dr.select(f == 2, x[2], x[3]))
+
+
+#: FACES as UInt32 constants per position in the face: _FACE_LOCAL[j][f].
+_FACE_LOCAL = tuple(tuple(int(FACES[f][j]) for f in range(4)) for j in range(3))
 
 
 def tet_face(buf, tet, f, active=True):
     """Global vertex indices ``(apex, a, b, c)`` of ``tet`` for its local face
-    ``f`` (the apex is the vertex opposite the face; ``a, b, c`` the face)."""
-    base = tet * 4
-    k = f * 4
-    return tuple(dr.gather(mi.UInt32, buf.tets,
-                           base + dr.gather(mi.UInt32, buf.face_order, k + j, active), active)
-                 for j in range(4))
+    ``f`` (the apex is the vertex opposite the face, local vertex ``f``;
+    ``a, b, c`` the face in the outward order of
+    :data:`~mi_tetvr.mesh.topology.FACES`), and the local indices of ``a, b,
+    c``. The tet's record is read in one gather."""
+    rec = dr.gather(mi.Array4u, buf.tets, tet, active)
+    r = (rec.x, rec.y, rec.z, rec.w)
+    local = tuple(_pick(f, tuple(mi.UInt32(x) for x in _FACE_LOCAL[j])) for j in range(3))
+    return (_pick(f, r), *(_pick(lj, r) for lj in local)), local
 
 
 def _face_corners(buf, face, o, u, v, active):
@@ -175,30 +219,55 @@ def face_entry(buf, face, o, u, v, d, active):
 class Step:
     """Result of :func:`walk_step`: the exit crossing and the faces involved."""
 
-    def __init__(self, t, w, link, f_out, entry, exit):
+    def __init__(self, t, w, link, f_out, entry, exit, apex, carry):
         self.t = t            # ray parameter of the exit crossing
-        self.w = w            # its barycentric weights in the exit face
+        self.w = w            # its barycentric weights in the exit face (order of ``exit``)
         self.link = link      # the next tet and its entry face (a link), -1 when leaving the mesh
         self.f_out = f_out    # local index of the exit face
         self.entry = entry    # global vertex ids of the entry face
         self.exit = exit      # global vertex ids of the exit face
+        self.apex = apex      # the vertex the exit face has and the entry face has not
+        self.carry = carry    # the exit face for the next step (see walk_step)
 
 
-def walk_step(buf, tet, f_in, o, u, v, d, active):
+def entry_carry(buf, tet, f_in, o, u, v, d, active, gather=None):
+    """What :func:`walk_step` carries, for the face ``f_in`` of ``tet`` read
+    from the buffers: the three :class:`Corner` s in the outward order of
+    ``tet``, their values ``gather(i, active)`` and the face's edge
+    functions (:func:`face_edges`)."""
+    ids = tet_face(buf, tet, f_in, active)[0][1:]
+    corners = face_corners(buf, ids, o, u, v, d, active)
+    values = tuple(gather(i, active) for i in ids) if gather else ((), (), ())
+    return corners, values, face_edges(corners)
+
+
+def walk_step(buf, tet, f_in, o, u, v, d, active, carry=None, gather=None):
     """Cross one tet: find the exit face of a ray entering ``tet`` through its
-    local face ``f_in``, and the exit crossing (a :class:`Step`)."""
-    ik, ia, ib, ic = tet_face(buf, tet, f_in, active)
-    k = f_in * 4
-    la = dr.gather(mi.UInt32, buf.face_order, k + 1, active)
-    lb = dr.gather(mi.UInt32, buf.face_order, k + 2, active)
-    lc = dr.gather(mi.UInt32, buf.face_order, k + 3, active)
-    Pk, Pa, Pb, Pc = (buf.position(ik, active), buf.position(ia, active),
-                      buf.position(ib, active), buf.position(ic, active))
-    pk, pa, pb, pc = (project(Pk, o, u, v), project(Pa, o, u, v),
-                      project(Pb, o, u, v), project(Pc, o, u, v))
-    ea, sa = edge_function(ik, pk, ia, pa)
-    eb, sb = edge_function(ik, pk, ib, pb)
-    ec, sc = edge_function(ik, pk, ic, pc)
+    local face ``f_in``, and the exit crossing (a :class:`Step`).
+
+    ``carry`` is the entry face as the previous step left it (``st.carry``,
+    or :func:`entry_carry`): its corners in the outward order of ``tet``,
+    per corner the values ``gather(i, active)`` returns (e.g. an optical
+    model's attributes) and its edge functions. A step reads the tet's
+    vertex indices, the one vertex it does not share with the entry face
+    (the apex) and one neighbour link; the exit face is the entry face with
+    the corner it leaves behind replaced by the apex, which keeps its corners
+    in the outward order of the next tet (the topology orients every tet
+    consistently), so ``st.carry`` serves the next step as it is.
+    """
+    if carry is None:
+        carry = entry_carry(buf, tet, f_in, o, u, v, d, active, gather)
+    (ca, cb, cc), (xa, xb, xc), (Ea, Eb, Ec) = carry
+    ia, ib, ic = ca.i, cb.i, cc.i
+    rec = dr.gather(mi.Array4u, buf.tets, tet, active)
+    # The apex: the one index of the tet's record not on the entry face.
+    ik = rec.x ^ rec.y ^ rec.z ^ rec.w ^ ia ^ ib ^ ic
+    ck = corner(ik, buf.position(ik, active), o, u, v, d)
+    xk = gather(ik, active) if gather else ()
+    pk = ck.p
+    ea, sa = edge_function(ik, pk, ia, ca.p)
+    eb, sb = edge_function(ik, pk, ib, cb.p)
+    ec, sc = edge_function(ik, pk, ic, cc.p)
     # Faces around the apex k, outward: (k,b,a) opposite c, (k,c,b) opposite a,
     # (k,a,c) opposite b. The ray leaves through (k,x,y) when it passes left of
     # k->x and right of k->y.
@@ -214,17 +283,20 @@ def walk_step(buf, tet, f_in, o, u, v, d, active):
     best_c = (s_c >= s_a) & (s_c >= s_b)
     best_a = ~best_c & (s_a >= s_b)
     opp_c |= none & best_c
-    opp_a |= none & best_a
-    opp_b |= none & ~best_c & ~best_a
-    # Exit face (k, x, y) and the local index z of the vertex it is opposite.
-    ix = dr.select(opp_c, ib, dr.select(opp_a, ic, ia))
-    iy = dr.select(opp_c, ia, dr.select(opp_a, ib, ic))
-    Px = dr.select(opp_c, Pb, dr.select(opp_a, Pc, Pa))
-    Py = dr.select(opp_c, Pa, dr.select(opp_a, Pb, Pc))
-    px = dr.select(opp_c, pb, dr.select(opp_a, pc, pa))
-    py = dr.select(opp_c, pa, dr.select(opp_a, pb, pc))
-    lz = dr.select(opp_c, lc, dr.select(opp_a, la, lb))
-    exit_ids = (ik, ix, iy)
-    t_out, w = crossing(exit_ids, (Pk, Px, Py), (pk, px, py), o, d)
+    opp_a = ~opp_c & (opp_a | (none & best_a))
+    opp_b = ~opp_c & ~opp_a
+    # The exit face: the entry face with the corner z opposite it replaced by k.
+    exit_c = (tree_select(opp_a, ck, ca), tree_select(opp_b, ck, cb), tree_select(opp_c, ck, cc))
+    exit_x = (tree_select(opp_a, xk, xa), tree_select(opp_b, xk, xb), tree_select(opp_c, xk, xc))
+    # Its edge functions: the edge opposite z is an entry-face edge, the two
+    # others are edges of k (the canonical values are exactly antisymmetric).
+    exit_e = (dr.select(opp_a, Ea, dr.select(opp_b, ec, -eb)),
+              dr.select(opp_b, Eb, dr.select(opp_c, ea, -ec)),
+              dr.select(opp_c, Ec, dr.select(opp_a, eb, -ea)))
+    t_out, w = crossing_at(exit_c, exit_e)
+    iz = dr.select(opp_c, ic, dr.select(opp_a, ia, ib))
+    lz = dr.select(iz == rec.x, 0, dr.select(iz == rec.y, 1, dr.select(iz == rec.z, 2, 3)))
+    lz = mi.UInt32(lz)
     link = dr.gather(mi.Int32, buf.nbr, tet * 4 + lz, active)
-    return Step(t_out, w, link, lz, (ia, ib, ic), exit_ids)
+    return Step(t_out, w, link, lz, (ia, ib, ic), tuple(c.i for c in exit_c), ik,
+                (exit_c, exit_x, exit_e))

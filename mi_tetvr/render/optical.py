@@ -54,7 +54,7 @@ class OpticalModel:
     #: exposed by ``mi.traverse`` as ``<id>.<name>``).
     vertex_attributes = ()
 
-    def __init__(self, n_sub: int = 8):
+    def __init__(self, n_sub: int = 4):
         self.n_sub = int(n_sub)
 
     @staticmethod

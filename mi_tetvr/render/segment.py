@@ -1,30 +1,40 @@
 """Segment integrals of the emission-absorption model (pure Dr.Jit).
 
-Segment integral (DiffTetVR Eq. 1, Alg. 1 with the corrected Alg. 3)
---------------------------------------------------------------------
-Inside a tet, color ``c`` and opacity (extinction) ``s`` are linear along the
-ray. A segment of length ``L`` is split into ``n_sub`` sub-intervals; on each,
-the extinction is held at its value at the sub-interval's midpoint (which
-integrates a linear extinction *exactly*, so transmittance is exact) and the
-color stays linear. For constant extinction ``a``, length ``t`` and linear color
-``c0 -> c1`` the emission is, with ``x = a t`` and ``A = exp(-x)``::
+The segment integral (DiffTetVR Eq. 1)
+--------------------------------------
+Inside a tet, color ``c`` and extinction ``s`` are linear along the ray. Over
+a segment of length ``L`` with optical depth ``tau(t)``, since
+``s e^{-tau} = -d/dt e^{-tau}``, integration by parts reduces the emission
+to one scalar integral, exactly::
 
-    C = (1 - A) c0 + (A - (1 - A) / x) (c0 - c1)
+    C = int_0^L c(t) s(t) e^{-tau(t)} dt = c0 (1 - M) + c1 (M - T)
 
-(the printed Alg. 3 is exact only for ``t = 1``). Small ``x`` uses Taylor
-series so that ``x -> 0`` is exact and free of cancellation.
+with ``T = exp(-tau(L)) = exp(-L (s0 + s1) / 2)`` and ``M`` the mean
+transmittance over the segment, ``M = (1/L) int_0^L e^{-tau(t)} dt`` (a
+Gaussian integral: T <= M <= 1). Only ``M`` is approximated; the colors enter
+exactly and ``T`` is exact.
 
-Derivatives (used by the adjoint through Dr.Jit's AD of this closed form).
-With ``g = (1 - A) / x`` and ``h = A - g`` (so ``C = (1 - A) c0 + h (c0 - c1)``)::
+``M`` is computed as DiffTetVR's Alg. 1 does it in effect: ``n`` sub-intervals
+of constant extinction (its value at their midpoints, so the transmittance
+stays exact), on which the integral is closed-form, ``g(x) = (1 - e^{-x}) /
+x`` for a sub-interval of optical depth ``x`` (the printed Alg. 3 is exact
+only for ``t = 1``). Its error falls as ``1/n^2``; for even ``n`` the same
+exponentials give the estimate with ``n / 2`` sub-intervals too, and
+Richardson's extrapolation ``(4 M_n - M_{n/2}) / 3`` leaves an error of order
+``1/n^4`` (``tests/render/test_segment.py`` checks it against a float64
+quadrature). On a unit segment whose extinction changes by at most 3, ``n``
+= 4 errs by at most 3e-4 in the emission, where 8 sub-intervals without the
+extrapolation (the scheme before) err by up to 2e-3, with half the
+exponentials. Over 2M random segments (depths from 1e-8 to 1e5) both
+``1 - M`` and ``M - T`` came out >= 0 and summed to ``1 - T`` within 5e-7, so
+no clamp is needed (it would bend the derivative at zero opacity).
 
-    dA/dx = -A          dg/dx = h / x          dh/dx = -A - h / x
-    dC/dc0 = 1 - A + h  dC/dc1 = -h            dC/dx = A c0 - (A + h / x) (c0 - c1)
-
-and ``h / x -> -1/2 + x/3 - x^2/8`` as ``x -> 0``, so at zero opacity the
-derivative is the finite limit ``dC/dx = (c0 + c1) / 2`` (the series branch
-gives it exactly; ``tests/render/test_segment.py`` checks these against float64).
-A segment's transmittance is ``exp(-tau)`` with ``tau = length (s0 + s1) / 2``
-(the midpoint rule is exact for linear extinction), so ``dT = -T dtau``.
+``1 - M`` and ``M - T`` are both of the order of the optical depth; they are
+accumulated as sums of non-negative terms (prefix and suffix products of the
+sub-intervals' transmittances, Taylor series of ``g`` and ``h = e^{-x} - g``
+below ``x`` = 0.1) so that neither cancels as ``tau -> 0``. The derivatives
+that the adjoint takes by Dr.Jit's AD stay finite there: at zero opacity
+``dC/dtau = (c0 + c1) / 2``.
 """
 from __future__ import annotations
 
@@ -33,41 +43,51 @@ import mitsuba as mi
 
 from mi_tetvr.render.pytree import tree_lerp
 
-#: Below this optical depth the sub-interval integral uses Taylor series (to
-#: x^4; truncation < 2e-6 relative). Above it the closed form and its
-#: derivative lose at most ~eps / x^2 to cancellation.
+#: Below this optical depth a sub-interval's integral uses Taylor series (to
+#: x^4; truncation < 2e-6 relative). Above it the closed form loses at most
+#: ~eps / x^2 to cancellation.
 _SMALL_X = 0.1
 
 
-def accumulate(x, c0, c1):
-    """Emission and transmittance of a sub-interval with constant extinction.
-
-    Parameters
-    ----------
-    x : Float
-        Optical depth ``a * t`` (>= 0).
-    c0, c1 : Color3f
-        Color at the start and end of the sub-interval.
-
-    Returns
-    -------
-    (Color3f, Float)
-        Emission ``C`` and transmittance ``A = exp(-x)``.
-    """
+def interval_terms(x, A):
+    """``(1 - A, h)`` of a sub-interval of optical depth ``x >= 0`` and
+    transmittance ``A = exp(-x)``: ``h = A - g`` with ``g = (1 - A) / x`` its
+    mean transmittance, both without cancellation (``h <= 0``)."""
     small = x < _SMALL_X
-    A = dr.exp(-x)
     x2 = x * x
-    # g = (1 - A) / x and h = A - g, by series for small x.
     g_series = 1.0 - x * 0.5 + x2 * (1.0 / 6.0) - x2 * x * (1.0 / 24.0) + x2 * x2 * (1.0 / 120.0)
     h_series = -x * 0.5 + x2 * (1.0 / 3.0) - x2 * x * 0.125 + x2 * x2 * (1.0 / 30.0)
     g = dr.select(small, g_series, (1.0 - A) / dr.select(small, 1.0, x))
-    h = dr.select(small, h_series, A - g)
-    C = (x * g) * c0 + h * (c0 - c1)
-    return C, A
+    return x * g, dr.select(small, h_series, A - g)
+
+
+def _moments(x, A):
+    """``(1 - M_n, M_n - T)`` of ``n`` equal sub-intervals of optical depths
+    ``x`` and transmittances ``A`` (lists), as sums of non-negative terms:
+    with ``T_i`` the transmittance in front of sub-interval ``i``,
+    ``1 - M = mean_i [(1 - T_i) + T_i (1 - g_i)]`` and
+    ``M - T = mean_i [T_{i+1} (1 - A_{i+1} ... A_{n-1}) - T_i h_i]``."""
+    n = len(x)
+    terms = [interval_terms(xi, Ai) for xi, Ai in zip(x, A)]
+    T = [None] * (n + 1)          # T[i]: transmittance in front of sub-interval i
+    D = [None] * (n + 1)          # D[i] = 1 - T[i]
+    T[0], D[0] = 1.0, 0.0
+    for i in range(n):
+        T[i + 1] = T[i] * A[i]
+        D[i + 1] = D[i] + T[i] * terms[i][0]
+    S = 0.0                        # 1 - A_{i+1} ... A_{n-1}
+    P = Q = 0.0
+    for i in reversed(range(n)):
+        one_minus_A, h = terms[i]
+        P += D[i] + T[i] * (one_minus_A + h)      # 1 - g = (1 - A) + h
+        Q += T[i + 1] * S - T[i] * h
+        S = one_minus_A + A[i] * S
+    return P * (1.0 / n), Q * (1.0 / n), T[n]
 
 
 def segment_integral(length, c0, c1, s0, s1, n_sub: int):
-    """Emission-absorption integral over a segment with linear color/opacity.
+    """Emission-absorption integral over a segment with linear color and
+    extinction (see the module docstring).
 
     Parameters
     ----------
@@ -78,7 +98,9 @@ def segment_integral(length, c0, c1, s0, s1, n_sub: int):
     s0, s1 : Float
         Extinction at entry and exit.
     n_sub : int
-        Number of sub-intervals (a Python int: the loop is unrolled).
+        Sub-intervals of the mean transmittance (a Python int: the loop is
+        unrolled); even values are extrapolated from ``n_sub`` and
+        ``n_sub / 2``.
 
     Returns
     -------
@@ -86,17 +108,16 @@ def segment_integral(length, c0, c1, s0, s1, n_sub: int):
         Emission seen from the entry side and the segment's transmittance.
     """
     dt = length * (1.0 / n_sub)
-    C = dr.zeros(mi.Color3f, dr.width(length))
-    T = dr.ones(mi.Float, dr.width(length))
-    for i in range(n_sub):
-        a = dr.lerp(s0, s1, (i + 0.5) / n_sub)
-        ci0 = dr.lerp(c0, c1, i / n_sub)
-        ci1 = dr.lerp(c0, c1, (i + 1) / n_sub)
-        Ci, Ai = accumulate(a * dt, ci0, ci1)
-        C += T * Ci
-        T *= Ai
-    return C, T
-
+    x = [dt * dr.lerp(s0, s1, (i + 0.5) / n_sub) for i in range(n_sub)]
+    A = [dr.exp(-xi) for xi in x]
+    P, Q, T = _moments(x, A)
+    if n_sub % 2 == 0:
+        # The same segment in n_sub / 2 sub-intervals: midpoint depths add.
+        Pc, Qc, _ = _moments([x[i] + x[i + 1] for i in range(0, n_sub, 2)],
+                             [A[i] * A[i + 1] for i in range(0, n_sub, 2)])
+        P = (4.0 * P - Pc) * (1.0 / 3.0)
+        Q = (4.0 * Q - Qc) * (1.0 / 3.0)
+    return c0 * P + c1 * Q, T
 
 
 def clip_segment(t0, x0, t1, x1, t_begin, t_end):

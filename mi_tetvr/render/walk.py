@@ -29,7 +29,8 @@ import mitsuba as mi
 
 from mi_tetvr.render import adjoint
 from mi_tetvr.render.buffers import unpack_link
-from mi_tetvr.render.geometry import face_crossing, face_entry, ray_frame, tet_face, walk_step
+from mi_tetvr.render.geometry import crossing_at, entry_carry, face_entry, ray_frame, walk_step
+from mi_tetvr.render.pytree import weighted_sum
 from mi_tetvr.render.segment import clip_segment
 
 
@@ -99,16 +100,22 @@ def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
     L = mi.Color3f(L)
     T = mi.Float(T)
     active = mi.Bool(active)
-    entry_ids = tet_face(buf, tet, f_in, active)[1:]
-    t, w = face_crossing(buf, entry_ids, o, u, v, d, active)
-    a = model.interpolate(params, entry_ids, w, active)
+
+    def gather(i, active):
+        return model.gather(params, i, active)
+
+    # The entry face's corners and attributes; each step reads only its apex.
+    carry = entry_carry(buf, tet, f_in, o, u, v, d, active, gather)
+    entry_ids = tuple(c.i for c in carry[0])
+    t, w = crossing_at(carry[0], carry[2])
+    a = weighted_sum(w, carry[1])
     steps = mi.UInt32(0)
     pending = None
     if dr.hint(not primal, mode="scalar"):
         pending = adjoint.start(mode, ts_ad, entry_ids, o, u, v, d, active)
     while dr.hint(active, label="tetvr_walk"):
-        st = walk_step(buf, tet, f_in, o, u, v, d, active)
-        a_out = model.interpolate(params, st.exit, st.w, active)
+        st = walk_step(buf, tet, f_in, o, u, v, d, active, carry, gather)
+        a_out = weighted_sum(st.w, st.carry[1])
         t_out = dr.maximum(st.t, t)
         if dr.hint(primal, mode="scalar"):
             length, a0, a1 = clip_segment(t, a, t_out, a_out, t_begin, t_stop)
@@ -121,6 +128,7 @@ def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
         T *= T_seg
         t = t_out
         a = a_out
+        carry = st.carry
         steps += 1
         tet, f_in = unpack_link(st.link)
         active &= (st.link >= 0) & (t_out < t_stop) & (steps < settings.max_steps)

@@ -878,10 +878,16 @@ def check_walk_step(buf, mesh, o, d, exact):
     else:
         keep = np.ones(len(lanes), bool)
     np.testing.assert_array_equal(f_out[keep], lz[keep])
-    np.testing.assert_array_equal(exit_ids[keep], np.stack(ids, 1)[keep])
+    # The exit face and its weights, vertex by vertex (in any corner order).
+    twin_ids, w_np = np.stack(ids, 1), np.stack(w_np, -1)
+    order, twin_order = np.argsort(exit_ids, 1), np.argsort(twin_ids, 1)
+    exit_ids, twin_ids = (np.take_along_axis(x, o_, 1) for x, o_ in
+                          ((exit_ids, order), (twin_ids, twin_order)))
+    w, w_np = np.take_along_axis(w, order, 1), np.take_along_axis(w_np, twin_order, 1)
+    np.testing.assert_array_equal(exit_ids[keep], twin_ids[keep])
     np.testing.assert_array_equal(link[keep] < 0, nt[keep] < 0)
     inner = keep & (nt >= 0)
     np.testing.assert_array_equal(n_tet[inner], nt[inner])
     np.testing.assert_array_equal(n_face[inner], nf[inner])
-    np.testing.assert_allclose(w[keep], np.stack(w_np, -1)[keep], atol=1e-4)
+    np.testing.assert_allclose(w[keep], w_np[keep], atol=1e-4)
     np.testing.assert_allclose(t[keep], t_np[keep], atol=1e-5 * np.abs(t_np).max())

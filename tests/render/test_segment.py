@@ -1,47 +1,87 @@
-"""The segment integral's closed form and its derivatives (the ones the
-adjoint uses), against float64 formulas and the x -> 0 limit."""
+"""The segment integral and its pieces (the ones the adjoint differentiates),
+against float64 formulas, an adaptive float64 quadrature and the x -> 0
+limit."""
 import numpy as np
 import pytest
+from scipy.integrate import quad
 
 import drjit as dr
 import mitsuba as mi
-from mi_tetvr.render.segment import accumulate, segment_integral
+from mi_tetvr.render.segment import interval_terms, segment_integral
 
 X = np.array([0.0, 1e-7, 1e-4, 5e-3, 0.0099, 0.0101, 0.099, 0.101, 0.3, 2.0, 30.0, 1e4])
 
 
-def analytic(x, c0, c1):
-    """C, dC/dx, dC/dc0, dC/dc1 in float64 (series below 1e-3, where the
-    closed form cancels)."""
-    x = np.asarray(x, np.float64)[:, None]
+def analytic(x):
+    """1 - A, h = A - (1 - A) / x and their x-derivatives in float64 (series
+    below 1e-3, where the closed form cancels)."""
+    x = np.asarray(x, np.float64)
     A = np.exp(-x)
     with np.errstate(divide="ignore", invalid="ignore"):
         g = np.where(x < 1e-3, 1 - x / 2 + x**2 / 6 - x**3 / 24, -np.expm1(-x) / x)
         h = A - g
         h_over_x = np.where(x < 1e-3, -0.5 + x / 3 - x**2 / 8, h / x)
-    C = (x * g) * c0 + h * (c0 - c1)
-    dC_dx = A * c0 - (A + h_over_x) * (c0 - c1)
-    return C, dC_dx, (1 - A + h) + 0 * c0, -h + 0 * c0
+    # dg/dx = h / x, dh/dx = -A - h / x
+    return -np.expm1(-x), h, A, -A - h_over_x
 
 
-def test_accumulate_value_and_derivatives():
-    rng = np.random.default_rng(0)
-    c0, c1 = rng.uniform(0, 1, (len(X), 3)), rng.uniform(0, 1, (len(X), 3))
+def test_interval_terms_value_and_derivatives():
     x = mi.Float(X)
-    a, b = mi.Color3f(*c0.T), mi.Color3f(*c1.T)
-    dr.enable_grad(x, a, b)
-    C, A = accumulate(x, a, b)
-    ref_C, ref_dx, ref_d0, ref_d1 = analytic(X, c0, c1)
-    np.testing.assert_allclose(np.array(C).T, ref_C, rtol=2e-6, atol=1e-7)
-    np.testing.assert_allclose(np.array(A), np.exp(-X), rtol=2e-6, atol=1e-30)
-    for k in range(3):  # one color channel at a time: d C_k / d(x, c0_k, c1_k)
-        dr.clear_grad((x, a, b))
-        dr.backward_from(accumulate(x, a, b)[0][k])
-        np.testing.assert_allclose(np.array(dr.grad(x)), ref_dx[:, k], rtol=1e-5, atol=1e-7)
-        np.testing.assert_allclose(np.array(dr.grad(a))[k], ref_d0[:, k], rtol=1e-5, atol=1e-7)
-        np.testing.assert_allclose(np.array(dr.grad(b))[k], ref_d1[:, k], rtol=1e-5, atol=1e-7)
-    # The zero-opacity limit: emission rate (c0 + c1) / 2.
-    np.testing.assert_allclose(ref_dx[0], (c0[0] + c1[0]) / 2, rtol=1e-12)
+    dr.enable_grad(x)
+    A = dr.exp(-x)
+    one_minus_A, h = interval_terms(x, A)
+    ref_1mA, ref_h, ref_d1mA, ref_dh = analytic(X)
+    np.testing.assert_allclose(np.array(one_minus_A), ref_1mA, rtol=2e-6, atol=1e-30)
+    np.testing.assert_allclose(np.array(h), ref_h, rtol=2e-6, atol=1e-7)
+    assert np.all(np.array(h) <= 0)
+    dr.backward_from(h)
+    np.testing.assert_allclose(np.array(dr.grad(x)), ref_dh, rtol=1e-5, atol=1e-7)
+    # The zero-opacity limit: dh/dx = -1/2.
+    np.testing.assert_allclose(ref_dh[0], -0.5, rtol=1e-12)
+
+
+#: (s0, s1) over a unit length: thin, moderate, steep and opaque segments.
+EXTINCTIONS = [(0, 0.1), (0, 1), (1, 0), (0, 3), (3, 0), (0.5, 2), (0, 10), (2, 20),
+               (1e-6, 2e-6), (50, 60)]
+
+
+def exact_segment(s0, s1, c0, c1):
+    """float64 emission of a unit segment by adaptive quadrature."""
+    def f(t, k):
+        return ((1 - t) * c0[k] + t * c1[k]) * (s0 + (s1 - s0) * t) * np.exp(
+            -(s0 * t + (s1 - s0) * t * t / 2))
+    return np.array([quad(f, 0, 1, args=(k,), epsabs=1e-15, epsrel=1e-13, limit=200)[0]
+                     for k in range(3)])
+
+
+def segment_errors(n_sub):
+    c0, c1 = [0.2, 0.5, 0.9], [0.9, 0.1, 0.4]
+    s0 = mi.Float([e[0] for e in EXTINCTIONS])
+    s1 = mi.Float([e[1] for e in EXTINCTIONS])
+    C, T = segment_integral(dr.ones(mi.Float, len(EXTINCTIONS)), mi.Color3f(c0),
+                            mi.Color3f(c1), s0, s1, n_sub)
+    ref = np.stack([exact_segment(a, b, c0, c1) for a, b in EXTINCTIONS])
+    np.testing.assert_allclose(np.array(T), np.exp(-(np.array(s0) + np.array(s1)) / 2),
+                               rtol=1e-5, atol=1e-30)
+    return np.abs(np.array(C).T - ref).max(1)
+
+
+def test_segment_integral_converges():
+    """Against a float64 quadrature: the transmittance is exact, one
+    sub-interval errs by up to ~0.1 on steep segments, the extrapolated even
+    counts converge at fourth order (about 16x per doubling where the
+    sub-intervals resolve the extinction), and 4 sub-intervals err by less
+    than 3e-4 wherever the extinction changes by at most 3 across the
+    segment (8 sub-intervals without extrapolation err by up to 2e-3
+    there)."""
+    e1, e2, e4, e8 = (segment_errors(n) for n in (1, 2, 4, 8))
+    assert e1.max() > 0.05
+    assert np.all(e4 <= e2 + 1e-7) and np.all(e8 <= e4 + 1e-7)
+    moderate = np.array([abs(b - a) <= 3 for a, b in EXTINCTIONS])
+    assert e4[moderate].max() < 3e-4
+    resolved = np.array([max(a, b) <= 3 and b != a for a, b in EXTINCTIONS]) & (e4 > 1e-6)
+    assert np.all(e4[resolved] / e8[resolved] > 8)
+    assert e8.max() < 3e-4
 
 
 @pytest.mark.parametrize("n_sub", [1, 8])
