@@ -24,6 +24,7 @@ def parse_args(argv=None):
     p = make_parser(__doc__, repeat=3, quick="--cells 16 --res 64")
     p.add_argument("--cells", type=int, default=64, help="grid cells per axis (default 64)")
     p.add_argument("--res", type=int, default=256, help="image width = height (default 256)")
+    p.add_argument("--n-sub", type=int, default=4, help="tetvr n_sub (default 4, as tetvr)")
     p.add_argument("--modes", default="auto,local,direct",
                    help="reduce modes to compare (default auto,local,direct)")
     a = p.parse_args(argv)
@@ -45,7 +46,7 @@ KEYS = ("volume.vertex_color", "volume.vertex_opacity", "volume.vertex_positions
 
 def main(a):
     info = header("backward benchmark")
-    scene, v, tets, color, opacity = grid_scene(a.cells, a.res)
+    scene, v, tets, color, opacity = grid_scene(a.cells, a.res, n_sub=a.n_sub)
     print(f"mesh: {a.cells}^3 cells, {len(tets):,} tets; image {a.res}x{a.res}, 1 spp")
     params = mi.traverse(scene)
     # Target: the same mesh with perturbed attributes.
@@ -92,6 +93,9 @@ def main(a):
         rows.append((f"render + backward, all 3, reduce={name}", f, m, al))
     best = min(results, key=results.get)
     integrator.settings.reduce = modes[best]
+    f, m, al, _ = timed(backward(KEYS[:2]), a.repeat)
+    results["colors_opacities"] = m
+    rows.append(("render + backward, colors and opacities", f, m, al))
     for k in KEYS:
         f, m, al, _ = timed(backward((k,)), a.repeat)
         rows.append((f"render + backward, {k.split('.')[-1]} only", f, m, al))

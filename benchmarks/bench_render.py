@@ -1,4 +1,4 @@
-"""Render benchmark: the ``tetvr`` tet walk against a Mitsuba-native baseline.
+"""Render benchmark: the ``tetvr`` tet walk against a plain walk.
 
 Scene: a jittered regular tet grid (``cells^3`` cells, 6 Kuhn tets each; 64^3
 = 1.57M tets) over [-1, 1]^3 carrying :func:`mi_tetvr.mesh.generate.blob_field`,
@@ -6,30 +6,33 @@ seen by a perspective camera, one ray per pixel through the pixel center,
 no early ray termination (``min_transmittance = 0``), so every ray crosses the
 whole mesh.
 
+Methods, each timed warm (one run to compile, then the median of
+``--repeat`` runs), all on the same pixel-center rays:
+
 1. **tetvr**: ``mi.render`` with the ``tetvr`` integrator (stratified sampler
-   without jitter, so its rays are the pixel-center rays), and
-   :func:`mi_tetvr.render.walk.trace` called directly on the same rays
-   (which gives the number of tets crossed). Both are timed warm (one run to
-   compile, then the median of ``--repeat`` runs).
-2. **baseline**: every tet face (each unique triangle once) in one ordinary
-   Mitsuba ``mesh`` in a separate scene. The ray is advanced hit by hit with
-   ``scene.ray_intersect_preliminary`` (Embree BVH, origin moved just past each
-   hit) inside a Dr.Jit symbolic loop; between two consecutive hits the ray is
-   inside one tet, color and opacity at each hit come from the hit triangle's
-   vertices with the barycentrics in ``si.prim_uv``, and the segment is
-   integrated with the same :func:`mi_tetvr.render.segment.segment_integral`. (The
-   baseline assumes a convex mesh: everything between the first and the last
-   hit is inside; the grid is a box.)
+   without jitter: its rays are the pixel-center rays), and
+   :func:`mi_tetvr.render.walk.trace` called directly (which gives the number
+   of tets crossed).
+2. **plain walk** (:mod:`plain_walk`): Weiler-style: every step reads all
+   four vertices of the tet, intersects the four face planes, interpolates
+   at the exit point. Once with tetvr's own segment integral at the same
+   ``n_sub`` (the walks alone compared), once with the integral tetvr used
+   before (DiffTetVR Alg. 1, ``--baseline-n-sub`` = 8 plain sub-intervals):
+   what a first implementation of DiffTetVR's renderer does.
+
+Accuracy: every image is compared with tetvr's at ``n_sub`` = 32 on the same
+rays (the extrapolated integral's error falls as 1/n^4: converged to float
+precision), so a faster integral is seen not to be a coarser one.
 
 Usage::
 
-    python benchmarks/bench_render.py            # 64^3 cells, 512x512
-    python benchmarks/bench_render.py --quick    # 16^3 cells, 128x128 smoke run
+    python benchmarks/bench_render.py            # 64^3 cells, 384x384
+    python benchmarks/bench_render.py --quick    # 16^3 cells, 96x96 smoke run
+    python benchmarks/bench_render.py --shuffle  # vertices and tets in random order
 """
 from __future__ import annotations
 
 import sys
-import time
 
 import numpy as np
 
@@ -37,19 +40,24 @@ from common import grid_scene, header, make_parser, timed, write_json
 
 
 def parse_args(argv=None):
-    p = make_parser(__doc__, repeat=3, quick="--cells 16 --res 128")
+    p = make_parser(__doc__, repeat=3, quick="--cells 16 --res 96")
     p.add_argument("--cells", type=int, default=64, help="grid cells per axis (default 64)")
-    p.add_argument("--res", type=int, default=512, help="image width = height (default 512)")
+    p.add_argument("--res", type=int, default=384, help="image width = height (default 384)")
     p.add_argument("--jitter", type=float, default=0.15,
                    help="vertex jitter in cell sizes (default 0.15; > ~0.2 inverts Kuhn tets)")
     p.add_argument("--scale", type=float, default=1.0, help="blob_field opacity scale (default 1)")
-    p.add_argument("--n-sub", type=int, default=8, help="sub-intervals per segment (default 8, as tetvr)")
-    p.add_argument("--eps", type=float, default=1e-5,
-                   help="baseline: offset past each hit, relative to the bbox diagonal "
-                        "(default 1e-5, like tetvr's retrace_epsilon)")
+    p.add_argument("--n-sub", type=int, default=None,
+                   help="tetvr's n_sub (default: the integrator's default)")
+    p.add_argument("--shuffle", action="store_true",
+                   help="list the grid's vertices and tets in random order (as a mesh file "
+                        "may); adds tetvr on the tets in that order (without the Morton order "
+                        "the tetmesh shape gives them)")
+    p.add_argument("--baseline-n-sub", type=int, default=8,
+                   help="sub-intervals of the plain walk's Alg. 1 integral (default 8, the "
+                        "n_sub tetvr used with it)")
     a = p.parse_args(argv)
     if a.quick:
-        a.cells, a.res = 16, 128
+        a.cells, a.res = 16, 96
     return a
 
 
@@ -60,18 +68,15 @@ import mitsuba as mi  # noqa: E402
 
 mi.set_variant(ARGS.variant)
 
-import mi_tetvr  # noqa: E402
-from mi_tetvr.render.segment import segment_integral  # noqa: E402
-from mi_tetvr.mesh.topology import FACES  # noqa: E402
+import mi_tetvr  # noqa: E402,F401
+from mi_tetvr.render.buffers import (MeshBuffers, TetScene, scene_tetmeshes,  # noqa: E402
+                                     shape_index_arrays)
 from mi_tetvr.render.walk import WalkSettings, trace  # noqa: E402
+from plain_walk import plain_trace  # noqa: E402
 
-mi_tetvr.register()
-from mi_tetvr.render.buffers import scene_tetmeshes  # noqa: E402
+#: n_sub of the reference image (error ~1/n^4: below float precision).
+REFERENCE_N_SUB = 32
 
-
-# ----------------------------------------------------------------------------
-# Scene
-# ----------------------------------------------------------------------------
 
 def pixel_rays(sensor, res):
     """One normalized ray through each pixel center (row-major, like the film)."""
@@ -85,76 +90,6 @@ def pixel_rays(sensor, res):
     return ray
 
 
-def unique_faces(tets, neighbors):
-    """Each triangle of the tet mesh once: face (t, i) is kept when it is on the
-    boundary or t is the smaller of the two tets sharing it."""
-    m = len(tets)
-    keep = (neighbors < 0) | (np.arange(m)[:, None] < neighbors)
-    return tets[:, FACES][keep]  # (f, 3)
-
-
-def baseline_scene(vertices, faces):
-    mesh = mi.Mesh("all_tet_faces", len(vertices), len(faces))
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(np.asarray(vertices, np.float32).ravel())
-    params["faces"] = mi.UInt32(np.asarray(faces, np.uint32).ravel())
-    params.update()
-    return mi.load_dict({"type": "scene", "faces": mesh})
-
-
-# ----------------------------------------------------------------------------
-# Baseline: multi-hit BVH traversal
-# ----------------------------------------------------------------------------
-
-@dr.syntax
-def baseline_rays(scene, faces, color, opacity, ray, n_sub: int, eps: float,
-                  max_hits: int):
-    """Emission, transmittance and hit count along ``ray`` by repeated
-    ``ray_intersect_preliminary`` against all tet faces."""
-    o = mi.Point3f(ray.o)
-    d = mi.Vector3f(ray.d)
-    L = mi.Color3f(0.0)
-    T = mi.Float(1.0)
-    t = mi.Float(0.0)        # ray parameter of the previous hit
-    c = mi.Color3f(0.0)      # color and opacity there
-    s = mi.Float(0.0)
-    start = mi.Float(0.0)    # where the next trace starts
-    hits = mi.UInt32(0)
-    active = dr.full(mi.Bool, True, dr.width(o))
-    while dr.hint(active, label="baseline_multihit"):
-        si = scene.ray_intersect_preliminary(mi.Ray3f(o + d * start, d), active=active)
-        active &= si.is_valid()
-        t_hit = start + si.t
-        f = mi.UInt32(si.prim_index)
-        i0 = dr.gather(mi.UInt32, faces, f * 3 + 0, active)
-        i1 = dr.gather(mi.UInt32, faces, f * 3 + 1, active)
-        i2 = dr.gather(mi.UInt32, faces, f * 3 + 2, active)
-        b1, b2 = si.prim_uv.x, si.prim_uv.y
-        b0 = 1.0 - b1 - b2
-        c_hit = (b0 * dr.gather(mi.Color3f, color, i0, active)
-                 + b1 * dr.gather(mi.Color3f, color, i1, active)
-                 + b2 * dr.gather(mi.Color3f, color, i2, active))
-        s_hit = (b0 * dr.gather(mi.Float, opacity, i0, active)
-                 + b1 * dr.gather(mi.Float, opacity, i1, active)
-                 + b2 * dr.gather(mi.Float, opacity, i2, active))
-        # Segment from the previous hit (inside one tet); none before the first.
-        length = dr.select(hits > 0, dr.maximum(t_hit - t, 0.0), 0.0)
-        C_seg, T_seg = segment_integral(length, c, c_hit, s, s_hit, n_sub)
-        L[active] = L + T * C_seg
-        T[active] = T * T_seg
-        t[active] = t_hit
-        c[active] = c_hit
-        s[active] = s_hit
-        start[active] = t_hit + eps
-        hits[active] = hits + 1
-        active &= hits < max_hits
-    return L, T, hits
-
-
-# ----------------------------------------------------------------------------
-# Timing helpers
-# ----------------------------------------------------------------------------
-
 def total(x):
     return int(np.asarray(x, dtype=np.uint64).sum())
 
@@ -163,140 +98,112 @@ def rgb_np(C):
     return np.stack([np.asarray(C.x), np.asarray(C.y), np.asarray(C.z)], -1)
 
 
-# ----------------------------------------------------------------------------
-
 def main(a):
     res, n_rays = a.res, a.res * a.res
     info = header("render benchmark")
-    results = {}
-
-    # -- mesh ----------------------------------------------------------------
-    t0 = time.perf_counter()
-    tv_scene, v, tets, color, opacity = grid_scene(
-        a.cells, res, a.jitter, a.scale, n_sub=a.n_sub, min_transmittance=0.0, alpha=False)
-    shape = scene_tetmeshes(tv_scene)[0]
+    extra = {} if a.n_sub is None else {"n_sub": a.n_sub}
+    scene, v, tets, color, opacity = grid_scene(a.cells, res, a.jitter, a.scale, a.shuffle,
+                                                min_transmittance=0.0, alpha=False, **extra)
+    shape = scene_tetmeshes(scene)[0]
     topo = shape.topology
-    t_tv_scene = time.perf_counter() - t0
+    integrator = scene.integrator()
+    n_sub = integrator.n_sub
     print(f"mesh: {a.cells}^3 cells, jitter {a.jitter}: {len(v):,} vertices, "
-          f"{topo.n_tets:,} tets, {len(topo.boundary_faces):,} boundary faces, "
-          f"{topo.n_flipped} flipped, {int(topo.flat.sum())} flat "
-          f"(tetmesh scene built in {t_tv_scene:.1f} s)")
-    results["mesh"] = dict(cells=a.cells, jitter=a.jitter, vertices=len(v), tets=topo.n_tets,
-                           boundary_faces=len(topo.boundary_faces), flipped=topo.n_flipped,
-                           flat=int(topo.flat.sum()), scene_s=t_tv_scene)
-
-    t0 = time.perf_counter()
-    faces = unique_faces(topo.tets.astype(np.int64), topo.neighbors)
-    bl_scene = baseline_scene(v, faces)
-    t_bl_scene = time.perf_counter() - t0
-    print(f"baseline mesh: {len(faces):,} unique triangles in one Mitsuba mesh "
-          f"(scene + BVH built in {t_bl_scene:.1f} s)")
-    print(f"image: {res}x{res} = {n_rays:,} rays, n_sub = {a.n_sub}, no early termination")
-    results["baseline_mesh"] = dict(triangles=len(faces), scene_s=t_bl_scene)
-    results["image"] = dict(res=res, rays=n_rays, n_sub=a.n_sub)
-    print()
-
-    sensor = tv_scene.sensors()[0]
-    rays = pixel_rays(sensor, res)
-    integrator = tv_scene.integrator()
-    diag = float(dr.norm(tv_scene.bbox().extents()))
+          f"{topo.n_tets:,} tets; image {res}x{res} = {n_rays:,} rays, tetvr n_sub = {n_sub}, "
+          f"no early termination")
+    rays = pixel_rays(scene.sensors()[0], res)
+    diag = float(dr.norm(scene.bbox().extents()))
     settings = WalkSettings(0.0, integrator.settings.max_steps,
                             integrator.retrace_epsilon * diag)
-    ts = integrator.tet_scene(tv_scene)
+    ts = integrator.tet_scene(scene)
     dr.eval(ts.buf, ts.params)
 
-    # -- tetvr through mi.render ----------------------------------------------
     def run_render():
-        img = mi.render(tv_scene, spp=1)
+        img = mi.render(scene, spp=1)
         dr.eval(img)
         return img
 
-    r_first, r_med, r_all, img = timed(run_render, a.repeat)
-    img = np.asarray(img).reshape(-1, 3)
-
-    # -- tetvr walk on the same rays ------------------------------------------
-    def run_walk():
-        C, T, steps, _ = trace(dr.ADMode.Primal, tv_scene, ts, rays,
-                               settings, True)
+    def run_trace():
+        C, T, steps, _ = trace(dr.ADMode.Primal, scene, ts, rays, settings, True)
         dr.eval(C, T, steps)
         return C, T, steps
 
-    w_first, w_med, w_all, (C_tv, T_tv, steps) = timed(run_walk, a.repeat)
-    C_tv = rgb_np(C_tv)
+    def run_plain(integral, n):
+        def run():
+            ts.model.n_sub = n
+            C, T, steps = plain_trace(scene, ts, rays, 0.0, settings.max_steps, integral)
+            dr.eval(C, T, steps)
+            ts.model.n_sub = n_sub
+            return C, T, steps
+        return run
+
+    methods = [("tetvr  mi.render", run_render), ("tetvr  trace()", run_trace),
+               (f"plain walk, tetvr's integral (n_sub {n_sub})", run_plain("model", n_sub)),
+               (f"plain walk, Alg. 1 integral ({a.baseline_n_sub} sub-intervals)",
+                run_plain("alg1", a.baseline_n_sub))]
+    if a.shuffle:
+        # The same walk on the tet records in the file's order.
+        unordered = TetScene(ts.shapes, ts.face_offsets, MeshBuffers(
+            **{k: type(getattr(ts.buf, k))(x) for k, x in
+               shape_index_arrays(topo, v, reorder=False).items()},
+            positions=ts.buf.positions), ts.model, ts.params)
+
+        def run_unordered():
+            C, T, steps, _ = trace(dr.ADMode.Primal, scene, unordered, rays, settings, True)
+            dr.eval(C, T, steps)
+            return C, T, steps
+        methods.append(("tetvr  trace(), tets in the file's order", run_unordered))
+    timings = {}
+    for name, fn in methods:
+        first, med, runs, out = timed(fn, a.repeat)
+        timings[name] = (first, med, runs, out)
+    img = np.asarray(timings["tetvr  mi.render"][3]).reshape(-1, 3)
+    C_tv, T_tv, steps = timings["tetvr  trace()"][3]
     steps_np = np.asarray(steps)
     n_steps = total(steps_np)
+    # The reference: the same walk, the integral converged.
+    ts.model.n_sub = REFERENCE_N_SUB
+    C_ref, T_ref, _, _ = trace(dr.ADMode.Primal, scene, ts, rays, settings, True)
+    ts.model.n_sub = n_sub
+    C_ref = rgb_np(C_ref)
 
-    # -- baseline ---------------------------------------------------------------
-    f_buf = mi.UInt32(faces.astype(np.uint32).ravel())
-    c_buf = mi.Float(np.asarray(color, np.float32).ravel())
-    o_buf = mi.Float(np.asarray(opacity, np.float32).ravel())
-    eps = a.eps * diag
-    dr.eval(f_buf, c_buf, o_buf)
-
-    def run_baseline():
-        L, T, hits = baseline_rays(bl_scene, f_buf, c_buf, o_buf, rays, a.n_sub, eps,
-                                   1_000_000)
-        dr.eval(L, T, hits)
-        return L, T, hits
-
-    b_first, b_med, b_all, (C_bl, T_bl, hits) = timed(run_baseline, a.repeat)
-    C_bl = rgb_np(C_bl)
-    hits_np = np.asarray(hits)
-    n_hits = total(hits_np)
-    n_segs = total(np.maximum(hits_np.astype(np.int64) - 1, 0))
-
-    # -- checks -----------------------------------------------------------------
-    n_hit_rays = int(np.count_nonzero(steps_np))
-    d_img = np.abs(img - C_tv).max()
-    diff = np.abs(C_bl - C_tv).max(1)
-    dT = np.abs(np.asarray(T_bl) - np.asarray(T_tv))
-    bad = diff > 1e-3
-    print(f"rays through the mesh: {n_hit_rays:,} of {n_rays:,}; "
-          f"tets per such ray: mean {n_steps / max(n_hit_rays, 1):.1f}, "
-          f"max {int(steps_np.max())}; mean transmittance {float(np.asarray(T_tv).mean()):.3f}")
-    print(f"check mi.render image vs trace() on the pixel-center rays: "
-          f"max |diff| = {d_img:.2e}")
-    print(f"check baseline vs tetvr: max |dC| = {diff.max():.2e} "
-          f"(mean {diff.mean():.1e}, {int(bad.sum())} rays > 1e-3), "
-          f"max |dT| = {dT.max():.2e}")
-    print(f"check steps: tetvr {n_steps:,} tets crossed; baseline {n_hits:,} hits = "
-          f"{n_segs:,} segments ({n_segs - n_steps:+,}; "
-          f"rays with a different count: {int(np.count_nonzero(np.maximum(hits_np.astype(np.int64) - 1, 0) != steps_np)):,})")
+    n_hit = int(np.count_nonzero(steps_np))
+    print(f"rays through the mesh: {n_hit:,} of {n_rays:,}; tets per such ray: mean "
+          f"{n_steps / max(n_hit, 1):.1f}, max {int(steps_np.max())}; "
+          f"{n_steps:,} tet steps per image")
+    print(f"mi.render vs trace() on the pixel-center rays: max |diff| = "
+          f"{np.abs(img - rgb_np(C_tv)).max():.1e}; tets crossed by the plain walk: "
+          f"{total(np.asarray(timings[list(timings)[2]][3][2])) - n_steps:+,}")
     print()
-    results["rays"] = dict(through_mesh=n_hit_rays, tets_per_ray_mean=n_steps / max(n_hit_rays, 1),
-                           tets_per_ray_max=int(steps_np.max()),
-                           mean_transmittance=float(np.asarray(T_tv).mean()))
-    results["checks"] = dict(
-        render_vs_trace_max_diff=float(d_img), baseline_vs_tetvr_max_dC=float(diff.max()),
-        baseline_vs_tetvr_mean_dC=float(diff.mean()), rays_dC_over_1e3=int(bad.sum()),
-        baseline_vs_tetvr_max_dT=float(dT.max()), tetvr_steps=n_steps, baseline_hits=n_hits,
-        baseline_segments=n_segs,
-        rays_with_different_count=int(np.count_nonzero(
-            np.maximum(hits_np.astype(np.int64) - 1, 0) != steps_np)))
-
-    # -- table ------------------------------------------------------------------
-    def fmt_times(ts):
-        return ", ".join(f"{t:.3f}" for t in ts)
-
-    rows = [
-        ("tetvr  mi.render", r_first, r_med, n_steps, r_all),
-        ("tetvr  trace()", w_first, w_med, n_steps, w_all),
-        ("baseline multi-hit BVH", b_first, b_med, n_segs, b_all),
-    ]
-    print(f"{'method':<24}{'1st run [s]':>12}{'median [s]':>12}{'steps':>14}"
-          f"{'Msteps/s':>10}{'Mrays/s':>9}   runs [s]")
-    for name, first, med, n, ts in rows:
-        print(f"{name:<24}{first:>12.3f}{med:>12.3f}{n:>14,}{n / med / 1e6:>10.1f}"
-              f"{n_rays / med / 1e6:>9.2f}   {fmt_times(ts)}")
+    print(f"{'method':<46}{'1st [s]':>8}{'median [s]':>11}{'Msteps/s':>10}"
+          f"{'max err':>9}   runs [s]")
+    results = {"mesh": dict(cells=a.cells, jitter=a.jitter, vertices=len(v), tets=topo.n_tets),
+               "image": dict(res=res, rays=n_rays, n_sub=n_sub,
+                             baseline_n_sub=a.baseline_n_sub),
+               "rays": dict(through_mesh=n_hit, tets_per_ray_mean=n_steps / max(n_hit, 1),
+                            tets_per_ray_max=int(steps_np.max()), steps=n_steps),
+               "methods": []}
+    for name, (first, med, runs, out) in timings.items():
+        C = img if name == "tetvr  mi.render" else rgb_np(out[0])
+        err = float(np.abs(C - C_ref).max())
+        print(f"{name:<46}{first:>8.3f}{med:>11.3f}{n_steps / med / 1e6:>10.1f}"
+              f"{err:>9.1e}   " + ", ".join(f"{t:.3f}" for t in runs))
+        results["methods"].append(dict(method=" ".join(name.split()), first_s=first,
+                                       median_s=med, runs_s=runs,
+                                       msteps_per_s=n_steps / med / 1e6, max_error=err))
+    trace_s = timings["tetvr  trace()"][1]
+    names = list(timings)
+    same, alg1 = timings[names[2]][1] / trace_s, timings[names[3]][1] / trace_s
     print()
-    print(f"baseline / tetvr time ratio: {b_med / w_med:.2f}x (trace()), "
-          f"{b_med / r_med:.2f}x (mi.render)")
-    results["methods"] = [dict(method=" ".join(name.split()), first_s=first, median_s=med, steps=n,
-                               msteps_per_s=n / med / 1e6, mrays_per_s=n_rays / med / 1e6,
-                               runs_s=ts) for name, first, med, n, ts in rows]
-    results["baseline_over_tetvr"] = dict(trace=b_med / w_med, render=b_med / r_med)
-    print(f"('steps' = tet segments integrated; baseline segments = hits - 1 per ray; "
-          f"1st run includes tracing + LLVM compilation; median of {a.repeat} warm runs)")
+    print(f"plain walk / tetvr walk, same integral: {same:.2f}x; plain walk with the "
+          f"Alg. 1 integral ({a.baseline_n_sub} sub-intervals) / tetvr: {alg1:.2f}x")
+    print(f"(max err: max |rgb - tetvr at n_sub {REFERENCE_N_SUB}| over all pixels; "
+          f"'1st' includes tracing and compilation; median of {a.repeat} warm runs)")
+    results["plain_over_tetvr"] = dict(same_integral=same, alg1_integral=alg1)
+    if a.shuffle:
+        gain = timings[names[4]][1] / trace_s
+        print(f"tets in the file's order / in Morton order: {gain:.2f}x")
+        results["file_order_over_morton"] = gain
     write_json(a, info, results)
     return 0
 

@@ -226,15 +226,23 @@ def sensor_dict(res):
     }
 
 
-def grid_scene(cells, res, jitter=0.15, scale=1.0, **integrator):
+def grid_scene(cells, res, jitter=0.15, scale=1.0, shuffle=False, **integrator):
     """The jittered ``cells^3`` grid over [-1, 1]^3 carrying the blob field, in
-    a scene with the tetvr integrator (``integrator`` are its properties).
-    Returns (scene, vertices, tets, color, opacity)."""
+    a scene with the tetvr integrator (``integrator`` are its properties);
+    ``shuffle`` lists vertices and tets in random order (as a mesh file
+    may). Returns (scene, vertices, tets, color, opacity)."""
     import mitsuba as mi
+    import numpy as np
 
     import mi_tetvr
     from mi_tetvr.mesh.generate import blob_field, grid_mesh
     v, tets = grid_mesh(cells, jitter=jitter)
+    if shuffle:
+        rng = np.random.default_rng(0)
+        perm = rng.permutation(len(v))
+        rank = np.empty_like(perm)
+        rank[perm] = np.arange(len(perm))
+        v, tets = v[perm], rank[tets][rng.permutation(len(tets))]
     color, opacity = blob_field(v, scale)
     scene = mi.load_dict({
         "type": "scene",

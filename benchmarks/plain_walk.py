@@ -113,7 +113,9 @@ def plain_trace(scene, ts, ray, t_min: float, max_steps: int, integral: str = "m
             t_out = dr.select(better, t_f, t_out)
             f_out = dr.select(better, f, f_out)
             n_out = dr.select(better, n_f, n_out)
-        t_out = dr.maximum(t_out, t)
+        found = dr.isfinite(t_out)       # no outward face only after round-off
+        t_out = dr.select(found, dr.maximum(t_out, t), t)
+        n_out = dr.select(found, n_out, mi.Vector3f(1.0, 0.0, 0.0))
         # The exit face's corners (FACES[f_out]) and the attributes there.
         corner = []
         for j in range(3):
@@ -135,5 +137,5 @@ def plain_trace(scene, ts, ray, t_min: float, max_steps: int, integral: str = "m
         steps += 1
         link = dr.gather(mi.Int32, buf.nbr, tet * 4 + f_out, active)
         tet, f_in = unpack_link(link)
-        active &= (link >= 0) & (T > t_min) & (steps < max_steps)
+        active &= found & (link >= 0) & (T > t_min) & (steps < max_steps)
     return L, T, steps

@@ -129,7 +129,7 @@ class TetMeshShape(mi.Mesh):
                                mi.Float(np.asarray(values[name], np.float32).ravel()))
         params.update()
         #: Index arrays of the walk (local indices; see mi_tetvr.render.buffers)
-        self.tet_buffers = shape_index_arrays(topo)
+        self.tet_buffers = shape_index_arrays(topo, mesh.vertices)
 
     def to_string(self):
         return (f"TetMeshShape[vertices={len(self.mesh.vertices)}, "

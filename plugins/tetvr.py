@@ -22,10 +22,12 @@ shapes by walking the tet adjacency.
  * - reduce_mode
    - |string|
    - How gradients of shared vertices are scatter-added in the derivative
-     modes: ``auto`` (per-thread copies of the gradient buffers on the LLVM
-     backend up to ``dr.expand_threshold()`` entries, atomics on CUDA),
-     ``expand``, ``local`` (pre-reduce within a SIMD packet / warp) or
-     ``direct`` (plain atomics). See ``dr.ReduceMode``. (Default: ``auto``)
+     modes: ``auto`` (plain atomics on the LLVM backend, where they beat
+     per-thread copies of the gradient buffers in ``benchmarks/bench_backward.py``;
+     Dr.Jit's own choice on CUDA), ``expand`` (per-thread copies up to
+     ``dr.expand_threshold()`` entries), ``local`` (pre-reduce within a SIMD
+     packet / warp) or ``direct`` (plain atomics). See ``dr.ReduceMode``.
+     (Default: ``auto``)
  * - alpha
    - |bool|
    - Add the accumulated opacity 1 - T as an AOV channel named ``alpha``.
@@ -76,7 +78,9 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         if max_steps < 1:
             raise ValueError("tetvr: max_steps must be >= 1")
         self.retrace_epsilon = float(props.get("retrace_epsilon", 1e-5))
-        modes = {"auto": dr.ReduceMode.Auto, "expand": dr.ReduceMode.Expand,
+        llvm = dr.backend_v(mi.Float) == dr.JitBackend.LLVM
+        modes = {"auto": dr.ReduceMode.Direct if llvm else dr.ReduceMode.Auto,
+                 "expand": dr.ReduceMode.Expand,
                  "local": dr.ReduceMode.Local, "direct": dr.ReduceMode.Direct}
         reduce = str(props.get("reduce_mode", "auto")).lower()
         if reduce not in modes:

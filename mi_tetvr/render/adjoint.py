@@ -30,19 +30,22 @@ crossed.
 Each segment is a function of the ``(t, attributes)`` of its entry and exit
 crossings. A crossing is shared by two consecutive segments, so its gradient
 is complete one step later; it then goes to the crossed face's three
-vertices. Consecutive faces share two vertices, so reverse mode keeps the
-gradients of the current face's vertices in registers (a *window*) and
-scatter-adds a vertex only when the walk leaves it behind: one vertex per
-step instead of three, the rest after the loop. Forward mode carries the exit
-crossing's tangent over as the next entry's.
+vertices. The walk carries that face's corners (index, projection, depth,
+attributes: :func:`mi_tetvr.render.geometry.walk_step`), so the crossing's
+derivative is taken from them without reading the vertices again
+(:func:`crossing_grads`), and reverse mode keeps each corner's pending
+gradient beside it: when a step replaces a corner by the tet's apex, the
+vertex left behind is complete and scatter-added (one vertex per step), the
+three last ones after the loop. Forward mode carries the exit crossing's
+tangent over as the next entry's.
 """
 from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
 
-from mi_tetvr.render.geometry import crossing, face_crossing, project
-from mi_tetvr.render.pytree import tree_add, tree_copy, tree_dot, tree_select, weighted_sum
+from mi_tetvr.render.geometry import crossing_vjp, face_crossing, face_weights
+from mi_tetvr.render.pytree import tree_add, tree_copy, tree_dot, tree_map, tree_select
 from mi_tetvr.render.segment import clip_segment
 
 
@@ -78,33 +81,42 @@ def vertex_grad_type(model):
 
 def start(mode, ts_ad, entry_ids, o, u, v, d, active):
     """The derivative modes' loop state besides the ray's adjoint, at the
-    walk's entry face: ``(e, win, win_g)``.
+    walk's entry face: ``(e, pend)``.
 
     ``e`` is the gradient (backward) or tangent (forward) of the current
-    entry crossing, ``(t, attributes)``; ``win`` the entry face's vertex ids
-    and ``win_g`` their pending gradients (backward mode).
+    entry crossing, ``(t, attributes)``; ``pend`` the pending gradients of
+    the entry face's corners (backward mode), in the walk's corner order.
     """
     model = ts_ad.model
     e = (mi.Float(0.0), dr.zeros(model.Attributes))
     if mode == dr.ADMode.Forward:
         e = tangent(ts_ad, entry_ids, o, u, v, d, active)
     G = vertex_grad_type(model)
-    return e, list(entry_ids), [dr.zeros(G) for _ in range(3)]
+    return e, tuple(dr.zeros(G) for _ in range(3))
 
 
-def crossing_grads(ts, ids, g, o, u, v, d, active):
-    """Gradient of ``g . (t, attributes)`` of the ray's crossing of the
-    triangle ``ids`` w.r.t. each vertex's position and attributes (local AD)."""
-    G = vertex_grad_type(ts.model)
-    with dr.resume_grad():
-        P = [ts.buf.position(i, active) for i in ids]
-        A = [ts.model.gather(ts.params, i, active) for i in ids]
-        dr.enable_grad(P, A)
-        p = tuple(project(Pi, o, u, v) for Pi in P)
-        t, w = crossing(ids, tuple(P), p, o, d)
-        a = weighted_sum(w, A)
-        dr.backward_from(t * g[0] + tree_dot(a, g[1]))
-        return [G(dr.grad(P[j]), dr.grad(A[j])) for j in range(3)]
+def moves_vertices(ts_ad):
+    """Whether vertex positions receive gradients (else the derivative
+    modes leave out everything geometric: crossings' ray parameters and
+    position scatters)."""
+    with dr.resume_grad():     # the derivative passes run with AD suspended
+        return dr.grad_enabled(ts_ad.buf.positions)
+
+
+def crossing_grads(ts_ad, carry, g, u, v, d):
+    """Gradient of ``g . (t, attributes)`` of the ray's crossing of the face
+    the walk carries (``carry``: corners, their attributes, edge functions)
+    w.r.t. each corner's position and attributes
+    (:func:`~mi_tetvr.render.geometry.crossing_vjp`). A corner's projection
+    is ``((P - o) . u, (P - o) . v)`` and its depth ``(P - o) . d``, so
+    ``dP = dp.x u + dp.y v + dz d``."""
+    G = vertex_grad_type(ts_ad.model)
+    corners, values, edges = carry
+    if not moves_vertices(ts_ad):
+        w = face_weights(*edges)
+        return [G(mi.Vector3f(0.0), tree_map(lambda x: w[j] * x, g[1])) for j in range(3)]
+    return [G(dp.x * u + dp.y * v + dz * d, da)
+            for dp, dz, da in crossing_vjp(corners, edges, values, g[0], g[1])]
 
 
 def scatter(ts_ad, i, g, active, reduce):
@@ -112,10 +124,11 @@ def scatter(ts_ad, i, g, active, reduce):
     ``i`` (through the reverse-mode derivative of a gather: a scatter-add in
     ``reduce`` mode)."""
     with dr.resume_grad():
-        P = ts_ad.buf.position(i, active, reduce)
         a = ts_ad.model.gather(ts_ad.params, i, active, reduce)
-        dr.backward_from(dr.dot(P, g.p) + tree_dot(a, g.a),
-                         flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+        y = tree_dot(a, g.a)
+        if moves_vertices(ts_ad):
+            y += dr.dot(ts_ad.buf.position(i, active, reduce), g.p)
+        dr.backward_from(y, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
 
 
 def tangent(ts_ad, ids, o, u, v, d, active):
@@ -127,25 +140,27 @@ def tangent(ts_ad, ids, o, u, v, d, active):
         return dr.forward_to(t, a, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
 
 
-def segment(mode, ts, ts_ad, st, entry, exit, L, T, t_begin, t_stop, adj, pending,
+def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj, pending,
             o, u, v, d, active, reduce):
     """One segment in a derivative mode.
 
     ``entry`` and ``exit`` are the ``(t, attributes)`` of the segment's
-    crossings, ``st`` the walk step that found the exit, ``L, T`` what lies in
-    front. Returns ``(C_seg, T_seg, adj, pending)``: the segment's emission and
-    transmittance (as the primal computes them), the adjoint with this
+    crossings, ``st`` the walk step that found the exit, ``carry`` the
+    entry face as the walk carried it into the step, ``L, T`` what lies in
+    front. Returns ``(C_seg, T_seg, adj, pending)``: the segment's emission
+    and transmittance (as the primal computes them), the adjoint with this
     segment's tangent added (forward mode), and the pending gradients moved
-    one crossing on (backward mode: the entry crossing's gradient is complete
-    and goes to the window, the vertex the exit face leaves behind is
-    scattered).
+    one crossing on (backward mode: the entry crossing's gradient is
+    complete and goes to the entry face's corners; the corner the apex
+    replaces is scattered).
     """
     backward = mode == dr.ADMode.Backward
     model = ts.model
-    e, win, win_g = pending
+    e, pend = pending
     with dr.resume_grad():
         x = tree_copy((entry, exit))
-        dr.enable_grad(x)
+        # The crossings' ray parameters matter only when vertices move.
+        dr.enable_grad(x if moves_vertices(ts_ad) else (x[0][1], x[1][1]))
         if dr.hint(not backward, mode="scalar"):
             x_t = tangent(ts_ad, st.exit, o, u, v, d, active)
             dr.set_grad(x, (e, x_t))
@@ -166,32 +181,25 @@ def segment(mode, ts, ts_ad, st, entry, exit, L, T, t_begin, t_stop, adj, pendin
             adj.dL += dLo
             adj.dalpha += dLo_alpha
     if dr.hint(not backward, mode="scalar"):
-        return C_seg, T_seg, adj, (x_t, win, win_g)
-    vg = crossing_grads(ts, st.entry, tree_add(e, g_entry), o, u, v, d, active)
-    # Into the window (the entry face is the window's vertex set), then
-    # scatter the vertex the exit face leaves behind.
+        return C_seg, T_seg, adj, (x_t, pend)
+    vg = crossing_grads(ts_ad, carry, tree_add(e, g_entry), u, v, d)
     G = vertex_grad_type(model)
-    drop = mi.UInt32(0)
-    drop_g = dr.zeros(G)
-    new_win, new_g = [], []
-    for j in range(3):
-        gj = win_g[j]
-        for m in range(3):
-            gj = tree_select(win[j] == st.entry[m], tree_add(gj, vg[m]), gj)
-        out = (win[j] != st.exit[0]) & (win[j] != st.exit[1]) & (win[j] != st.exit[2])
-        drop = dr.select(out, win[j], drop)
-        drop_g = tree_select(out, gj, drop_g)
-        new_g.append(tree_select(out, dr.zeros(G), gj))
-        new_win.append(dr.select(out, st.apex, win[j]))
+    pend = [tree_add(pend[j], vg[j]) for j in range(3)]
+    # The corner the apex replaces is complete: scatter it, start afresh.
+    ids = [c.i for c in carry[0]]
+    replaced = st.slot
+    drop = dr.select(replaced[0], ids[0], dr.select(replaced[1], ids[1], ids[2]))
+    drop_g = tree_select(replaced[0], pend[0], tree_select(replaced[1], pend[1], pend[2]))
     scatter(ts_ad, drop, drop_g, active, reduce)
-    return C_seg, T_seg, adj, (g_exit, new_win, new_g)
+    pend = tuple(tree_select(replaced[j], dr.zeros(G), pend[j]) for j in range(3))
+    return C_seg, T_seg, adj, (g_exit, pend)
 
 
-def finish(ts, ts_ad, pending, steps, o, u, v, d, reduce):
+def finish(ts_ad, pending, carry, steps, u, v, d, reduce):
     """Backward mode, after the walk: the last exit crossing's gradient and
-    the vertices still in the window."""
-    e, win, win_g = pending
+    the pending ones of its corners (``carry``: the face the walk left by)."""
+    e, pend = pending
     walked = steps > 0
-    vg = crossing_grads(ts, win, e, o, u, v, d, walked)
+    vg = crossing_grads(ts_ad, carry, e, u, v, d)
     for j in range(3):
-        scatter(ts_ad, win[j], tree_add(win_g[j], vg[j]), walked, reduce)
+        scatter(ts_ad, carry[0][j].i, tree_add(pend[j], vg[j]), walked, reduce)

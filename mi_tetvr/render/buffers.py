@@ -44,13 +44,48 @@ def unpack_link(link):
     return mi.UInt32(link >> 2), mi.UInt32(link & 3)
 
 
-def shape_index_arrays(topology):
+#: Bits per axis of the Morton code that orders tets (2^30 cells in all).
+MORTON_BITS = 10
+
+
+def morton_order(points):
+    """The order of ``points`` along the Morton (Z-order) curve of their
+    bounding box: nearby points end up nearby in memory."""
+    points = np.asarray(points, np.float64)
+    if not len(points):
+        return np.zeros(0, np.int64)
+    lo, hi = points.min(0), points.max(0)
+    scale = (2 ** MORTON_BITS - 1) / np.where(hi > lo, hi - lo, 1.0)
+    q = ((points - lo) * scale).astype(np.uint64)
+    code = np.zeros(len(points), np.uint64)
+    for bit in range(MORTON_BITS):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return np.argsort(code, kind="stable")
+
+
+def shape_index_arrays(topology, vertices, reorder=True):
     """The index arrays a ``tetmesh`` shape hands the integrator (numpy,
-    indices local to the shape); see :class:`MeshBuffers` for their meaning."""
+    indices local to the shape); see :class:`MeshBuffers` for their meaning.
+
+    The tets are stored in the Morton order of their centroids (``vertices``
+    are the positions the order is taken from): a ray's walk then reads
+    nearby memory. On a 64^3 grid whose tets were shuffled this halves the
+    render time (``benchmarks/bench_render.py --shuffle``); the order is the
+    walk's alone (vertices, attributes and every other tet index stay as
+    the mesh has them). ``reorder=False`` keeps the topology's order.
+    """
+    m = topology.n_tets
+    order = (morton_order(np.asarray(vertices)[topology.tets].mean(1)) if reorder and m
+             else np.arange(m))
+    rank = np.empty(m, np.int64)
+    rank[order] = np.arange(m)
+    nbr = topology.neighbors[order]
+    nbr = np.where(nbr >= 0, rank[np.maximum(nbr, 0)], -1)
     return dict(
-        tets=topology.tets.astype(np.uint32).ravel(),
-        nbr=pack_links(topology.neighbors, topology.neighbor_faces).astype(np.int32).ravel(),
-        boundary=pack_links(topology.boundary_tets,
+        tets=topology.tets[order].astype(np.uint32).ravel(),
+        nbr=pack_links(nbr, topology.neighbor_faces[order]).astype(np.int32).ravel(),
+        boundary=pack_links(rank[topology.boundary_tets],
                             topology.boundary_local_faces).astype(np.uint32),
         faces=topology.boundary_faces.astype(np.uint32).ravel(),
         face_adj=topology.boundary_adjacency.astype(np.int32).ravel(),

@@ -13,7 +13,7 @@ import mitsuba as mi
 
 from mi_tetvr.mesh.topology import FACES
 from mi_tetvr.render.buffers import unpack_link
-from mi_tetvr.render.pytree import tree_select
+from mi_tetvr.render.pytree import tree_dot, tree_map, tree_select
 
 # ----------------------------------------------------------------------------
 # Tet-walk step
@@ -122,6 +122,39 @@ def crossing_at(c, edges=None):
     return w[0] * c[0].z + w[1] * c[1].z + w[2] * c[2].z, w
 
 
+def crossing_vjp(c, edges, values, g_t, g_a):
+    """Reverse-mode derivative of a crossing (:func:`crossing_at`) and of
+    the values interpolated there: given the gradient ``(g_t, g_a)`` of the
+    ray parameter and of ``sum_j w_j values[j]``, the gradients of each
+    corner's projection ``p``, depth ``z`` and value, in closed form.
+
+    With ``e_j`` the edge function opposite corner ``j`` (``edges``), ``S =
+    sum e_j`` and ``w_j = e_j / S``: ``q_j = g_t z_j + g_a . values[j]``
+    is the gradient of ``w_j``, ``r_k = (q_k - sum_j w_j q_j) / S`` that of
+    ``e_k``, and ``e_0 = p_1 x p_2`` (cyclically) passes it to the
+    projections. Where the weights are clamped (a ray exactly on an edge)
+    or degenerate (``S = 0``, equal weights) it is the derivative of the
+    unclamped weights, resp. zero.
+
+    Returns ``[(dp_j, dz_j, dvalue_j) for j in 0, 1, 2]``.
+    """
+    w = face_weights(*edges)
+    S = edges[0] + edges[1] + edges[2]
+    ok = dr.abs(S) > 0
+    inv = dr.select(ok, dr.rcp(dr.select(ok, S, 1.0)), 0.0)
+    q = [g_t * c[j].z + tree_dot(g_a, values[j]) for j in range(3)]
+    mean_q = w[0] * q[0] + w[1] * q[1] + w[2] * q[2]
+    r = [(q[k] - mean_q) * inv for k in range(3)]
+    out = []
+    for j in range(3):
+        n1, n2 = c[(j + 1) % 3].p, c[(j + 2) % 3].p
+        # e_{j+1} = p_{j+2} x p_j and e_{j+2} = p_j x p_{j+1}
+        r1, r2 = r[(j + 1) % 3], r[(j + 2) % 3]
+        dp = mi.Point2f(r1 * -n2.y + r2 * n1.y, r1 * n2.x - r2 * n1.x)
+        out.append((dp, g_t * w[j], tree_map(lambda x: w[j] * x, g_a)))
+    return out
+
+
 def crossing(ids, P, p, o, d):
     """:func:`crossing_at` of the triangle of vertices ``ids`` (global
     indices), given their positions ``P`` and projections ``p`` in the ray
@@ -219,7 +252,7 @@ def face_entry(buf, face, o, u, v, d, active):
 class Step:
     """Result of :func:`walk_step`: the exit crossing and the faces involved."""
 
-    def __init__(self, t, w, link, f_out, entry, exit, apex, carry):
+    def __init__(self, t, w, link, f_out, entry, exit, apex, slot, carry):
         self.t = t            # ray parameter of the exit crossing
         self.w = w            # its barycentric weights in the exit face (order of ``exit``)
         self.link = link      # the next tet and its entry face (a link), -1 when leaving the mesh
@@ -227,6 +260,7 @@ class Step:
         self.entry = entry    # global vertex ids of the entry face
         self.exit = exit      # global vertex ids of the exit face
         self.apex = apex      # the vertex the exit face has and the entry face has not
+        self.slot = slot      # per corner of the entry face: is it the one the apex replaces
         self.carry = carry    # the exit face for the next step (see walk_step)
 
 
@@ -299,4 +333,4 @@ def walk_step(buf, tet, f_in, o, u, v, d, active, carry=None, gather=None):
     lz = mi.UInt32(lz)
     link = dr.gather(mi.Int32, buf.nbr, tet * 4 + lz, active)
     return Step(t_out, w, link, lz, (ia, ib, ic), tuple(c.i for c in exit_c), ik,
-                (exit_c, exit_x, exit_e))
+                (opp_a, opp_b, opp_c), (exit_c, exit_x, exit_e))

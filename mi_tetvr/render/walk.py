@@ -122,8 +122,8 @@ def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
             C_seg, T_seg, _ = model.segment(params, length, a0, a1)
         else:
             C_seg, T_seg, adj, pending = adjoint.segment(
-                mode, ts, ts_ad, st, (t, a), (t_out, a_out), L, T, t_begin, t_stop, adj,
-                pending, o, u, v, d, active, settings.reduce)
+                mode, ts, ts_ad, st, carry, (t, a), (t_out, a_out), L, T, t_begin, t_stop,
+                adj, pending, o, u, v, d, active, settings.reduce)
         L += T * C_seg
         T *= T_seg
         t = t_out
@@ -134,7 +134,7 @@ def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
         active &= (st.link >= 0) & (t_out < t_stop) & (steps < settings.max_steps)
         active &= T > settings.t_min
     if dr.hint(backward, mode="scalar"):
-        adjoint.finish(ts, ts_ad, pending, steps, o, u, v, d, settings.reduce)
+        adjoint.finish(ts_ad, pending, carry, steps, u, v, d, settings.reduce)
     return L, T, t, steps, adj
 
 
