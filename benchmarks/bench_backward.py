@@ -5,10 +5,12 @@ Scene: the jittered ``cells^3`` grid (64^3 = 1.57M tets) with the blob field,
 ``res x res`` pixel-center rays, default tetvr settings. The loss is the L2
 distance to a target image rendered with perturbed colors and opacities;
 gradients go to ``vertex_color``, ``vertex_opacity`` and ``vertex_positions``.
-``mi.render`` with gradients runs the primal pass, then Mitsuba's
-``render_backward`` runs a second primal pass (it needs the pixel values) and
-the adjoint pass; the breakdown rows time these parts separately and compare
-the scatter strategies (``reduce_mode``) of the gradient accumulation.
+``mi.render`` with gradients runs the primal pass, then ``tetvr``'s
+``render_backward`` runs the adjoint pass on the same rays, from the per-ray
+values the primal pass kept (:mod:`mi_tetvr.render.replay`: no second primal
+render); the breakdown rows time the parameter kinds and the adjoint pass
+alone and compare the scatter strategies (``reduce_mode``) of the gradient
+accumulation.
 
 Usage::
 

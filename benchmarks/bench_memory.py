@@ -16,7 +16,7 @@ was allocated before is measured for
 
 1. ``tetvr``'s adjoint: ``dr.backward`` of an L2 image loss through
    ``mi.render`` with gradients on colors, opacities and positions (this
-   includes Mitsuba's second primal pass and the gradient buffers);
+   includes the primal pass's kept per-ray values and the gradient buffers);
 2. the recorded-loop reference: the same primal renderer run with
    ``dr.JitFlag.SymbolicLoops`` off and AD on, then ``dr.backward`` (done on
    ``--ref-res``^2 rays, a smaller image, since its memory grows with the

@@ -19,20 +19,20 @@ training and 8 test views of 128x128; ``lego`` (NeRF-synthetic, 80 views at
     python benchmarks/fit_suite.py --sets engine,lego --budget 5 --json out/suite.json
     python benchmarks/fit_suite.py --code DIR --out out/suite_old   # DIR's fit, scored here
 
-``--code DIR`` runs the fit of another checkout (``PYTHONPATH=DIR``; its
-``mi_tetvr.plugins`` must import from there) and scores its meshes with this
-checkout's metrics, so that two versions' defaults compare on one scale.
+``--code DIR`` runs the fit of another checkout (``benchmarks/checkout_cli.py``)
+and scores its meshes with this checkout's metrics, so that two versions'
+defaults compare on one scale.
 """
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from checkout_cli import command as checkout_command  # noqa: E402
 from common import header, make_parser, write_json  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -120,17 +120,14 @@ def no_fitting(spec, n_vertices, dataset, path):
 
 def fit(data, out, budget, spec, code, extra, variant):
     """Run the fit command; returns (its metrics.json, wall seconds)."""
-    cmd = [sys.executable, "-m", "mi_tetvr.cli", "fit", str(data), "--out", str(out),
-           "--restart", "--time-budget", str(budget), "--variant", variant]
+    cmd = (checkout_command(code) if code else [sys.executable, "-m", "mi_tetvr.cli"]) + [
+        "fit", str(Path(data).resolve()), "--out", str(Path(out).resolve()), "--restart",
+        "--time-budget", str(budget), "--variant", variant]
     if "downscale" in spec:
         cmd += ["--downscale", str(spec["downscale"])]
     cmd += extra.split()
-    env = dict(os.environ)
-    if code:
-        env["PYTHONPATH"] = str(Path(code).resolve())
     t0 = time.perf_counter()
-    r = subprocess.run(cmd, env=env, capture_output=True, text=True,
-                       cwd=str(Path(code).resolve()) if code else None)
+    r = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     (out / "fit.log").parent.mkdir(parents=True, exist_ok=True)
     (out / "fit.log").write_text(r.stdout + r.stderr)

@@ -155,8 +155,10 @@ class Trainer:
     def render(self, view, params=None, seed=0, spp=None):
         """(h, w, 4) tensor of a view: premultiplied RGB and alpha (with
         gradients when ``params`` is given)."""
+        # seed_grad left to mi.render: tetvr's derivative pass then reuses
+        # this render's rays and per-ray values (mi_tetvr.render.replay).
         return mi.render(self.scene, params, sensor=self.sensors[id(view)],
-                         spp=spp or self.config.spp, seed=seed, seed_grad=seed + 1)
+                         spp=spp or self.config.spp, seed=seed)
 
     @property
     def background(self):

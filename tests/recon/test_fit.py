@@ -136,6 +136,8 @@ def test_next_stage_prunes_splits_and_carries_state(data):
     trainer = Trainer(data, V, T, cfg.for_stage(0))
     for _ in range(2):
         trainer.step()
+    # Every view's derivative pass used its primal render's kept state.
+    assert len(trainer.scene.integrator()._states) == 0
     # Empty the half x < 0 (opacity zero there).
     S = np.array(trainer.opt["volume.vertex_opacity"])
     S[V[:, 0] < -1e-9] = 0.0

@@ -1,0 +1,47 @@
+"""Run the ``mi-tetvr`` command of another checkout::
+
+    python benchmarks/checkout_cli.py DIR fit DATA --out OUT ...
+
+``mi_tetvr`` is imported from ``DIR``, and so is ``mi_tetvr.plugins`` (which
+the package maps to ``DIR/plugins``: an editable install of this checkout
+would otherwise supply its own plugins to the other checkout's package).
+The benchmarks that compare two versions (``--code DIR``) run it.
+"""
+from __future__ import annotations
+
+import importlib.machinery
+import importlib.util
+import sys
+from pathlib import Path
+
+
+class _Plugins(importlib.machinery.PathFinder):
+    """Finds ``mi_tetvr.plugins`` (and its modules) in ``DIR/plugins``."""
+    root = None
+
+    @classmethod
+    def find_spec(cls, name, path=None, target=None):
+        if name == "mi_tetvr.plugins":
+            folder = cls.root / "plugins"
+            return importlib.util.spec_from_file_location(
+                name, folder / "__init__.py", submodule_search_locations=[str(folder)])
+        return None
+
+
+def command(code):
+    """The argv prefix that runs the command of the checkout ``code``."""
+    return [sys.executable, str(Path(__file__).resolve()), str(Path(code).resolve())]
+
+
+def main():
+    code = Path(sys.argv.pop(1)).resolve()
+    sys.path.insert(0, str(code))
+    _Plugins.root = code
+    sys.meta_path.insert(0, _Plugins)
+    from mi_tetvr.cli import main as cli
+    sys.argv[0] = "mi-tetvr"
+    return cli()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
