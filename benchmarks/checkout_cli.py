@@ -1,6 +1,7 @@
-"""Run the ``mi-tetvr`` command of another checkout::
+"""Run the ``mi-tetvr`` command, or a script, with another checkout's code::
 
     python benchmarks/checkout_cli.py DIR fit DATA --out OUT ...
+    python benchmarks/checkout_cli.py DIR DIR/benchmarks/bench_render.py --res 384
 
 ``mi_tetvr`` is imported from ``DIR``, and so is ``mi_tetvr.plugins`` (which
 the package maps to ``DIR/plugins``: an editable install of this checkout
@@ -38,6 +39,13 @@ def main():
     sys.path.insert(0, str(code))
     _Plugins.root = code
     sys.meta_path.insert(0, _Plugins)
+    if sys.argv[1:] and sys.argv[1].endswith(".py"):
+        import runpy
+        script = Path(sys.argv.pop(1)).resolve()
+        sys.argv[0] = str(script)
+        sys.path.insert(0, str(script.parent))
+        runpy.run_path(str(script), run_name="__main__")
+        return 0
     from mi_tetvr.cli import main as cli
     sys.argv[0] = "mi-tetvr"
     return cli()

@@ -34,7 +34,8 @@ import drjit as dr
 import mitsuba as mi
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.topology import FACES, build_topology
-from mi_tetvr.render.buffers import MeshBuffers, morton_order, shape_index_arrays, unpack_link
+from mi_tetvr.render.buffers import (MeshBuffers, far_links, morton_order, shape_index_arrays,
+                                     unpack_link)
 from mi_tetvr.render.geometry import (BOUNDARY_WALK_STEPS, crossing, edge_function,
                                       face_entry, face_weights, project, ray_frame, walk_step)
 from mi_tetvr.render.segment import clip_segment
@@ -898,14 +899,20 @@ def check_walk_step(buf, mesh, o, d, exact):
 
 
 def test_index_arrays_in_morton_order():
-    """The walk's tet records of a shuffled mesh: every link is mutual and
-    names the same triangle from both sides, every boundary link names its
-    boundary face, the tets are those of the mesh, and neighbours sit much
-    closer in memory than in the shuffled input."""
-    V, T = grid_mesh(6, jitter=0.1, seed=4)
+    """The walk's tet records of a shuffled mesh in Morton order: every link
+    is mutual and names the same triangle from both sides, every boundary
+    link names its boundary face, the tets are those of the mesh, and
+    neighbours sit much closer in memory than in the shuffled input. The
+    order is chosen for a scattered mesh only."""
+    V, T = grid_mesh(16, jitter=0.1, seed=4)
+    grid_topo = build_topology(V, T, warn=False)
+    assert far_links(grid_topo.neighbors) < 0.2
+    keep = shape_index_arrays(grid_topo, V)
+    np.testing.assert_array_equal(keep["tets"].reshape(-1, 4), grid_topo.tets)
     rng = np.random.default_rng(5)
     T = T[rng.permutation(len(T))]
     topo = build_topology(V, T, warn=False)
+    assert far_links(topo.neighbors) > 0.9
     idx = shape_index_arrays(topo, V)
     tets = idx["tets"].reshape(-1, 4).astype(np.int64)
     assert sorted(map(tuple, np.sort(tets, 1))) == sorted(map(tuple, np.sort(topo.tets, 1)))
