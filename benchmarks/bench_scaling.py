@@ -123,8 +123,10 @@ def plot(path, mesh_rows, image_rows):
             if key == "load_s" and x != "tets":
                 continue
             ax.loglog(xs, [r[key] for r in rows], style, label=name)
-        ax.loglog(xs, xs / xs[-1] * rows[-1]["primal_s"], ":", color="gray",
-                  label="linear (through the last render)")
+        # A ray crosses ~ tets^(1/3) tets; the rays are the pixels.
+        power = 1.0 / 3.0 if x == "tets" else 1.0
+        ax.loglog(xs, (xs / xs[-1]) ** power * rows[-1]["primal_s"], ":", color="gray",
+                  label=f"∝ {label}^{'1/3' if x == 'tets' else '1'} (through the last render)")
         ax.set_xlabel(label)
         ax.set_ylabel("seconds")
         ax.grid(True, which="both", alpha=0.3)
