@@ -66,7 +66,7 @@ def register():
     _registered_variant = variant
 
 
-def tetmesh_dict(vertices, tets, color=None, opacity=None, **props):
+def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, **props):
     """A ``mi.load_dict`` entry for a ``tetmesh`` built from arrays.
 
     Parameters
@@ -75,8 +75,10 @@ def tetmesh_dict(vertices, tets, color=None, opacity=None, **props):
     tets : (m, 4) int
     color : (n, 3) float, optional
     opacity : (n,) float, optional
+    scalar : (n,) float, optional
+        A scalar field for a ``transfer_function`` property.
     **props
-        Other plugin properties (e.g. ``to_world``).
+        Other plugin properties (e.g. ``to_world``, ``transfer_function``).
     """
     import mitsuba as mi
     import numpy as np
@@ -87,6 +89,8 @@ def tetmesh_dict(vertices, tets, color=None, opacity=None, **props):
         d["color"] = mi.TensorXf(np.asarray(color, dtype=np.float32))
     if opacity is not None:
         d["opacity"] = mi.TensorXf(np.asarray(opacity, dtype=np.float32))
+    if scalar is not None:
+        d["scalar"] = mi.TensorXf(np.asarray(scalar, dtype=np.float32))
     d.update(props)
     return d
 

@@ -56,10 +56,11 @@ def _write_render(path, rgb, alpha=None):
         raise SystemExit(f"mi-tetvr: unsupported image format '{suffix}' (use .exr or .png)")
 
 
-def scene_xml(path, res=None, shape_props=None):
+def scene_xml(path, res=None, shape_props=None, classification=None):
     """A Mitsuba XML scene as text, with every sensor's film set to ``res``
-    ``(width, height)`` (a film is added where a sensor has none) and
-    ``shape_props`` (name -> boolean) set on every ``tetmesh`` shape."""
+    ``(width, height)`` (a film is added where a sensor has none),
+    ``shape_props`` (name -> boolean) set on every ``tetmesh`` shape and
+    ``classification`` on every ``tetmesh`` with a transfer function."""
     import xml.etree.ElementTree as ET
     root = ET.parse(path).getroot()
 
@@ -82,6 +83,9 @@ def scene_xml(path, res=None, shape_props=None):
         if shape.get("type") == "tetmesh":
             for name, value in (shape_props or {}).items():
                 put(shape, "boolean", name, "true" if value else "false")
+            has_tf = any(el.get("name") == "transfer_function" for el in shape)
+            if classification and has_tf:
+                put(shape, "string", "classification", classification)
     return ET.tostring(root, encoding="unicode")
 
 
@@ -112,7 +116,7 @@ def cmd_render(a):
     t0 = time.time()
     try:
         props = {k: True for k in ("repair", "cell_to_point") if getattr(a, k)}
-        text = scene_xml(scene_path, res, props)
+        text = scene_xml(scene_path, res, props, a.classification)
         mi.file_resolver().prepend(str(scene_path.resolve().parent))
         scene = mi.load_string(text)
     except Exception as e:
@@ -312,6 +316,9 @@ def main(argv=None):
     r.add_argument("--spp", type=int, default=0, help="samples per pixel (default: the scene's)")
     r.add_argument("--res", help="resolution WxH of every sensor's film (default: the scene's)")
     _mesh_flags(r)
+    r.add_argument("--classification", choices=("post", "pre"),
+                   help="how tetmesh shapes with a transfer function classify their scalar: "
+                        "post (along each ray, the default) or pre (vertices shaded at load)")
     r.add_argument("--variant", default="llvm_ad_rgb", help="llvm_ad_rgb (default) or cuda_ad_rgb")
     r.set_defaults(func=cmd_render)
     i = sub.add_parser("info", help="counts, bounds, boundary, quality and attributes of a mesh")

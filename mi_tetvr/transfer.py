@@ -278,6 +278,23 @@ class TransferFunction:
         color, opacity = self(t)
         return color, opacity * scale
 
+    def texels(self, resolution: int = 256) -> Tuple[np.ndarray, np.ndarray]:
+        """The transfer function resampled to ``resolution`` regular texels:
+        texel ``k`` holds the value at ``(k + 0.5) / resolution`` of the
+        normalised axis; the texel table is read piecewise linearly between
+        texel centres and clamped outside them (what post-classified
+        rendering uses).
+
+        Returns
+        -------
+        color : (resolution, 3) float64, linear RGB
+        opacity : (resolution,) float64
+        """
+        resolution = int(resolution)
+        if resolution < 2:
+            raise ValueError(f"the transfer function needs at least 2 texels, got {resolution}")
+        return self((np.arange(resolution) + 0.5) / resolution)
+
     def __repr__(self) -> str:
         return (
             f"TransferFunction({self.color_positions.shape[0]} color points, "

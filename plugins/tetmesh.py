@@ -6,10 +6,11 @@
    - |string|
    - Mesh file in any volume format meshio reads (.vtu, .vtk, .msh, .mesh, ...);
      VTK reads the VTK formats meshio cannot.
- * - vertices, tets, color, opacity
+ * - vertices, tets, color, opacity, scalar
    - |tensor|
    - Alternatively the arrays themselves: (n, 3) positions, (m, 4) indices,
-     (n, 3) linear RGB and (n,) extinction (see :func:`mi_tetvr.tetmesh_dict`).
+     (n, 3) linear RGB and (n,) extinction, or an (n,) scalar for a
+     ``transfer_function`` (see :func:`mi_tetvr.tetmesh_dict`).
  * - color_attribute
    - |string|
    - Point-data array holding the color. (Default: ``color``)
@@ -31,6 +32,17 @@
  * - opacity_scale
    - |float|
    - Multiplies the transfer function's opacity. (Default: 1)
+ * - classification
+   - |string|
+   - With a transfer function: ``post`` classifies the interpolated scalar
+     along every ray (exact between the transfer function's texels; its
+     scalar and texels are differentiable), ``pre`` shades the vertices at
+     load and interpolates the colors. (Default: ``post``)
+ * - tf_resolution
+   - |int|
+   - Texels the transfer function is resampled to over
+     ``[value_min, value_max]`` for post-classification (linear between
+     texel centres, constant outside). (Default: 256)
  * - cell_to_point
    - |bool|
    - Average per-cell arrays onto the vertices, so that a cell array can be
@@ -50,7 +62,9 @@ without a ``transfer_function``, or one of ``value_min``/``value_max``
 without the other, are errors.
 
 Differentiable parameters (``mi.traverse``): ``vertex_positions`` (3n),
-``vertex_color`` (3n) and ``vertex_opacity`` (n). After changing them,
+``vertex_color`` (3n) and ``vertex_opacity`` (n); post-classified:
+``vertex_positions``, ``vertex_scalar`` (n), ``tf_color`` (3R, linear RGB)
+and ``tf_opacity`` (R, extinction per unit length). After changing them,
 ``params.update()`` rebuilds the boundary's BVH; the topology stays.
 
 .. code-block:: python
@@ -66,8 +80,12 @@ import mitsuba as mi
 import numpy as np
 
 from mi_tetvr.mesh import TetMesh, read_tetmesh
+from mi_tetvr.mesh.io import choose_scalar
 from mi_tetvr.render.buffers import shape_index_arrays
-from mi_tetvr.render.optical import EmissionAbsorption
+from mi_tetvr.render.optical import EmissionAbsorption, PostClassified
+from mi_tetvr.transfer import read_transfer_function
+
+CLASSIFICATIONS = ("post", "pre")
 
 
 def _tensor(props, key):
@@ -98,14 +116,64 @@ def mesh_from_properties(props) -> TetMesh:
         )
     elif "vertices" in props and "tets" in props:
         opacity = _tensor(props, "opacity")
+        scalar = _tensor(props, "scalar")
+        if scalar is not None and "transfer_function" not in props:
+            raise ValueError("tetmesh: a 'scalar' needs a transfer_function to map it")
         mesh = TetMesh(_tensor(props, "vertices"), _tensor(props, "tets"),
                        _tensor(props, "color"),
-                       None if opacity is None else opacity.reshape(-1))
+                       None if opacity is None else opacity.reshape(-1),
+                       None if scalar is None else {"scalar": scalar.reshape(-1)})
+        if "transfer_function" in props:
+            if scalar is None:
+                raise ValueError("tetmesh: a transfer_function needs the tensor 'scalar'")
+            fs = mi.file_resolver()
+            tf = read_transfer_function(str(fs.resolve(props["transfer_function"])))
+            vmin, vmax = props.get("value_min", None), props.get("value_max", None)
+            mesh.color, mesh.opacity = tf.shade(
+                scalar.reshape(-1), None if vmin is None else (float(vmin), float(vmax)),
+                float(props.get("opacity_scale", 1.0)))
     else:
         raise ValueError("tetmesh: give either 'filename' or the tensors 'vertices' and 'tets'")
     if "to_world" in props:
         mesh = mesh.transformed(np.array(props["to_world"].matrix, dtype=np.float64))
     return mesh
+
+
+def post_classification(props, mesh):
+    """``(scalar (n,), value_range, tf_color (R, 3), tf_opacity (R,))`` of a
+    post-classified ``tetmesh``, or None when it is not one."""
+    if "transfer_function" not in props:
+        for key in ("classification", "tf_resolution"):
+            if key in props:
+                raise ValueError(f"tetmesh: '{key}' needs a transfer_function")
+        return None
+    mode = str(props.get("classification", "post")).lower()
+    if mode not in CLASSIFICATIONS:
+        raise ValueError(f"tetmesh: classification must be one of {CLASSIFICATIONS}, got "
+                         f"{mode!r}")
+    resolution = int(props.get("tf_resolution", 256))
+    if resolution < 2:
+        raise ValueError(f"tetmesh: tf_resolution must be >= 2, got {resolution}")
+    if mode == "pre":
+        return None
+    fs = mi.file_resolver()
+    path = str(fs.resolve(props["filename"])) if "filename" in props else "tetmesh"
+    name = choose_scalar(mesh.point_data, props.get("scalar_attribute", None), path,
+                         mesh.cell_data)
+    scalar = np.asarray(mesh.point_data[name], np.float64).reshape(len(mesh.vertices))
+    if not np.all(np.isfinite(scalar)):
+        raise ValueError(f"tetmesh: scalar array '{name}' has non-finite values")
+    if "value_min" in props:
+        lo, hi = float(props["value_min"]), float(props["value_max"])
+    else:
+        lo, hi = float(scalar.min()), float(scalar.max())
+    if not hi > lo:
+        raise ValueError(f"tetmesh: the scalar range must have value_min < value_max, got "
+                         f"[{lo}, {hi}]" + ("" if "value_min" in props else
+                                             f" (array '{name}' is constant: give a range)"))
+    tf = read_transfer_function(str(fs.resolve(props["transfer_function"])))
+    color, opacity = tf.texels(resolution)
+    return scalar, (lo, hi), color, opacity * float(props.get("opacity_scale", 1.0))
 
 
 class TetMeshShape(mi.Mesh):
@@ -115,6 +183,7 @@ class TetMeshShape(mi.Mesh):
 
     def __init__(self, props):
         mesh = mesh_from_properties(props)
+        post = post_classification(props, mesh)
         topo = mesh.topology
         super().__init__("tetmesh", len(mesh.vertices), len(topo.boundary_faces),
                          props, False, False)
@@ -123,13 +192,32 @@ class TetMeshShape(mi.Mesh):
         params = mi.traverse(self)
         params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
         params["faces"] = mi.UInt32(topo.boundary_faces.astype(np.uint32).ravel())
-        values = self.optical_model.vertex_values(mesh)
+        if post is None:
+            values = self.optical_model.vertex_values(mesh)
+        else:
+            scalar, self.value_range, color, opacity = post
+            self.optical_model = PostClassified
+            self.tf_resolution = len(opacity)
+            self.tf_color = mi.Float(np.asarray(color, np.float32).ravel())
+            self.tf_opacity = mi.Float(np.asarray(opacity, np.float32))
+            values = {"vertex_scalar": scalar}
         for name, channels in self.optical_model.vertex_attributes:
             self.add_attribute(name, channels,
                                mi.Float(np.asarray(values[name], np.float32).ravel()))
         params.update()
         #: Index arrays of the walk (local indices; see mi_tetvr.render.buffers)
         self.tet_buffers = shape_index_arrays(topo, mesh.vertices)
+
+    def traverse(self, callback):
+        super().traverse(callback)
+        if self.optical_model is PostClassified:
+            callback.put("tf_color", self.tf_color, mi.ParamFlags.Differentiable)
+            callback.put("tf_opacity", self.tf_opacity, mi.ParamFlags.Differentiable)
+
+    def model_buffers(self):
+        """The differentiable buffers of the optical model besides the
+        vertex attributes (the transfer function's texels)."""
+        return [self.tf_color, self.tf_opacity] if self.optical_model is PostClassified else []
 
     def to_string(self):
         return (f"TetMeshShape[vertices={len(self.mesh.vertices)}, "

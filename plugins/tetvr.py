@@ -116,6 +116,7 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         for s in scene_tetmeshes(scene):
             out.append(s.vertex_positions_buffer())
             out += [s.attribute_buffer(name) for name, _ in s.optical_model.vertex_attributes]
+            out += s.model_buffers()
         env = scene.environment()
         if env is not None:
             out += [v for _, v in mi.traverse(env).items() if dr.is_array_v(v)]

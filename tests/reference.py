@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["reference_render"]
+__all__ = ["reference_render", "reference_render_classified"]
 
 # Optical depth beyond which the rest of a segment's emission is ignored
 # (relative contribution < exp(-80) ~ 2e-35).
@@ -190,19 +190,97 @@ def reference_render(vertices, tets, color, opacity, origins, directions,
     background: RGB triple (or (k,3)); t_max: scalar or (k,) distance limit.
     Returns rgb (k,3) float64 and alpha (k,) float64.
     """
-    V = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-    Tt = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
     col = np.asarray(color, dtype=np.float64).reshape(-1, 3)
     sig = np.asarray(opacity, dtype=np.float64).reshape(-1)
+    if col.shape[0] != sig.shape[0]:
+        raise ValueError("color/opacity must have one entry per vertex")
+    if np.any(sig < 0.0):
+        raise ValueError("opacity must be >= 0")
+
+    def shade(ray, tet, t0, t1, l0, l1, vid, xq, wq):
+        c0 = np.einsum("si,sic->sc", l0, col[vid])
+        c1 = np.einsum("si,sic->sc", l1, col[vid])
+        s0 = np.einsum("si,si->s", l0, sig[vid])
+        s1 = np.einsum("si,si->s", l1, sig[vid])
+        I0, I1, tau = _segment_integrals(t1 - t0, s0, s1, xq, wq)
+        return ray, c0 * I0[:, None] + (c1 - c0) * I1[:, None], np.exp(-tau)
+
+    return _render(vertices, tets, col.shape[0], origins, directions, background, t_max,
+                   n_quad, shade)
+
+
+def reference_render_classified(vertices, tets, scalar, tf_color, tf_opacity, value_range,
+                                origins, directions, background=(0, 0, 0), t_max=np.inf,
+                                n_quad=48):
+    """The same reference for a per-vertex scalar classified *after*
+    interpolation by a transfer function held as R texels.
+
+    scalar (n,); tf_color (R,3) linear RGB and tf_opacity (R,) extinction per
+    unit length at the texel centres ``lo + (k + 0.5) (hi - lo) / R`` of
+    ``value_range = (lo, hi)``, linear between centres and constant outside.
+    Along each tet segment the scalar is linear; the segment is cut where it
+    crosses a texel centre, and on each piece color and extinction are linear
+    in t and integrated as above.
+    """
+    sca = np.asarray(scalar, dtype=np.float64).reshape(-1)
+    tc = np.asarray(tf_color, dtype=np.float64).reshape(-1, 3)
+    to = np.asarray(tf_opacity, dtype=np.float64).reshape(-1)
+    if tc.shape[0] != to.shape[0] or tc.shape[0] < 2:
+        raise ValueError("tf_color (R,3) and tf_opacity (R,) with R >= 2")
+    if np.any(to < 0.0):
+        raise ValueError("tf_opacity must be >= 0")
+    lo, hi = (float(x) for x in value_range)
+    R = tc.shape[0]
+    centres = lo + (np.arange(R) + 0.5) * (hi - lo) / R
+
+    def tf(v):
+        return (np.stack([np.interp(v, centres, tc[:, j]) for j in range(3)], -1),
+                np.interp(v, centres, to))
+
+    def shade(ray, tet, t0, t1, l0, l1, vid, xq, wq):
+        v0 = np.einsum("si,si->s", l0, sca[vid])
+        v1 = np.einsum("si,si->s", l1, sca[vid])
+        a = np.searchsorted(centres, np.minimum(v0, v1), side="right")
+        b = np.searchsorted(centres, np.maximum(v0, v1), side="left")
+        cuts = np.maximum(b - a, 0)                       # centres strictly inside
+        n = cuts + 1                                      # pieces per segment
+        seg = np.repeat(np.arange(ray.shape[0]), n)
+        j = np.arange(seg.shape[0]) - np.repeat(np.cumsum(n) - n, n)   # piece number
+
+        def frac(k):                                      # boundary k of each piece's segment
+            up = v1[seg] >= v0[seg]
+            knot = np.where(up, a[seg] + k - 1, b[seg] - k)   # the k-th cut, in t order
+            kv = centres[np.clip(knot, 0, R - 1)]
+            dv = v1[seg] - v0[seg]
+            f = (kv - v0[seg]) / np.where(dv != 0.0, dv, 1.0)
+            f = np.where(k == 0, 0.0, np.where(k == n[seg], 1.0, f))
+            return np.clip(f, 0.0, 1.0)
+        fa, fb = frac(j), frac(j + 1)
+        L = (t1 - t0)[seg]
+        va = v0[seg] + fa * (v1 - v0)[seg]
+        vb = v0[seg] + fb * (v1 - v0)[seg]
+        ca, sa = tf(va)
+        cb, sb = tf(vb)
+        I0, I1, tau = _segment_integrals((fb - fa) * L, sa, sb, xq, wq)
+        return ray[seg], ca * I0[:, None] + (cb - ca) * I1[:, None], np.exp(-tau)
+
+    return _render(vertices, tets, sca.shape[0], origins, directions, background, t_max,
+                   n_quad, shade)
+
+
+def _render(vertices, tets, n_values, origins, directions, background, t_max, n_quad, shade):
+    """Clip every ray against every tet, keep the union of the covered
+    intervals, shade the segments (``shade(ray, tet, t0, t1, l0, l1, vid, xq,
+    wq) -> (ray, C, T)`` of pieces in front-to-back order) and composite."""
+    V = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    Tt = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
     O = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     D = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     k = O.shape[0]
     if D.shape[0] != k:
         raise ValueError("origins and directions must have the same length")
-    if col.shape[0] != V.shape[0] or sig.shape[0] != V.shape[0]:
-        raise ValueError("color/opacity must have one entry per vertex")
-    if np.any(sig < 0.0):
-        raise ValueError("opacity must be >= 0")
+    if n_values != V.shape[0]:
+        raise ValueError("the vertex values must have one entry per vertex")
     bg = np.broadcast_to(np.asarray(background, dtype=np.float64), (k, 3))
     tmax = np.broadcast_to(np.asarray(t_max, dtype=np.float64), (k,)).copy()
 
@@ -245,17 +323,9 @@ def reference_render(vertices, tets, color, opacity, origins, directions,
             ray, tet, t0, t1, l0, l1 = _union_clip(ray, tet, t0, t1, l0, l1)
             if ray.size == 0:
                 continue
-            vid = Tt[tet]                                  # (S,4)
-            c0 = np.einsum("si,sic->sc", l0, col[vid])
-            c1 = np.einsum("si,sic->sc", l1, col[vid])
-            s0 = np.einsum("si,si->s", l0, sig[vid])
-            s1 = np.einsum("si,si->s", l1, sig[vid])
-            L = t1 - t0
-            I0, I1, tau = _segment_integrals(L, s0, s1, xq, wq)
-            Cseg = c0 * I0[:, None] + (c1 - c0) * I1[:, None]
-            Tseg = np.exp(-tau)
+            ray, Cseg, Tseg = shade(ray, tet, t0, t1, l0, l1, Tt[tet], xq, wq)
 
-            # front-to-back compositing, segments are sorted by (ray, t0)
+            # front-to-back compositing, pieces are sorted by (ray, t)
             new_group = np.ones(ray.shape[0], dtype=bool)
             new_group[1:] = ray[1:] != ray[:-1]
             group_start = np.maximum.accumulate(np.where(new_group, np.arange(ray.shape[0]), 0))

@@ -333,3 +333,22 @@ def test_diffdvr_json_rejected_with_hint():
         pytest.skip("DiffDVR json not available")
     with pytest.raises(ValueError, match="DiffTetVR XML"):
         read_transfer_function(p)
+
+
+def test_texels_sample_the_function_at_texel_centres():
+    """R texels hold the function at (k + 0.5) / R; a narrow peak between two
+    control points is kept when the texels resolve it; fewer than 2 texels
+    are refused."""
+    tf = TransferFunction([0.0, 0.49, 0.5, 0.51, 1.0], np.eye(3)[[0, 0, 1, 0, 0]],
+                          [0.0, 0.49, 0.5, 0.51, 1.0], [0.0, 0.0, 5.0, 0.0, 0.0])
+    color, opacity = tf.texels(100)
+    assert color.shape == (100, 3) and opacity.shape == (100,)
+    centres = (np.arange(100) + 0.5) / 100
+    ref_c, ref_o = tf(centres)
+    np.testing.assert_allclose(color, ref_c)
+    np.testing.assert_allclose(opacity, ref_o)
+    # the peak at 0.5 falls between texel centres 0.495 and 0.505: half height
+    np.testing.assert_allclose(opacity[49:51], [2.5, 2.5])
+    assert opacity[:49].max() == 0 and opacity[51:].max() == 0
+    with pytest.raises(ValueError, match="at least 2 texels"):
+        tf.texels(1)

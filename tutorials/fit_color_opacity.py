@@ -31,18 +31,19 @@ pixel's ``spp`` rays goes through a random point of the pixel, so a pixel is a
 Monte Carlo estimate of the pixel's average. The target images are rendered
 once with many samples (``--target-spp``, default 16), i.e. close to the
 anti-aliased pixel averages. During the fit every render uses few samples
-(``--spp``, default 2) and a fresh seed, as usual in Mitsuba optimizations
-(``mi.render`` also draws the rays of the gradient pass with a second,
-different seed). With independent seeds for the image and its gradient, the
-gradient is an unbiased estimate of the gradient of the loss between the
-*pixel averages* and the target, instead of fitting one fixed set of sub-pixel
-positions. The price is a small noise floor in the measured loss, mostly from
-pixels on the silhouette of the mesh, where alpha jumps.
+(``--spp``, default 2) and a fresh seed, as usual in Mitsuba optimizations.
+``tetvr``'s derivative pass reuses the rays of the image it differentiates,
+so each step's gradient is that of the loss of the image just rendered; over
+the fresh seeds of the steps the fit minimizes the expected loss of a sampled
+image against the target (as NeRF-style training does), which is the loss of
+the pixel averages plus the images' sampling variance. The price is a small
+noise floor in the measured loss, mostly from pixels on the silhouette of the
+mesh, where alpha jumps.
 
 (The ``tetvr`` integrator itself is deterministic: a given ray always gets the
-same value. Rendering target and fit with ``spp=1`` and the same seed would
-let the loss go to ~0, but ``mi.render`` refuses equal primal and gradient
-seeds, and the result would fit 64x64 particular points rather than pixels.)
+same value. Rendering target and fit with ``spp=1`` and one fixed seed would
+let the loss go to ~0, but it would fit 64x64 particular points rather than
+pixels.)
 """
 from __future__ import annotations
 

@@ -29,7 +29,7 @@ from mi_tetvr.mesh.tetmesh import TetMesh
 from mi_tetvr.mesh.topology import MeshError, _preview, repair_tets
 from mi_tetvr.transfer import TransferFunction, read_transfer_function
 
-__all__ = ["read_tetmesh", "write_tetmesh", "read_mesh_file", "cell_to_point_data"]
+__all__ = ["read_tetmesh", "write_tetmesh", "read_mesh_file", "cell_to_point_data", "choose_scalar"]
 
 #: Suffixes that VTK reads when meshio cannot.
 _VTK_SUFFIXES = {".vtk", ".vtu", ".pvtu", ".vtkhdf", ".hdf", ".vtm"}
@@ -167,6 +167,23 @@ def _cell_hint(cell_data):
             if cell_data else "")
 
 
+def choose_scalar(point_data, scalar, path, cell_data=None) -> str:
+    """The name of the scalar point array to classify: ``scalar``, or the
+    only scalar array there is (a :class:`MeshError` names the candidates
+    otherwise)."""
+    cd = cell_data or {}
+    if scalar is None:
+        cands = [k for k, v in point_data.items() if v.ndim == 1 or v.shape[1:] == (1,)]
+        if len(cands) != 1:
+            raise MeshError(f"{path}: choose the scalar field to shade "
+                            f"(scalar point arrays: {cands}{_cell_hint(cd)})")
+        scalar = cands[0]
+    if scalar not in point_data:
+        raise MeshError(f"{path}: no point-data array '{scalar}' "
+                        f"(point arrays: {sorted(point_data)}{_cell_hint(cd)})")
+    return scalar
+
+
 def read_tetmesh(path, *, color: str = "color", opacity: str = "opacity",
                  scalar: str | None = None, transfer_function=None,
                  value_range=None, opacity_scale: float = 1.0, cell_to_point: bool = False,
@@ -238,15 +255,7 @@ def read_tetmesh(path, *, color: str = "color", opacity: str = "opacity",
     if transfer_function is not None:
         tf = transfer_function if isinstance(transfer_function, TransferFunction) \
             else read_transfer_function(transfer_function)
-        if scalar is None:
-            cands = [k for k, v in pd.items() if v.ndim == 1 or v.shape[1:] == (1,)]
-            if len(cands) != 1:
-                raise MeshError(f"{path}: choose the scalar field to shade "
-                                f"(scalar point arrays: {cands}{_cell_hint(cd)})")
-            scalar = cands[0]
-        if scalar not in pd:
-            raise MeshError(f"{path}: no point-data array '{scalar}' "
-                            f"(point arrays: {sorted(pd)}{_cell_hint(cd)})")
+        scalar = choose_scalar(pd, scalar, path, cd)
         col, opa = tf.shade(pd[scalar].reshape(len(points)), value_range=value_range,
                             opacity_scale=opacity_scale)
     elif col is None and opa is None and pd:

@@ -45,7 +45,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.render.geometry import crossing_vjp, face_crossing, face_weights
-from mi_tetvr.render.pytree import tree_add, tree_copy, tree_dot, tree_map, tree_select
+from mi_tetvr.render.pytree import tree_add, tree_copy, tree_dot, tree_lerp, tree_map, tree_select
 from mi_tetvr.render.segment import clip_segment
 
 
@@ -92,7 +92,12 @@ def start(mode, ts_ad, entry_ids, o, u, v, d, active):
     if mode == dr.ADMode.Forward:
         e = tangent(ts_ad, entry_ids, o, u, v, d, active)
     G = vertex_grad_type(model)
-    return e, tuple(dr.zeros(G) for _ in range(3))
+    pend = tuple(dr.zeros(G) for _ in range(3))
+    if model.cuts:
+        # Pieces of a tet: the exit crossing's gradient so far and where
+        # along the tet's segment the current piece starts.
+        return e, (mi.Float(0.0), dr.zeros(model.Attributes)), mi.Float(0.0), pend
+    return e, pend
 
 
 def moves_vertices(ts_ad):
@@ -140,8 +145,12 @@ def tangent(ts_ad, ids, o, u, v, d, active):
         return dr.forward_to(t, a, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
 
 
+def _scaled(g, w):
+    return tree_map(lambda x: x * w, g)
+
+
 def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj, pending,
-            o, u, v, d, active, reduce):
+            o, u, v, d, active, reduce, stay=None, f=None):
     """One segment in a derivative mode.
 
     ``entry`` and ``exit`` are the ``(t, attributes)`` of the segment's
@@ -153,17 +162,31 @@ def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj,
     one crossing on (backward mode: the entry crossing's gradient is
     complete and goes to the entry face's corners; the corner the apex
     replaces is scattered).
+
+    A model that cuts tets into pieces (``model.cuts``) passes ``stay`` and
+    ``f``: the piece ends ``f`` of the way to the tet's exit crossing and the
+    walk stays in the tet. A piece's ends are then fixed blends of the tet's
+    entry and exit crossings (the cut points are constants: the integral of
+    a continuous integrand does not change where it is split), so their
+    gradients go to both crossings, and the tet's entry crossing is complete
+    when the walk leaves the tet.
     """
     backward = mode == dr.ADMode.Backward
     model = ts.model
-    e, pend = pending
+    cuts = model.cuts
+    if cuts:
+        e, e_x, F, pend = pending
+        F_end = dr.select(stay, F + (1.0 - F) * f, 1.0)
+    else:
+        e, pend = pending
     with dr.resume_grad():
         x = tree_copy((entry, exit))
         # The crossings' ray parameters matter only when vertices move.
         dr.enable_grad(x if moves_vertices(ts_ad) else (x[0][1], x[1][1]))
         if dr.hint(not backward, mode="scalar"):
             x_t = tangent(ts_ad, st.exit, o, u, v, d, active)
-            dr.set_grad(x, (e, x_t))
+            dr.set_grad(x, (tree_lerp(e, x_t, F), tree_lerp(e, x_t, F_end)) if cuts
+                        else (e, x_t))
         (t0, a0), (t1, a1) = x
         length, b0, b1 = clip_segment(t0, a0, t1, a1, t_begin, t_stop)
         C_d, T_d, tau = model.segment(ts_ad.params, length, b0, b1)
@@ -181,8 +204,16 @@ def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj,
             adj.dL += dLo
             adj.dalpha += dLo_alpha
     if dr.hint(not backward, mode="scalar"):
+        if cuts:
+            return C_seg, T_seg, adj, (tree_select(stay, e, x_t), e_x,
+                                       dr.select(stay, F_end, 0.0), pend)
         return C_seg, T_seg, adj, (x_t, pend)
-    vg = crossing_grads(ts_ad, carry, tree_add(e, g_entry), u, v, d)
+    advance = ~stay if cuts else True
+    if dr.hint(cuts, mode="scalar"):
+        e = tree_add(e, tree_add(_scaled(g_entry, 1.0 - F), _scaled(g_exit, 1.0 - F_end)))
+        e_x = tree_add(e_x, tree_add(_scaled(g_entry, F), _scaled(g_exit, F_end)))
+        g_entry = None
+    vg = crossing_grads(ts_ad, carry, e if cuts else tree_add(e, g_entry), u, v, d)
     G = vertex_grad_type(model)
     pend = [tree_add(pend[j], vg[j]) for j in range(3)]
     # The corner the apex replaces is complete: scatter it, start afresh.
@@ -190,16 +221,33 @@ def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj,
     replaced = st.slot
     drop = dr.select(replaced[0], ids[0], dr.select(replaced[1], ids[1], ids[2]))
     drop_g = tree_select(replaced[0], pend[0], tree_select(replaced[1], pend[1], pend[2]))
-    scatter(ts_ad, drop, drop_g, active, reduce)
-    pend = tuple(tree_select(replaced[j], dr.zeros(G), pend[j]) for j in range(3))
-    return C_seg, T_seg, adj, (g_exit, pend)
+    scatter(ts_ad, drop, drop_g, active & advance, reduce)
+    new_pend = tuple(tree_select(replaced[j], dr.zeros(G), pend[j]) for j in range(3))
+    if dr.hint(not cuts, mode="scalar"):
+        return C_seg, T_seg, adj, (g_exit, new_pend)
+    # Staying in the tet: nothing moves on yet.
+    new_pend = tuple(tree_select(advance, new_pend[j], old) for j, old in
+                     enumerate(pending[3]))
+    zero = _scaled(e_x, 0.0)
+    return C_seg, T_seg, adj, (tree_select(advance, e_x, e), tree_select(advance, zero, e_x),
+                               dr.select(advance, 0.0, F_end), new_pend)
 
 
-def finish(ts_ad, pending, carry, steps, u, v, d, reduce):
+def finish(ts_ad, pending, carry, steps, u, v, d, reduce, exit_carry=None, inside=None):
     """Backward mode, after the walk: the last exit crossing's gradient and
-    the pending ones of its corners (``carry``: the face the walk left by)."""
-    e, pend = pending
+    the pending ones of its corners (``carry``: the face the walk left by).
+    A model that cuts tets may have stopped inside one (``inside``): then
+    ``carry`` is that tet's entry face, and its exit face ``exit_carry``
+    takes the exit crossing's gradient so far."""
+    if ts_ad.model.cuts:
+        e, e_x, _, pend = pending
+    else:
+        e, pend = pending
     walked = steps > 0
     vg = crossing_grads(ts_ad, carry, e, u, v, d)
     for j in range(3):
         scatter(ts_ad, carry[0][j].i, tree_add(pend[j], vg[j]), walked, reduce)
+    if exit_carry is not None:
+        vg = crossing_grads(ts_ad, exit_carry, e_x, u, v, d)
+        for j in range(3):
+            scatter(ts_ad, exit_carry[0][j].i, vg[j], inside, reduce)

@@ -53,6 +53,9 @@ class OpticalModel:
     #: ``tetmesh`` shape carries for this model (Mitsuba mesh attributes,
     #: exposed by ``mi.traverse`` as ``<id>.<name>``).
     vertex_attributes = ()
+    #: Whether the walk cuts a tet's segment into pieces where :meth:`cut`
+    #: says (models whose attributes map to color and extinction nonlinearly).
+    cuts = False
 
     def __init__(self, n_sub: int = 4):
         self.n_sub = int(n_sub)
@@ -154,3 +157,101 @@ class Absorption(OpticalModel):
     def segment(self, params, length, a0, a1):
         tau = length * (a0.s + a1.s) * 0.5
         return dr.zeros(mi.Color3f, dr.width(length)), dr.exp(-tau), tau
+
+
+#: A knot of the transfer function closer than this (in texels) to a
+#: segment's start counts as crossed (the walk then never cuts twice at one).
+KNOT_EPSILON = 1e-4
+
+
+class PostClassified(OpticalModel):
+    """A per-vertex scalar, linear inside a tet, classified *after*
+    interpolation by a transfer function held as ``R`` texels (linear RGB
+    color ``tf_color`` (R, 3) and extinction ``tf_opacity`` (R,) at the texel
+    centres of ``value_range``, linear between centres, constant outside).
+
+    A crossing carries the scalar as a texel coordinate ``u = (v - lo) R /
+    (hi - lo) - 0.5`` (the knots are the integers ``0 .. R-1``). The walk
+    cuts a tet's segment where ``u`` crosses a knot (:meth:`cut`); on each
+    piece color and extinction are linear along the ray, and the piece is
+    integrated like :class:`EmissionAbsorption`'s segments, so the integral
+    is exact but for the mean transmittance's sub-intervals.
+    """
+
+    class Attributes:
+        DRJIT_STRUCT = {"u": mi.Float}
+
+        def __init__(self, u=None):
+            self.u = u
+
+    class Params:
+        DRJIT_STRUCT = {"scalar": mi.Float, "tf_color": mi.Float, "tf_opacity": mi.Float}
+
+        def __init__(self, scalar=None, tf_color=None, tf_opacity=None):
+            self.scalar, self.tf_color, self.tf_opacity = scalar, tf_color, tf_opacity
+
+    vertex_attributes = (("vertex_scalar", 1),)
+    #: The walk asks :meth:`cut` where to end each piece.
+    cuts = True
+
+    def __init__(self, n_sub: int = 4, resolution: int = 256, value_range=(0.0, 1.0)):
+        super().__init__(n_sub)
+        self.resolution = int(resolution)
+        self.value_range = tuple(float(x) for x in value_range)
+
+    @staticmethod
+    def vertex_values(mesh):
+        raise NotImplementedError("post-classified meshes take their scalar from the shape")
+
+    def read_params(self, shapes):
+        if len(shapes) != 1:
+            raise ValueError("tetvr: a scene with a post-classified tetmesh may contain only "
+                             f"that one tetmesh, got {len(shapes)}")
+        s = shapes[0]
+        self.value_range, self.resolution = s.value_range, s.tf_resolution
+        return self.Params(s.attribute_buffer("vertex_scalar"), s.tf_color, s.tf_opacity)
+
+    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+        # Gathered from the parameter itself (so that its reverse-mode
+        # derivative is a scatter-add into it), then mapped to texels.
+        lo, hi = self.value_range
+        v = dr.gather(mi.Float, params.scalar, i, active, mode=reduce)
+        return self.Attributes((v - lo) * (self.resolution / (hi - lo)) - 0.5)
+
+    def classify(self, params, u0, u1):
+        """Color and extinction at the texel coordinates ``u0`` and ``u1`` of
+        a piece's ends. The piece lies between two knots, so both ends are
+        read from the one linear part of the transfer function that holds
+        the piece's middle (or its constant part below the first texel
+        centre / above the last): a value a hair beyond a knot (round-off
+        at a cut) keeps the piece's own slope, and so does its derivative."""
+        last = float(self.resolution - 1)
+        mid = 0.5 * (u0 + u1)
+        below, above = mid < 0.0, mid > last
+        k = mi.UInt32(dr.clip(dr.floor(mid), 0.0, last - 1.0))
+        c0 = dr.gather(mi.Color3f, params.tf_color, k)
+        c1 = dr.gather(mi.Color3f, params.tf_color, k + 1)
+        s0 = dr.gather(mi.Float, params.tf_opacity, k)
+        s1 = dr.gather(mi.Float, params.tf_opacity, k + 1)
+        out = []
+        for u in (u0, u1):
+            w = dr.select(below, 0.0, dr.select(above, 1.0, u - mi.Float(k)))
+            out.append((dr.lerp(c0, c1, w), dr.lerp(s0, s1, w)))
+        return out
+
+    def cut(self, a0, a1):
+        """Fraction ``f`` in (0, 1] of the way from ``a0`` to ``a1`` where
+        the scalar reaches the next knot (1: none before ``a1``)."""
+        u0, u1 = a0.u, a1.u
+        last = float(self.resolution - 1)
+        up = u1 > u0
+        k = dr.select(up, dr.maximum(dr.floor(u0 + KNOT_EPSILON) + 1.0, 0.0),
+                      dr.minimum(dr.ceil(u0 - KNOT_EPSILON) - 1.0, last))
+        inside = dr.select(up, (k < u1) & (k <= last), (k > u1) & (k >= 0.0)) & (u1 != u0)
+        du = dr.select(u1 != u0, u1 - u0, 1.0)
+        return dr.select(inside, dr.clip((k - u0) / du, 0.0, 1.0), 1.0)
+
+    def segment(self, params, length, a0, a1):
+        (c0, s0), (c1, s1) = self.classify(params, a0.u, a1.u)
+        C, T = segment_integral(length, c0, c1, s0, s1, self.n_sub)
+        return C, T, length * (s0 + s1) * 0.5

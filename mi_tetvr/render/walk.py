@@ -30,7 +30,7 @@ import mitsuba as mi
 from mi_tetvr.render import adjoint
 from mi_tetvr.render.buffers import unpack_link
 from mi_tetvr.render.geometry import crossing_at, entry_carry, face_entry, ray_frame, walk_step
-from mi_tetvr.render.pytree import weighted_sum
+from mi_tetvr.render.pytree import tree_lerp, tree_select, weighted_sum
 from mi_tetvr.render.segment import clip_segment
 
 
@@ -113,28 +113,52 @@ def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
     pending = None
     if dr.hint(not primal, mode="scalar"):
         pending = adjoint.start(mode, ts_ad, entry_ids, o, u, v, d, active)
+    cuts = model.cuts
+    pieces = mi.UInt32(0)
+    stay = mi.Bool(False)     # (models that cut tets) the last piece ended inside its tet
     while dr.hint(active, label="tetvr_walk"):
         st = walk_step(buf, tet, f_in, o, u, v, d, active, carry, gather)
         a_out = weighted_sum(st.w, st.carry[1])
         t_out = dr.maximum(st.t, t)
+        stay = mi.Bool(False)
+        if dr.hint(cuts, mode="scalar"):
+            # The model's nonlinearity: end the piece at the next knot.
+            f = model.cut(a, a_out)
+            stay = f < 1.0
+            t_out = dr.select(stay, dr.lerp(t, t_out, f), t_out)
+            a_out = tree_select(stay, tree_lerp(a, a_out, f), a_out)
         if dr.hint(primal, mode="scalar"):
             length, a0, a1 = clip_segment(t, a, t_out, a_out, t_begin, t_stop)
             C_seg, T_seg, _ = model.segment(params, length, a0, a1)
         else:
             C_seg, T_seg, adj, pending = adjoint.segment(
                 mode, ts, ts_ad, st, carry, (t, a), (t_out, a_out), L, T, t_begin, t_stop,
-                adj, pending, o, u, v, d, active, settings.reduce)
+                adj, pending, o, u, v, d, active, settings.reduce, *((stay, f) if cuts else ()))
         L += T * C_seg
         T *= T_seg
         t = t_out
         a = a_out
-        carry = st.carry
-        steps += 1
-        tet, f_in = unpack_link(st.link)
-        active &= (st.link >= 0) & (t_out < t_stop) & (steps < settings.max_steps)
+        if dr.hint(cuts, mode="scalar"):
+            # Stay in the tet for the next piece, else move on.
+            carry = tree_select(stay, carry, st.carry)
+            nxt_tet, nxt_f = unpack_link(st.link)
+            tet = dr.select(stay, tet, nxt_tet)
+            f_in = dr.select(stay, f_in, nxt_f)
+            steps += dr.select(stay, 0, 1)
+            pieces += 1
+            active &= (stay | (st.link >= 0)) & (t_out < t_stop) & (pieces < settings.max_steps)
+        else:
+            carry = st.carry
+            steps += 1
+            tet, f_in = unpack_link(st.link)
+            active &= (st.link >= 0) & (t_out < t_stop) & (steps < settings.max_steps)
         active &= T > settings.t_min
     if dr.hint(backward, mode="scalar"):
-        adjoint.finish(ts_ad, pending, carry, steps, u, v, d, settings.reduce)
+        exit_carry = None
+        if dr.hint(cuts, mode="scalar"):
+            # Stopped inside a tet (early termination): its exit face.
+            exit_carry = walk_step(buf, tet, f_in, o, u, v, d, stay, carry, gather).carry
+        adjoint.finish(ts_ad, pending, carry, steps, u, v, d, settings.reduce, exit_carry, stay)
     return L, T, t, steps, adj
 
 
