@@ -79,3 +79,88 @@ def rays_at(rng, k, radius=4.0, target_extent=0.8):
     o *= radius / np.linalg.norm(o, axis=1, keepdims=True)
     d = rng.uniform(-target_extent, target_extent, (k, 3)) - o
     return o, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+class Problem:
+    """A scene and fixed rays; the objective is sum(wL . rgb + wa * alpha) of
+    ``tetvr.sample()``, its gradient (backward mode), its derivative along
+    given directions (forward mode) and central differences.
+
+    ``mesh`` is ``(V, T, color, opacity)`` for :func:`make_scene`, or
+    ``scene`` a loaded scene; ``keys`` the parameters differentiated.
+    """
+
+    def __init__(self, mesh, o, d, rng, scene=None,
+                 keys=("mesh0.vertex_color", "mesh0.vertex_opacity",
+                       "mesh0.vertex_positions")):
+        import mitsuba as mi
+        self.mesh, self.keys = mesh, tuple(keys)
+        self.scene = make_scene(mesh) if scene is None else scene
+        self.params = mi.traverse(self.scene)
+        self.integrator = self.scene.integrator()
+        o, d = np.asarray(o, np.float32), np.asarray(d, np.float64)
+        d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+        self.ray = mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T))
+        self.wL = rng.normal(size=(len(o), 3))
+        self.wa = rng.normal(size=len(o))
+
+    def sample(self, mode, **kw):
+        return self.integrator.sample(mode, self.scene, None, self.ray, active=True, **kw)
+
+    def objective(self):
+        import drjit as dr
+        with dr.suspend_grad():
+            L, _, aovs, _ = self.sample(dr.ADMode.Primal, δL=None, state_in=None)
+        return (np.array(L, np.float64).T * self.wL).sum() + (np.array(aovs[0]) * self.wa).sum()
+
+    def backward(self):
+        import drjit as dr
+        import mitsuba as mi
+        for k in self.keys:
+            dr.enable_grad(self.params[k])
+            dr.set_grad(self.params[k], 0)
+        with dr.suspend_grad():
+            _, _, _, state = self.sample(dr.ADMode.Primal, δL=None, state_in=None)
+            self.sample(dr.ADMode.Backward, δL=mi.Color3f(*self.wL.T), state_in=state,
+                        δaovs=[mi.Float(self.wa)])
+        grads = {k: np.array(dr.grad(self.params[k]), np.float64) for k in self.keys}
+        self.disable()
+        return grads
+
+    def forward(self, directions):
+        """Forward mode along ``directions`` (key -> array) at once."""
+        import drjit as dr
+        import mitsuba as mi
+        for k, v in directions.items():
+            dr.enable_grad(self.params[k])
+            dr.set_grad(self.params[k], mi.Float(v))
+        with dr.suspend_grad():
+            _, _, _, state = self.sample(dr.ADMode.Primal, δL=None, state_in=None)
+            δL, _, δaovs, _ = self.sample(dr.ADMode.Forward, δL=None, state_in=state)
+        self.disable()
+        return ((np.array(δL, np.float64).T * self.wL).sum()
+                + (np.array(δaovs[0], np.float64) * self.wa).sum())
+
+    def disable(self):
+        import drjit as dr
+        for k in self.keys:
+            dr.disable_grad(self.params[k])
+
+    def central(self, key, direction, h):
+        """Central difference of the objective along ``direction``."""
+        import mitsuba as mi
+        base = np.array(self.params[key])
+        vals = []
+        for sign in (1, -1):
+            self.params[key] = mi.Float(base + sign * h * np.asarray(direction))
+            self.params.update()
+            vals.append(self.objective())
+        self.params[key] = mi.Float(base)
+        self.params.update()
+        return (vals[0] - vals[1]) / (2 * h)
+
+    def finite_difference(self, key, index, h):
+        """Central difference w.r.t. one entry of a parameter."""
+        e = np.zeros(len(np.array(self.params[key])))
+        e[index] = 1.0
+        return self.central(key, e, h)

@@ -11,7 +11,7 @@ import mitsuba as mi
 import mi_tetvr
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.transfer import read_transfer_function
-from tests.helpers import rays_at, render_rays
+from tests.helpers import Problem, rays_at, render_rays
 from tests.reference import reference_render_classified
 
 TOL = 3e-3
@@ -102,65 +102,6 @@ def test_bad_input_is_refused(field, peaked_tf, tmp_path):
         scene_of(field, peaked_tf, classification="mid")
 
 
-class Objective:
-    """sum(wL . rgb + wa * alpha) of tetvr.sample() on fixed rays, its
-    gradient (backward mode), directional derivative (forward mode) and
-    central differences."""
-
-    def __init__(self, scene, o, d, rng):
-        import drjit as dr
-        self.dr = dr
-        self.scene, self.params = scene, mi.traverse(scene)
-        self.integrator = scene.integrator()
-        o, d = np.asarray(o, np.float32), np.asarray(d, np.float32)
-        self.ray = mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T))
-        self.wL, self.wa = rng.normal(size=(len(o), 3)), rng.normal(size=len(o))
-
-    def sample(self, mode, **kw):
-        return self.integrator.sample(mode, self.scene, None, self.ray, active=True, **kw)
-
-    def value(self):
-        with self.dr.suspend_grad():
-            L, _, aovs, _ = self.sample(self.dr.ADMode.Primal, δL=None, state_in=None)
-        return (np.array(L, np.float64).T * self.wL).sum() + (np.array(aovs[0]) * self.wa).sum()
-
-    def backward(self, keys):
-        dr = self.dr
-        for k in keys:
-            dr.enable_grad(self.params[k])
-            dr.set_grad(self.params[k], 0)
-        with dr.suspend_grad():
-            _, _, _, state = self.sample(dr.ADMode.Primal, δL=None, state_in=None)
-            self.sample(dr.ADMode.Backward, δL=mi.Color3f(*self.wL.T), state_in=state,
-                        δaovs=[mi.Float(self.wa)])
-        grads = {k: np.array(dr.grad(self.params[k]), np.float64) for k in keys}
-        for k in keys:
-            dr.disable_grad(self.params[k])
-        return grads
-
-    def forward(self, key, direction):
-        dr = self.dr
-        dr.enable_grad(self.params[key])
-        dr.set_grad(self.params[key], mi.Float(direction))
-        with dr.suspend_grad():
-            _, _, _, state = self.sample(dr.ADMode.Primal, δL=None, state_in=None)
-            δL, _, δaovs, _ = self.sample(dr.ADMode.Forward, δL=None, state_in=state)
-        dr.disable_grad(self.params[key])
-        return ((np.array(δL, np.float64).T * self.wL).sum()
-                + (np.array(δaovs[0], np.float64) * self.wa).sum())
-
-    def central(self, key, direction, h):
-        base = np.array(self.params[key])
-        vals = []
-        for sign in (1, -1):
-            self.params[key] = mi.Float(base + sign * h * direction)
-            self.params.update()
-            vals.append(self.value())
-        self.params[key] = mi.Float(base)
-        self.params.update()
-        return (vals[0] - vals[1]) / (2 * h)
-
-
 @pytest.mark.parametrize("key, h", [("mesh0.vertex_scalar", 1e-3), ("mesh0.tf_color", 1e-3),
                                     ("mesh0.tf_opacity", 1e-3),
                                     ("mesh0.vertex_positions", 1e-4)])
@@ -170,9 +111,10 @@ def test_gradients_against_finite_differences(field, peaked_tf, key, h):
     function's texels and the positions (interior vertices)."""
     rng = np.random.default_rng(11)
     o, d = rays_at(rng, 64)
-    obj = Objective(scene_of(field, peaked_tf), o, d, rng)
-    g = obj.backward(["mesh0.vertex_scalar", "mesh0.tf_color", "mesh0.tf_opacity",
-                      "mesh0.vertex_positions"])[key]
+    obj = Problem(None, o, d, rng, scene=scene_of(field, peaked_tf),
+                  keys=("mesh0.vertex_scalar", "mesh0.tf_color", "mesh0.tf_opacity",
+                        "mesh0.vertex_positions"))
+    g = obj.backward()[key]
     assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
     direction = rng.normal(size=len(g))
     if key.endswith("positions"):      # interior vertices only (no silhouette term)
@@ -184,7 +126,7 @@ def test_gradients_against_finite_differences(field, peaked_tf, key, h):
     reverse = float(direction @ g)
     fd = obj.central(key, direction, h)
     assert abs(reverse - fd) < 0.05 * abs(fd), (reverse, fd)
-    fwd = obj.forward(key, direction)
+    fwd = obj.forward({key: direction})
     assert abs(fwd - reverse) < 0.01 * abs(reverse), (fwd, reverse)
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 import mi_tetvr
-from tests.helpers import make_scene, rays_at
+from tests.helpers import Problem, make_scene, rays_at
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.topology import build_topology
 
@@ -28,69 +28,6 @@ def ushape(rng):
 def jittered(rng, max_opacity=2.0):
     V, T = grid_mesh(3, jitter=0.12, seed=3)
     return (V, T, *attributes(len(V), rng, max_opacity))
-
-
-class Problem:
-    """A scene and fixed rays; the objective is sum(wL . rgb + wa * alpha)."""
-
-    def __init__(self, mesh, o, d, rng):
-        self.mesh = mesh
-        self.scene = make_scene(mesh)
-        self.params = mi.traverse(self.scene)
-        self.integrator = self.scene.integrator()
-        o, d = np.asarray(o, np.float32), np.asarray(d, np.float64)
-        d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
-        self.ray = mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T))
-        self.wL = rng.normal(size=(len(o), 3))
-        self.wa = rng.normal(size=len(o))
-
-    def sample(self, mode, **kw):
-        return self.integrator.sample(mode, self.scene, None, self.ray, active=True, **kw)
-
-    def objective(self):
-        with dr.suspend_grad():
-            L, _, aovs, _ = self.sample(dr.ADMode.Primal, δL=None, state_in=None)
-        return (np.array(L, np.float64).T * self.wL).sum() + (np.array(aovs[0]) * self.wa).sum()
-
-    def backward(self):
-        for k in KEYS:
-            dr.enable_grad(self.params[k])
-            dr.set_grad(self.params[k], 0)
-        with dr.suspend_grad():
-            _, _, _, state = self.sample(dr.ADMode.Primal, δL=None, state_in=None)
-            self.sample(dr.ADMode.Backward, δL=mi.Color3f(*self.wL.T), state_in=state,
-                        δaovs=[mi.Float(self.wa)])
-        grads = {k: np.array(dr.grad(self.params[k]), np.float64) for k in KEYS}
-        self.disable()
-        return grads
-
-    def forward(self, directions):
-        for k in KEYS:
-            dr.enable_grad(self.params[k])
-            dr.set_grad(self.params[k], mi.Float(directions[k]))
-        with dr.suspend_grad():
-            _, _, _, state = self.sample(dr.ADMode.Primal, δL=None, state_in=None)
-            δL, _, δaovs, _ = self.sample(dr.ADMode.Forward, δL=None, state_in=state)
-        self.disable()
-        return ((np.array(δL, np.float64).T * self.wL).sum()
-                + (np.array(δaovs[0], np.float64) * self.wa).sum())
-
-    def disable(self):
-        for k in KEYS:
-            dr.disable_grad(self.params[k])
-
-    def finite_difference(self, key, index, h):
-        base = np.array(self.params[key])
-        vals = []
-        for sign in (1, -1):
-            x = base.copy()
-            x[index] += sign * h
-            self.params[key] = mi.Float(x)
-            self.params.update()
-            vals.append(self.objective())
-        self.params[key] = mi.Float(base)
-        self.params.update()
-        return (vals[0] - vals[1]) / (2 * h)
 
 
 def interior_position_entries(V, T):
@@ -223,6 +160,20 @@ def camera_scene(mesh, size, fov, **extra):
         "mesh0": mi_tetvr.tetmesh_dict(*mesh), **extra})
 
 
+def loss_difference(params, key, direction, loss, h=1e-3):
+    """Central difference of ``loss()`` (a scalar Dr.Jit value) along
+    ``direction`` in the parameter ``key``."""
+    base = np.array(params[key])
+    vals = []
+    for sign in (1, -1):
+        params[key] = mi.Float(base + sign * h * direction)
+        params.update()
+        vals.append(float(np.array(loss()).ravel()[0]))
+    params[key] = mi.Float(base)
+    params.update()
+    return (vals[0] - vals[1]) / (2 * h)
+
+
 def test_mi_render_workflow_forward_backward_and_fd():
     """Through mi.render: dr.backward and dr.forward of an RGBA image loss
     agree with each other and with finite differences of the rendered loss."""
@@ -245,16 +196,7 @@ def test_mi_render_workflow_forward_backward_and_fd():
     dr.disable_grad(params[key])
     reverse = float(direction @ g)
     assert abs(fwd - reverse) < 0.01 * abs(reverse), (fwd, reverse)
-    base = np.array(params[key])
-    vals = []
-    h = 1e-3
-    for sign in (1, -1):
-        params[key] = mi.Float(base + sign * h * direction)
-        params.update()
-        vals.append(float(np.array(loss(None)).ravel()[0]))
-    params[key] = mi.Float(base)
-    params.update()
-    fd = (vals[0] - vals[1]) / (2 * h)
+    fd = loss_difference(params, key, direction, lambda: loss(None))
     assert abs(fd - reverse) < 0.02 * abs(reverse), (fd, reverse)
 
 
@@ -331,8 +273,6 @@ def test_derivative_pass_reuses_the_primal_render():
     render and backward falls back to rendering the primal anew."""
     rng = np.random.default_rng(31)
     V, T, C, S = jittered(rng)
-    scene = camera_scene((V, T, C, S), 12, 40)
-    scene.sensors()[0].sampler().set_sample_count(2)
     scene = mi.load_dict({
         "type": "scene", "integrator": {"type": "tetvr"},
         "sensor": {"type": "perspective", "fov": 40,
@@ -359,15 +299,8 @@ def test_derivative_pass_reuses_the_primal_render():
         dr.disable_grad(params[key])
         return float(direction @ g)
 
-    def fd(seed, h=1e-3):
-        vals = []
-        for sign in (1, -1):
-            params[key] = mi.Float(base + sign * h * direction)
-            params.update()
-            vals.append(float(np.array(loss(seed)).ravel()[0]))
-        params[key] = mi.Float(base)
-        params.update()
-        return (vals[0] - vals[1]) / (2 * h)
+    def fd(seed):
+        return loss_difference(params, key, direction, lambda: loss(seed))
 
     replayed = reverse(7)
     assert len(integrator._states) == 0            # kept once, used once
