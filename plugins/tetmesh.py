@@ -36,8 +36,10 @@
    - |string|
    - With a transfer function: ``post`` classifies the interpolated scalar
      along every ray (exact between the transfer function's texels; its
-     scalar and texels are differentiable), ``pre`` shades the vertices at
-     load and interpolates the colors. (Default: ``post``)
+     scalar and texels are differentiable), ``preintegrated`` does the same
+     by Weiler et al.'s pre-integrated table (faster, approximate, no
+     derivatives), ``pre`` shades the vertices at load and interpolates the
+     colors. (Default: ``post``)
  * - tf_resolution
    - |int|
    - Texels the transfer function is resampled to over
@@ -82,10 +84,10 @@ import numpy as np
 from mi_tetvr.mesh import TetMesh, read_tetmesh
 from mi_tetvr.mesh.io import choose_scalar
 from mi_tetvr.render.buffers import shape_index_arrays
-from mi_tetvr.render.optical import EmissionAbsorption, PostClassified
+from mi_tetvr.render.optical import EmissionAbsorption, PostClassified, PreIntegrated
 from mi_tetvr.transfer import read_transfer_function
 
-CLASSIFICATIONS = ("post", "pre")
+CLASSIFICATIONS = ("post", "pre", "preintegrated")
 
 
 def _tensor(props, key):
@@ -140,8 +142,8 @@ def mesh_from_properties(props) -> TetMesh:
 
 
 def post_classification(props, mesh):
-    """``(scalar (n,), value_range, tf_color (R, 3), tf_opacity (R,))`` of a
-    post-classified ``tetmesh``, or None when it is not one."""
+    """``(optical model, scalar (n,), value_range, tf_color (R, 3), tf_opacity
+    (R,))`` of a post-classified ``tetmesh``, or None when it is not one."""
     if "transfer_function" not in props:
         for key in ("classification", "tf_resolution"):
             if key in props:
@@ -173,7 +175,8 @@ def post_classification(props, mesh):
                                              f" (array '{name}' is constant: give a range)"))
     tf = read_transfer_function(str(fs.resolve(props["transfer_function"])))
     color, opacity = tf.texels(resolution)
-    return scalar, (lo, hi), color, opacity * float(props.get("opacity_scale", 1.0))
+    model = PreIntegrated if mode == "preintegrated" else PostClassified
+    return model, scalar, (lo, hi), color, opacity * float(props.get("opacity_scale", 1.0))
 
 
 class TetMeshShape(mi.Mesh):
@@ -195,8 +198,9 @@ class TetMeshShape(mi.Mesh):
         if post is None:
             values = self.optical_model.vertex_values(mesh)
         else:
-            scalar, self.value_range, color, opacity = post
-            self.optical_model = PostClassified
+            self.optical_model, scalar, self.value_range, color, opacity = post
+            #: The longest chord of any tet (the pre-integrated table's range).
+            self.longest_edge = float(mesh.edge_lengths.max()) if len(mesh.tets) else 1.0
             self.tf_resolution = len(opacity)
             self.tf_color = mi.Float(np.asarray(color, np.float32).ravel())
             self.tf_opacity = mi.Float(np.asarray(opacity, np.float32))
@@ -210,14 +214,15 @@ class TetMeshShape(mi.Mesh):
 
     def traverse(self, callback):
         super().traverse(callback)
-        if self.optical_model is PostClassified:
+        if issubclass(self.optical_model, PostClassified):
             callback.put("tf_color", self.tf_color, mi.ParamFlags.Differentiable)
             callback.put("tf_opacity", self.tf_opacity, mi.ParamFlags.Differentiable)
 
     def model_buffers(self):
         """The differentiable buffers of the optical model besides the
         vertex attributes (the transfer function's texels)."""
-        return [self.tf_color, self.tf_opacity] if self.optical_model is PostClassified else []
+        return ([self.tf_color, self.tf_opacity]
+                if issubclass(self.optical_model, PostClassified) else [])
 
     def to_string(self):
         return (f"TetMeshShape[vertices={len(self.mesh.vertices)}, "

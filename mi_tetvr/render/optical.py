@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from mi_tetvr.render.buffers import concat
 from mi_tetvr.render.pytree import weighted_sum
@@ -255,3 +256,105 @@ class PostClassified(OpticalModel):
         (c0, s0), (c1, s1) = self.classify(params, a0.u, a1.u)
         C, T = segment_integral(length, c0, c1, s0, s1, self.n_sub)
         return C, T, length * (s0 + s1) * 0.5
+
+
+#: Samples of the pre-integrated table along the front and back scalar (at
+#: most; fewer for a coarser transfer function) and along the segment length.
+TABLE_SCALARS = 128
+TABLE_LENGTHS = 32
+
+
+class PreIntegrated(PostClassified):
+    """Post-classification by Weiler et al.'s pre-integrated table, a fast
+    primal option: the emission and transmittance of a segment are looked up
+    (trilinearly) in a table over (front scalar, back scalar, length) that
+    :class:`PostClassified`'s exact integral filled for the shape's transfer
+    function, instead of cutting the segment at the texels. The transfer
+    function's texels get no derivatives (the table would need its own; the
+    exact path is the reference); the scalar's and the positions' are those
+    of the trilinear lookup.
+    """
+
+    class Params:
+        DRJIT_STRUCT = {"scalar": mi.Float, "table": mi.Float}
+
+        def __init__(self, scalar=None, table=None):
+            self.scalar, self.table = scalar, table
+
+    cuts = False
+
+    def read_params(self, shapes):
+        if len(shapes) != 1:
+            raise ValueError("tetvr: a scene with a post-classified tetmesh may contain only "
+                             f"that one tetmesh, got {len(shapes)}")
+        s = shapes[0]
+        self.value_range, self.resolution = s.value_range, s.tf_resolution
+        with dr.resume_grad():      # (the primal pass runs with AD suspended)
+            tracked = dr.grad_enabled(s.tf_color) or dr.grad_enabled(s.tf_opacity)
+        if tracked:
+            raise ValueError("tetmesh: classification 'preintegrated' has no derivatives; "
+                             "use 'post' to differentiate the transfer function")
+        key = (s.tf_color.index, s.tf_opacity.index)
+        cached = getattr(s, "_preintegrated", None)
+        if cached is None or cached[0] != key:
+            s._preintegrated = (key, self.table(s.tf_color, s.tf_opacity, s.longest_edge))
+        self.samples, self.max_length, table = s._preintegrated[1]
+        return self.Params(s.attribute_buffer("vertex_scalar"), table)
+
+    def table(self, tf_color, tf_opacity, max_length):
+        """``(samples, max_length, table)``: RGB emission and transmittance of
+        segments from texel coordinate ``u_i`` to ``u_j`` of length ``l_k``,
+        flattened ``[(i * S + j) * K + k] * 4 + channel``."""
+        S, K = min(TABLE_SCALARS, self.resolution), TABLE_LENGTHS
+        last = self.resolution - 1
+        i, j, k = np.meshgrid(np.arange(S), np.arange(S), np.arange(K), indexing="ij")
+        u = lambda x: mi.Float((x.ravel() * (last / (S - 1))).astype(np.float32))  # noqa: E731
+        length = mi.Float((k.ravel() * (max_length / (K - 1))).astype(np.float32))
+        C, T = self.exact(PostClassified.Params(None, dr.detach(tf_color),
+                                                dr.detach(tf_opacity)), u(i), u(j), length)
+        table = np.stack([np.array(C.x), np.array(C.y), np.array(C.z), np.array(T)], -1)
+        return S, float(max_length), mi.Float(table.astype(np.float32).ravel())
+
+    @dr.syntax
+    def exact(self, params, u0, u1, length):
+        """The exact post-classified integral of segments whose texel
+        coordinate goes from ``u0`` to ``u1`` over ``length``, piece by piece
+        between the knots."""
+        C = dr.zeros(mi.Color3f, dr.width(u0))
+        T = dr.ones(mi.Float, dr.width(u0))
+        a = mi.Float(u0)
+        done = mi.Float(0.0)          # fraction of the segment integrated
+        active = dr.full(mi.Bool, True, dr.width(u0))
+        while active:
+            f = self.cut(self.Attributes(a), self.Attributes(u1))
+            b = dr.lerp(a, u1, f)
+            end = dr.select(f < 1.0, done + (1.0 - done) * f, 1.0)
+            (c0, s0), (c1, s1) = self.classify(params, a, b)
+            Cp, Tp = segment_integral(length * (end - done), c0, c1, s0, s1, self.n_sub)
+            C += T * Cp
+            T *= Tp
+            a = b
+            done = end
+            active &= f < 1.0
+        return C, T
+
+    def segment(self, params, length, a0, a1):
+        S, K = self.samples, TABLE_LENGTHS
+        last = float(self.resolution - 1)
+        scale = (S - 1) / last
+
+        def coord(u, n):
+            x = dr.clip(u, 0.0, float(n - 1))
+            lo = mi.UInt32(dr.minimum(dr.floor(x), float(n - 2)))
+            return lo, x - mi.Float(lo)
+        i, wi = coord(dr.clip(a0.u, 0.0, last) * scale, S)
+        j, wj = coord(dr.clip(a1.u, 0.0, last) * scale, S)
+        k, wk = coord(length * ((K - 1) / self.max_length), K)
+        out = dr.zeros(mi.Vector4f, dr.width(length))
+        for di, fi in ((0, 1.0 - wi), (1, wi)):
+            for dj, fj in ((0, 1.0 - wj), (1, wj)):
+                for dk, fk in ((0, 1.0 - wk), (1, wk)):
+                    idx = ((i + di) * S + (j + dj)) * K + (k + dk)
+                    out += (fi * fj * fk) * dr.gather(mi.Vector4f, params.table, idx)
+        tau = -dr.log(dr.maximum(out.w, 1e-30))
+        return mi.Color3f(out.x, out.y, out.z), out.w, tau
