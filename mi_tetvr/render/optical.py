@@ -22,8 +22,14 @@ A model defines:
   (``T = exp(-tau)`` mathematically; ``tau`` is what the adjoint
   differentiates, ``T`` what the primal multiplies).
 
-Models here: :class:`EmissionAbsorption` (what ``tetmesh`` shapes use) and
-:class:`Absorption` (extinction only). To add a model (a scalar classified by
+A model whose attributes map to color and extinction nonlinearly sets
+``cuts`` and defines :meth:`cut` (the fraction of a segment at which the
+walk ends a piece, so that each piece is integrated by :meth:`segment` with
+linear color and extinction).
+
+Models here: :class:`EmissionAbsorption` (what ``tetmesh`` shapes use),
+:class:`Absorption` (extinction only), :class:`PostClassified` (a scalar and
+a transfer function) and :class:`PreIntegrated` (the same by a table). To add a model (a scalar classified by
 a transfer function, ...), subclass :class:`OpticalModel`, and let the
 ``tetmesh`` shape name it (``shape.optical_model``) and carry its
 ``vertex_attributes``; the walk and the adjoint stay as they are.

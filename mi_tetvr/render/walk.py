@@ -19,7 +19,10 @@ For each ray, repeat from ``start = 0``:
 
 The walk knows nothing of what a vertex carries: an optical model
 (:mod:`mi_tetvr.render.optical`) interpolates the vertex values at each
-crossing and integrates each segment. The derivative modes re-walk the rays
+crossing and integrates each segment. A model whose values map to color and
+extinction nonlinearly (a scalar and a transfer function) sets ``cuts``: the
+walk then ends a piece where the model's :meth:`cut` says and stays in the
+tet for the next piece. The derivative modes re-walk the rays
 (:mod:`mi_tetvr.render.adjoint`), recording nothing.
 """
 from __future__ import annotations
