@@ -21,9 +21,10 @@ float ulps of ``L_pix``; it multiplies ``dtau_k``, so the relative error of a
 gradient stays at float precision.
 
 ``dC_k`` and ``dtau_k`` are obtained by differentiating the optical model's
-segment integral (:meth:`~mi_tetvr.render.optical.OpticalModel.segment`) and
-the face crossings with Dr.Jit's AD *locally* inside the loop body; the
-gathers' reverse-mode derivative scatter-adds straight into the parameters'
+segment integral (:meth:`~mi_tetvr.render.optical.OpticalModel.segment`)
+with Dr.Jit's AD *locally* inside the loop body, the face crossings in
+closed form (:func:`~mi_tetvr.render.geometry.crossing_vjp`); the gathers'
+reverse-mode derivative scatter-adds straight into the parameters'
 gradients. Memory is therefore O(rays), independent of the number of tets
 crossed.
 
