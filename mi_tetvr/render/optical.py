@@ -166,6 +166,12 @@ class Absorption(OpticalModel):
         return dr.zeros(mi.Color3f, dr.width(length)), dr.exp(-tau), tau
 
 
+#: Scatter strategy of the texel reads' reverse-mode derivative (many rays
+#: write into few texels). On the 2-core CPU all strategies were within
+#: 10 % of each other (``benchmarks/bench_tf_gradients.py``), so Dr.Jit
+#: chooses.
+TEXEL_REDUCE = dr.ReduceMode.Auto
+
 #: A knot of the transfer function closer than this (in texels) to a
 #: segment's start counts as crossed (the walk then never cuts twice at one).
 KNOT_EPSILON = 1e-4
@@ -236,10 +242,11 @@ class PostClassified(OpticalModel):
         mid = 0.5 * (u0 + u1)
         below, above = mid < 0.0, mid > last
         k = mi.UInt32(dr.clip(dr.floor(mid), 0.0, last - 1.0))
-        c0 = dr.gather(mi.Color3f, params.tf_color, k)
-        c1 = dr.gather(mi.Color3f, params.tf_color, k + 1)
-        s0 = dr.gather(mi.Float, params.tf_opacity, k)
-        s1 = dr.gather(mi.Float, params.tf_opacity, k + 1)
+        mode = TEXEL_REDUCE
+        c0 = dr.gather(mi.Color3f, params.tf_color, k, mode=mode)
+        c1 = dr.gather(mi.Color3f, params.tf_color, k + 1, mode=mode)
+        s0 = dr.gather(mi.Float, params.tf_opacity, k, mode=mode)
+        s1 = dr.gather(mi.Float, params.tf_opacity, k + 1, mode=mode)
         out = []
         for u in (u0, u1):
             w = dr.select(below, 0.0, dr.select(above, 1.0, u - mi.Float(k)))
