@@ -138,7 +138,7 @@ def mesh_report(path, color="color", opacity="opacity", repair=False, cell_to_po
     (``repair``). Raises only for a file that cannot be read at all."""
     import warnings
 
-    from mi_tetvr.mesh.io import read_mesh_file, read_tetmesh, _tets_from_cells
+    from mi_tetvr.mesh.io import read_mesh_file, read_tetmesh, tets_from_cells
     from mi_tetvr.mesh.topology import MeshError, repair_tets
     with warnings.catch_warnings(record=True) as said:
         warnings.simplefilter("always")
@@ -149,7 +149,7 @@ def mesh_report(path, color="color", opacity="opacity", repair=False, cell_to_po
         except MeshError as e:
             raw = read_mesh_file(path)
             try:
-                tets = _tets_from_cells(raw, path)
+                tets = tets_from_cells(raw, path)
             except MeshError:
                 raise e from None
             keep, dropped = repair_tets(raw.points[:, :3], tets)

@@ -29,7 +29,8 @@ from mi_tetvr.mesh.tetmesh import TetMesh
 from mi_tetvr.mesh.topology import MeshError, _preview, repair_tets
 from mi_tetvr.transfer import TransferFunction, read_transfer_function
 
-__all__ = ["read_tetmesh", "write_tetmesh", "read_mesh_file", "cell_to_point_data", "choose_scalar"]
+__all__ = ["read_tetmesh", "write_tetmesh", "read_mesh_file", "cell_to_point_data", "choose_scalar",
+           "tets_from_cells"]
 
 #: Suffixes that VTK reads when meshio cannot.
 _VTK_SUFFIXES = {".vtk", ".vtu", ".pvtu", ".vtkhdf", ".hdf", ".vtm"}
@@ -41,7 +42,10 @@ _GEOMETRY_ONLY = {".msh", ".mesh"}
 _QUADRATIC_TETS = {"tetra10", "tetra20", "tetra35", "tetra56"}
 
 
-def _tets_from_cells(mesh: meshio.Mesh, path) -> np.ndarray:
+def tets_from_cells(mesh: meshio.Mesh, path) -> np.ndarray:
+    """(m, 4) tets of a meshio mesh: its tetra cells, higher-order tets
+    linearized (with a warning); a :class:`MeshError` for no tets or other
+    volume cells."""
     tets = []
     for block in mesh.cells:
         if block.type == "tetra":
@@ -231,7 +235,7 @@ def read_tetmesh(path, *, color: str = "color", opacity: str = "opacity",
             raise ValueError(f"{', '.join(unused)} given but no transfer function to map "
                              f"the scalar with: add one, or leave them out")
     mesh = read_mesh_file(path)
-    tets = _tets_from_cells(mesh, path)
+    tets = tets_from_cells(mesh, path)
     points = np.asarray(mesh.points, np.float64)[:, :3]
     pd = _numeric({k: np.asarray(v) for k, v in mesh.point_data.items()}, "point", path)
     cd = _tet_cell_data(mesh, path)

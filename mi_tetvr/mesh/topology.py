@@ -425,6 +425,19 @@ class Topology:
         return len(self.tets)
 
 
+def _face_pairs(faces):
+    """Group equal triangles (any vertex order): ``(inv, counts, fa, fb)``
+    with ``inv`` each face's group, ``counts`` each group's size and
+    ``fa, fb`` the two faces of each group of two."""
+    _, inv, counts = np.unique(face_keys(faces), return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    order = np.argsort(inv, kind="stable")
+    sorted_inv = inv[order]
+    start = np.flatnonzero(np.r_[True, sorted_inv[1:] != sorted_inv[:-1]])
+    paired = start[counts[sorted_inv[start]] == 2]
+    return inv, counts, order[paired], order[paired + 1]
+
+
 def _match_faces(tets):
     """Pair up the faces of oriented tets.
 
@@ -432,19 +445,13 @@ def _match_faces(tets):
     where fa, fb are the flat face indices of each interior face pair."""
     m = len(tets)
     faces = tets[:, FACES].reshape(-1, 3)
-    _, inv, counts = np.unique(face_keys(faces), return_inverse=True, return_counts=True)
-    inv = inv.ravel()
+    inv, counts, fa, fb = _face_pairs(faces)
     if np.any(counts > 2):
         bad_keys = np.flatnonzero(counts > 2)
         bad = np.flatnonzero(np.isin(inv, bad_keys)) // 4
         raise MeshError(
             f"{len(bad_keys)} face(s) shared by more than two tets (non-manifold mesh); "
             f"tets involved: {_preview(np.unique(bad))}; {REPAIR_HINT}")
-    order = np.argsort(inv, kind="stable")
-    sorted_inv = inv[order]
-    start = np.flatnonzero(np.r_[True, sorted_inv[1:] != sorted_inv[:-1]])
-    paired = start[counts[sorted_inv[start]] == 2]
-    fa, fb = order[paired], order[paired + 1]
     neighbors = np.full(m * 4, -1, dtype=np.int64)
     neighbor_faces = np.full(m * 4, -1, dtype=np.int64)
     neighbors[fa], neighbors[fb] = fb // 4, fa // 4
@@ -551,13 +558,8 @@ def _bad_faces_per_tet(tets):
     two tets or with the same orientation as its neighbour's (a fold)."""
     m = len(tets)
     faces = tets[:, FACES].reshape(-1, 3)
-    _, inv, counts = np.unique(face_keys(faces), return_inverse=True, return_counts=True)
-    inv = inv.ravel()
+    inv, counts, fa, fb = _face_pairs(faces)
     bad = counts[inv] > 2
-    order = np.argsort(inv, kind="stable")
-    start = np.flatnonzero(np.r_[True, inv[order][1:] != inv[order][:-1]])
-    pairs = start[counts[inv[order][start]] == 2]
-    fa, fb = order[pairs], order[pairs + 1]
     par = _face_parity(faces)
     same = par[fa] == par[fb]
     bad[fa[same]] = bad[fb[same]] = True
