@@ -35,9 +35,11 @@ shapes by walking the tet adjacency.
 
 Derivatives: ``mi.render`` with parameters, ``dr.backward`` and ``dr.forward``
 reach ``<id>.vertex_color``, ``<id>.vertex_opacity`` and ``<id>.vertex_positions``
-(and the ``alpha`` AOV's gradient flows too). The adjoint re-walks the rays and
-records nothing (see :mod:`mi_tetvr.render.walk`); the silhouette of the mesh
-(which pixels it covers) has no boundary term.
+(post-classified: ``vertex_scalar``, ``tf_color``, ``tf_opacity``; the ``alpha``
+AOV's gradient flows too), and ``dr.backward`` also the sensor's ``to_world``
+(:mod:`mi_tetvr.render.camera`). The adjoint re-walks the rays and records
+nothing (see :mod:`mi_tetvr.render.walk`); the silhouette of the mesh (which
+pixels it covers) has no boundary term.
 
 The pixel value is ``C + T * background`` where ``C`` is the accumulated
 emission, ``T`` the transmittance and ``background`` the scene's environment
@@ -172,8 +174,11 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         # render_forward multiply the AOVs by it, which makes the alpha AOV a
         # Color3f that the image block rejects. RGB sensors weight the three
         # channels equally, so keep one of them.
-        ray, weight, pos = super().sample_rays(scene, sensor, sampler)
-        return ray, mi.Float(weight[0]), pos
+        # The rays keep their AD graph (to a differentiable sensor) in the
+        # derivative passes, which run with AD suspended.
+        with dr.resume_grad():
+            ray, weight, pos = super().sample_rays(scene, sensor, sampler)
+        return ray, mi.Float(dr.detach(weight)[0]), dr.detach(pos)
 
     def settings_for(self, scene):
         """Walk settings with the re-trace offset scaled to the scene."""
@@ -188,7 +193,11 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         # inside the walk needs their AD graph; the walk itself runs detached.
         with dr.resume_grad(when=mode != dr.ADMode.Primal):
             ts = self.tet_scene(scene)
+            # A differentiable camera: rays attached to the sensor's parameters.
+            camera = mode != dr.ADMode.Primal and (dr.grad_enabled(ray.o) or
+                                                    dr.grad_enabled(ray.d))
         settings = self.settings_for(scene)
+        ray_ad = ray
         ray = mi.Ray3f(dr.detach(ray))
         ray.d = dr.normalize(ray.d)
         active = mi.Bool(active)
@@ -208,10 +217,17 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         L_pix, T_fin = state_in
         δaovs = kwargs.get("δaovs", None)
         δalpha = mi.Float(δaovs[0]) if (self.alpha and δaovs) else mi.Float(0.0)
+        if camera and mode == dr.ADMode.Forward:
+            raise NotImplementedError(
+                "tetvr: forward-mode derivatives w.r.t. the camera are not implemented; "
+                "use reverse mode (dr.backward)")
+        zero = mi.Vector3f(0.0)
         if mode == dr.ADMode.Backward:
-            adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(δL), δalpha)
+            adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(δL), δalpha, zero, zero)
         else:
-            adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(0.0), mi.Float(0.0))
+            adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(0.0), mi.Float(0.0),
+                          zero, zero)
+        ts.camera = camera
         # The background term T * env(d): its derivative w.r.t. the
         # environment's parameters (e.g. a learned envmap's texels), taken
         # before the walk's forward mode consumes the input tangents.
@@ -223,6 +239,13 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
                 if mode == dr.ADMode.Forward and dr.grad_enabled(seen) else 0.0
         _, _, _, adj = trace(mode, scene, ts.detached(), ray, settings, active, adj, ts_ad=ts)
         if mode == dr.ADMode.Backward:
+            if camera:
+                # The ray's gradient into the sensor: the origin's as is, the
+                # direction's from the rotation gradient (g_d = g_w x d; the
+                # direction is normalized, so its length has none).
+                with dr.resume_grad():
+                    dr.backward_from(dr.dot(ray_ad.o, adj.g_o) + dr.dot(
+                        dr.normalize(ray_ad.d), dr.cross(adj.g_w, ray.d)))
             return mi.Color3f(0.0), mi.Bool(True), [], None
         dL = adj.dL + d_seen
         return dL, mi.Bool(True), [adj.dalpha] if self.alpha else [], None

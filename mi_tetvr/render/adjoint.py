@@ -56,12 +56,19 @@ class Adjoint:
     L_pix, T_fin : the primal pixel value (with background) and transmittance.
     dL, dalpha : the incoming adjoint (backward mode), or the accumulated
         tangent (forward mode, starting at zero).
+    g_o, g_w : (backward mode, a differentiable camera) the gradient w.r.t.
+        the ray's origin and w.r.t. a rotation of its direction about the
+        origin: moving the ray by ``delta`` is moving every vertex by
+        ``-delta``, turning it by ``w`` turns every vertex by ``-w`` about
+        ``o``, so both are sums over the crossings' vertex gradients
+        (:func:`camera_grads`).
     """
     DRJIT_STRUCT = {"L_pix": mi.Color3f, "T_fin": mi.Float, "dL": mi.Color3f,
-                    "dalpha": mi.Float}
+                    "dalpha": mi.Float, "g_o": mi.Vector3f, "g_w": mi.Vector3f}
 
-    def __init__(self, L_pix=None, T_fin=None, dL=None, dalpha=None):
+    def __init__(self, L_pix=None, T_fin=None, dL=None, dalpha=None, g_o=None, g_w=None):
         self.L_pix, self.T_fin, self.dL, self.dalpha = L_pix, T_fin, dL, dalpha
+        self.g_o, self.g_w = g_o, g_w
 
 
 _VERTEX_GRAD_TYPES = {}
@@ -109,6 +116,24 @@ def moves_vertices(ts_ad):
         return dr.grad_enabled(ts_ad.buf.positions)
 
 
+def geometric(ts_ad):
+    """Whether the derivative modes need the geometry: vertices that move or
+    a differentiable camera (``ts_ad.camera``)."""
+    return moves_vertices(ts_ad) or ts_ad.camera
+
+
+def camera_grads(adj, carry, vg, u, v, d, mask):
+    """Add one crossing's vertex-position gradients ``vg`` (of the corners
+    ``carry``) to the ray's origin and direction gradients (see
+    :class:`Adjoint`); a corner's offset from the origin is ``p.x u + p.y v
+    + z d``."""
+    for c, g in zip(carry[0], vg):
+        r = c.p.x * u + c.p.y * v + c.z * d
+        adj.g_o = dr.select(mask, adj.g_o - g.p, adj.g_o)
+        adj.g_w = dr.select(mask, adj.g_w - dr.cross(r, g.p), adj.g_w)
+    return adj
+
+
 def crossing_grads(ts_ad, carry, g, u, v, d):
     """Gradient of ``g . (t, attributes)`` of the ray's crossing of the face
     the walk carries (``carry``: corners, their attributes, edge functions)
@@ -118,7 +143,7 @@ def crossing_grads(ts_ad, carry, g, u, v, d):
     ``dP = dp.x u + dp.y v + dz d``."""
     G = vertex_grad_type(ts_ad.model)
     corners, values, edges = carry
-    if not moves_vertices(ts_ad):
+    if not geometric(ts_ad):
         w = face_weights(*edges)
         return [G(mi.Vector3f(0.0), tree_map(lambda x: w[j] * x, g[1])) for j in range(3)]
     return [G(dp.x * u + dp.y * v + dz * d, da)
@@ -183,7 +208,7 @@ def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj,
     with dr.resume_grad():
         x = tree_copy((entry, exit))
         # The crossings' ray parameters matter only when vertices move.
-        dr.enable_grad(x if moves_vertices(ts_ad) else (x[0][1], x[1][1]))
+        dr.enable_grad(x if geometric(ts_ad) else (x[0][1], x[1][1]))
         if dr.hint(not backward, mode="scalar"):
             x_t = tangent(ts_ad, st.exit, o, u, v, d, active)
             dr.set_grad(x, (tree_lerp(e, x_t, F), tree_lerp(e, x_t, F_end)) if cuts
@@ -215,6 +240,8 @@ def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj,
         e_x = tree_add(e_x, tree_add(_scaled(g_entry, F), _scaled(g_exit, F_end)))
         g_entry = None
     vg = crossing_grads(ts_ad, carry, e if cuts else tree_add(e, g_entry), u, v, d)
+    if ts_ad.camera:
+        adj = camera_grads(adj, carry, vg, u, v, d, active & advance)
     G = vertex_grad_type(model)
     pend = [tree_add(pend[j], vg[j]) for j in range(3)]
     # The corner the apex replaces is complete: scatter it, start afresh.
@@ -234,9 +261,10 @@ def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj,
                                dr.select(advance, 0.0, F_end), new_pend)
 
 
-def finish(ts_ad, pending, carry, steps, u, v, d, reduce, exit_carry=None, inside=None):
+def finish(ts_ad, pending, carry, steps, u, v, d, reduce, adj, exit_carry=None, inside=None):
     """Backward mode, after the walk: the last exit crossing's gradient and
-    the pending ones of its corners (``carry``: the face the walk left by).
+    the pending ones of its corners (``carry``: the face the walk left by);
+    returns ``adj`` (with the camera's gradients).
     A model that cuts tets may have stopped inside one (``inside``): then
     ``carry`` is that tet's entry face, and its exit face ``exit_carry``
     takes the exit crossing's gradient so far."""
@@ -245,10 +273,16 @@ def finish(ts_ad, pending, carry, steps, u, v, d, reduce, exit_carry=None, insid
     else:
         e, pend = pending
     walked = steps > 0
+    camera = ts_ad.camera
     vg = crossing_grads(ts_ad, carry, e, u, v, d)
+    if camera:
+        adj = camera_grads(adj, carry, vg, u, v, d, walked)
     for j in range(3):
         scatter(ts_ad, carry[0][j].i, tree_add(pend[j], vg[j]), walked, reduce)
     if exit_carry is not None:
         vg = crossing_grads(ts_ad, exit_carry, e_x, u, v, d)
+        if camera:
+            adj = camera_grads(adj, exit_carry, vg, u, v, d, inside)
         for j in range(3):
             scatter(ts_ad, exit_carry[0][j].i, vg[j], inside, reduce)
+    return adj

@@ -161,7 +161,8 @@ def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
         if dr.hint(cuts, mode="scalar"):
             # Stopped inside a tet (early termination): its exit face.
             exit_carry = walk_step(buf, tet, f_in, o, u, v, d, stay, carry, gather).carry
-        adjoint.finish(ts_ad, pending, carry, steps, u, v, d, settings.reduce, exit_carry, stay)
+        adj = adjoint.finish(ts_ad, pending, carry, steps, u, v, d, settings.reduce, adj,
+                             exit_carry, stay)
     return L, T, t, steps, adj
 
 
