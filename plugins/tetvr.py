@@ -218,9 +218,11 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         δaovs = kwargs.get("δaovs", None)
         δalpha = mi.Float(δaovs[0]) if (self.alpha and δaovs) else mi.Float(0.0)
         if camera and mode == dr.ADMode.Forward:
-            raise NotImplementedError(
-                "tetvr: forward-mode derivatives w.r.t. the camera are not implemented; "
-                "use reverse mode (dr.backward)")
+            # The rays' tangents, carried into every crossing's tangent.
+            with dr.resume_grad():
+                ts.ray_tangent = tuple(dr.detach(x) for x in dr.forward_to(
+                    ray_ad.o, dr.normalize(ray_ad.d),
+                    flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad))
         zero = mi.Vector3f(0.0)
         if mode == dr.ADMode.Backward:
             adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(δL), δalpha, zero, zero)

@@ -45,7 +45,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_tetvr.render.geometry import crossing_vjp, face_crossing, face_weights
+from mi_tetvr.render.geometry import crossing_vjp, face_crossing, face_weights, ray_frame
 from mi_tetvr.render.pytree import tree_add, tree_copy, tree_dot, tree_lerp, tree_map, tree_select
 from mi_tetvr.render.segment import clip_segment
 
@@ -163,8 +163,15 @@ def scatter(ts_ad, i, g, active, reduce):
 
 
 def tangent(ts_ad, ids, o, u, v, d, active):
-    """Forward mode: the tangent of a face crossing's ``(t, attributes)``."""
+    """Forward mode: the tangent of a face crossing's ``(t, attributes)``
+    (with a moving camera, ``ts_ad.ray_tangent``, the ray's tangent too)."""
     with dr.resume_grad():
+        if ts_ad.ray_tangent is not None:
+            o, d = mi.Point3f(o), mi.Vector3f(d)
+            dr.enable_grad(o, d)
+            dr.set_grad(o, ts_ad.ray_tangent[0])
+            dr.set_grad(d, ts_ad.ray_tangent[1])
+            u, v = ray_frame(d)
         t, w = face_crossing(ts_ad.buf, ids, o, u, v, d, active)
         a = ts_ad.model.interpolate(ts_ad.params, ids, w, active)
         # AllowNoGrad: the tangents may all be elsewhere (e.g. the environment's)

@@ -1,9 +1,9 @@
 """Differentiable camera poses for ``tetvr``.
 
 The derivative passes of ``tetvr`` differentiate the image w.r.t. the rays
-when the sensor's ``to_world`` carries gradients (reverse mode through
-``mi.render``; :mod:`mi_tetvr.render.adjoint`): move or turn the camera and
-the image changes as if the mesh had moved the other way. What is left out
+when the sensor's ``to_world`` carries gradients (reverse and forward mode
+through ``mi.render``; :mod:`mi_tetvr.render.adjoint`): move or turn the
+camera and the image changes as if the mesh had moved the other way. What is left out
 is the silhouette: which pixels see the mesh at all has no boundary term, so
 a camera gradient is exact for a volume whose boundary is transparent and
 misses the edge term where the boundary is opaque.
