@@ -7,6 +7,7 @@
     mi-tetvr fit DATA --out DIR [--config FILE.json] [--time-budget MIN] [...]
     mi-tetvr eval MESH DATA [--background R,G,B]
     mi-tetvr refine MESH --select ATTRIBUTE [--rank magnitude|value] --fraction F -o OUT
+    mi-tetvr viewpoint MESH --out DIR [--tf TF --scalar NAME] [--res R] [--starts N]
 """
 from __future__ import annotations
 
@@ -298,6 +299,69 @@ def cmd_refine(a):
           f"{len(out.tets):,} tets, {len(out.vertices):,} vertices -> {a.output}")
 
 
+def cmd_viewpoint(a):
+    mi = _set_variant(a.variant)
+    import json
+    import warnings
+
+    import mi_tetvr
+    from mi_tetvr.render.viewpoint import (ViewpointSearch, best_viewpoint, default_starts,
+                                           plot_viewpoints)
+    from tqdm import tqdm
+    path = Path(a.mesh)
+    if not path.exists():
+        sys.exit(f"mi-tetvr: mesh file not found: {path}")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            mesh = mi_tetvr.read_tetmesh(path, repair=a.repair)
+        except (ValueError, FileNotFoundError, KeyError) as e:
+            sys.exit(f"mi-tetvr: {e}")
+    lo, hi = mesh.bounds
+    centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2
+    fov = 40.0
+    distance = 1.05 * radius / np.sin(np.radians(fov / 2))
+    shape = {"type": "tetmesh", "filename": str(path.resolve()), "repair": a.repair}
+    if a.tf:
+        shape["transfer_function"] = str(Path(a.tf).resolve())
+        if a.scalar:
+            shape["scalar_attribute"] = a.scalar
+        shape["opacity_scale"] = a.opacity_scale / radius
+    elif a.scalar:
+        sys.exit("mi-tetvr: --scalar needs --tf")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            scene = mi.load_dict({
+                "type": "scene", "integrator": {"type": "tetvr"},
+                "sensor": {"type": "perspective", "fov": fov,
+                           "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
+                           "film": {"type": "hdrfilm", "width": a.res, "height": a.res,
+                                    "rfilter": {"type": "box"}}},
+                "volume": shape})
+    except Exception as e:
+        sys.exit(f"mi-tetvr: cannot load {path}: {_plugin_error(e)}")
+    search = ViewpointSearch(scene, centre.tolist(), distance, up=(0.0, 0.0, 1.0))
+    starts = default_starts(a.starts)
+    t0 = time.time()
+    with tqdm(total=a.samples + len(starts), desc="viewpoint", disable=a.quiet) as bar:
+        result = best_viewpoint(search, starts, a.iterations, a.samples, bar.update)
+    result["seconds"] = time.time() - t0
+    result.update(mesh=str(path), distance=distance, target=centre.tolist(), fov=fov,
+                  resolution=a.res, iterations=a.iterations)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "viewpoint.json").write_text(json.dumps(result, indent=1) + "\n")
+    image = search.image(result["longitude"], result["latitude"])
+    _write_render(str(out / "view.png"), image[..., :3], image[..., 3])
+    plot_viewpoints(result, out / "viewpoint.png")
+    b = result["best_sampled"]
+    print(f"{path}: longitude {result['longitude']:.1f}, latitude {result['latitude']:.1f} deg, "
+          f"opacity entropy {result['entropy']:.4f} ({100 * result['ratio_to_best_sampled']:.1f} % "
+          f"of the best of {b['samples']} sampled views, {b['entropy']:.4f}); "
+          f"{result['seconds']:.0f} s -> {out}")
+
+
 def _mesh_flags(parser):
     """The flags of the commands that read a mesh file."""
     parser.add_argument("--repair", action="store_true",
@@ -329,6 +393,25 @@ def main(argv=None):
                    "also for a mesh with problems)")
     _mesh_flags(i)
     i.set_defaults(func=cmd_info)
+    v = sub.add_parser("viewpoint", help="the camera position of highest opacity entropy "
+                       "(DiffDVR's best viewpoint), by gradient ascent on the sphere")
+    v.add_argument("mesh")
+    v.add_argument("--out", required=True, help="folder for viewpoint.json, view.png and "
+                   "viewpoint.png (the entropy over the sphere, the ascent paths)")
+    v.add_argument("--tf", help="transfer function (post-classifies the scalar)")
+    v.add_argument("--scalar", help="the scalar point array (default: the only one)")
+    v.add_argument("--opacity-scale", type=float, default=4.0,
+                   help="with --tf: extinction per the mesh's bounding radius (default 4)")
+    v.add_argument("--res", type=int, default=128, help="image size (default 128)")
+    v.add_argument("--starts", type=int, default=8, help="ascent starts (default 8)")
+    v.add_argument("--iterations", type=int, default=20, help="steps per start (default 20)")
+    v.add_argument("--samples", type=int, default=256,
+                   help="Fibonacci-sphere views for comparison (default 256)")
+    v.add_argument("--quiet", action="store_true", help="no progress bar")
+    v.add_argument("--repair", action="store_true",
+                   help="drop folded, flat and duplicate tets (reported)")
+    v.add_argument("--variant", default="llvm_ad_rgb", help="llvm_ad_rgb (default) or cuda_ad_rgb")
+    v.set_defaults(func=cmd_viewpoint)
     m = sub.add_parser("make-scenes", help="(re)generate the meshes of the bundled scenes")
     m.add_argument("dir", nargs="?", default=None)
     m.set_defaults(func=cmd_make_scenes)
