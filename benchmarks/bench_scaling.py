@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from common import grid_scene, header, make_parser, timed, write_json
+from common import grid_scene, header, make_parser, render_steps, timed, write_json
 
 
 def parse_args(argv=None):
@@ -63,26 +63,7 @@ def measure(cells, res, repeat):
     t0 = time.perf_counter()
     scene, v, tets, _, _ = grid_scene(cells, res)
     load = time.perf_counter() - t0
-    params = mi.traverse(scene)
-    target = mi.TensorXf(mi.render(scene, spp=1)) * 0.9
-    dr.eval(target)
-
-    def primal():
-        img = mi.render(scene, spp=1)
-        dr.eval(img)
-        return img
-
-    def backward():
-        for k in KEYS:
-            dr.enable_grad(params[k])
-        loss = dr.mean(dr.square(mi.render(scene, params, spp=1) - target), axis=None)
-        dr.backward(loss)
-        grads = [dr.grad(params[k]) for k in KEYS]
-        dr.eval(grads)
-        for k in KEYS:
-            dr.disable_grad(params[k])
-        return grads
-
+    primal, backward = render_steps(scene, KEYS)
     _, p_med, p_runs, _ = timed(primal, repeat)
     _, b_med, b_runs, _ = timed(backward, repeat)
     # Tets crossed: the walk's own count on the pixel-center rays.

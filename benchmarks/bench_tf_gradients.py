@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import header, make_parser, timed, write_json
+from common import header, make_parser, render_steps, timed, write_json
 
 MESH = Path(__file__).resolve().parents[2] / "shared" / "data" / "tets" / "bluntfin" / \
     "bluntfin_tets.vtu"
@@ -89,29 +89,12 @@ def main(a):
                   [1.0, 0.9, 0.9, 0.8]],
         "opacity": [[0.0, 0.0], [0.25, 0.05], [0.35, 1.0], [0.45, 0.05], [1.0, 0.2]]}))
     name, scene = scene_of(a, tf_path)
-    params = mi.traverse(scene)
-    target = mi.TensorXf(mi.render(scene, spp=1)) * 0.9
-    dr.eval(target)
-
-    def primal():
-        img = mi.render(scene, spp=1)
-        dr.eval(img)
-
+    primal, backward = render_steps(scene, KEYS)
     _, p_med, p_runs, _ = timed(primal, a.repeat)
     print(f"{name}, {a.res}x{a.res}, {a.resolution} texels: primal render {p_med:.3f} s")
     rows, reference = [], None
     for mode in MODES:
         optical.TEXEL_REDUCE = getattr(dr.ReduceMode, mode)
-
-        def backward():
-            for k in KEYS:
-                dr.enable_grad(params[k])
-            loss = dr.mean(dr.square(mi.render(scene, params, spp=1) - target), axis=None)
-            dr.backward(loss)
-            grads = [np.array(dr.grad(params[k])) for k in KEYS]
-            for k in KEYS:
-                dr.disable_grad(params[k])
-            return grads
         _, med, runs, grads = timed(backward, a.repeat)
         reference = grads if reference is None else reference
         err = max(float(np.abs(g - r).max() / (np.abs(r).max() + 1e-30))

@@ -26,7 +26,6 @@ Usage::
 from __future__ import annotations
 
 import sys
-import time
 import warnings
 from pathlib import Path
 

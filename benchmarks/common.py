@@ -251,3 +251,32 @@ def grid_scene(cells, res, jitter=0.15, scale=1.0, shuffle=False, **integrator):
         "volume": mi_tetvr.tetmesh_dict(v, tets, color, opacity),
     })
     return scene, v, tets, color, opacity
+
+
+def render_steps(scene, keys, spp=1):
+    """``(primal, backward)``: one ``mi.render`` of ``scene`` (evaluated),
+    and one ``mi.render`` + ``dr.backward`` of an L2 loss against 0.9 x the
+    first image with gradients on the parameters ``keys`` (returns them as
+    numpy arrays). The target is rendered here."""
+    import drjit as dr
+    import mitsuba as mi
+    import numpy as np
+    params = mi.traverse(scene)
+    target = mi.TensorXf(mi.render(scene, spp=spp)) * 0.9
+    dr.eval(target)
+
+    def primal():
+        img = mi.render(scene, spp=spp)
+        dr.eval(img)
+        return img
+
+    def backward():
+        for k in keys:
+            dr.enable_grad(params[k])
+        loss = dr.mean(dr.square(mi.render(scene, params, spp=spp) - target), axis=None)
+        dr.backward(loss)
+        grads = [np.array(dr.grad(params[k])) for k in keys]
+        for k in keys:
+            dr.disable_grad(params[k])
+        return grads
+    return primal, backward

@@ -216,12 +216,18 @@ class PostClassified(OpticalModel):
     def vertex_values(mesh):
         raise NotImplementedError("post-classified meshes take their scalar from the shape")
 
-    def read_params(self, shapes):
+    def the_shape(self, shapes):
+        """The one post-classified shape of a scene (its value range and
+        texel count set on the model)."""
         if len(shapes) != 1:
             raise ValueError("tetvr: a scene with a post-classified tetmesh may contain only "
                              f"that one tetmesh, got {len(shapes)}")
         s = shapes[0]
         self.value_range, self.resolution = s.value_range, s.tf_resolution
+        return s
+
+    def read_params(self, shapes):
+        s = self.the_shape(shapes)
         return self.Params(s.attribute_buffer("vertex_scalar"), s.tf_color, s.tf_opacity)
 
     def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
@@ -297,11 +303,7 @@ class PreIntegrated(PostClassified):
     cuts = False
 
     def read_params(self, shapes):
-        if len(shapes) != 1:
-            raise ValueError("tetvr: a scene with a post-classified tetmesh may contain only "
-                             f"that one tetmesh, got {len(shapes)}")
-        s = shapes[0]
-        self.value_range, self.resolution = s.value_range, s.tf_resolution
+        s = self.the_shape(shapes)
         with dr.resume_grad():      # (the primal pass runs with AD suspended)
             tracked = dr.grad_enabled(s.tf_color) or dr.grad_enabled(s.tf_opacity)
         if tracked:

@@ -39,7 +39,6 @@ that the adjoint takes by Dr.Jit's AD stay finite there: at zero opacity
 from __future__ import annotations
 
 import drjit as dr
-import mitsuba as mi
 
 from mi_tetvr.render.pytree import tree_lerp
 
