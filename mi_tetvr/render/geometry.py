@@ -178,7 +178,7 @@ def _pick(f, x):
     return dr.select(f < 2, dr.select(f == 0, x[0], x[1]), dr.select(f == 2, x[2], x[3]))
 
 
-#: FACES as UInt32 constants per position in the face: _FACE_LOCAL[j][f].
+#: FACES as constants per position in the face: _FACE_LOCAL[j][f].
 _FACE_LOCAL = tuple(tuple(int(FACES[f][j]) for f in range(4)) for j in range(3))
 
 
@@ -186,15 +186,14 @@ def tet_face(buf, tet, f, active=True):
     """Global vertex indices ``(apex, a, b, c)`` of ``tet`` for its local face
     ``f`` (the apex is the vertex opposite the face, local vertex ``f``;
     ``a, b, c`` the face in the outward order of
-    :data:`~mi_tetvr.mesh.topology.FACES`), and the local indices of ``a, b,
-    c``. The tet's record is read in one gather."""
+    :data:`~mi_tetvr.mesh.topology.FACES`), read from the tet's record."""
     rec = dr.gather(mi.Array4u, buf.tets, tet, active)
     r = (rec.x, rec.y, rec.z, rec.w)
-    local = tuple(_pick(f, tuple(mi.UInt32(x) for x in _FACE_LOCAL[j])) for j in range(3))
-    return (_pick(f, r), *(_pick(lj, r) for lj in local)), local
+    local = (_pick(f, tuple(mi.UInt32(x) for x in _FACE_LOCAL[j])) for j in range(3))
+    return (_pick(f, r), *(_pick(lj, r) for lj in local))
 
 
-def _face_corners(buf, face, o, u, v, active):
+def _boundary_corners(buf, face, o, u, v, active):
     ids = tuple(dr.gather(mi.UInt32, buf.faces, face * 3 + j, active) for j in range(3))
     P = tuple(buf.position(i, active) for i in ids)
     return ids, P, tuple(project(Pi, o, u, v) for Pi in P)
@@ -231,7 +230,7 @@ def face_entry(buf, face, o, u, v, d, active):
     """
     face = mi.UInt32(face)
     for _ in range(BOUNDARY_WALK_STEPS):
-        (ia, ib, ic), _, (pa, pb, pc) = _face_corners(buf, face, o, u, v, active)
+        (ia, ib, ic), _, (pa, pb, pc) = _boundary_corners(buf, face, o, u, v, active)
         e_bc, s_bc = edge_function(ib, pb, ic, pc)
         e_ca, s_ca = edge_function(ic, pc, ia, pa)
         e_ab, s_ab = edge_function(ia, pa, ib, pb)
@@ -242,7 +241,7 @@ def face_entry(buf, face, o, u, v, d, active):
         move = active & ((s_bc != back) | (s_ca != back) | (s_ab != back))
         nxt = dr.gather(mi.Int32, buf.face_adj, face * 3 + adj, move)
         face = dr.select(move & (nxt >= 0), mi.UInt32(nxt), face)
-    _, (Pa, Pb, Pc), _ = _face_corners(buf, face, o, u, v, active)
+    _, (Pa, Pb, Pc), _ = _boundary_corners(buf, face, o, u, v, active)
     code = dr.gather(mi.UInt32, buf.boundary, face, active)
     outward = dr.dot(dr.cross(Pb - Pa, Pc - Pa), d) > 0
     tet, f = unpack_link(code)
@@ -269,7 +268,7 @@ def entry_carry(buf, tet, f_in, o, u, v, d, active, gather=None):
     from the buffers: the three :class:`Corner` s in the outward order of
     ``tet``, their values ``gather(i, active)`` and the face's edge
     functions (:func:`face_edges`)."""
-    ids = tet_face(buf, tet, f_in, active)[0][1:]
+    ids = tet_face(buf, tet, f_in, active)[1:]
     corners = face_corners(buf, ids, o, u, v, d, active)
     values = tuple(gather(i, active) for i in ids) if gather else ((), (), ())
     return corners, values, face_edges(corners)

@@ -929,3 +929,41 @@ def test_index_arrays_in_morton_order():
     shuffled = topo.neighbors.astype(np.int64)
     ts_, fs_ = np.nonzero(shuffled >= 0)
     assert np.abs(t2 - t).mean() < 0.2 * np.abs(shuffled[ts_, fs_] - ts_).mean()
+
+
+def test_crossing_vjp_matches_ad():
+    """The closed-form reverse derivative of a crossing (what the adjoint
+    uses) against Dr.Jit's AD of :func:`crossing_at` and of the
+    interpolated values, on random triangles and cotangents."""
+    from mi_tetvr.render.geometry import Corner, crossing_at, crossing_vjp, face_edges
+    rng = np.random.default_rng(31)
+    # triangles the ray crosses (they hold the origin of the 2D frame, as
+    # in the walk, away from their edges: no weight is clamped), depths, values
+    ang = np.sort(rng.uniform(0, 2 * np.pi, (20000, 3)), 1)
+    gaps = np.diff(np.concatenate([ang, ang[:, :1] + 2 * np.pi], 1), axis=1)
+    ang = ang[gaps.max(1) < 0.8 * np.pi][:400]
+    k = len(ang)
+    assert k == 400
+    rad = rng.uniform(0.2, 1.0, (k, 3))
+    px, py = rad * np.cos(ang), rad * np.sin(ang)
+    z = rng.uniform(1, 3, (k, 3))
+    val = rng.uniform(0, 1, (k, 3))
+    g_t, g_a = rng.normal(size=k), rng.normal(size=k)
+    ids = [u32(np.arange(k) * 3 + j) for j in range(3)]
+    P = [mi.Point2f(f32(px[:, j]), f32(py[:, j])) for j in range(3)]
+    Z = [mi.Float(f32(z[:, j])) for j in range(3)]
+    V = [mi.Float(f32(val[:, j])) for j in range(3)]
+    dr.enable_grad(P, Z, V)
+    c = tuple(Corner(ids[j], P[j], Z[j]) for j in range(3))
+    t, w = crossing_at(c)
+    a = w[0] * V[0] + w[1] * V[1] + w[2] * V[2]
+    dr.backward_from(t * mi.Float(g_t) + a * mi.Float(g_a))
+    with dr.suspend_grad():
+        cd = tuple(Corner(ids[j], dr.detach(P[j]), dr.detach(Z[j])) for j in range(3))
+        out = crossing_vjp(cd, face_edges(cd), tuple(dr.detach(x) for x in V),
+                           mi.Float(g_t), mi.Float(g_a))
+    for j, (dp, dz, dv) in enumerate(out):
+        np.testing.assert_allclose(arr(dp.x), arr(dr.grad(P[j]).x), rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(arr(dp.y), arr(dr.grad(P[j]).y), rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(arr(dz), arr(dr.grad(Z[j])), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(arr(dv), arr(dr.grad(V[j])), rtol=1e-5, atol=1e-6)

@@ -317,15 +317,26 @@ def test_derivative_pass_reuses_the_primal_render():
     fwd = float(np.array(dr.forward_to(loss(7))).ravel()[0])
     dr.disable_grad(params[key])
     assert abs(fwd - replayed) < 1e-3 * abs(replayed)
-    # An update between render and backward: the kept state is dropped
-    # unused, and the derivative pass renders the primal itself.
+    # An update between render and backward: the kept state (of the old
+    # values) is dropped unused and the derivative pass renders the primal
+    # itself, at the new values, on the rays of Mitsuba's derivative seed:
+    # the gradient equals that of a render at the new values on those rays.
+    from mi_tetvr.render.replay import derivative_seed
     dr.enable_grad(params[key])
     image = loss(7)
     assert len(integrator._states) == 1
     params[key] = mi.Float(base * 1.5)
+    dr.enable_grad(params[key])
     params.update()
     dr.backward(image)
     assert len(integrator._states) == 0
+    after_update = np.array(dr.grad(params[key]), np.float64)
+    dr.disable_grad(params[key])
+    dr.enable_grad(params[key])
+    dr.backward(loss(derivative_seed(7)))
+    fresh = np.array(dr.grad(params[key]), np.float64)
+    dr.disable_grad(params[key])
+    np.testing.assert_allclose(after_update, fresh, rtol=1e-5, atol=1e-6 * np.abs(fresh).max())
     params[key] = mi.Float(base)
     params.update()
 
