@@ -230,7 +230,8 @@ def cmd_fit(a):
         overrides = {k: getattr(a, k) for k in (
             "init", "resolution", "iterations", "time_budget", "views_per_step", "lr_color",
             "lr_opacity", "lr_position", "loss", "loss_space", "regularizer", "downscale", "seed",
-            "n_sub")}
+            "n_sub", "model", "optimize", "scalar", "transfer_function", "opacity_scale",
+            "tf_resolution", "tf_smoothing", "tf_init")}
         if a.background is not None:
             overrides["background"] = _background(a.background)
         if a.freeze_boundary is not None:
@@ -246,10 +247,12 @@ def cmd_fit(a):
     except KeyboardInterrupt:
         sys.exit("mi-tetvr: interrupted; progress saved (run the same command to resume)")
     m = metrics["mean"]
-    print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} (sRGB) over "
+    what = "transmittance" if cfg.model == "absorption" else "sRGB"
+    result = "transfer_function.json" if cfg.optimize == "tf" else "mesh.vtu"
+    print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} ({what}) over "
           f"{len(metrics['views'])} view(s) [{metrics['split']}]; {metrics['tets']:,} tets, "
           f"{metrics['step']:,} steps, {metrics['wall_seconds']:.0f} s -> "
-          f"{Path(a.out) / 'mesh.vtu'}")
+          f"{Path(a.out) / result}")
 
 
 def cmd_eval(a):
@@ -271,19 +274,53 @@ def cmd_eval(a):
         Path(a.json).write_text(json.dumps(metrics, indent=2))
 
 
+MESH_SUFFIXES = (".vtu", ".msh", ".mesh", ".vtk")
+
+
 def cmd_make_dataset(a):
     _set_variant(a.variant)
-    from mi_tetvr.transfer import read_transfer_function
     from mi_tetvr.grid import load_volume, make_dataset
+    from mi_tetvr.transfer import read_transfer_function
+    path = Path(a.volume)
+    if not path.exists():
+        sys.exit(f"mi-tetvr: file not found: {path}")
     try:
         vr = None if a.value_range is None else tuple(float(x) for x in a.value_range.split(","))
-        volume = load_volume(a.volume, value_range=vr)
+        if a.xray:
+            from mi_tetvr.grid.xray import make_xray_dataset
+            info = make_xray_dataset(load_volume(path, value_range=vr), a.out, views=a.views,
+                                     test_views=a.test_views, beam=a.beam,
+                                     scale=a.attenuation, max_depth=a.max_depth)["info"]
+            print(f"wrote {a.views} training and {a.test_views} test {a.beam}-beam projections "
+                  f"(attenuation {info['attenuation_scale']:.4g} per unit, largest optical depth "
+                  f"{info['max_depth']:.2f}) to {a.out}")
+            return
+        if a.tf is None:
+            sys.exit("mi-tetvr: make-dataset needs --tf (or --xray for X-ray projections)")
+        if path.suffix.lower() in MESH_SUFFIXES and not _is_image_data(path):
+            from mi_tetvr.recon.synthetic import make_mesh_dataset
+            info = make_mesh_dataset(path, a.tf, a.out, views=a.views, test_views=a.test_views,
+                                     res=a.res, scalar=a.scalar, opacity_scale=a.opacity_scale,
+                                     fov=a.fov or 40.0, seed=a.seed)
+            print(f"wrote {a.views} training and {a.test_views} test views at {a.res}x{a.res} "
+                  f"of '{info['scalar']}' to {a.out}")
+            return
+        volume = load_volume(path, value_range=vr)
         tf = read_transfer_function(a.tf)
-    except (ValueError, FileNotFoundError) as e:
+    except (ValueError, FileNotFoundError, KeyError) as e:
         sys.exit(f"mi-tetvr: {e}")
     make_dataset(volume, tf, views=a.views, res=a.res, out_dir=a.out, test_views=a.test_views,
                  seed=a.seed, radius=a.radius, fov=a.fov, opacity_scale=a.opacity_scale)
     print(f"wrote {a.views} training and {a.test_views} test views at {a.res}x{a.res} to {a.out}")
+
+
+def _is_image_data(path):
+    """Whether a legacy .vtk file holds image data (a grid volume), not a mesh."""
+    if path.suffix.lower() != ".vtk":
+        return False
+    with open(path, "rb") as f:
+        head = f.read(1024)
+    return b"STRUCTURED_POINTS" in head or b"IMAGE_DATA" in head
 
 
 def cmd_refine(a):
@@ -306,7 +343,7 @@ def cmd_viewpoint(a):
 
     import mi_tetvr
     from mi_tetvr.render.viewpoint import (ViewpointSearch, best_viewpoint, default_starts,
-                                           plot_viewpoints)
+                                           orbit_scene, plot_viewpoints)
     from tqdm import tqdm
     path = Path(a.mesh)
     if not path.exists():
@@ -318,9 +355,8 @@ def cmd_viewpoint(a):
         except (ValueError, FileNotFoundError, KeyError) as e:
             sys.exit(f"mi-tetvr: {e}")
     lo, hi = mesh.bounds
-    centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2
+    radius = float(np.linalg.norm(hi - lo)) / 2
     fov = 40.0
-    distance = 1.05 * radius / np.sin(np.radians(fov / 2))
     shape = {"type": "tetmesh", "filename": str(path.resolve()), "repair": a.repair}
     if a.tf:
         shape["transfer_function"] = str(Path(a.tf).resolve())
@@ -332,13 +368,7 @@ def cmd_viewpoint(a):
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            scene = mi.load_dict({
-                "type": "scene", "integrator": {"type": "tetvr"},
-                "sensor": {"type": "perspective", "fov": fov,
-                           "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
-                           "film": {"type": "hdrfilm", "width": a.res, "height": a.res,
-                                    "rfilter": {"type": "box"}}},
-                "volume": shape})
+            scene, centre, distance = orbit_scene(shape, (lo, hi), a.res, fov)
     except Exception as e:
         sys.exit(f"mi-tetvr: cannot load {path}: {_plugin_error(e)}")
     search = ViewpointSearch(scene, centre.tolist(), distance, up=(0.0, 0.0, 1.0))
@@ -415,18 +445,31 @@ def main(argv=None):
     m = sub.add_parser("make-scenes", help="(re)generate the meshes of the bundled scenes")
     m.add_argument("dir", nargs="?", default=None)
     m.set_defaults(func=cmd_make_scenes)
-    d = sub.add_parser("make-dataset", help="render a scalar volume into a NeRF-style data set")
-    d.add_argument("volume", help="scalar grid (.npy, .cvol, .mhd, .vti, raw .gz)")
-    d.add_argument("--tf", required=True, help="transfer function (.json or DiffTetVR .xml)")
+    d = sub.add_parser("make-dataset", help="render a scalar volume or tet mesh into a "
+                       "NeRF-style data set, or project a volume into X-ray images")
+    d.add_argument("volume", help="scalar grid (.npy, .cvol, .mhd, .vti, raw .gz) or scalar "
+                   "tet mesh (.vtu, .vtk, .msh, .mesh)")
+    d.add_argument("--tf", help="transfer function (.json or DiffTetVR .xml)")
+    d.add_argument("--scalar", help="the tet mesh's scalar point array (default: the only one)")
+    d.add_argument("--xray", action="store_true", help="X-ray transmittance images (.npy) of "
+                   "the grid volume's attenuation: exact line integrals of its trilinear field")
+    d.add_argument("--beam", choices=("parallel", "cone"), default="parallel",
+                   help="X-ray: parallel beam (orthographic, over 180 degrees; default) or cone "
+                   "beam (perspective, over 360)")
+    d.add_argument("--attenuation", type=float, help="X-ray: attenuation per unit length of a "
+                   "normalised value 1 (default: from --max-depth)")
+    d.add_argument("--max-depth", type=float, default=2.5, help="X-ray: the largest optical "
+                   "depth of a training ray (default 2.5)")
     d.add_argument("--views", type=int, default=64, help="training views (default 64)")
     d.add_argument("--test-views", type=int, default=8, help="test views (default 8)")
     d.add_argument("--res", type=int, default=256, help="image size (default 256)")
     d.add_argument("--value-range", help="lo,hi of the raw values mapped to [0, 1] "
                    "(default: the data's range)")
-    d.add_argument("--opacity-scale", type=float, default=1.0)
+    d.add_argument("--opacity-scale", type=float, default=1.0, help="multiplies the transfer "
+                   "function's opacity (on a tet mesh: per mesh radius)")
     d.add_argument("--radius", type=float, default=4.0, help="camera distance (default 4)")
     d.add_argument("--fov", type=float, help="horizontal fov in degrees (default: frames the "
-                   "[-1, 1]^3 box)")
+                   "[-1, 1]^3 box; 40 around a tet mesh)")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--out", required=True)
     d.add_argument("--variant", default="llvm_ad_rgb")
@@ -436,7 +479,24 @@ def main(argv=None):
     f.add_argument("--out", required=True, help="output folder (also the checkpoint)")
     f.add_argument("--config",
                    help="JSON file of fit settings (see mi_tetvr.recon.config.FitConfig)")
-    f.add_argument("--init", help="grid (default), tetwild, delaunay or a mesh file")
+    f.add_argument("--init", help="grid (default), tetwild, delaunay or a mesh file (the "
+                   "scalar mesh with --optimize tf or scalar)")
+    f.add_argument("--model", choices=("emission", "absorption"),
+                   help="emission (default): colors and opacities from images; absorption: an "
+                   "X-ray attenuation (point data 'attenuation') from transmittance images")
+    f.add_argument("--optimize", choices=("volume", "tf", "scalar"),
+                   help="volume (default): per-vertex colors and opacities; tf: the transfer "
+                   "function over the init mesh's scalar; scalar: the scalar under --tf")
+    f.add_argument("--scalar", help="the init mesh's scalar point array (default: the only one)")
+    f.add_argument("--tf", dest="transfer_function",
+                   help="the known transfer function (--optimize scalar)")
+    f.add_argument("--opacity-scale", type=float, help="its opacity per mesh radius (as "
+                   "make-dataset)")
+    f.add_argument("--tf-resolution", type=int, help="transfer-function texels (default 64)")
+    f.add_argument("--tf-smoothing", type=float,
+                   help="weight of the transfer function's smoothing prior (default 0.01)")
+    f.add_argument("--tf-init", choices=("flat", "random"), help="start of a fitted transfer "
+                   "function (default flat)")
     f.add_argument("--resolution", type=int, help="grid cells along the largest axis "
                    "(default: chosen for --time-budget, else 32)")
     f.add_argument("--iterations", type=int,

@@ -278,6 +278,25 @@ class TransferFunction:
         color, opacity = self(t)
         return color, opacity * scale
 
+    @classmethod
+    def from_texels(cls, color, opacity) -> "TransferFunction":
+        """The transfer function of a texel table (the inverse of :meth:`texels`):
+        control points at the texel centres ``(k + 0.5) / R``, piecewise linear
+        between them and constant outside.
+
+        Parameters
+        ----------
+        color : (R, 3) float, linear RGB
+        opacity : (R,) float
+        """
+        color = np.asarray(color, np.float64).reshape(-1, 3)
+        opacity = np.asarray(opacity, np.float64).reshape(-1)
+        if len(color) != len(opacity) or len(opacity) < 2:
+            raise ValueError(f"a texel table needs R >= 2 colors and opacities, got "
+                             f"{len(color)} and {len(opacity)}")
+        pos = (np.arange(len(opacity)) + 0.5) / len(opacity)
+        return cls(pos, color, pos, opacity)
+
     def texels(self, resolution: int = 256) -> Tuple[np.ndarray, np.ndarray]:
         """The transfer function resampled to ``resolution`` regular texels:
         texel ``k`` holds the value at ``(k + 0.5) / resolution`` of the

@@ -40,6 +40,16 @@
      by Weiler et al.'s pre-integrated table (faster, approximate, no
      derivatives), ``pre`` shades the vertices at load and interpolates the
      colors. (Default: ``post``)
+ * - tf_color, tf_opacity
+   - |tensor|
+   - Instead of a ``transfer_function`` file (array input): the texels
+     themselves, (R, 3) linear RGB and (R,) extinction at the centres
+     ``(k + 0.5) / R`` of the normalised scalar axis. (Default: none)
+ * - model
+   - |string|
+   - ``emission`` (emission and absorption) or ``absorption`` (X-ray
+     attenuation: the opacity is the attenuation per unit length, nothing is
+     emitted, ``alpha`` is one minus the transmittance). (Default: ``emission``)
  * - tf_resolution
    - |int|
    - Texels the transfer function is resampled to over
@@ -84,10 +94,11 @@ import numpy as np
 from mi_tetvr.mesh import TetMesh, read_tetmesh
 from mi_tetvr.mesh.io import choose_scalar
 from mi_tetvr.render.buffers import shape_index_arrays
-from mi_tetvr.render.optical import EmissionAbsorption, PostClassified, PreIntegrated
-from mi_tetvr.transfer import read_transfer_function
+from mi_tetvr.render.optical import Absorption, EmissionAbsorption, PostClassified, PreIntegrated
+from mi_tetvr.transfer import TransferFunction, read_transfer_function
 
 CLASSIFICATIONS = ("post", "pre", "preintegrated")
+MODELS = {"emission": EmissionAbsorption, "absorption": Absorption}
 
 
 def _tensor(props, key):
@@ -97,7 +108,7 @@ def _tensor(props, key):
 def mesh_from_properties(props) -> TetMesh:
     """The numpy mesh described by a ``tetmesh`` property set."""
     if "filename" in props:
-        fs = mi.Thread.thread().file_resolver()
+        fs = mi.file_resolver()
         path = str(fs.resolve(props["filename"]))
         vmin = props.get("value_min", None)
         vmax = props.get("value_max", None)
@@ -119,17 +130,17 @@ def mesh_from_properties(props) -> TetMesh:
     elif "vertices" in props and "tets" in props:
         opacity = _tensor(props, "opacity")
         scalar = _tensor(props, "scalar")
-        if scalar is not None and "transfer_function" not in props:
-            raise ValueError("tetmesh: a 'scalar' needs a transfer_function to map it")
+        if scalar is not None and _transfer_function(props) is None:
+            raise ValueError("tetmesh: a 'scalar' needs a transfer_function (or the tensors "
+                             "tf_color and tf_opacity) to map it")
         mesh = TetMesh(_tensor(props, "vertices"), _tensor(props, "tets"),
                        _tensor(props, "color"),
                        None if opacity is None else opacity.reshape(-1),
                        None if scalar is None else {"scalar": scalar.reshape(-1)})
-        if "transfer_function" in props:
+        tf = _transfer_function(props)
+        if tf is not None:
             if scalar is None:
                 raise ValueError("tetmesh: a transfer_function needs the tensor 'scalar'")
-            fs = mi.file_resolver()
-            tf = read_transfer_function(str(fs.resolve(props["transfer_function"])))
             vmin, vmax = props.get("value_min", None), props.get("value_max", None)
             mesh.color, mesh.opacity = tf.shade(
                 scalar.reshape(-1), None if vmin is None else (float(vmin), float(vmax)),
@@ -141,10 +152,33 @@ def mesh_from_properties(props) -> TetMesh:
     return mesh
 
 
+def _transfer_function(props):
+    """The shape's :class:`~mi_tetvr.transfer.TransferFunction`: from the
+    ``transfer_function`` file, or from the texel tensors ``tf_color`` (R, 3)
+    and ``tf_opacity`` (R,); None without either."""
+    has_file, has_texels = "transfer_function" in props, ("tf_color" in props or
+                                                         "tf_opacity" in props)
+    if has_file and has_texels:
+        raise ValueError("tetmesh: give a transfer_function file or the tensors tf_color and "
+                         "tf_opacity, not both")
+    if has_file:
+        return read_transfer_function(str(mi.file_resolver().resolve(props["transfer_function"])))
+    if not has_texels:
+        return None
+    if "tf_color" not in props or "tf_opacity" not in props:
+        raise ValueError("tetmesh: give both tensors tf_color (R, 3) and tf_opacity (R,)")
+    color, opacity = _tensor(props, "tf_color"), _tensor(props, "tf_opacity").reshape(-1)
+    if color.size != 3 * opacity.size:
+        raise ValueError(f"tetmesh: tf_color must be ({opacity.size}, 3) for {opacity.size} "
+                         f"opacity texels, got {color.shape}")
+    return TransferFunction.from_texels(color.reshape(-1, 3), opacity)
+
+
 def post_classification(props, mesh):
     """``(optical model, scalar (n,), value_range, tf_color (R, 3), tf_opacity
     (R,))`` of a post-classified ``tetmesh``, or None when it is not one."""
-    if "transfer_function" not in props:
+    tf = _transfer_function(props)
+    if tf is None:
         for key in ("classification", "tf_resolution"):
             if key in props:
                 raise ValueError(f"tetmesh: '{key}' needs a transfer_function")
@@ -153,7 +187,8 @@ def post_classification(props, mesh):
     if mode not in CLASSIFICATIONS:
         raise ValueError(f"tetmesh: classification must be one of {CLASSIFICATIONS}, got "
                          f"{mode!r}")
-    resolution = int(props.get("tf_resolution", 256))
+    resolution = int(props.get("tf_resolution", 256 if "transfer_function" in props
+                                         else len(tf.opacities)))
     if resolution < 2:
         raise ValueError(f"tetmesh: tf_resolution must be >= 2, got {resolution}")
     if mode == "pre":
@@ -173,7 +208,6 @@ def post_classification(props, mesh):
         raise ValueError(f"tetmesh: the scalar range must have value_min < value_max, got "
                          f"[{lo}, {hi}]" + ("" if "value_min" in props else
                                              f" (array '{name}' is constant: give a range)"))
-    tf = read_transfer_function(str(fs.resolve(props["transfer_function"])))
     color, opacity = tf.texels(resolution)
     model = PreIntegrated if mode == "preintegrated" else PostClassified
     return model, scalar, (lo, hi), color, opacity * float(props.get("opacity_scale", 1.0))
@@ -187,11 +221,19 @@ class TetMeshShape(mi.Mesh):
     def __init__(self, props):
         mesh = mesh_from_properties(props)
         post = post_classification(props, mesh)
+        model = str(props.get("model", "emission")).lower()
+        if model not in MODELS:
+            raise ValueError(f"tetmesh: model must be one of {tuple(MODELS)}, got {model!r}")
+        if model != "emission":
+            if post is not None or _transfer_function(props) is not None:
+                raise ValueError(f"tetmesh: model '{model}' takes a per-vertex opacity, not a "
+                                 f"transfer function")
         topo = mesh.topology
         super().__init__("tetmesh", len(mesh.vertices), len(topo.boundary_faces),
                          props, False, False)
         self.mesh = mesh
         self.topology = topo
+        self.optical_model = MODELS[model]
         params = mi.traverse(self)
         params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
         params["faces"] = mi.UInt32(topo.boundary_faces.astype(np.uint32).ravel())

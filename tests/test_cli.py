@@ -87,6 +87,43 @@ def test_make_dataset_fit_eval(tmp_path):
     assert r.returncode != 0 and "--background" in r.stderr
 
 
+def test_transfer_function_and_xray_commands(tmp_path):
+    """The visualization and tomography jobs end to end, tiny: make-dataset of
+    a scalar mesh, fit --optimize tf writing transfer_function.json (the
+    texels as control points); make-dataset --xray, fit --model absorption
+    writing an 'attenuation' mesh; clear errors for wrong combinations."""
+    make_scene_meshes()
+    mesh = str(ROOT / "scenes" / "meshes" / "radial_scalar.vtu")
+    data, out = tmp_path / "data", tmp_path / "tf"
+    r = run("make-dataset", mesh, "--tf", "scenes/tf_radial.json", "--views", "3",
+            "--test-views", "1", "--res", "12", "--out", str(data))
+    assert r.returncode == 0, r.stderr
+    assert json.loads((data / "volume_info.json").read_text())["scalar"] == "density"
+    r = run("fit", str(data), "--init", mesh, "--optimize", "tf", "--tf-resolution", "8",
+            "--iterations", "3", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert "transfer_function.json" in r.stdout
+    tf = json.loads((out / "transfer_function.json").read_text())
+    assert len(tf["opacity"]) == 8 and tf["opacity"][0][0] == pytest.approx(1 / 16)
+    r = run("fit", str(data), "--optimize", "tf", "--out", str(out))      # no scalar mesh
+    assert r.returncode != 0 and "scalar mesh as init" in r.stderr
+    from mi_tetvr.mesh.scenes import default_volume
+    np.save(tmp_path / "vol.npy", default_volume(8))
+    xray, fit = tmp_path / "xray", tmp_path / "att"
+    r = run("make-dataset", str(tmp_path / "vol.npy"), "--xray", "--views", "6",
+            "--test-views", "2", "--out", str(xray))
+    assert r.returncode == 0, r.stderr
+    assert len(list((xray / "train").glob("*.npy"))) == 6
+    r = run("fit", str(xray), "--model", "absorption", "--resolution", "4", "--iterations", "3",
+            "--out", str(fit))
+    assert r.returncode == 0, r.stderr
+    assert "(transmittance)" in r.stdout
+    import meshio
+    assert "attenuation" in meshio.read(fit / "mesh.vtu").point_data
+    r = run("make-dataset", str(tmp_path / "vol.npy"), "--out", str(tmp_path / "x"))
+    assert r.returncode != 0 and "--tf" in r.stderr
+
+
 def test_refine_command(tmp_path):
     V, T = grid_mesh(3, jitter=0.1, seed=2)
     score = np.zeros(len(V))

@@ -188,7 +188,7 @@ def choose_scalar(point_data, scalar, path, cell_data=None) -> str:
     return scalar
 
 
-def read_tetmesh(path, *, color: str = "color", opacity: str = "opacity",
+def read_tetmesh(path, *, color: str | None = "color", opacity: str | None = "opacity",
                  scalar: str | None = None, transfer_function=None,
                  value_range=None, opacity_scale: float = 1.0, cell_to_point: bool = False,
                  repair: bool = False) -> TetMesh:
@@ -198,8 +198,10 @@ def read_tetmesh(path, *, color: str = "color", opacity: str = "opacity",
     ----------
     path : str or Path
         Any volume format meshio reads.
-    color, opacity : str
-        Names of the point-data arrays holding color (n, 3) and opacity (n,).
+    color, opacity : str or None
+        Names of the point-data arrays holding color (n, 3) and opacity (n,);
+        ``None`` for a mesh read for its other arrays (a scalar field): the
+        defaults, without a warning.
     scalar : str, optional
         Point-data array to pre-shade with ``transfer_function`` (default: the
         only scalar array, if there is exactly one).
@@ -262,7 +264,7 @@ def read_tetmesh(path, *, color: str = "color", opacity: str = "opacity",
         scalar = choose_scalar(pd, scalar, path, cd)
         col, opa = tf.shade(pd[scalar].reshape(len(points)), value_range=value_range,
                             opacity_scale=opacity_scale)
-    elif col is None and opa is None and pd:
+    elif col is None and opa is None and pd and (color or opacity):
         warnings.warn(f"{path}: no '{color}'/'{opacity}' point data; using default color "
                       f"and opacity (point arrays: {sorted(pd)}; pass a transfer function "
                       "to shade one)", stacklevel=2)
@@ -271,12 +273,17 @@ def read_tetmesh(path, *, color: str = "color", opacity: str = "opacity",
     return TetMesh(points, tets, col, opa, pd, cd)
 
 
-def write_tetmesh(path, mesh: TetMesh, *, color: str = "color", opacity: str = "opacity"):
+def write_tetmesh(path, mesh: TetMesh, *, color: str | None = "color",
+                  opacity: str | None = "opacity"):
     """Write a tet mesh with its color and opacity as point data (any format
-    meshio writes; formats without point data keep only the geometry)."""
+    meshio writes; formats without point data keep only the geometry);
+    ``color=None`` / ``opacity=None`` leave them out (a mesh whose point data
+    says everything)."""
     pd = dict(mesh.point_data)
-    pd[color] = np.asarray(mesh.color, dtype=np.float64)
-    pd[opacity] = np.asarray(mesh.opacity, dtype=np.float64)
+    if color is not None:
+        pd[color] = np.asarray(mesh.color, dtype=np.float64)
+    if opacity is not None:
+        pd[opacity] = np.asarray(mesh.opacity, dtype=np.float64)
     out = meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)], point_data=pd,
                       cell_data={k: [np.asarray(a)] for k, a in mesh.cell_data.items()})
     path = Path(path)

@@ -51,6 +51,13 @@ def make_scene_meshes(directory=None, force=False):
     return written
 
 
+def scalar_mesh():
+    """The path of the project's own scalar mesh (``scenes/meshes/radial_scalar.vtu``,
+    point array ``density``), made first when absent (:func:`make_scene_meshes`)."""
+    make_scene_meshes()
+    return SCENES_DIR / "meshes" / "radial_scalar.vtu"
+
+
 def default_volume(n=64):
     """The project's own scalar volume (n^3, values in [0, 1], x fastest as
     ``values[z, y, x]``): a tilted ring, three blobs and a faint shell, the

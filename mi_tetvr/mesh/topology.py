@@ -217,6 +217,13 @@ def face_keys(faces):
     return np.unique(s, axis=0, return_inverse=True)[1].ravel().astype(np.int64)
 
 
+def unique_edges(tets):
+    """(e, 2) int64: every edge of the tets once, as sorted vertex pairs."""
+    t = np.asarray(tets, np.int64)
+    pairs = np.sort(t[:, EDGES].reshape(-1, 2), axis=1)
+    return np.unique(pairs, axis=0)
+
+
 def _edge_vectors(vertices, tets):
     """(m, 6, 3) float64: ``p_i - p_j`` for each local edge ``(i, j)`` of :data:`EDGES`."""
     v, t = np.asarray(vertices, dtype=np.float64), np.asarray(tets)

@@ -175,6 +175,11 @@ class Camera:
         Principal point in pixels, top-left image corner at (0, 0), pixel centers at +0.5.
     to_world : (4, 4) float64
         Rigid Mitsuba camera-to-world matrix (camera looks along +z, y up, x to the left).
+    pixel_size : float or None
+        ``None`` for a pinhole camera; for an orthographic (parallel-beam) one
+        the world size of a pixel (square pixels): the ray through pixel
+        position ``(u, v)`` starts at ``to_world (s (cx - u), s (cy - v), 0)``
+        and runs along the camera's +z; ``fx, fy`` are then unused.
     """
     width: int
     height: int
@@ -183,12 +188,32 @@ class Camera:
     cx: float
     cy: float
     to_world: np.ndarray
+    pixel_size: Optional[float] = None
 
     def __post_init__(self):
         self.width, self.height = int(self.width), int(self.height)
         self.fx, self.fy = float(self.fx), float(self.fy)
         self.cx, self.cy = float(self.cx), float(self.cy)
         self.to_world = np.asarray(self.to_world, dtype=np.float64).reshape(4, 4)
+        if self.pixel_size is not None:
+            self.pixel_size = float(self.pixel_size)
+            if not self.pixel_size > 0:
+                raise ValueError(f"an orthographic camera needs pixel_size > 0, got "
+                                 f"{self.pixel_size}")
+
+    @classmethod
+    def orthographic(cls, origin, target, up, width: int, height: int,
+                     pixel_size: float) -> "Camera":
+        """A parallel-beam camera looking from ``origin`` towards ``target``:
+        ``width x height`` pixels of ``pixel_size`` world units, centred on the
+        axis through ``origin``."""
+        return cls(width, height, 1.0, 1.0, width / 2, height / 2, look_at(origin, target, up),
+                   pixel_size)
+
+    @property
+    def is_orthographic(self) -> bool:
+        """Whether this is a parallel-beam camera (:attr:`pixel_size` set)."""
+        return self.pixel_size is not None
 
     # -- constructors -----------------------------------------------------------------------
     @classmethod
@@ -305,14 +330,19 @@ class Camera:
         """
         f = check_factor(factor)
         return Camera(self.width // f, self.height // f, self.fx / f, self.fy / f, self.cx / f,
-                      self.cy / f, self.to_world.copy())
+                      self.cy / f, self.to_world.copy(),
+                      None if self.pixel_size is None else self.pixel_size * f)
 
     def resized(self, width: int, height: int) -> "Camera":
         """The camera of the same picture stored at ``width x height`` pixels: ``fx, cx``
         scale by ``width / self.width``, ``fy, cy`` by ``height / self.height``."""
         sx, sy = width / self.width, height / self.height
+        if self.pixel_size is not None and abs(sx - sy) > 1e-9 * sx:
+            raise ValueError("an orthographic camera keeps square pixels: resize both axes "
+                             "by the same factor")
         return Camera(width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy,
-                      self.to_world.copy())
+                      self.to_world.copy(),
+                      None if self.pixel_size is None else self.pixel_size / sx)
 
     # -- projection and rays ----------------------------------------------------------------
     def project(self, points) -> Tuple[np.ndarray, np.ndarray]:
@@ -334,6 +364,9 @@ class Camera:
         r, c = self.to_world[:3, :3], self.to_world[:3, 3]
         q = (p - c) @ r          # rows: R^T (p - c), the camera frame
         z = q[:, 2]
+        if self.pixel_size is not None:
+            s = self.pixel_size
+            return np.stack([self.cx - q[:, 0] / s, self.cy - q[:, 1] / s], 1), z
         safe = np.where(np.abs(z) > 1e-300, z, 1e-300)
         uv = np.stack([self.cx - self.fx * q[:, 0] / safe, self.cy - self.fy * q[:, 1] / safe], 1)
         return uv, z
@@ -355,11 +388,17 @@ class Camera:
         Returns
         -------
         origins : (k, 3) float64
-            The camera center.
+            The camera center (orthographic: the pixel's point of the image plane).
         directions : (k, 3) float64
             Unit world-space directions.
         """
         uv = self.pixel_centers() if uv is None else np.asarray(uv, np.float64).reshape(-1, 2)
+        if self.pixel_size is not None:
+            s, r = self.pixel_size, self.to_world[:3, :3]
+            q = np.stack([s * (self.cx - uv[:, 0]), s * (self.cy - uv[:, 1]),
+                          np.zeros(len(uv))], 1)
+            o = q @ r.T + self.to_world[:3, 3]
+            return o, np.broadcast_to(r[:, 2], o.shape).copy()
         d = np.stack([(self.cx - uv[:, 0]) / self.fx, (self.cy - uv[:, 1]) / self.fy,
                       np.ones(len(uv))], 1)
         d = d @ self.to_world[:3, :3].T
@@ -392,9 +431,15 @@ class Camera:
             if not isinstance(uv, mi.Point2f):
                 uv = mi.Point2f(*np.asarray(uv, np.float32).reshape(-1, 2).T)
             u, v = uv.x, uv.y
+        r = [[float(self.to_world[i, j]) for j in range(3)] for i in range(3)]
+        if self.pixel_size is not None:
+            x, y = (self.cx - u) * self.pixel_size, (self.cy - v) * self.pixel_size
+            o = mi.Point3f(*[r[i][0] * x + r[i][1] * y + float(self.to_world[i, 3])
+                             for i in range(3)])
+            d = dr.zeros(mi.Vector3f, dr.width(o)) + mi.Vector3f(r[0][2], r[1][2], r[2][2])
+            return mi.Ray3f(o, d)
         x = (self.cx - u) / self.fx
         y = (self.cy - v) / self.fy
-        r = [[float(self.to_world[i, j]) for j in range(3)] for i in range(3)]
         d = mi.Vector3f(r[0][0] * x + r[0][1] * y + r[0][2],
                         r[1][0] * x + r[1][1] * y + r[1][2],
                         r[2][0] * x + r[2][1] * y + r[2][2])
@@ -432,6 +477,8 @@ class Camera:
             For ``mi.load_dict`` (needs a Mitsuba variant to be set).
         """
         import mitsuba as mi
+        if self.pixel_size is not None:
+            return self._orthographic_dict(spp, sampler, near_clip, far_clip)
         if abs(self.fx - self.fy) > square_rtol * abs(self.fx):
             raise ValueError(
                 f"non-square pixels (fx={self.fx}, fy={self.fy}) cannot be represented by "
@@ -448,6 +495,28 @@ class Camera:
             "film": {"type": "hdrfilm", "width": self.width, "height": self.height,
                      "rfilter": {"type": "box"}, "pixel_format": "rgb"},
         }
+        if near_clip is not None:
+            d["near_clip"] = float(near_clip)
+        if far_clip is not None:
+            d["far_clip"] = float(far_clip)
+        return d
+
+    def _orthographic_dict(self, spp, sampler, near_clip, far_clip):
+        """Mitsuba's ``orthographic`` sensor for a parallel-beam camera: it
+        maps x in [-1, 1] (y in [-h/w, h/w]) of the camera frame onto the
+        film, so ``to_world`` is scaled by half the image's world width and
+        shifted to the principal point."""
+        import mitsuba as mi
+        s = self.pixel_size
+        shift = np.eye(4)
+        shift[0, 3] = s * (self.cx - self.width / 2)
+        shift[1, 3] = s * (self.cy - self.height / 2)
+        half = 0.5 * s * self.width
+        m = self.to_world @ shift @ np.diag([half, half, 1.0, 1.0])
+        d = {"type": "orthographic", "to_world": mi.ScalarTransform4f(m.tolist()),
+             "sampler": {"type": sampler, "sample_count": int(spp)},
+             "film": {"type": "hdrfilm", "width": self.width, "height": self.height,
+                      "rfilter": {"type": "box"}, "pixel_format": "rgb"}}
         if near_clip is not None:
             d["near_clip"] = float(near_clip)
         if far_clip is not None:

@@ -1,7 +1,7 @@
 """A run's checkpoint: everything needed to continue it exactly.
 
-One ``.npz`` file holds the mesh (``vertices``, ``tets``, ``color``,
-``opacity``), the run's state (``step``, ``stage``, ``stage_start``,
+One ``.npz`` file holds the mesh (``vertices``, ``tets``) and the fitted
+values (``value:<name>``, e.g. ``value:color``), the run's state (``step``, ``stage``, ``stage_start``,
 ``elapsed``, ``shortened``, the ``history`` and the view-picking ``rng`` as
 JSON), the ``config`` (JSON, for the record) and Adam's state
 (``<key>:t``, ``<key>:m``, ``<key>:v`` per optimized parameter). A run
@@ -26,10 +26,11 @@ def save_checkpoint(trainer: Trainer, path):
     """Write ``trainer``'s mesh, run state and optimizer state to ``path``
     (``.npz``). Atomic: the file is written next to ``path`` and then moved
     over it, so an interrupted save never corrupts the previous checkpoint."""
-    vertices, tets, color, opacity = trainer.arrays()
+    vertices, tets, values = trainer.arrays()
     state = trainer.state
     tmp = Path(path).with_suffix(".tmp.npz")
-    np.savez(tmp, vertices=vertices, tets=tets, color=color, opacity=opacity, step=state.step,
+    np.savez(tmp, vertices=vertices, tets=tets, **{f"value:{k}": v for k, v in values.items()},
+             step=state.step,
              stage=state.stage, stage_start=state.stage_start, elapsed=state.elapsed,
              shortened=state.shortened, history=json.dumps(state.history),
              config=json.dumps(dataclasses.asdict(trainer.config)),
@@ -62,8 +63,9 @@ def load_checkpoint(path, dataset, config: FitConfig) -> Trainer:
     state = RunState(rng=rng, step=int(ckpt["step"]), stage=int(ckpt["stage"]),
                      stage_start=int(ckpt["stage_start"]), elapsed=float(ckpt["elapsed"]),
                      shortened=int(ckpt["shortened"]), history=json.loads(str(ckpt["history"])))
+    values = {k[len("value:"):]: ckpt[k] for k in ckpt.files if k.startswith("value:")}
     trainer = Trainer(dataset, ckpt["vertices"], ckpt["tets"], config.for_stage(state.stage),
-                      ckpt["color"], ckpt["opacity"], state=state,
+                      values, state=state,
                       environment=ckpt["environment"] if "environment" in ckpt else None)
     trainer.opt.load_state_dict(ckpt)
     return trainer

@@ -70,6 +70,30 @@ class FitConfig:
     stages: list | None = None
     target_tets: int | None = None     # no more splits once the mesh has this many tets
     select: str = "gradient"           # refinement criterion: gradient | color | opacity
+    # What is fitted (mi_tetvr.recon.fields): volume (colors and opacities), tf (the texels
+    # of a transfer function over the init mesh's scalar field) or scalar (the scalar field
+    # under a known transfer function); model absorption fits an X-ray attenuation.
+    optimize: str = "volume"           # volume | tf | scalar
+    model: str = "emission"            # emission | absorption
+    scalar: str | None = None          # the init mesh's scalar point array (default: the only one)
+    value_range: list | None = None    # [lo, hi] the transfer function spans; default: the
+                                       # scalar's range
+    transfer_function: str | None = None  # the known transfer function (optimize scalar)
+    opacity_scale: float = 1.0         # its opacity is per mesh radius times this (as
+                                       # make-dataset renders a mesh)
+    tf_resolution: int = 64            # texels of a fitted or known transfer function
+    tf_init: str = "flat"              # flat (init_color, init_opacity) | random
+    tf_smoothing: float = 0.01         # weight of DiffDVR's smoothing prior (Eq. 12); their
+                                       # 0.4 went with an L1 loss: beside this L2 loss of
+                                       # sRGB pictures it smooths 40x as hard (Blunt Fin,
+                                       # random start, 300 steps: 37.3 dB at 0.4, 48.8 at
+                                       # 0.01; benchmarks/bench_tf_fit.py)
+    lr_scalar: float = 0.01            # scalar range per step
+    smoothing: float = 0.0             # weight of the mean squared difference across edges
+                                       # of a fitted attenuation (optical depth per cell) or
+                                       # scalar (over its range): DiffDVR's 3D prior
+    scalar_init: str = "colors"        # optimize scalar: colors (a color fit first, scalars
+                                       # matched to it) | mesh (the init mesh's scalar)
 
     @classmethod
     def from_file(cls, path):
@@ -108,6 +132,24 @@ class FitConfig:
                 (isinstance(self.background, str) or len(self.background) != 3):
             raise ValueError(f"background must be None, 'learn' or three linear RGB values, "
                              f"got {self.background!r}")
+        if self.optimize not in ("volume", "tf", "scalar"):
+            raise ValueError(f"optimize must be volume, tf or scalar, got {self.optimize!r}")
+        if self.model not in ("emission", "absorption"):
+            raise ValueError(f"model must be emission or absorption, got {self.model!r}")
+        if self.model == "absorption" and (self.optimize != "volume" or self.background):
+            raise ValueError("model absorption fits an attenuation from transmittance images: "
+                             "no optimize tf/scalar, no background")
+        if self.optimize != "volume" and self.init in ("grid", "tetwild", "delaunay"):
+            raise ValueError(f"optimize {self.optimize} needs the scalar mesh as init (a file)")
+        if self.optimize == "scalar" and self.transfer_function is None:
+            raise ValueError("optimize scalar needs the transfer function (--tf)")
+        if self.tf_init not in ("flat", "random") or int(self.tf_resolution) < 2:
+            raise ValueError("tf_init must be flat or random, tf_resolution >= 2")
+        if self.scalar_init not in ("colors", "mesh"):
+            raise ValueError(f"scalar_init must be colors or mesh, got {self.scalar_init!r}")
+        if self.value_range is not None and not (len(self.value_range) == 2 and
+                                                 self.value_range[0] < self.value_range[1]):
+            raise ValueError(f"value_range must be [lo, hi] with lo < hi, got {self.value_range}")
         if self.select not in ("gradient", "color", "opacity"):
             raise ValueError(f"select must be gradient, color or opacity, got {self.select!r}")
         for i, st in enumerate(self.stage_list()):

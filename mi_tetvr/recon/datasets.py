@@ -45,14 +45,14 @@ from typing import Dict, List, Optional, Sequence, Union
 
 import numpy as np
 
-from mi_tetvr.recon.camera import Camera, as_rigid
+from mi_tetvr.recon.camera import OPENGL_TO_MITSUBA, Camera, as_rigid
 from mi_tetvr.recon.hull import frusta_bounds
 from mi_tetvr.recon.images import check_factor, downscale_image, read_image, write_image
 from mi_tetvr.recon.undistort import Lens, nerf_lens
 
 __all__ = ["View", "Dataset", "load_dataset", "load_nerf", "load_colmap", "write_nerf"]
 
-_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".PNG", ".JPG", ".JPEG", ".EXR")
+_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".PNG", ".JPG", ".JPEG", ".EXR", ".npy")
 
 Holdout = Union[int, Sequence[int], None]
 
@@ -249,6 +249,8 @@ def _nerf_frame_view(root: Path, meta: dict, frame: dict, downscale: int, load_i
     h = float(m["h"]) if "h" in m else img_h
     if w is None or h is None:
         raise ValueError(f"{what}: cannot tell the size of '{path}' (give 'w' and 'h')")
+    if str(m.get("camera_model", "")).lower() == "orthographic":
+        return _orthographic_view(m, frame, path, image, w, h, downscale, what)
     if "fl_x" in m:
         fx = float(m["fl_x"])
     elif "camera_angle_x" in m:
@@ -278,6 +280,30 @@ def _nerf_frame_view(root: Path, meta: dict, frame: dict, downscale: int, load_i
     camera = Camera.from_opengl(c2w, width, height, fx, fy, cx, cy)
     view = View(Path(frame["file_path"]).stem if Path(frame["file_path"]).suffix.lower()
                 in _IMAGE_SUFFIXES_LOWER else Path(frame["file_path"]).name, camera, image)
+    return view.downscaled(downscale) if downscale != 1 else view
+
+
+def _orthographic_view(m, frame, path, image, w, h, downscale, what) -> View:
+    """A parallel-beam frame: ``ortho_width`` x ``ortho_height`` world units
+    on ``w`` x ``h`` pixels (square), centred on the camera's axis unless
+    ``cx, cy`` say otherwise."""
+    where = f"{what}: frame '{frame['file_path']}'"
+    try:
+        ow, oh = float(m["ortho_width"]), float(m["ortho_height"])
+    except KeyError:
+        raise ValueError(f"{where}: camera_model orthographic needs 'ortho_width' and "
+                         f"'ortho_height' (world units)") from None
+    if image is not None and image.shape[:2] != (int(round(h)), int(round(w))):
+        raise ValueError(f"{where}: image of {image.shape[1]}x{image.shape[0]} pixels, the "
+                         f"frame says {w:g}x{h:g}")
+    s = ow / w
+    if not s > 0 or abs(oh / h - s) > 1e-6 * s:
+        raise ValueError(f"{where}: orthographic pixels must be square and positive "
+                         f"(ortho_width / w = {ow / w:g}, ortho_height / h = {oh / h:g})")
+    c2w = as_rigid(frame["transform_matrix"], where)
+    camera = Camera(int(round(w)), int(round(h)), 1.0, 1.0, float(m.get("cx", w / 2)),
+                    float(m.get("cy", h / 2)), c2w @ OPENGL_TO_MITSUBA, s)
+    view = View(Path(frame["file_path"]).stem, camera, image)
     return view.downscaled(downscale) if downscale != 1 else view
 
 
@@ -384,7 +410,9 @@ def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train",
     ``transform_matrix`` (camera-to-world in OpenGL axes, :attr:`Camera.c2w_opengl
     <mi_tetvr.recon.camera.Camera.c2w_opengl>`); the images go to ``<split>/<name>.<format>``.
     ``png``: 8-bit sRGB RGBA with straight alpha (the premultiplied color is divided by alpha);
-    ``exr``: linear premultiplied float32 (exact).
+    ``exr``: linear premultiplied float32 (exact); ``npy``: X-ray transmittance ``1 - alpha``
+    (H, W) float32. Orthographic cameras are written with ``"camera_model": "orthographic"``,
+    ``ortho_width`` and ``ortho_height`` (world units).
     A data set ``bbox`` is written as ``aabb``. Sparse points are not written.
 
     Parameters
@@ -394,7 +422,7 @@ def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train",
         (an empty test split is skipped); a list writes one split ``split_names[0]``.
     out_dir : str or Path
     split_names : sequence of str
-    image_format : {"png", "exr"}
+    image_format : {"png", "exr", "npy"}
 
     Returns
     -------
@@ -403,8 +431,8 @@ def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train",
     """
     out_dir = Path(out_dir)
     fmt = image_format.lower().lstrip(".")
-    if fmt not in ("png", "exr"):
-        raise ValueError(f"image_format must be 'png' or 'exr', got {image_format!r}")
+    if fmt not in ("png", "exr", "npy"):
+        raise ValueError(f"image_format must be 'png', 'exr' or 'npy', got {image_format!r}")
     bbox = None
     if isinstance(dataset_or_views, Dataset):
         groups = {split_names[0]: dataset_or_views.train}
@@ -419,12 +447,17 @@ def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train",
 
     for split, views in groups.items():
         (out_dir / split).mkdir(exist_ok=True)
-        intr = [(c.fx, c.fy, c.cx, c.cy, c.width, c.height) for c in (v.camera for v in views)]
+        intr = [(c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.pixel_size)
+                for c in (v.camera for v in views)]
         shared = len(set(intr)) == 1
         meta: dict = {}
 
         def cam(v: View) -> dict:
             c = v.camera
+            if c.is_orthographic:
+                return {"camera_model": "orthographic", "ortho_width": c.pixel_size * c.width,
+                        "ortho_height": c.pixel_size * c.height, "cx": c.cx, "cy": c.cy,
+                        "w": c.width, "h": c.height}
             return {"camera_angle_x": 2.0 * math.atan(0.5 * c.width / c.fx),
                     "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy,
                     "w": c.width, "h": c.height}

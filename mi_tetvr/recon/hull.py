@@ -51,6 +51,16 @@ def frusta_bounds(cameras: Sequence, far: Optional[float] = None) -> np.ndarray:
     rows, rhs = [], []
     for cam in cameras:
         r, c = cam.to_world[:3, :3], cam.to_world[:3, 3]
+        if cam.is_orthographic:
+            # a slab: s (cx - w) <= q_x <= s cx, s (cy - h) <= q_y <= s cy, q_z >= 0
+            s = cam.pixel_size
+            for axis, hi, lo in ((0, s * cam.cx, s * (cam.cx - cam.width)),
+                                 (1, s * cam.cy, s * (cam.cy - cam.height))):
+                rows += [r[:, axis], -r[:, axis]]
+                rhs += [r[:, axis] @ c + hi, -(r[:, axis] @ c + lo)]
+            rows.append(-r[:, 2])
+            rhs.append(-r[:, 2] @ c)
+            continue
         # Camera frame q = R^T (p - c); each constraint a . q >= 0 (inside the pyramid).
         for a in ([-cam.fx, 0, cam.cx], [cam.fx, 0, cam.width - cam.cx],
                   [0, -cam.fy, cam.cy], [0, cam.fy, cam.height - cam.cy]):

@@ -53,7 +53,9 @@ def read_image(path, downscale: int = 1) -> np.ndarray:
 
     PNG / JPEG (8 or 16 bit, grey, palette, RGB or RGBA) are sRGB with straight alpha: decoded to
     linear, then premultiplied. EXR (and other HDR formats ``mitsuba.Bitmap`` reads) are linear and
-    premultiplied (OpenEXR convention). A missing alpha channel is 1.
+    premultiplied (OpenEXR convention). A missing alpha channel is 1. ``.npy``: an (H, W)
+    float array of X-ray transmittance ``T = I / I0``, read as what an absorbing volume renders:
+    RGB 0 and alpha ``1 - T``.
 
     Parameters
     ----------
@@ -67,6 +69,17 @@ def read_image(path, downscale: int = 1) -> np.ndarray:
     (H // downscale, W // downscale, 4) float32
     """
     path = Path(path)
+    if path.suffix.lower() == ".npy":
+        t = np.load(path)
+        if t.ndim != 2 or not np.issubdtype(t.dtype, np.floating):
+            raise ValueError(f"{path}: an X-ray image is an (H, W) float array of "
+                             f"transmittance, got {t.dtype} {t.shape}")
+        if not np.all(np.isfinite(t)) or t.min() < 0 or t.max() > 1 + 1e-6:
+            raise ValueError(f"{path}: transmittance I/I0 must lie in [0, 1], got "
+                             f"[{np.nanmin(t):.4g}, {np.nanmax(t):.4g}]")
+        img = np.zeros(t.shape + (4,), np.float32)
+        img[..., 3] = 1.0 - np.clip(t, 0.0, 1.0)
+        return downscale_image(img, downscale)
     if path.suffix.lower() in (".exr", ".hdr", ".pfm", ".rgbe"):
         import mitsuba as mi
         bmp = mi.Bitmap(str(path)).convert(mi.Bitmap.PixelFormat.RGBA, mi.Struct.Type.Float32,
@@ -106,7 +119,8 @@ def write_image(path, image: np.ndarray) -> None:
 
     ``.exr``: linear, premultiplied, float32 (exact). ``.png``: 8-bit sRGB with straight alpha
     (color un-premultiplied where alpha > 0, 0 where alpha = 0). ``.jpg``: 8-bit sRGB composited
-    over black, alpha dropped.
+    over black, alpha dropped. ``.npy``: the transmittance ``1 - alpha`` as an (H, W) float32
+    array (X-ray images; the color is dropped).
 
     Parameters
     ----------
@@ -120,6 +134,9 @@ def write_image(path, image: np.ndarray) -> None:
     if image.shape[2] == 3:
         image = np.concatenate([image, np.ones(image.shape[:2] + (1,), np.float32)], axis=2)
     suffix = path.suffix.lower()
+    if suffix == ".npy":
+        np.save(path, np.ascontiguousarray(1.0 - image[..., 3], np.float32))
+        return
     if suffix == ".exr":
         import mitsuba as mi
         mi.Bitmap(np.ascontiguousarray(image), pixel_format=mi.Bitmap.PixelFormat.RGBA).write(

@@ -15,7 +15,7 @@ import numpy as np
 
 from mi_tetvr.color import linear_to_srgb
 
-__all__ = ["composite", "display_rgb", "psnr", "ssim", "image_metrics"]
+__all__ = ["composite", "display_rgb", "psnr", "ssim", "image_metrics", "transmittance_metrics"]
 
 
 def composite(rgba, background=None):
@@ -52,7 +52,7 @@ def psnr(mse):
 
 
 def ssim(a, b):
-    """Structural similarity of two (h, w, 3) RGB images with values in [0, 1]
+    """Structural similarity of two (h, w, c) images with values in [0, 1]
     (scikit-image's 7x7 window, smaller for images under 7 pixels; NaN under 3)."""
     from skimage.metrics import structural_similarity
     win = min(7, a.shape[0], a.shape[1])
@@ -100,3 +100,17 @@ def image_metrics(pred_rgba, target_rgba, background):
     mse = float(np.mean((a - b) ** 2))
     return {"psnr": psnr(mse), "ssim": ssim(a, b), "mse": mse,
             "psnr_linear": psnr(float(np.mean((lin[0] - lin[1]) ** 2)))}
+
+
+def transmittance_metrics(pred_rgba, target_rgba):
+    """PSNR and SSIM of the transmittance ``1 - alpha`` of two X-ray images
+    (values in [0, 1], linear: a measurement, not a picture).
+
+    Returns
+    -------
+    dict with ``psnr``, ``ssim``, ``mse`` and (the same) ``psnr_linear``.
+    """
+    a, b = (np.clip(1.0 - np.asarray(x, np.float64)[..., 3:4], 0.0, 1.0)
+            for x in (pred_rgba, target_rgba))
+    mse = float(np.mean((a - b) ** 2))
+    return {"psnr": psnr(mse), "ssim": ssim(a, b), "mse": mse, "psnr_linear": psnr(mse)}

@@ -26,7 +26,7 @@ from mi_tetvr.recon.metrics import psnr
 from mi_tetvr.recon.plots import plot_history, save_comparison
 from mi_tetvr.recon.trainer import RunState, Trainer
 
-__all__ = ["run", "next_stage", "write_outputs", "evaluate_mesh", "initial_mesh", "data_bounds",
+__all__ = ["run", "next_stage", "write_outputs", "write_fitted", "evaluate_mesh", "initial_mesh", "data_bounds",
            "calibrate", "resolution_for_budget", "budget_stages", "DEFAULT_RESOLUTION",
            "BUDGET_STEPS", "COARSE_SHARE", "PIXELS_PER_VERTEX",
            "resolution_limits", "data_warnings"]
@@ -63,25 +63,35 @@ PIXELS_PER_VERTEX = 2
 
 
 def initial_mesh(config: FitConfig, dataset):
-    """Vertices (n, 3) and tets (m, 4) of the starting mesh, over
-    ``config.bounds`` or the region the data shows (:func:`data_bounds`), or
-    read from the file ``config.init``."""
+    """Vertices (n, 3), tets (m, 4) and starting values (a dict, or None for
+    the field's defaults) of the starting mesh, over ``config.bounds`` or the
+    region the data shows (:func:`data_bounds`), or read from the file
+    ``config.init`` (with its scalar field, ``config.scalar``, when a
+    transfer function or a scalar is fitted)."""
     from mi_tetvr.mesh import initial as initmesh
-    from mi_tetvr.mesh.io import read_tetmesh
+    from mi_tetvr.mesh.io import choose_scalar, read_tetmesh
     init = config.init
     if init not in ("grid", "tetwild", "delaunay"):
-        mesh = read_tetmesh(init)
-        return mesh.vertices, mesh.tets
+        if config.optimize == "volume":
+            mesh = read_tetmesh(init)
+            return mesh.vertices, mesh.tets, None
+        mesh = read_tetmesh(init, color=None, opacity=None)
+        if config.optimize == "scalar" and config.scalar_init == "colors" and \
+                config.value_range is not None:
+            return mesh.vertices, mesh.tets, None     # the scalar comes from the colors
+        name = choose_scalar(mesh.point_data, config.scalar, init, mesh.cell_data)
+        return mesh.vertices, mesh.tets, {"scalar": np.asarray(mesh.point_data[name],
+                                                               np.float64).reshape(-1)}
     if init == "delaunay":
         if dataset.points is None:
             raise ValueError("init 'delaunay' needs sparse points (a COLMAP data set)")
-        return initmesh.delaunay_init(dataset.points)
+        return (*initmesh.delaunay_init(dataset.points), None)
     bounds = data_bounds(config, dataset)
     resolution = config.stage_list()[0]["grid"] or config.resolution or DEFAULT_RESOLUTION
     if init == "grid":
-        return initmesh.grid_init(bounds, resolution)
+        return (*initmesh.grid_init(bounds, resolution), None)
     edge = float(np.max(bounds[1] - bounds[0])) / resolution
-    return initmesh.tetwild_init(bounds=bounds, edge_length_abs=edge)
+    return (*initmesh.tetwild_init(bounds=bounds, edge_length_abs=edge), None)
 
 
 def data_bounds(config: FitConfig, dataset):
@@ -126,8 +136,8 @@ def calibrate(config: FitConfig, dataset, seconds, log=print):
     (:func:`resolution_for_budget`). Returns the resolution."""
     measured = []
     for r in CALIBRATION:
-        vertices, tets = initial_mesh(dataclasses.replace(config, resolution=r), dataset)
-        trainer = Trainer(dataset, vertices, tets, config.for_stage(0),
+        vertices, tets, values = initial_mesh(dataclasses.replace(config, resolution=r), dataset)
+        trainer = Trainer(dataset, vertices, tets, config.for_stage(0), values,
                           state=RunState(rng=np.random.default_rng(config.seed + 1)))
         for _ in range(2):              # compiles the kernels
             trainer.step()
@@ -270,9 +280,16 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
             if budget is not None and config.init == "grid" and config.stages is None:
                 config = config.updated(stages=budget_stages(config, resolution))
                 log("stages: " + " -> ".join(f"grid {st['grid']}" for st in config.stages))
-        vertices, tets = initial_mesh(config, dataset)
+        vertices, tets, values = initial_mesh(config, dataset)
+        if values is not None and "scalar" in values and config.value_range is None:
+            # recorded in config.json: the range the transfer function spans
+            s = values["scalar"]
+            config = dataclasses.replace(config, value_range=[float(s.min()), float(s.max())])
         log(format_summary(geometry_summary(vertices, build_topology(vertices, tets, warn=False))))
-        trainer = Trainer(dataset, vertices, tets, config.for_stage(0))
+        if config.optimize == "scalar" and config.scalar_init == "colors":
+            values = {"scalar": scalar_from_colors(config, dataset, vertices, tets, progress,
+                                                   log)}
+        trainer = Trainer(dataset, vertices, tets, config.for_stage(0), values)
     (out / "config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2))
     stages = config.stage_list()
 
@@ -344,6 +361,31 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     return result
 
 
+def scalar_from_colors(config: FitConfig, dataset, vertices, tets, progress=True, log=print):
+    """The start of a scalar fit under a known transfer function (DiffDVR's
+    remedy for its non-convexity, :mod:`mi_tetvr.recon.density`): per-vertex
+    colors and opacities fitted on the mesh for ``config.iterations`` steps,
+    then the scalar whose classified color matches them. Returns (n,) float."""
+    from tqdm import tqdm
+
+    from mi_tetvr.recon.density import match_scalars
+    colors = Trainer(dataset, vertices, tets,
+                     dataclasses.replace(config, optimize="volume", stages=None),
+                     state=RunState(rng=np.random.default_rng(config.seed + 2)))
+    for _ in tqdm(range(config.iterations), desc="colors first", disable=not progress):
+        colors.step()
+    _, oriented, values = colors.arrays()
+    lo, hi = config.value_range
+    from mi_tetvr.recon.fields import ScalarField
+    field = ScalarField(config, colors.h, {"scalar": np.array([lo, hi])},
+                        radius=colors.radius)
+    tf = field.transfer_function(field.fixed)
+    scalar = match_scalars(values["color"], values["opacity"], tf, (lo, hi), oriented, colors.h)
+    log(f"colors first: {config.iterations} steps, then scalars matched to them "
+        f"(held-out PSNR of the colors {colors.evaluate(dataset.test or dataset.train[:1])['mean']['psnr']:.2f} dB)")
+    return scalar
+
+
 def next_stage(trainer: Trainer, config: FitConfig, log=print):
     """After a stage: prune empty tets and split the top vertices as the
     stage says, rebuild the scene, and carry parameters and Adam's moments
@@ -352,7 +394,8 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
     from mi_tetvr.mesh.refine import prune_empty, select_top_fraction, split_vertices
     stages = config.stage_list()
     stage = stages[trainer.state.stage]
-    vertices, tets, color, opacity = trainer.arrays()
+    vertices, tets, values = trainer.arrays()
+    points = list(trainer.field.point_arrays)      # per-vertex: follow the mesh
     state = dataclasses.replace(trainer.state, stage=trainer.state.stage + 1,
                                 stage_start=trainer.state.step)
     grid = stages[state.stage]["grid"]
@@ -361,20 +404,23 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
         bounds = data_bounds(config, trainer.dataset)
         current = stage["grid"] or config.resolution
         vertices, tets = grid_init(bounds, grid)
-        color, opacity = (grid_sample(bounds, current, a, vertices) for a in (color, opacity))
+        values.update({k: grid_sample(bounds, current, values[k], vertices) for k in points})
         log(f"grid {current} -> {grid}: {len(tets):,} tets")
-        return Trainer(trainer.dataset, vertices, tets, config.for_stage(state.stage), color,
-                       opacity, state=state, environment=trainer.environment())
+        return Trainer(trainer.dataset, vertices, tets, config.for_stage(state.stage), values,
+                       state=state, environment=trainer.environment())
     moments = trainer.opt.moments()
-    data = {"color": color, "opacity": opacity}
+    data = {k: values[k] for k in points}
     for k, (_, m, v) in moments.items():
         data[f"{k}:m"], data[f"{k}:v"] = m, v
     split = stage["split"] > 0 and (config.target_tets is None or len(tets) < config.target_tets)
     # Scored on this stage's mesh; pruning only removes vertices of empty tets.
     scores = trainer.vertex_scores(trainer.dataset.train, config.select) if split else None
     if stage["prune"] is not None:
-        res = prune_empty(vertices, tets, opacity, float(stage["prune"]) / trainer.h,
-                          point_data=data)
+        if trainer.field.extinction is None:
+            raise ValueError("'prune' needs a fitted extinction (colors and opacities or an "
+                             "attenuation)")
+        res = prune_empty(vertices, tets, values[trainer.field.extinction],
+                          float(stage["prune"]) / trainer.h, point_data=data)
         log(f"pruned {len(tets) - len(res.tets):,} empty tets")
         vertices, tets, data = res.vertices, res.tets, res.point_data
         scores = None if scores is None else scores[res.vertex_parent]
@@ -385,22 +431,48 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
         vertices, tets, data = res.vertices, res.tets, res.point_data
     # build_topology may re-orient tets but keeps the vertex order: the
     # per-vertex moments carry over directly.
-    new = Trainer(trainer.dataset, vertices, tets, config.for_stage(state.stage), data["color"],
-                  data["opacity"], state=state, environment=trainer.environment())
+    values.update({k: data[k] for k in points})
+    new = Trainer(trainer.dataset, vertices, tets, config.for_stage(state.stage), values,
+                  state=state, environment=trainer.environment())
     new.opt.set_moments({k: (t, data[f"{k}:m"], data[f"{k}:v"])
                          for k, (t, _, _) in moments.items()})
     return new
 
 
+def write_fitted(trainer: Trainer, out: Path):
+    """Write what was fitted: ``mesh.vtu`` with the field's point data
+    (``color`` and ``opacity``, ``attenuation`` or ``scalar``) and, for a
+    transfer function, ``transfer_function.json`` (project JSON, the
+    texels as control points; over the scalar range that ``config.json``
+    records as ``value_range``) and its plot ``transfer_function.png``
+    instead."""
+    from mi_tetvr.mesh.io import write_tetmesh
+    from mi_tetvr.mesh.tetmesh import TetMesh
+    from mi_tetvr.recon.fields import TransferFunctionField
+    from mi_tetvr.transfer import write_json
+    vertices, tets, values = trainer.arrays()
+    field = trainer.field
+    if isinstance(field, TransferFunctionField):
+        from mi_tetvr.recon.plots import plot_transfer_functions
+        tf = field.transfer_function(values)
+        write_json(tf, out / "transfer_function.json")
+        plot_transfer_functions(out / "transfer_function.png", {"fitted": tf}, field.value_range)
+        return
+    if "color" in field.point_arrays:
+        write_tetmesh(out / "mesh.vtu", TetMesh(vertices, tets, values["color"], values["opacity"]))
+    else:
+        write_tetmesh(out / "mesh.vtu", TetMesh(vertices, tets, point_data={
+            k: values[k] for k in field.point_arrays}), color=None, opacity=None)
+
+
 def write_outputs(trainer: Trainer, out: Path):
-    """Write ``mesh.vtu``, ``metrics.json``, ``test/*.png`` (render | target),
+    """Write what was fitted (:func:`write_fitted`), ``metrics.json``,
+    ``test/*.png`` (render | target; X-ray transmittance in grey),
     ``progress.png`` and, with a learned background, ``background.exr`` (its
     latitude-longitude texels, linear RGB: Mitsuba's ``envmap`` with the
     identity ``to_world`` renders it) to ``out``; returns the metrics."""
-    from mi_tetvr.mesh.io import write_tetmesh
-    from mi_tetvr.mesh.tetmesh import TetMesh
-    vertices, tets, color, opacity = trainer.arrays()
-    write_tetmesh(out / "mesh.vtu", TetMesh(vertices, tets, color, opacity))
+    vertices, tets, _ = trainer.arrays()
+    write_fitted(trainer, out)
     if trainer.learned_background:
         import mitsuba as mi
         texels = trainer.environment()[:, 1:-1]      # without the envmap's wrap-around columns
@@ -414,9 +486,11 @@ def write_outputs(trainer: Trainer, out: Path):
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     renders = out / "test"
     renders.mkdir(exist_ok=True)
+    # an absorbing volume over white shows its transmittance
+    shown = [1.0] * 3 if trainer.field.signal == "transmittance" else trainer.background
     for v in views:
         save_comparison(renders / f"{Path(v.name).stem}.png", trainer.render_view(v), v.image,
-                        trainer.background)
+                        shown)
     plot_history(trainer.state.history, out / "progress.png", metrics["mean"]["psnr"])
     return metrics
 
@@ -427,6 +501,7 @@ def evaluate_mesh(mesh_path, dataset, background=None, n_sub=4, split="test"):
     from mi_tetvr.mesh.io import read_tetmesh
     mesh = read_tetmesh(mesh_path)
     cfg = FitConfig(background=background, n_sub=n_sub)
-    trainer = Trainer(dataset, mesh.vertices, mesh.tets, cfg, mesh.color, mesh.opacity)
+    trainer = Trainer(dataset, mesh.vertices, mesh.tets, cfg,
+                      {"color": mesh.color, "opacity": mesh.opacity})
     views = dataset.test if split == "test" and dataset.test else dataset.train
     return trainer.evaluate(views)

@@ -6,7 +6,7 @@ import numpy as np
 
 from mi_tetvr.recon.metrics import composite
 
-__all__ = ["save_comparison", "plot_history"]
+__all__ = ["save_comparison", "plot_history", "plot_transfer_functions"]
 
 
 def save_comparison(path, pred_rgba, target_rgba, background):
@@ -64,6 +64,42 @@ def plot_history(history, path, test_psnr=None):
         ax2.set_ylabel("PSNR [dB] (sRGB, over the background)", color="tab:red")
         ax2.legend(loc="lower right")
     ax.set_title("mi-tetvr fit")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_transfer_functions(path, tfs, value_range=(0.0, 1.0), samples=512):
+    """Plot transfer functions over the scalar range to ``path``: their
+    opacity curves (top) and, per function, its color as a strip under them.
+
+    Parameters
+    ----------
+    path : str or Path
+    tfs : dict of label to :class:`~mi_tetvr.transfer.TransferFunction`
+    value_range : (float, float)
+        The scalar values the normalised axis [0, 1] spans (axis labels).
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mi_tetvr.color import linear_to_srgb
+    t = (np.arange(samples) + 0.5) / samples
+    x = value_range[0] + t * (value_range[1] - value_range[0])
+    n = len(tfs)
+    fig, axes = plt.subplots(1 + n, 1, figsize=(7, 3 + 0.5 * n), sharex=True,
+                             gridspec_kw={"height_ratios": [6] + [1] * n})
+    for (label, tf), ax in zip(tfs.items(), axes[1:]):
+        color, opacity = tf(t)
+        axes[0].plot(x, opacity, label=label)
+        strip = np.clip(linear_to_srgb(np.clip(color, 0, 1)), 0, 1)[None]
+        ax.imshow(strip, aspect="auto", extent=(x[0], x[-1], 0, 1))
+        ax.set_yticks([])
+        ax.set_ylabel(label, rotation=0, ha="right", va="center", fontsize=8)
+    axes[0].set_ylabel("opacity (extinction)")
+    axes[0].legend()
+    axes[-1].set_xlabel("scalar")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -1,5 +1,7 @@
-"""One stage of a reconstruction: a tet mesh's vertex colors, opacities and
-(optionally) positions fitted to images with known cameras.
+"""One stage of a reconstruction: a tet mesh's unknowns (vertex colors and
+opacities, an attenuation, a transfer function or a scalar field: a
+:class:`~mi_tetvr.recon.fields.Field`) and optionally its positions fitted to
+images with known cameras.
 
 The loop is the ordinary Mitsuba one: ``mi.traverse`` the scene, Adam with
 one learning rate per parameter kind (:class:`~mi_tetvr.recon.optim.VertexAdam`),
@@ -22,17 +24,15 @@ import numpy as np
 from mi_tetvr.color import linear_to_srgb
 from mi_tetvr.mesh.topology import mean_edge_length
 from mi_tetvr.recon.config import FitConfig
-from mi_tetvr.recon.metrics import composite, display_rgb, image_metrics
+from mi_tetvr.recon.fields import MESH_ID, key, make_field
+from mi_tetvr.recon.metrics import composite, display_rgb, image_metrics, transmittance_metrics
 from mi_tetvr.recon.optim import VertexAdam
 
-__all__ = ["Trainer", "RunState", "MESH_ID", "K_COLOR", "K_OPACITY", "K_POSITION",
-           "K_ENVIRONMENT", "ENVIRONMENT_SIZE", "pixel_center_data"]
+__all__ = ["Trainer", "RunState", "K_POSITION", "K_ENVIRONMENT", "ENVIRONMENT_SIZE",
+           "pixel_center_data"]
 
-#: Parameter keys of the fitted mesh in the scene.
-MESH_ID = "volume"
-K_COLOR = f"{MESH_ID}.vertex_color"
-K_OPACITY = f"{MESH_ID}.vertex_opacity"
-K_POSITION = f"{MESH_ID}.vertex_positions"
+#: The fitted mesh's vertex positions in the scene.
+K_POSITION = key("vertex_positions")
 #: The learned background (``background="learn"``): an ``envmap`` emitter's texels.
 K_ENVIRONMENT = "background.data"
 #: Its texels, width x height (latitude-longitude): the surroundings' colors
@@ -43,10 +43,12 @@ ENVIRONMENT_SIZE = (32, 16)
 
 def pixel_center_data(dataset):
     """True for data sets rendered through pixel centers (``mi-tetvr
-    make-dataset`` writes ``volume_info.json``), whose pixels are point
-    samples rather than pixel averages."""
+    make-dataset`` writes ``volume_info.json``, or ``xray_info.json`` for
+    X-ray projections), whose pixels are point samples rather than pixel
+    averages."""
     root = getattr(dataset, "root", None)
-    return root is not None and (Path(root) / "volume_info.json").is_file()
+    return root is not None and any((Path(root) / f).is_file()
+                                    for f in ("volume_info.json", "xray_info.json"))
 
 
 @dataclass
@@ -66,6 +68,9 @@ class RunState:
 class Trainer:
     """One stage of a reconstruction: the scene, the optimizer and the run's state.
 
+    What is fitted (colors and opacities, an attenuation, a transfer function
+    or a scalar) is the config's :class:`~mi_tetvr.recon.fields.Field`.
+
     Parameters
     ----------
     dataset : mi_tetvr.recon.datasets.Dataset
@@ -75,9 +80,10 @@ class Trainer:
         The mesh to fit.
     config : FitConfig
         The stage's settings (:meth:`FitConfig.for_stage`).
-    color : (n, 3) float, optional
-    opacity : (n,) float, optional
-        Starting values (default: ``config.init_color`` and
+    values : dict of numpy arrays, optional
+        Starting values by the field's names (e.g. ``color`` (n, 3) and
+        ``opacity`` (n,)) and the arrays it needs (a scalar field); missing
+        ones start from the field's defaults (``config.init_color``,
         ``config.init_opacity`` per cell).
     state : RunState, optional
         The run so far (default: a new run seeded with ``config.seed``).
@@ -96,9 +102,8 @@ class Trainer:
     state : RunState
     """
 
-    def __init__(self, dataset, vertices, tets, config: FitConfig, color=None, opacity=None,
+    def __init__(self, dataset, vertices, tets, config: FitConfig, values=None,
                  state: RunState | None = None, environment=None):
-        import mi_tetvr
         from mi_tetvr.mesh.topology import build_topology
 
         self.config = config
@@ -109,12 +114,12 @@ class Trainer:
         self.boundary = np.unique(topology.boundary_faces)
         self.h = mean_edge_length(vertices, self.tets)
         n = len(vertices)
-        if color is None:
-            color = np.full((n, 3), config.init_color)
-        if opacity is None:
-            opacity = np.full(n, config.init_opacity / self.h)
+        #: Half the mesh's box diagonal (the unit of a known transfer function's opacity).
+        self.radius = float(np.linalg.norm(np.ptp(np.asarray(vertices, np.float64), axis=0))) / 2
+        self.field = make_field(config, self.h, values, self.tets, self.radius)
+        values = {**self.field.initial(n), **(values or {})}
         scene = {"type": "scene", "integrator": {"type": "tetvr", "n_sub": config.n_sub},
-                 MESH_ID: mi_tetvr.tetmesh_dict(vertices, self.tets, color, opacity)}
+                 MESH_ID: self.field.shape(vertices, self.tets, values)}
         #: Whether the background is learned: then the renders already hold
         #: it (``C + T * env``) and only their RGB is compared.
         self.learned_background = config.background == "learn"
@@ -138,12 +143,12 @@ class Trainer:
             self.sensors[id(v)] = mi.load_dict(d)
         self.targets = {id(v): mi.TensorXf(np.ascontiguousarray(v.image, np.float32))
                         for v in dataset.train}
-        rates = {K_COLOR: config.lr_color, K_OPACITY: config.lr_opacity / self.h}
+        rates = self.field.rates()
         if config.lr_position > 0:
             rates[K_POSITION] = config.lr_position * self.h
         if self.learned_background:
             rates[K_ENVIRONMENT] = config.lr_color
-        self.opt = VertexAdam(self.params, rates, n, shared=(K_ENVIRONMENT,))
+        self.opt = VertexAdam(self.params, rates, n, shared=self.field.shared + (K_ENVIRONMENT,))
         self.params.update(self.opt)
         self.regularizer = None
         if config.regularizer > 0 and config.lr_position > 0:
@@ -170,7 +175,11 @@ class Trainer:
     def _compared(self, image):
         """What the loss compares of an (h, w, 4) image: RGBA, or RGB over the
         config's background (or with the learned one); in ``srgb`` space the
-        RGB sRGB-encoded."""
+        RGB sRGB-encoded; for X-ray images the optical depth."""
+        if self.field.signal == "transmittance":
+            # the optical depth -log T: linear in the attenuation (a least-squares
+            # problem, every ray weighted alike, as in algebraic reconstruction)
+            return -dr.log(dr.maximum(1.0 - image[..., 3:4], 1e-6))
         bg, rgb_only = self.background, self.config.background is not None
         if self.config.loss_space == "linear":
             return composite(image, bg) if rgb_only else image
@@ -189,9 +198,13 @@ class Trainer:
 
     def metric_mse(self, image, view):
         """MSE of the sRGB pictures the metrics score (RGB over the config's
-        background, black without one), no gradient: the training PSNR."""
+        background, black without one; the transmittance of X-ray images), no
+        gradient: the training PSNR."""
         bg = self.background
         with dr.suspend_grad():
+            if self.field.signal == "transmittance":
+                d = dr.detach(image[..., 3]) - self.targets[id(view)][..., 3]
+                return dr.mean(dr.square(d), axis=None)
             a = display_rgb(dr.detach(image), bg)
             b = display_rgb(self.targets[id(view)], bg)
             return dr.mean(dr.square(a - b), axis=None)
@@ -220,13 +233,15 @@ class Trainer:
             metric += float(mse.array[0]) / len(pick)
         if self.regularizer is not None:
             dr.backward(self.regularizer(self.opt[K_POSITION]))
+        prior = self.field.prior(self.opt)
+        if prior is not None:
+            dr.backward(prior)
         old = np.array(self.opt[K_POSITION]).reshape(-1, 3) if K_POSITION in self.opt else None
         # The learning rates fall exponentially to ``decay`` times their base over the stage.
         if progress is None:
             progress = (state.step - state.stage_start) / max(cfg.iterations, 1)
         self.opt.step(lr_scale=cfg.decay ** min(max(progress, 0.0), 1.0))
-        self.opt[K_COLOR] = dr.clip(self.opt[K_COLOR], 0.0, 1.0)
-        self.opt[K_OPACITY] = dr.maximum(self.opt[K_OPACITY], 0.0)
+        self.field.project(self.opt)
         if self.learned_background:
             self.opt[K_ENVIRONMENT] = dr.maximum(self.opt[K_ENVIRONMENT], 0.0)
         if old is not None:
@@ -250,12 +265,11 @@ class Trainer:
 
     # -- the mesh ---------------------------------------------------------------
     def arrays(self):
-        """Current ``(vertices (n, 3), tets (m, 4), color (n, 3), opacity (n,))``
-        as numpy arrays."""
+        """Current ``(vertices (n, 3), tets (m, 4), values)`` as numpy arrays,
+        ``values`` the field's (:meth:`Field.values
+        <mi_tetvr.recon.fields.Field.values>`)."""
         vertices = np.array(self.params[K_POSITION], np.float64).reshape(-1, 3)
-        color = np.array(self.params[K_COLOR], np.float64).reshape(-1, 3)
-        opacity = np.array(self.params[K_OPACITY], np.float64)
-        return vertices, self.tets, color, opacity
+        return vertices, self.tets, self.field.values(self.params)
 
     def environment(self):
         """The learned background's texels as numpy, or ``None``."""
@@ -266,25 +280,25 @@ class Trainer:
     def inverted_tets(self):
         """Number of tets with a non-positive volume."""
         from mi_tetvr.mesh.topology import signed_volumes
-        vertices, tets, _, _ = self.arrays()
+        vertices, tets, _ = self.arrays()
         return int((signed_volumes(vertices, tets) <= 0).sum())
 
     def vertex_scores(self, views, criterion="gradient"):
         """Per-vertex refinement scores: absolute image-loss gradients summed
-        over ``views`` without stepping (AbsGS-style), of colors (``color``),
-        opacities in optical depth per cell (``opacity``) or both
-        (``gradient``). Returns (n,) float."""
+        over ``views`` without stepping (AbsGS-style), of the field's
+        per-vertex unknowns (:meth:`Field.score_weights
+        <mi_tetvr.recon.fields.Field.score_weights>`: for colors and
+        opacities ``color``, ``opacity`` in optical depth per cell, or both,
+        ``gradient``). Returns (n,) float."""
         n = self.opt.n_vertices
         score = np.zeros(n)
+        weights = self.field.score_weights(criterion)
         for j, view in enumerate(views):
-            for k in (K_COLOR, K_OPACITY):
-                dr.clear_grad(self.opt[k])
+            self.opt.clear_grads()
             image = self.render(view, self.params, seed=2 * (10 ** 6 + j))
             dr.backward(self.loss(image, view))
-            if criterion in ("gradient", "color"):
-                score += np.abs(np.array(dr.grad(self.opt[K_COLOR]))).reshape(n, 3).sum(1)
-            if criterion in ("gradient", "opacity"):
-                score += np.abs(np.array(dr.grad(self.opt[K_OPACITY]))) / self.h
+            for k, w in weights.items():
+                score += w * np.abs(np.array(dr.grad(self.opt[k]))).reshape(n, -1).sum(1)
         self.opt.clear_grads()
         return score
 
@@ -300,7 +314,10 @@ class Trainer:
         """PSNR, SSIM and MSE per view (RGB over the config's background) and
         their mean: ``{"views": {name: metrics}, "mean": metrics}``."""
         bg = self.background
-        per = {v.name: image_metrics(self.render_view(v), v.image, bg) for v in views}
+        if self.field.signal == "transmittance":
+            per = {v.name: transmittance_metrics(self.render_view(v), v.image) for v in views}
+        else:
+            per = {v.name: image_metrics(self.render_view(v), v.image, bg) for v in views}
         mean = {k: float(np.mean([m[k] for m in per.values()]))
                 for k in ("psnr", "ssim", "mse", "psnr_linear")}
         return {"views": per, "mean": mean}

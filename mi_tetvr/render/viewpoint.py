@@ -119,6 +119,25 @@ class ViewpointSearch:
         return path
 
 
+def orbit_scene(shape, bounds, res=128, fov=40.0):
+    """A scene to search views of: ``shape`` (a ``tetmesh`` dict), ``tetvr``,
+    and a ``res`` x ``res`` perspective sensor through pixel centres with
+    ``fov`` (degrees). Returns ``(scene, centre, distance)``: the box
+    ``bounds``' centre and the distance at which its bounding sphere fills the
+    view (what :class:`ViewpointSearch` takes)."""
+    lo, hi = np.asarray(bounds, np.float64)
+    centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2
+    distance = 1.05 * radius / math.sin(math.radians(fov / 2))
+    scene = mi.load_dict({
+        "type": "scene", "integrator": {"type": "tetvr"},
+        "sensor": {"type": "perspective", "fov": fov,
+                   "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
+                   "film": {"type": "hdrfilm", "width": res, "height": res,
+                            "rfilter": {"type": "box"}}},
+        "volume": shape})
+    return scene, centre, distance
+
+
 def default_starts(n=8):
     """DiffDVR's starts: longitudes 45, 135, 225, 315 at latitudes +-45
     (``n`` = 8), or the first ``n`` of them."""

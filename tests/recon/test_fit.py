@@ -34,11 +34,11 @@ def data(tmp_path_factory):
 
 def params_of(out):
     ck = np.load(out / "checkpoint.npz")
-    return ck["color"], ck["opacity"], int(ck["step"])
+    return ck["value:color"], ck["value:opacity"], int(ck["step"])
 
 
 def test_fit_improves_and_writes_outputs(data, tmp_path):
-    V, T = initial_mesh(CFG, data)
+    V, T, _ = initial_mesh(CFG, data)
     before = Trainer(data, V, T, CFG).evaluate(data.test)["mean"]
     metrics = run(data, tmp_path, CFG, progress=False, log=lambda *a: None)
     after = metrics["mean"]
@@ -100,7 +100,7 @@ def test_joint_positions_never_invert(data, tmp_path):
     safe = run(data, tmp_path / "safe", cfg, progress=False, log=lambda *a: None)
     assert raw["inverted_tets"] > 0
     assert safe["inverted_tets"] == 0 and safe["shortened_position_steps"] > 0
-    V0, _ = initial_mesh(CFG, data)
+    V0, _, _ = initial_mesh(CFG, data)
     V = np.load(tmp_path / "safe" / "checkpoint.npz")["vertices"]
     assert np.abs(V - V0).max() > 0.01  # positions did move
 
@@ -112,7 +112,7 @@ def test_coarse_to_fine_stages_and_resume(data, tmp_path, monkeypatch):
     stages = [{"iterations": 5}, {"iterations": 5, "lr_position": 0.1, "split": 0.1},
               {"iterations": 5}]
     cfg = CFG.updated(stages=stages)
-    V0, T0 = initial_mesh(cfg, data)
+    V0, T0, _ = initial_mesh(cfg, data)
     interrupt_at(monkeypatch, 13)
     with pytest.raises(KeyboardInterrupt):
         run(data, tmp_path, cfg, progress=False, log=lambda *a: None)
@@ -132,7 +132,7 @@ def test_next_stage_prunes_splits_and_carries_state(data):
     colors, opacities and Adam moments follow the vertices."""
     cfg = CFG.updated(stages=[{"iterations": 2, "prune": 1e-3, "split": 0.1},
                               {"iterations": 2}])
-    V, T = initial_mesh(cfg, data)
+    V, T, _ = initial_mesh(cfg, data)
     trainer = Trainer(data, V, T, cfg.for_stage(0))
     for _ in range(2):
         trainer.step()
@@ -145,7 +145,8 @@ def test_next_stage_prunes_splits_and_carries_state(data):
     trainer.params.update(trainer.opt)
     before = trainer.opt.moments()
     nxt = next_stage(trainer, cfg, log=lambda *a: None)
-    Vn, Tn, Cn, Sn = nxt.arrays()
+    Vn, Tn, new = nxt.arrays()
+    Cn, Sn = new["color"], new["opacity"]
     empty = (S[trainer.tets] <= 1e-3 / trainer.h).all(1)
     assert empty.any() and nxt.state.stage == 1 and nxt.state.step == 2
     assert nxt.state.stage_start == 2
@@ -164,14 +165,16 @@ def test_grid_stage_samples_the_coarse_field(data):
     from mi_tetvr.mesh.initial import grid_sample
     cfg = CFG.updated(resolution=None, stages=[{"iterations": 2, "grid": 3},
                                                {"iterations": 2, "grid": 6}])
-    V, T = initial_mesh(cfg, data)
+    V, T, _ = initial_mesh(cfg, data)
     trainer = Trainer(data, V, T, cfg.for_stage(0))
     for _ in range(2):
         trainer.step()
-    _, _, C, S = trainer.arrays()
+    _, _, old = trainer.arrays()
+    C, S = old["color"], old["opacity"]
     nxt = next_stage(trainer, cfg, log=lambda *a: None)
-    Vn, Tn, Cn, Sn = nxt.arrays()
-    fine, fine_tets = initial_mesh(cfg.updated(stages=[{"grid": 6}]), data)
+    Vn, Tn, new = nxt.arrays()
+    Cn, Sn = new["color"], new["opacity"]
+    fine, fine_tets, _ = initial_mesh(cfg.updated(stages=[{"grid": 6}]), data)
     assert len(Tn) == len(fine_tets) == 8 * len(T) and nxt.state.stage == 1
     np.testing.assert_allclose(Vn, fine, atol=1e-6)
     bounds = np.stack([V.min(0), V.max(0)])
@@ -243,7 +246,7 @@ def test_other_initial_meshes(data, init):
             initial_mesh(cfg, data)
         rng = np.random.default_rng(0)
         data = type(data)(data.train, data.test, points=rng.uniform(-0.8, 0.8, (300, 3)))
-    V, T = initial_mesh(cfg, data)
+    V, T, _ = initial_mesh(cfg, data)
     topo = build_topology(V, T)
     assert topo.n_tets > 50 and topo.n_flipped == 0
     lo, hi = V.min(0), V.max(0)

@@ -1,0 +1,306 @@
+"""What a reconstruction fits: the unknowns of a tet mesh and how they enter the scene.
+
+A :class:`Field` names the scene parameters a fit optimizes, their starting
+values, learning rates and valid range, an optional prior, and what of a
+render is compared with a target. :class:`~mi_tetvr.recon.trainer.Trainer`,
+the checkpoints and the pipeline go through it, so that one loop fits
+
+* ``volume`` (:class:`VolumeField`): per-vertex color and opacity (emission
+  and absorption), the default;
+* ``attenuation`` (:class:`AttenuationField`, ``model="absorption"``): a
+  per-vertex attenuation from X-ray transmittance images;
+* ``tf`` (:class:`TransferFunctionField`): the texels of a transfer function
+  that post-classifies a fixed scalar field;
+* ``scalar`` (:class:`ScalarField`): the per-vertex scalar under a known
+  transfer function.
+
+Values are a dict of numpy arrays (``Field.values``): per-vertex arrays
+(:attr:`Field.point_arrays`, carried when the mesh is refined) and, for a
+transfer function, its texels.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+__all__ = ["Field", "VolumeField", "AttenuationField", "TransferFunctionField", "ScalarField",
+           "make_field", "MESH_ID", "key"]
+
+#: The fitted mesh's id in the scene.
+MESH_ID = "volume"
+
+
+def key(name):
+    """The scene-parameter key of the fitted mesh's parameter ``name``."""
+    return f"{MESH_ID}.{name}"
+
+
+class Field:
+    """The unknowns of a fit (see the module docstring).
+
+    Parameters
+    ----------
+    config : FitConfig
+    h : float
+        The mesh's mean edge length (the unit of opacity settings).
+    values : dict of numpy arrays
+        Arrays the field needs besides its unknowns (a scalar field's values).
+    """
+    #: ``{value name: (parameter key, channels)}`` of per-vertex unknowns.
+    point_arrays: dict = {}
+    #: What a render is compared with: ``rgba`` (premultiplied color and alpha)
+    #: or ``transmittance`` (one minus alpha).
+    signal = "rgba"
+    #: The per-vertex array that is an extinction (what pruning reads), if any.
+    extinction = None
+
+    def __init__(self, config, h, values=None, tets=None):
+        self.config, self.h = config, float(h)
+        self.fixed = dict(values or {})
+        self.tets = tets
+
+    def initial(self, n):
+        """Starting values for ``n`` vertices (dict of numpy arrays)."""
+        raise NotImplementedError
+
+    def shape(self, vertices, tets, values):
+        """The ``tetmesh`` entry of the scene for these values."""
+        raise NotImplementedError
+
+    def rates(self):
+        """``{parameter key: base learning rate}`` of the optimized parameters."""
+        raise NotImplementedError
+
+    @property
+    def shared(self):
+        """Optimized keys that are not per vertex."""
+        per_vertex = {k for k, _ in self.point_arrays.values()}
+        return tuple(k for k in self.rates() if k not in per_vertex)
+
+    def project(self, opt):
+        """Put the optimizer's values back into their valid range."""
+
+    def prior(self, opt):
+        """A regularizing loss on the unknowns (Dr.Jit Float) or None."""
+        return None
+
+    def edge_smoothing(self, values, weight, unit=1.0):
+        """``weight`` times the mean squared difference of ``values`` (a
+        per-vertex Dr.Jit array, times ``unit``) across the mesh's edges
+        (DiffDVR's 3D smoothing prior), or None for a weight of 0."""
+        if weight <= 0:
+            return None
+        if not hasattr(self, "_edges"):
+            from mi_tetvr.mesh.topology import unique_edges
+            e = unique_edges(self.tets)
+            self._edges = (mi.UInt32(e[:, 0].astype(np.uint32)),
+                           mi.UInt32(e[:, 1].astype(np.uint32)))
+        a, b = self._edges
+        d = (dr.gather(mi.Float, values, a) - dr.gather(mi.Float, values, b)) * unit
+        return weight * dr.mean(dr.square(d))
+
+    def values(self, params):
+        """The current values (dict of numpy arrays), fixed ones included."""
+        out = dict(self.fixed)
+        for name, (k, c) in self.point_arrays.items():
+            a = np.array(params[k], np.float64)
+            out[name] = a.reshape(-1, c) if c > 1 else a
+        return out
+
+    def score_weights(self, criterion):
+        """``{parameter key: weight}`` of the per-vertex gradients that rank
+        vertices for refinement (``criterion``: gradient | color | opacity)."""
+        return {k: 1.0 for k, _ in self.point_arrays.values()}
+
+
+class VolumeField(Field):
+    """Per-vertex color (linear RGB) and opacity (extinction per unit length)."""
+    point_arrays = {"color": (key("vertex_color"), 3), "opacity": (key("vertex_opacity"), 1)}
+    extinction = "opacity"
+
+    def initial(self, n):
+        return {"color": np.full((n, 3), self.config.init_color),
+                "opacity": np.full(n, self.config.init_opacity / self.h)}
+
+    def shape(self, vertices, tets, values):
+        import mi_tetvr
+        return mi_tetvr.tetmesh_dict(vertices, tets, values["color"], values["opacity"])
+
+    def rates(self):
+        return {key("vertex_color"): self.config.lr_color,
+                key("vertex_opacity"): self.config.lr_opacity / self.h}
+
+    def project(self, opt):
+        opt[key("vertex_color")] = dr.clip(opt[key("vertex_color")], 0.0, 1.0)
+        opt[key("vertex_opacity")] = dr.maximum(opt[key("vertex_opacity")], 0.0)
+
+    def score_weights(self, criterion):
+        w = {}
+        if criterion in ("gradient", "color"):
+            w[key("vertex_color")] = 1.0
+        if criterion in ("gradient", "opacity"):
+            w[key("vertex_opacity")] = 1.0 / self.h   # per optical depth of a cell
+        return w
+
+
+class AttenuationField(Field):
+    """Per-vertex X-ray attenuation (per unit length), rendered by the
+    ``absorption`` model; renders are compared by their transmittance."""
+    point_arrays = {"attenuation": (key("vertex_opacity"), 1)}
+    signal = "transmittance"
+    extinction = "attenuation"
+
+    def initial(self, n):
+        return {"attenuation": np.full(n, self.config.init_opacity / self.h)}
+
+    def shape(self, vertices, tets, values):
+        import mi_tetvr
+        return mi_tetvr.tetmesh_dict(vertices, tets, opacity=values["attenuation"],
+                                     model="absorption")
+
+    def rates(self):
+        return {key("vertex_opacity"): self.config.lr_opacity / self.h}
+
+    def project(self, opt):
+        opt[key("vertex_opacity")] = dr.maximum(opt[key("vertex_opacity")], 0.0)
+
+    def prior(self, opt):
+        # on optical depths per cell: the projections leave some patterns unseen
+        return self.edge_smoothing(opt[key("vertex_opacity")], self.config.smoothing, self.h)
+
+    def score_weights(self, criterion):
+        return {key("vertex_opacity"): 1.0 / self.h}
+
+
+class _Classified(Field):
+    """A scalar field post-classified by a transfer function of ``R`` texels
+    over ``value_range``."""
+
+    def __init__(self, config, h, values=None, tets=None):
+        super().__init__(config, h, values, tets)
+        if config.value_range is not None:
+            self.value_range = tuple(float(v) for v in config.value_range)
+        elif "scalar" not in self.fixed:
+            raise ValueError("a post-classified fit needs the mesh's scalar field or its "
+                             "value_range")
+        else:
+            s = np.asarray(self.fixed["scalar"], np.float64)
+            self.value_range = (float(s.min()), float(s.max()))
+        if not self.value_range[1] > self.value_range[0]:
+            raise ValueError(f"the scalar range must have lo < hi, got {self.value_range} "
+                             f"(give value_range)")
+
+    def shape(self, vertices, tets, values):
+        import mi_tetvr
+        lo, hi = self.value_range
+        values = {**self.fixed, **values}
+        return mi_tetvr.tetmesh_dict(
+            vertices, tets, scalar=values["scalar"],
+            tf_color=mi.TensorXf(np.asarray(values["tf_color"], np.float32).reshape(-1, 3)),
+            tf_opacity=mi.TensorXf(np.asarray(values["tf_opacity"], np.float32).ravel()),
+            value_min=lo, value_max=hi)
+
+    def transfer_function(self, values):
+        """The texels of ``values`` as a :class:`~mi_tetvr.transfer.TransferFunction`."""
+        from mi_tetvr.transfer import TransferFunction
+        return TransferFunction.from_texels(values["tf_color"], values["tf_opacity"])
+
+
+class TransferFunctionField(_Classified):
+    """The ``R`` texels of a transfer function (linear RGB, extinction per
+    unit length) over a fixed scalar field, with DiffDVR's smoothing prior
+    (Eq. 12: the mean squared difference of neighbouring texels over the four
+    channels, weighted by ``config.tf_smoothing``; the opacity channel in
+    optical depth per cell so that it weighs like a color)."""
+    K_COLOR, K_OPACITY = key("tf_color"), key("tf_opacity")
+
+    def initial(self, n):
+        r = int(self.config.tf_resolution)
+        opacity = self.config.init_opacity / self.h
+        if self.config.tf_init == "random":
+            rng = np.random.default_rng(self.config.seed)
+            return {"tf_color": rng.uniform(0, 1, (r, 3)),
+                    "tf_opacity": rng.uniform(0, 2 * opacity, r)}
+        return {"tf_color": np.full((r, 3), self.config.init_color),
+                "tf_opacity": np.full(r, opacity)}
+
+    def rates(self):
+        return {self.K_COLOR: self.config.lr_color, self.K_OPACITY: self.config.lr_opacity / self.h}
+
+    def project(self, opt):
+        opt[self.K_COLOR] = dr.clip(opt[self.K_COLOR], 0.0, 1.0)
+        opt[self.K_OPACITY] = dr.maximum(opt[self.K_OPACITY], 0.0)
+
+    def prior(self, opt):
+        lam = self.config.tf_smoothing
+        if lam <= 0:
+            return None
+        r = int(self.config.tf_resolution)
+        i = dr.arange(mi.UInt32, r - 1)
+        total = mi.Float(0.0)
+        for c in range(3):
+            d = (dr.gather(mi.Float, opt[self.K_COLOR], 3 * (i + 1) + c)
+                 - dr.gather(mi.Float, opt[self.K_COLOR], 3 * i + c))
+            total += dr.sum(dr.square(d))
+        d = (dr.gather(mi.Float, opt[self.K_OPACITY], i + 1)
+             - dr.gather(mi.Float, opt[self.K_OPACITY], i)) * self.h
+        total += dr.sum(dr.square(d))
+        return lam * total / (4 * (r - 1))
+
+    def values(self, params):
+        out = dict(self.fixed)
+        out["tf_color"] = np.array(params[self.K_COLOR], np.float64).reshape(-1, 3)
+        out["tf_opacity"] = np.array(params[self.K_OPACITY], np.float64)
+        return out
+
+
+class ScalarField(_Classified):
+    """The per-vertex scalar under a known transfer function (``config
+    .transfer_function``, resampled to ``config.tf_resolution`` texels, its
+    opacity per mesh radius times ``config.opacity_scale`` as ``mi-tetvr
+    make-dataset`` renders it); kept in ``value_range``."""
+    point_arrays = {"scalar": (key("vertex_scalar"), 1)}
+
+    def __init__(self, config, h, values=None, tets=None, radius=1.0):
+        from mi_tetvr.transfer import read_transfer_function
+        if config.transfer_function is None:
+            raise ValueError("a scalar fit needs the transfer function (transfer_function)")
+        values = dict(values or {})
+        if "tf_color" not in values:
+            tf = read_transfer_function(config.transfer_function)
+            color, opacity = tf.texels(config.tf_resolution)
+            values.update(tf_color=color, tf_opacity=opacity * config.opacity_scale / radius)
+        super().__init__(config, h, values)
+
+    def initial(self, n):
+        return {"scalar": np.full(n, 0.5 * sum(self.value_range))}
+
+    def rates(self):
+        lo, hi = self.value_range
+        return {key("vertex_scalar"): self.config.lr_scalar * (hi - lo)}
+
+    def project(self, opt):
+        lo, hi = self.value_range
+        opt[key("vertex_scalar")] = dr.clip(opt[key("vertex_scalar")], lo, hi)
+
+    def prior(self, opt):
+        lo, hi = self.value_range
+        return self.edge_smoothing(opt[key("vertex_scalar")], self.config.smoothing,
+                                   1.0 / (hi - lo))
+
+
+FIELDS = {"volume": VolumeField, "tf": TransferFunctionField}
+
+
+def make_field(config, h, values=None, tets=None, radius=1.0) -> Field:
+    """The :class:`Field` a config fits: ``config.optimize`` (volume | tf |
+    scalar), with ``config.model == "absorption"`` an attenuation, on the
+    mesh ``tets`` (its edges carry the smoothing priors). ``radius`` is the
+    mesh's (half its box diagonal): the unit of a known transfer function's
+    opacity."""
+    if config.model == "absorption":
+        return AttenuationField(config, h, values, tets)
+    if config.optimize == "scalar":
+        return ScalarField(config, h, values, tets, radius)
+    return FIELDS[config.optimize](config, h, values, tets)
