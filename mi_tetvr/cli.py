@@ -231,9 +231,14 @@ def cmd_fit(a):
             "init", "resolution", "iterations", "time_budget", "views_per_step", "lr_color",
             "lr_opacity", "lr_position", "loss", "loss_space", "regularizer", "downscale", "seed",
             "n_sub", "model", "optimize", "scalar", "transfer_function", "opacity_scale",
-            "tf_resolution", "tf_smoothing", "tf_init")}
+            "tf_resolution", "tf_smoothing", "tf_init", "smoothing")}
         if a.background is not None:
             overrides["background"] = _background(a.background)
+        if a.value_range is not None:
+            try:
+                overrides["value_range"] = [float(x) for x in a.value_range.split(",")]
+            except ValueError:
+                raise ValueError(f"--value-range must be lo,hi; got {a.value_range!r}") from None
         if a.freeze_boundary is not None:
             overrides["freeze_boundary"] = a.freeze_boundary
         cfg = cfg.updated(**overrides)
@@ -492,9 +497,13 @@ def main(argv=None):
                    help="the known transfer function (--optimize scalar)")
     f.add_argument("--opacity-scale", type=float, help="its opacity per mesh radius (as "
                    "make-dataset)")
+    f.add_argument("--value-range", help="lo,hi: the scalar range the transfer function spans "
+                   "(default: the init mesh's scalar range)")
     f.add_argument("--tf-resolution", type=int, help="transfer-function texels (default 64)")
     f.add_argument("--tf-smoothing", type=float,
                    help="weight of the transfer function's smoothing prior (default 0.01)")
+    f.add_argument("--smoothing", type=float, help="weight of the smoothing prior across "
+                   "edges of a fitted attenuation or scalar (default 0)")
     f.add_argument("--tf-init", choices=("flat", "random"), help="start of a fitted transfer "
                    "function (default flat)")
     f.add_argument("--resolution", type=int, help="grid cells along the largest axis "

@@ -183,7 +183,7 @@ class _Classified(Field):
             self.value_range = tuple(float(v) for v in config.value_range)
         elif "scalar" not in self.fixed:
             raise ValueError("a post-classified fit needs the mesh's scalar field or its "
-                             "value_range")
+                             "value_range (--value-range lo,hi)")
         else:
             s = np.asarray(self.fixed["scalar"], np.float64)
             self.value_range = (float(s.min()), float(s.max()))
@@ -271,7 +271,7 @@ class ScalarField(_Classified):
             tf = read_transfer_function(config.transfer_function)
             color, opacity = tf.texels(config.tf_resolution)
             values.update(tf_color=color, tf_opacity=opacity * config.opacity_scale / radius)
-        super().__init__(config, h, values)
+        super().__init__(config, h, values, tets)
 
     def initial(self, n):
         return {"scalar": np.full(n, 0.5 * sum(self.value_range))}

@@ -26,8 +26,8 @@ from mi_tetvr.recon.metrics import psnr
 from mi_tetvr.recon.plots import plot_history, save_comparison
 from mi_tetvr.recon.trainer import RunState, Trainer
 
-__all__ = ["run", "next_stage", "write_outputs", "write_fitted", "evaluate_mesh", "initial_mesh", "data_bounds",
-           "calibrate", "resolution_for_budget", "budget_stages", "DEFAULT_RESOLUTION",
+__all__ = ["run", "next_stage", "write_outputs", "write_fitted", "evaluate_mesh", "initial_mesh",
+           "data_bounds", "scalar_from_colors", "calibrate", "resolution_for_budget", "budget_stages", "DEFAULT_RESOLUTION",
            "BUDGET_STEPS", "COARSE_SHARE", "PIXELS_PER_VERTEX",
            "resolution_limits", "data_warnings"]
 
@@ -369,6 +369,7 @@ def scalar_from_colors(config: FitConfig, dataset, vertices, tets, progress=True
     from tqdm import tqdm
 
     from mi_tetvr.recon.density import match_scalars
+    from mi_tetvr.recon.fields import ScalarField
     colors = Trainer(dataset, vertices, tets,
                      dataclasses.replace(config, optimize="volume", stages=None),
                      state=RunState(rng=np.random.default_rng(config.seed + 2)))
@@ -376,13 +377,13 @@ def scalar_from_colors(config: FitConfig, dataset, vertices, tets, progress=True
         colors.step()
     _, oriented, values = colors.arrays()
     lo, hi = config.value_range
-    from mi_tetvr.recon.fields import ScalarField
-    field = ScalarField(config, colors.h, {"scalar": np.array([lo, hi])},
-                        radius=colors.radius)
-    tf = field.transfer_function(field.fixed)
-    scalar = match_scalars(values["color"], values["opacity"], tf, (lo, hi), oriented, colors.h)
-    log(f"colors first: {config.iterations} steps, then scalars matched to them "
-        f"(held-out PSNR of the colors {colors.evaluate(dataset.test or dataset.train[:1])['mean']['psnr']:.2f} dB)")
+    # the known transfer function in world units, as the scalar fit will use it
+    field = ScalarField(config, colors.h, radius=colors.radius)
+    scalar = match_scalars(values["color"], values["opacity"],
+                           field.transfer_function(field.fixed), (lo, hi), oriented, colors.h)
+    psnr_colors = colors.evaluate(dataset.test or dataset.train[:1])["mean"]["psnr"]
+    log(f"colors first: {config.iterations} steps (held-out PSNR {psnr_colors:.2f} dB), then "
+        f"the scalars their colors match")
     return scalar
 
 
