@@ -46,6 +46,8 @@ class Field:
         The mesh's mean edge length (the unit of opacity settings).
     values : dict of numpy arrays
         Arrays the field needs besides its unknowns (a scalar field's values).
+    tets : (m, 4) int, optional
+        The mesh (its edges carry the smoothing priors).
     """
     #: ``{value name: (parameter key, channels)}`` of per-vertex unknowns.
     point_arrays: dict = {}
