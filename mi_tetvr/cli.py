@@ -342,7 +342,7 @@ def cmd_refine(a):
 
 
 def cmd_viewpoint(a):
-    mi = _set_variant(a.variant)
+    _set_variant(a.variant)
     import json
     import warnings
 

@@ -3,14 +3,13 @@ orthographic (parallel-beam) camera, the X-ray data format, the ``absorption``
 tet model rendering it, and a fit of an attenuation from projections."""
 import json
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 
 import mi_tetvr
-from mi_tetvr.grid.volume import Volume, make_volume
-from mi_tetvr.grid.xray import line_integrals, make_xray_dataset, xray_cameras
+from mi_tetvr.grid.volume import make_volume
+from mi_tetvr.grid.xray import line_integrals, make_xray_dataset
 from mi_tetvr.mesh.initial import grid_init
 from mi_tetvr.mesh.sample import sample_field
 from mi_tetvr.recon.camera import Camera

@@ -15,7 +15,7 @@ from mi_tetvr.recon.fields import TransferFunctionField
 from mi_tetvr.recon.pipeline import run
 from mi_tetvr.recon.synthetic import make_mesh_dataset
 from mi_tetvr.recon.trainer import Trainer
-from mi_tetvr.transfer import TransferFunction, read_transfer_function, write_json
+from mi_tetvr.transfer import TransferFunction, write_json
 
 R = 8
 
