@@ -347,6 +347,7 @@ def cmd_viewpoint(a):
     import warnings
 
     import mi_tetvr
+    from mi_tetvr.mesh.topology import bounding_radius
     from mi_tetvr.render.viewpoint import (ViewpointSearch, best_viewpoint, default_starts,
                                            orbit_scene, plot_viewpoints)
     from tqdm import tqdm
@@ -360,7 +361,7 @@ def cmd_viewpoint(a):
         except (ValueError, FileNotFoundError, KeyError) as e:
             sys.exit(f"mi-tetvr: {e}")
     lo, hi = mesh.bounds
-    radius = float(np.linalg.norm(hi - lo)) / 2
+    radius = bounding_radius(mesh.vertices)
     fov = 40.0
     shape = {"type": "tetmesh", "filename": str(path.resolve()), "repair": a.repair}
     if a.tf:

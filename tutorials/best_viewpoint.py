@@ -57,6 +57,7 @@ def main(argv=None):
     a = parse_args(argv)
     mi.set_variant(a.variant)
     import mi_tetvr  # noqa: F401  (registers the plugins)
+    from mi_tetvr.mesh.topology import bounding_radius
     from mi_tetvr.render.viewpoint import (ViewpointSearch, best_viewpoint, default_starts,
                                            orbit_scene, plot_viewpoints)
     out = Path(a.out)
@@ -69,7 +70,7 @@ def main(argv=None):
     lo, hi = mesh.bounds
     shape = {"type": "tetmesh", "filename": str(mesh_path.resolve()),
              "transfer_function": str(Path(a.tf).resolve()),
-             "opacity_scale": 4.0 / (float(np.linalg.norm(hi - lo)) / 2)}   # per mesh radius
+             "opacity_scale": 4.0 / bounding_radius(mesh.vertices)}   # per mesh radius
     if a.scalar:
         shape["scalar_attribute"] = a.scalar
     scene, centre, distance = orbit_scene(shape, (lo, hi), a.res)

@@ -246,6 +246,14 @@ def edge_lengths(vertices, tets):
     return np.linalg.norm(_edge_vectors(vertices, tets), axis=-1)
 
 
+def bounding_radius(points) -> float:
+    """Half the diagonal of the box around ``points`` (k, 3) (a (2, 3) box
+    itself works too): the unit in which a scalar mesh's transfer-function
+    opacity is given (``opacity_scale`` per mesh radius)."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    return float(np.linalg.norm(p.max(0) - p.min(0))) / 2
+
+
 def mean_edge_length(vertices, tets) -> float:
     """Mean of :func:`edge_lengths` over all tets and their six edges (an
     edge shared by ``k`` tets counts ``k`` times): the mesh's cell size.

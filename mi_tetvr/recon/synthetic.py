@@ -23,10 +23,11 @@ def mesh_cameras(bounds, views, test_views, res=256, fov=40.0, seed=0, up=(0.0, 
     """Training cameras on a Fibonacci sphere and random test cameras around
     the box ``bounds`` (2, 3), at the distance where the box's bounding sphere
     fills ``fov`` (degrees). Returns ``(train, test)`` lists of Camera."""
+    from mi_tetvr.mesh.topology import bounding_radius
     from mi_tetvr.recon.camera import fibonacci_cameras, random_cameras
     lo, hi = np.asarray(bounds, np.float64)
-    centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2
-    distance = 1.05 * radius / np.sin(np.radians(fov / 2))
+    centre = (lo + hi) / 2
+    distance = 1.05 * bounding_radius(bounds) / np.sin(np.radians(fov / 2))
     train = fibonacci_cameras(views, distance, res, fov, up=up, target=centre)
     test = random_cameras(test_views, distance, res, fov, seed=seed, up=up, target=centre) \
         if test_views else []
@@ -67,14 +68,14 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
     from tqdm import tqdm
 
     from mi_tetvr.mesh.io import choose_scalar, read_tetmesh
+    from mi_tetvr.mesh.topology import bounding_radius
     from mi_tetvr.recon.datasets import Dataset, View, write_nerf
     mesh_path, tf_path = Path(mesh_path).resolve(), Path(tf_path).resolve()
     mesh = read_tetmesh(mesh_path, color=None, opacity=None)
     name = choose_scalar(mesh.point_data, scalar, str(mesh_path), mesh.cell_data)
     values = np.asarray(mesh.point_data[name], np.float64)
     lo, hi = mesh.bounds
-    radius = float(np.linalg.norm(hi - lo)) / 2
-    extinction = float(opacity_scale) / radius
+    extinction = float(opacity_scale) / bounding_radius(mesh.vertices)
     train, test = mesh_cameras((lo, hi), views, test_views, res, fov, seed)
     scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetvr"},
                           "volume": {"type": "tetmesh", "filename": str(mesh_path),

@@ -22,7 +22,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_tetvr.color import linear_to_srgb
-from mi_tetvr.mesh.topology import mean_edge_length
+from mi_tetvr.mesh.topology import bounding_radius, mean_edge_length
 from mi_tetvr.recon.config import FitConfig
 from mi_tetvr.recon.fields import MESH_ID, key, make_field
 from mi_tetvr.recon.metrics import composite, display_rgb, image_metrics, transmittance_metrics
@@ -115,7 +115,7 @@ class Trainer:
         self.h = mean_edge_length(vertices, self.tets)
         n = len(vertices)
         #: Half the mesh's box diagonal (the unit of a known transfer function's opacity).
-        self.radius = float(np.linalg.norm(np.ptp(np.asarray(vertices, np.float64), axis=0))) / 2
+        self.radius = bounding_radius(vertices)
         self.field = make_field(config, self.h, values, self.tets, self.radius)
         values = {**self.field.initial(n), **(values or {})}
         scene = {"type": "scene", "integrator": {"type": "tetvr", "n_sub": config.n_sub},

@@ -125,9 +125,10 @@ def orbit_scene(shape, bounds, res=128, fov=40.0):
     ``fov`` (degrees). Returns ``(scene, centre, distance)``: the box
     ``bounds``' centre and the distance at which its bounding sphere fills the
     view (what :class:`ViewpointSearch` takes)."""
+    from mi_tetvr.mesh.topology import bounding_radius
     lo, hi = np.asarray(bounds, np.float64)
-    centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2
-    distance = 1.05 * radius / math.sin(math.radians(fov / 2))
+    centre = (lo + hi) / 2
+    distance = 1.05 * bounding_radius(bounds) / math.sin(math.radians(fov / 2))
     scene = mi.load_dict({
         "type": "scene", "integrator": {"type": "tetvr"},
         "sensor": {"type": "perspective", "fov": fov,

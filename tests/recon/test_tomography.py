@@ -157,7 +157,9 @@ def test_attenuation_fit_recovers_the_volume(tmp_path):
     pts = np.random.default_rng(0).uniform(lo, hi, (2000, 3))
     truth = made["info"]["attenuation_scale"] * vol.sample(pts)
     fitted = sample_field(mesh.vertices, mesh.tets, mesh.opacity, pts)
-    start = cfg.init_opacity / (np.max(hi - lo) / 4)
+    from mi_tetvr.mesh.topology import mean_edge_length
+    coarse = grid_init(np.stack([lo, hi]), 4)
+    start = cfg.init_opacity / mean_edge_length(*coarse)     # the fit's flat start
     err, err0 = np.sqrt(np.mean((fitted - truth) ** 2)), np.sqrt(np.mean((start - truth) ** 2))
     assert err < 0.35 * err0, (err, err0)
     assert m["mean"]["psnr"] > 35.0, m["mean"]
@@ -218,3 +220,13 @@ def test_cone_beam_projections_match_the_absorption_render(tmp_path):
     img = np.array(mi.render(scene, sensor=mi.load_dict(d), spp=1))
     assert view.image[..., 3].max() > 0.5
     np.testing.assert_allclose(img[..., 3], view.image[..., 3], atol=2e-5)
+
+
+def test_frusta_bounds_of_orthographic_cameras():
+    """Two parallel-beam cameras looking along x and along y: the region both
+    see is the box their slabs cut (the hull's start for X-ray data)."""
+    from mi_tetvr.recon.hull import frusta_bounds
+    a = Camera.orthographic([5, 0, 0], [0, 0, 0], [0, 0, 1], 20, 10, 0.1)   # y in [-1, 1]
+    b = Camera.orthographic([0, 5, 0], [0, 0, 0], [0, 0, 1], 30, 10, 0.1)   # x in [-1.5, 1.5]
+    box = frusta_bounds([a, b])
+    np.testing.assert_allclose(box, [[-1.5, -1.0, -0.5], [1.5, 1.0, 0.5]], atol=1e-6)
