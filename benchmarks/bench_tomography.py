@@ -62,6 +62,16 @@ def parse_args(argv=None):
                    help="attenuation learning rate, optical depth per cell (default 0.02)")
     p.add_argument("--smoothing", type=float, default=0.3,
                    help="weight of the 3D smoothing prior (default 0.3)")
+    p.add_argument("--decay", type=float, default=0.1,
+                   help="final learning rate over the first (default 0.1)")
+    p.add_argument("--views-per-step", type=int, default=8, help="(default 8)")
+    p.add_argument("--adaptive", metavar="R,F",
+                   help="instead of the uniform grid: a grid of R cells (half of it for a sixth "
+                   "of the steps first), the top fraction F of its vertices split by gradient "
+                   "after another third")
+    p.add_argument("--self-consistent", action="store_true",
+                   help="replace the projections by what the tet grid holding the true values "
+                   "renders (the tets' own model: isolates its mismatch with the trilinear data)")
     p.add_argument("--slices", help="PNG of the middle slice: truth | FBP | SART | tets")
     p.add_argument("--out", help="folder for the data set and the fit (default: a temp folder)")
     a = p.parse_args(argv)
@@ -103,6 +113,28 @@ def projection_psnr(volume, views, scale):
     return -10 * np.log10(mse)
 
 
+def tet_model_projections(volume, data, scale):
+    """Replace every view's image by the render of the tet grid (one vertex per
+    sample, the box a thousandth of a voxel larger) holding the true
+    attenuation: projections the tets' own model makes exactly."""
+    import mitsuba as mi
+
+    import mi_tetvr
+    from mi_tetvr.mesh.initial import grid_init
+    lo, hi = volume.bounds()
+    s = float(volume.spacing[0])
+    bounds = np.stack([lo - 1e-3 * s, hi + 1e-3 * s])
+    V, T = grid_init(bounds, equal_resolution(bounds, volume.values.size))
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetvr"},
+                          "v": mi_tetvr.tetmesh_dict(V, T, model="absorption",
+                                                     opacity=scale * volume.sample(
+                                                         np.clip(V, lo, hi)))})
+    for view in data.train + data.test:
+        d = view.camera.sensor_dict(sampler="stratified")
+        d["sampler"]["jitter"] = False
+        view.image = np.array(mi.render(scene, sensor=mi.load_dict(d), spp=1), np.float32)
+
+
 def equal_resolution(bounds, unknowns):
     """The finest tet grid over ``bounds`` with at most ``unknowns`` vertices."""
     from mi_tetvr.mesh.initial import grid_shape
@@ -129,6 +161,8 @@ def main(a):
                              progress=False)
     scale = made["info"]["attenuation_scale"]
     data = load_dataset(out / "data")
+    if a.self_consistent:
+        tet_model_projections(volume, data, scale)
     cam = data.train[0].camera
     truth = volume.values.astype(np.float64)
     unknowns = truth.size
@@ -144,10 +178,16 @@ def main(a):
     s = float(volume.spacing[0])
     bounds = np.stack([lo - 1e-3 * s, hi + 1e-3 * s])
     r = equal_resolution(bounds, unknowns)
+    stages = [{"iterations": a.steps // 4, "grid": r // 2},
+              {"iterations": a.steps - a.steps // 4, "grid": r}]
+    if a.adaptive:
+        r, fraction = int(a.adaptive.split(",")[0]), float(a.adaptive.split(",")[1])
+        stages = [{"iterations": a.steps // 6, "grid": r // 2},
+                  {"iterations": a.steps // 3, "grid": r, "split": fraction},
+                  {"iterations": a.steps - a.steps // 6 - a.steps // 3}]
     cfg = FitConfig(model="absorption", init="grid", resolution=r, bounds=bounds.tolist(),
-                    stages=[{"iterations": a.steps // 4, "grid": r // 2},
-                            {"iterations": a.steps - a.steps // 4, "grid": r}],
-                    views_per_step=8, lr_opacity=a.lr, smoothing=a.smoothing)
+                    stages=stages, views_per_step=a.views_per_step, lr_opacity=a.lr,
+                    smoothing=a.smoothing, decay=a.decay)
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
