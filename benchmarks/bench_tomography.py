@@ -116,7 +116,8 @@ def projection_psnr(volume, views, scale):
 def tet_model_projections(volume, data, scale):
     """Replace every view's image by the render of the tet grid (one vertex per
     sample, the box a thousandth of a voxel larger) holding the true
-    attenuation: projections the tets' own model makes exactly."""
+    attenuation: projections the tets' own model makes exactly. Returns the
+    largest transmittance difference to the trilinear projections."""
     import mitsuba as mi
 
     import mi_tetvr
@@ -129,10 +130,14 @@ def tet_model_projections(volume, data, scale):
                           "v": mi_tetvr.tetmesh_dict(V, T, model="absorption",
                                                      opacity=scale * volume.sample(
                                                          np.clip(V, lo, hi)))})
+    largest = 0.0
     for view in data.train + data.test:
         d = view.camera.sensor_dict(sampler="stratified")
         d["sampler"]["jitter"] = False
-        view.image = np.array(mi.render(scene, sensor=mi.load_dict(d), spp=1), np.float32)
+        image = np.array(mi.render(scene, sensor=mi.load_dict(d), spp=1), np.float32)
+        largest = max(largest, float(np.abs(image[..., 3] - view.image[..., 3]).max()))
+        view.image = image
+    return largest
 
 
 def equal_resolution(bounds, unknowns):
@@ -162,7 +167,9 @@ def main(a):
     scale = made["info"]["attenuation_scale"]
     data = load_dataset(out / "data")
     if a.self_consistent:
-        tet_model_projections(volume, data, scale)
+        diff = tet_model_projections(volume, data, scale)
+        print(f"projections replaced by the tet model's (the true values on the tet grid): "
+              f"they differ from the trilinear ones by at most {diff:.1e} in transmittance")
     cam = data.train[0].camera
     truth = volume.values.astype(np.float64)
     unknowns = truth.size
