@@ -62,6 +62,7 @@ import mitsuba as mi
 from mi_tetvr.render.adjoint import Adjoint
 from mi_tetvr.render.buffers import index_buffers, scene_tetmeshes, tet_scene
 from mi_tetvr.render.replay import PrimalStates, derivative_seed
+from mi_tetvr.render.surfaces import DEFAULT_SURFACES, NestedIntegrator, SceneParts
 from mi_tetvr.render.walk import WalkSettings, trace
 
 
@@ -90,6 +91,16 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         self.n_sub = n_sub
         self.settings = WalkSettings(t_min, max_steps, reduce=modes[reduce])
         self.alpha = bool(props.get("alpha", True))
+        nested = None
+        for name, obj in props.objects():
+            if name != "surfaces":
+                raise ValueError(f"tetvr: unknown child {name!r} ({type(obj).__name__}); the "
+                                 f"only child is the integrator of the surfaces, named "
+                                 f"'surfaces' (e.g. <integrator type=\"prb\" name=\"surfaces\"/>)")
+            nested = obj
+        self.surfaces = NestedIntegrator(nested if nested is not None
+                                         else mi.load_dict(DEFAULT_SURFACES))
+        self.parts = SceneParts()
         self._index_cache = None
         self._states = PrimalStates()
         self._record = None    # (key, inputs) while render() runs with gradients enabled
@@ -132,7 +143,10 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
             sensor = scene.sensors()[sensor]
         with dr.resume_grad():
             inputs = self.differentiable_inputs(scene)
-            tracked = any(dr.grad_enabled(x) for x in inputs)
+            # (with surfaces, the nested integrator samples paths: the derivative
+            # pass renders its own primal with its own seed, as Mitsuba does)
+            tracked = (any(dr.grad_enabled(x) for x in inputs)
+                       and self.parts.split(scene)[2] is None)
         if tracked:
             self._record = (PrimalStates.key(scene, sensor, derivative_seed(seed), spp),
                             int(seed), [dr.detach(x) for x in inputs])
@@ -188,58 +202,88 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
                             s.reduce)
 
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
+        primal = mode == dr.ADMode.Primal
+        tets, walk_scene, surfaces = self.parts.split(scene)
         # Derivative modes read the parameters with AD resumed (the caller,
         # e.g. render_backward, suspends it): the per-segment recomputation
         # inside the walk needs their AD graph; the walk itself runs detached.
-        with dr.resume_grad(when=mode != dr.ADMode.Primal):
-            ts = self.tet_scene(scene)
+        with dr.resume_grad(when=not primal):
+            ts = self.tet_scene(scene) if tets else None
             # A differentiable camera: rays attached to the sensor's parameters.
-            camera = mode != dr.ADMode.Primal and (dr.grad_enabled(ray.o) or
-                                                    dr.grad_enabled(ray.d))
+            camera = not primal and (dr.grad_enabled(ray.o) or dr.grad_enabled(ray.d))
         settings = self.settings_for(scene)
         ray_ad = ray
         ray = mi.Ray3f(dr.detach(ray))
         ray.d = dr.normalize(ray.d)
         active = mi.Bool(active)
-        bg = self.background(scene, ray.d, active)
-        if mode == dr.ADMode.Primal:
+        nested_ray = mi.Ray3f(ray)
+        hit = mi.Bool(False)
+        if surfaces is not None:
+            # The volume is integrated up to the first surface.
+            si = surfaces.ray_intersect_preliminary(ray, active=active)
+            hit = active & si.is_valid()
+            ray.maxt = dr.select(hit, si.t, ray.maxt)
+        if primal:
             if self._replay is not None and dr.width(self._replay[1]) == dr.width(ray):
                 L, T = self._replay
+                state = (L, T)
             else:
-                C, T, _, _ = trace(mode, scene, ts, ray, settings, active)
-                L = C + T * bg
-                if self._record is not None:
-                    key, primal_seed, inputs = self._record
-                    self._states.put(key, primal_seed, (L, T), inputs)
-            return L, mi.Bool(True), [1.0 - T] if self.alpha else [], (L, T)
+                C, T = self.volume(walk_scene, ts, ray, settings, active)
+                if surfaces is None:
+                    L = C + T * self.background(scene, ray.d, active)
+                    state = (L, T)
+                    if self._record is not None:
+                        key, primal_seed, inputs = self._record
+                        self._states.put(key, primal_seed, (L, T), inputs)
+                else:
+                    Ls, nested_state = self.surfaces.primal(surfaces, sampler, nested_ray,
+                                                            active)
+                    L = C + T * Ls
+                    state = (L, T, nested_state)
+            alpha = dr.select(hit, 1.0, 1.0 - T)
+            return L, mi.Bool(True), [alpha] if self.alpha else [], state
         if state_in is None:
             raise ValueError("tetvr: the derivative modes need the primal pass's state_in")
-        L_pix, T_fin = state_in
+        L_pix, T_fin = state_in[0], state_in[1]
         δaovs = kwargs.get("δaovs", None)
         δalpha = mi.Float(δaovs[0]) if (self.alpha and δaovs) else mi.Float(0.0)
-        if camera and mode == dr.ADMode.Forward:
-            # The rays' tangents, carried into every crossing's tangent.
-            with dr.resume_grad():
-                ts.ray_tangent = tuple(dr.detach(x) for x in dr.forward_to(
-                    ray_ad.o, dr.normalize(ray_ad.d),
-                    flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad))
+        # Where a surface is hit, alpha is 1 whatever the volume.
+        δalpha = dr.select(hit, 0.0, δalpha)
         zero = mi.Vector3f(0.0)
         if mode == dr.ADMode.Backward:
             adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(δL), δalpha, zero, zero)
         else:
             adj = Adjoint(mi.Color3f(L_pix), mi.Float(T_fin), mi.Color3f(0.0), mi.Float(0.0),
                           zero, zero)
-        ts.camera = camera
-        # The background term T * env(d): its derivative w.r.t. the
-        # environment's parameters (e.g. a learned envmap's texels), taken
-        # before the walk's forward mode consumes the input tangents.
-        with dr.resume_grad():
-            seen = mi.Float(T_fin) * self.background(scene, ray.d, active)
-            if mode == dr.ADMode.Backward and dr.grad_enabled(seen):
-                dr.backward_from(seen * mi.Color3f(δL))
-            d_seen = dr.forward_to(seen, flags=dr.ADFlag.ClearEdges) \
-                if mode == dr.ADMode.Forward and dr.grad_enabled(seen) else 0.0
-        _, _, _, adj = trace(mode, scene, ts.detached(), ray, settings, active, adj, ts_ad=ts)
+        d_seen = 0.0
+        if surfaces is None:
+            # The background term T * env(d): its derivative w.r.t. the
+            # environment's parameters (e.g. a learned envmap's texels), taken
+            # before the walk's forward mode consumes the input tangents.
+            with dr.resume_grad():
+                seen = mi.Float(T_fin) * self.background(scene, ray.d, active)
+                if mode == dr.ADMode.Backward and dr.grad_enabled(seen):
+                    dr.backward_from(seen * mi.Color3f(δL))
+                if mode == dr.ADMode.Forward and dr.grad_enabled(seen):
+                    d_seen = dr.forward_to(seen, flags=dr.ADFlag.ClearEdges)
+        else:
+            # The surfaces seen through the volume: T times their own derivative.
+            d_seen = self.surfaces.derivative(
+                mode, surfaces, sampler, nested_ray,
+                mi.Color3f(δL) * T_fin if mode == dr.ADMode.Backward else None,
+                state_in[2], active)
+            if mode == dr.ADMode.Forward:
+                d_seen = T_fin * d_seen
+        if ts is not None:
+            if camera and mode == dr.ADMode.Forward:
+                # The rays' tangents, carried into every crossing's tangent.
+                with dr.resume_grad():
+                    ts.ray_tangent = tuple(dr.detach(x) for x in dr.forward_to(
+                        ray_ad.o, dr.normalize(ray_ad.d),
+                        flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad))
+            ts.camera = camera
+            _, _, _, adj = trace(mode, walk_scene, ts.detached(), ray, settings, active, adj,
+                                 ts_ad=ts)
         if mode == dr.ADMode.Backward:
             if camera:
                 # The ray's gradient into the sensor: the origin's as is, the
@@ -250,12 +294,21 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
                         dr.normalize(ray_ad.d), dr.cross(adj.g_w, ray.d)))
             return mi.Color3f(0.0), mi.Bool(True), [], None
         dL = adj.dL + d_seen
-        return dL, mi.Bool(True), [adj.dalpha] if self.alpha else [], None
+        dalpha = dr.select(hit, 0.0, adj.dalpha)
+        return dL, mi.Bool(True), [dalpha] if self.alpha else [], None
+
+    def volume(self, walk_scene, ts, ray, settings, active):
+        """``(C, T)``: emission and transmittance of the tet meshes along
+        ``ray`` up to ``ray.maxt`` (none without tet meshes)."""
+        if ts is None:
+            return mi.Color3f(0.0), dr.full(mi.Float, 1.0, dr.width(ray.o))
+        C, T, _, _ = trace(dr.ADMode.Primal, walk_scene, ts, ray, settings, active)
+        return C, T
 
     def to_string(self):
         s = self.settings
         return (f"TetVRIntegrator[n_sub={self.n_sub}, min_transmittance={s.t_min}, "
-                f"max_steps={s.max_steps}]")
+                f"max_steps={s.max_steps}, surfaces={self.surfaces!r}]")
 
 
 mi.register_integrator("tetvr", lambda props: TetVRIntegrator(props))

@@ -60,15 +60,29 @@ def make_scene(*meshes, background=None, **integrator):
     return mi.load_dict(d)
 
 
-def render_rays(scene, origins, directions):
-    """Run tetvr.sample() on explicit rays; returns rgb (k, 3), alpha (k,)."""
-    import drjit as dr
+def seeded_sampler(k, seed=0):
+    """An ``independent`` sampler seeded for ``k`` rays (the same numbers
+    for the same seed)."""
+    import mitsuba as mi
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(seed, k)
+    return sampler
+
+
+def make_rays(origins, directions):
+    """``mi.Ray3f`` of (k, 3) origins and directions (normalized here)."""
     import mitsuba as mi
     o = np.asarray(origins, np.float32)
     d = np.asarray(directions, np.float64)
     d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
-    ray = mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T))
-    L, _, aovs, _ = scene.integrator().sample(dr.ADMode.Primal, scene, None, ray,
+    return mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T))
+
+
+def render_rays(scene, origins, directions, sampler=None):
+    """Run tetvr.sample() on explicit rays; returns rgb (k, 3), alpha (k,)."""
+    import drjit as dr
+    ray = make_rays(origins, directions)
+    L, _, aovs, _ = scene.integrator().sample(dr.ADMode.Primal, scene, sampler, ray,
                                               None, None, True)
     return np.array(L).reshape(3, -1).T.astype(np.float64), np.array(aovs[0], np.float64)
 
@@ -87,25 +101,28 @@ class Problem:
     given directions (forward mode) and central differences.
 
     ``mesh`` is ``(V, T, color, opacity)`` for :func:`make_scene`, or
-    ``scene`` a loaded scene; ``keys`` the parameters differentiated.
+    ``scene`` a loaded scene; ``keys`` the parameters differentiated (Float
+    or Color3f parameters); ``sampled``: every pass gets a sampler seeded
+    alike (scenes with surfaces).
     """
 
     def __init__(self, mesh, o, d, rng, scene=None,
                  keys=("mesh0.vertex_color", "mesh0.vertex_opacity",
-                       "mesh0.vertex_positions")):
+                       "mesh0.vertex_positions"), sampled=False):
         import mitsuba as mi
         self.mesh, self.keys = mesh, tuple(keys)
         self.scene = make_scene(mesh) if scene is None else scene
         self.params = mi.traverse(self.scene)
         self.integrator = self.scene.integrator()
-        o, d = np.asarray(o, np.float32), np.asarray(d, np.float64)
-        d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
-        self.ray = mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T))
+        self.ray = make_rays(o, d)
+        self.sampled = sampled
         self.wL = rng.normal(size=(len(o), 3))
         self.wa = rng.normal(size=len(o))
 
     def sample(self, mode, **kw):
-        return self.integrator.sample(mode, self.scene, None, self.ray, active=True, **kw)
+        import drjit as dr
+        sampler = seeded_sampler(dr.width(self.ray)) if self.sampled else None
+        return self.integrator.sample(mode, self.scene, sampler, self.ray, active=True, **kw)
 
     def objective(self):
         import drjit as dr
@@ -123,7 +140,7 @@ class Problem:
             _, _, _, state = self.sample(dr.ADMode.Primal, δL=None, state_in=None)
             self.sample(dr.ADMode.Backward, δL=mi.Color3f(*self.wL.T), state_in=state,
                         δaovs=[mi.Float(self.wa)])
-        grads = {k: np.array(dr.grad(self.params[k]), np.float64) for k in self.keys}
+        grads = {k: np.array(dr.grad(self.params[k]), np.float64).ravel() for k in self.keys}
         self.disable()
         return grads
 
@@ -133,7 +150,7 @@ class Problem:
         import mitsuba as mi
         for k, v in directions.items():
             dr.enable_grad(self.params[k])
-            dr.set_grad(self.params[k], mi.Float(v))
+            dr.set_grad(self.params[k], self._typed(k, v))
         with dr.suspend_grad():
             _, _, _, state = self.sample(dr.ADMode.Primal, δL=None, state_in=None)
             δL, _, δaovs, _ = self.sample(dr.ADMode.Forward, δL=None, state_in=state)
@@ -148,19 +165,25 @@ class Problem:
 
     def central(self, key, direction, h):
         """Central difference of the objective along ``direction``."""
-        import mitsuba as mi
-        base = np.array(self.params[key])
+        base = np.array(self.params[key], np.float64).ravel()
         vals = []
         for sign in (1, -1):
-            self.params[key] = mi.Float(base + sign * h * np.asarray(direction))
+            self.params[key] = self._typed(key, base + sign * h * np.asarray(direction))
             self.params.update()
             vals.append(self.objective())
-        self.params[key] = mi.Float(base)
+        self.params[key] = self._typed(key, base)
         self.params.update()
         return (vals[0] - vals[1]) / (2 * h)
 
+    def _typed(self, key, values):
+        """Flat ``values`` as the type of parameter ``key`` (Float, or one Color3f)."""
+        import mitsuba as mi
+        cls = type(self.params[key])
+        values = np.asarray(values, np.float64)
+        return mi.Float(values) if cls is mi.Float else cls(*values.tolist())
+
     def finite_difference(self, key, index, h):
         """Central difference w.r.t. one entry of a parameter."""
-        e = np.zeros(len(np.array(self.params[key])))
+        e = np.zeros(np.array(self.params[key]).size)
         e[index] = 1.0
         return self.central(key, e, h)

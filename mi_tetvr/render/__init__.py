@@ -13,7 +13,9 @@ Modules, from the bottom up:
   interpolates, how a segment is integrated);
 * :mod:`~mi_tetvr.render.walk`: the traversal (boundary entry, the walk,
   re-entry, a start point inside a mesh);
-* :mod:`~mi_tetvr.render.adjoint`: the derivative modes of the walk.
+* :mod:`~mi_tetvr.render.adjoint`: the derivative modes of the walk;
+* :mod:`~mi_tetvr.render.surfaces`: the other shapes of a scene, rendered
+  by a nested integrator and seen through the volume.
 
 The ``tetmesh`` shape and ``tetvr`` integrator (``mi_tetvr.plugins``) are thin
 wrappers over these. Importing this package needs a Mitsuba variant
@@ -35,6 +37,7 @@ from mi_tetvr.render.geometry import (crossing, edge_function, face_crossing,  #
                                       walk_step)
 from mi_tetvr.render.optical import Absorption, EmissionAbsorption, OpticalModel  # noqa: E402
 from mi_tetvr.render.segment import clip_segment, interval_terms, segment_integral  # noqa: E402
+from mi_tetvr.render.surfaces import NestedIntegrator, SceneParts, split_shapes  # noqa: E402
 from mi_tetvr.render.walk import WalkSettings, locate, trace, walk  # noqa: E402
 
 __all__ = [
@@ -45,5 +48,6 @@ __all__ = [
     "ray_frame", "tet_face", "walk_step",
     "Absorption", "EmissionAbsorption", "OpticalModel",
     "clip_segment", "interval_terms", "segment_integral",
+    "NestedIntegrator", "SceneParts", "split_shapes",
     "WalkSettings", "locate", "trace", "walk",
 ]

@@ -17,6 +17,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_tetvr.render.surfaces import split_shapes
+
 
 def pack_links(tets, faces):
     """Links ``4 * tet + face`` (int64), ``-1`` where ``tets < 0``.
@@ -138,13 +140,9 @@ class MeshBuffers:
 
 
 def scene_tetmeshes(scene):
-    """The scene's ``tetmesh`` shapes; any other shape is an error."""
-    shapes = list(scene.shapes())
-    others = [s for s in shapes if not hasattr(s, "tet_buffers")]
-    if others:
-        raise ValueError(f"tetvr renders only 'tetmesh' shapes; the scene also contains "
-                         f"{[type(s).__name__ + ':' + s.id() for s in others]}")
-    return shapes
+    """The scene's ``tetmesh`` shapes (its other shapes are surfaces:
+    :mod:`mi_tetvr.render.surfaces`)."""
+    return split_shapes(scene)[0]
 
 
 def index_buffers(shapes):
