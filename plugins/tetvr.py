@@ -60,7 +60,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.render.adjoint import Adjoint
-from mi_tetvr.render.buffers import index_buffers, scene_tetmeshes, tet_scene
+from mi_tetvr.render.buffers import index_buffers, model_groups, scene_tetmeshes, tet_scene
 from mi_tetvr.render.replay import PrimalStates, derivative_seed
 from mi_tetvr.render.surfaces import DEFAULT_SURFACES, NestedIntegrator, SceneParts
 from mi_tetvr.render.walk import WalkSettings, trace
@@ -109,16 +109,24 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
     def aov_names(self):
         return ["alpha"] if self.alpha else []
 
-    def tet_scene(self, scene):
-        """The :class:`~mi_tetvr.render.buffers.TetScene` the walk reads: index
-        buffers cached per set of shapes, positions and the optical model's
-        parameters read afresh (they change under optimization)."""
-        shapes = scene_tetmeshes(scene)
-        key = tuple(id(s.tet_buffers) for s in shapes)
+    def tet_scenes(self, scene):
+        """The :class:`~mi_tetvr.render.buffers.TetScene` of each group of
+        tet meshes that one walk renders (an optical model,
+        :func:`~mi_tetvr.render.buffers.model_groups`): index buffers cached
+        per set of shapes, positions and the optical model's parameters read
+        afresh (they change under optimization)."""
+        groups = model_groups(scene_tetmeshes(scene))
+        key = tuple(tuple(id(s.tet_buffers) for s in g) for g in groups)
         if self._index_cache is None or self._index_cache[0] != key:
-            self._index_cache = (key, *index_buffers(shapes))
-        _, idx, offsets = self._index_cache
-        return tet_scene(shapes, idx, offsets, n_sub=self.n_sub)
+            self._index_cache = (key, [index_buffers(g) for g in groups])
+        return [tet_scene(g, idx, offsets, n_sub=self.n_sub)
+                for g, (idx, offsets) in zip(groups, self._index_cache[1])]
+
+    def tet_scene(self, scene):
+        """The one :class:`~mi_tetvr.render.buffers.TetScene` of a scene whose
+        tet meshes share one walk (see :meth:`tet_scenes`)."""
+        (ts,) = self.tet_scenes(scene)
+        return ts
 
     @staticmethod
     def differentiable_inputs(scene):
@@ -208,7 +216,7 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         # e.g. render_backward, suspends it): the per-segment recomputation
         # inside the walk needs their AD graph; the walk itself runs detached.
         with dr.resume_grad(when=not primal):
-            ts = self.tet_scene(scene) if tets else None
+            ts = self.tet_scenes(scene) if tets else None
             # A differentiable camera: rays attached to the sensor's parameters.
             camera = not primal and (dr.grad_enabled(ray.o) or dr.grad_enabled(ray.d))
         settings = self.settings_for(scene)
@@ -275,15 +283,17 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
             if mode == dr.ADMode.Forward:
                 d_seen = T_fin * d_seen
         if ts is not None:
+            tangent = None
             if camera and mode == dr.ADMode.Forward:
                 # The rays' tangents, carried into every crossing's tangent.
                 with dr.resume_grad():
-                    ts.ray_tangent = tuple(dr.detach(x) for x in dr.forward_to(
+                    tangent = tuple(dr.detach(x) for x in dr.forward_to(
                         ray_ad.o, dr.normalize(ray_ad.d),
                         flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad))
-            ts.camera = camera
-            _, _, _, adj = trace(mode, walk_scene, ts.detached(), ray, settings, active, adj,
-                                 ts_ad=ts)
+            for g in ts:
+                g.camera, g.ray_tangent = camera, tangent
+            _, _, _, adj = trace(mode, walk_scene, [g.detached() for g in ts], ray, settings,
+                                 active, adj, ts_ad=ts)
         if mode == dr.ADMode.Backward:
             if camera:
                 # The ray's gradient into the sensor: the origin's as is, the

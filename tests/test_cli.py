@@ -13,7 +13,8 @@ from mi_tetvr.mesh.io import write_tetmesh
 from mi_tetvr.mesh.tetmesh import TetMesh
 from mi_tetvr.mesh.scenes import make_scene_meshes
 
-SCENES = ["default", "transfer_function", "nonconvex", "two_meshes", "inside"]
+SCENES = ["default", "transfer_function", "nonconvex", "two_meshes", "inside", "on_floor",
+          "embedded", "two_models"]
 
 
 def run(*args):

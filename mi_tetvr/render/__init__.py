@@ -30,7 +30,8 @@ if _mi.variant() is None:
 from mi_tetvr.render.adjoint import Adjoint  # noqa: E402
 from mi_tetvr.render.camera import orbit_to_world  # noqa: E402
 from mi_tetvr.render.buffers import (MeshBuffers, TetScene, index_buffers,  # noqa: E402
-                                     offset_links, pack_links, scene_tetmeshes,
+                                     model_groups, offset_links, pack_links,
+                                     scene_tetmeshes,
                                      shape_index_arrays, tet_scene, unpack_link)
 from mi_tetvr.render.geometry import (crossing, edge_function, face_crossing,  # noqa: E402
                                       face_entry, face_weights, project, ray_frame, tet_face,
@@ -42,7 +43,7 @@ from mi_tetvr.render.walk import WalkSettings, locate, trace, walk  # noqa: E402
 
 __all__ = [
     "Adjoint", "orbit_to_world",
-    "MeshBuffers", "TetScene", "index_buffers", "offset_links", "pack_links",
+    "MeshBuffers", "TetScene", "index_buffers", "model_groups", "offset_links", "pack_links",
     "scene_tetmeshes", "shape_index_arrays", "tet_scene", "unpack_link",
     "crossing", "edge_function", "face_crossing", "face_entry", "face_weights", "project",
     "ray_frame", "tet_face", "walk_step",

@@ -207,8 +207,17 @@ class TetScene:
 
     def detached(self):
         """The same scene with its buffers detached from the AD graph."""
-        return TetScene(self.shapes, self.face_offsets, dr.detach(self.buf), self.model,
-                        dr.detach(self.params))
+        ts = TetScene(self.shapes, self.face_offsets, dr.detach(self.buf), self.model,
+                      dr.detach(self.params))
+        ts.camera, ts.ray_tangent = self.camera, self.ray_tangent
+        return ts
+
+    def owns(self, si):
+        """Whether a preliminary intersection is on one of :attr:`shapes`."""
+        mask = mi.Bool(False)
+        for shape in self.shapes:
+            mask |= si.shape == mi.ShapePtr(shape)
+        return mask
 
     def boundary_face(self, si):
         """Global boundary face index of a preliminary intersection."""
@@ -221,15 +230,34 @@ class TetScene:
         return idx + off
 
 
+def model_groups(shapes):
+    """The shapes in groups that one walk renders: the shapes of one optical
+    model share a group (their buffers concatenated), except models with
+    per-shape settings (``model.per_shape``: a transfer function's range and
+    texels), whose shapes each form their own. Groups keep the scene's order."""
+    groups, shared = [], {}
+    for s in shapes:
+        model = s.optical_model
+        if model.per_shape:
+            groups.append([s])
+        elif model in shared:
+            shared[model].append(s)
+        else:
+            shared[model] = [s]
+            groups.append(shared[model])
+    return groups
+
+
 def tet_scene(shapes, index, face_offsets, **model_options):
-    """The :class:`TetScene` of ``shapes`` from their concatenated index
-    buffers (:func:`index_buffers`); positions and the optical model's
-    parameters are read from the shapes (attached to their AD graph).
+    """The :class:`TetScene` of ``shapes`` (one group of
+    :func:`model_groups`) from their concatenated index buffers
+    (:func:`index_buffers`); positions and the optical model's parameters
+    are read from the shapes (attached to their AD graph).
     ``model_options`` go to the optical model's constructor."""
     models = {s.optical_model for s in shapes}
     if len(models) > 1:
-        raise ValueError(f"tetvr: all tetmesh shapes of a scene must use one optical "
-                         f"model, got {sorted(m.__name__ for m in models)}")
+        raise ValueError(f"tetvr: the shapes of one walk must use one optical model, got "
+                         f"{sorted(m.__name__ for m in models)} (see model_groups)")
     model = models.pop()(**model_options)
     buf = MeshBuffers(**index, positions=concat([s.vertex_positions_buffer() for s in shapes]))
     return TetScene(shapes, face_offsets, buf, model, model.read_params(shapes))

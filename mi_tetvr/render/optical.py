@@ -63,6 +63,9 @@ class OpticalModel:
     #: Whether the walk cuts a tet's segment into pieces where :meth:`cut`
     #: says (models whose attributes map to color and extinction nonlinearly).
     cuts = False
+    #: Whether the model takes settings from its shape (then each shape is
+    #: walked apart; else the shapes of one model share a walk).
+    per_shape = False
 
     def __init__(self, n_sub: int = 4):
         self.n_sub = int(n_sub)
@@ -206,6 +209,8 @@ class PostClassified(OpticalModel):
     vertex_attributes = (("vertex_scalar", 1),)
     #: The walk asks :meth:`cut` where to end each piece.
     cuts = True
+    #: Each shape has its own value range and texels.
+    per_shape = True
 
     def __init__(self, n_sub: int = 4, resolution: int = 256, value_range=(0.0, 1.0)):
         super().__init__(n_sub)
@@ -217,11 +222,11 @@ class PostClassified(OpticalModel):
         raise NotImplementedError("post-classified meshes take their scalar from the shape")
 
     def the_shape(self, shapes):
-        """The one post-classified shape of a scene (its value range and
-        texel count set on the model)."""
+        """The one shape of a walk of a post-classified model (its value
+        range and texel count set on the model)."""
         if len(shapes) != 1:
-            raise ValueError("tetvr: a scene with a post-classified tetmesh may contain only "
-                             f"that one tetmesh, got {len(shapes)}")
+            raise ValueError("tetvr: a post-classified walk renders one tetmesh, got "
+                             f"{len(shapes)} (see model_groups)")
         s = shapes[0]
         self.value_range, self.resolution = s.value_range, s.tf_resolution
         return s

@@ -177,8 +177,11 @@ def trace(mode, scene, ts, ray, settings: WalkSettings, active,
         ``Primal``, or ``Backward`` / ``Forward`` with ``adj`` and ``ts_ad``
         (the scene's buffers attached to the AD graph) set.
     scene : mi.Scene
-        Its shapes must be exactly ``ts.shapes`` (the tet meshes' boundaries).
-    ts : mi_tetvr.render.buffers.TetScene
+        Its shapes must be exactly the tet meshes of ``ts`` (their boundaries).
+    ts : mi_tetvr.render.buffers.TetScene, or a list of them
+        One per group of shapes that one walk renders (an optical model:
+        :func:`~mi_tetvr.render.buffers.model_groups`); ``ts_ad`` alike.
+        Each boundary hit is walked in its own group's mesh.
     ray : mi.Ray3f
         Normalized direction; ``ray.maxt`` bounds the integral.
 
@@ -189,7 +192,9 @@ def trace(mode, scene, ts, ray, settings: WalkSettings, active,
         the number of tets crossed, and ``adj`` (forward mode: with the
         tangents accumulated).
     """
-    buf = ts.buf
+    groups = list(ts) if isinstance(ts, (list, tuple)) else [ts]
+    groups_ad = (list(ts_ad) if isinstance(ts_ad, (list, tuple)) else [ts_ad]) \
+        if ts_ad is not None else [None] * len(groups)
     o = mi.Point3f(ray.o)
     d = mi.Vector3f(ray.d)
     t_max = mi.Float(ray.maxt)
@@ -203,12 +208,18 @@ def trace(mode, scene, ts, ray, settings: WalkSettings, active,
         si = scene.ray_intersect_preliminary(mi.Ray3f(o + d * start, d, t_max - start),
                                              active=active)
         hit = active & si.is_valid()
-        tet, f, outward = face_entry(buf, ts.boundary_face(si), o, u, v, d, hit)
-        # Leaving through the face: the start point is inside; locate it.
-        tet, f = locate(buf, tet, f, o, u, v, d, start, settings.max_steps, hit & outward)
-        L, T, t_end, n, adj = walk(mode, ts, tet, f, L, T, o, u, v, d, start, t_max,
-                                   settings, hit, adj, ts_ad)
-        steps += n
+        t_end = mi.Float(start)
+        for g, g_ad in zip(groups, groups_ad):
+            # The hit face's own group walks it (all of them with one group).
+            mine = hit if len(groups) == 1 else hit & g.owns(si)
+            tet, f, outward = face_entry(g.buf, g.boundary_face(si), o, u, v, d, mine)
+            # Leaving through the face: the start point is inside; locate it.
+            tet, f = locate(g.buf, tet, f, o, u, v, d, start, settings.max_steps,
+                            mine & outward)
+            L, T, t_g, n, adj = walk(mode, g, tet, f, L, T, o, u, v, d, start, t_max,
+                                     settings, mine, adj, g_ad)
+            t_end = dr.select(mine, t_g, t_end)
+            steps += dr.select(mine, n, 0)
         start = dr.maximum(t_end, start) + settings.retrace_eps
         active = hit & (T > settings.t_min) & (start < t_max)
     return L, T, steps, adj
