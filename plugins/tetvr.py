@@ -30,28 +30,44 @@ shapes by walking the tet adjacency.
      (Default: ``auto``)
  * - alpha
    - |bool|
-   - Add the accumulated opacity 1 - T as an AOV channel named ``alpha``.
-     (Default: true)
+   - Add the coverage as an AOV channel named ``alpha``: 1 - T, and 1 where
+     a surface is hit. (Default: true)
+ * - surfaces
+   - |integrator|
+   - Child integrator (named ``surfaces``) that renders the scene's other
+     shapes, seen through the volume in front of them; it sees a scene of
+     the surfaces and emitters without the tet meshes. Differentiating the
+     surfaces' parameters needs one of Mitsuba's ``ADIntegrator``s (``prb``,
+     ``prb_basic``, ``direct_projective``, ...). (Default: ``prb``)
 
 Derivatives: ``mi.render`` with parameters, ``dr.backward`` and ``dr.forward``
 reach ``<id>.vertex_color``, ``<id>.vertex_opacity`` and ``<id>.vertex_positions``
 (post-classified: ``vertex_scalar``, ``tf_color``, ``tf_opacity``; the ``alpha``
 AOV's gradient flows too), and ``dr.backward`` also the sensor's ``to_world``
-(:mod:`mi_tetvr.render.camera`). The adjoint re-walks the rays and records
-nothing (see :mod:`mi_tetvr.render.walk`); the silhouette of the mesh (which
-pixels it covers) has no boundary term.
+(:mod:`mi_tetvr.render.camera`); through a differentiable nested integrator,
+the surfaces' parameters too (their radiance's adjoint is ``T * δL``). The
+adjoint re-walks the rays and records nothing (see
+:mod:`mi_tetvr.render.walk`); the silhouettes of the mesh and of the surfaces
+(which pixels they cover) have no boundary term.
 
-The pixel value is ``C + T * background`` where ``C`` is the accumulated
-emission, ``T`` the transmittance and ``background`` the scene's environment
-emitter (black without one); the environment's parameters (an ``envmap``'s
-``data``) are differentiable too. The scene must contain only ``tetmesh`` shapes.
-``sample()`` keeps the ``RBIntegrator`` contract and can be called on any rays.
+The pixel value is ``C + T * L_surface`` where ``C`` is the emission
+accumulated up to the first hit of another shape (a surface), ``T`` the
+transmittance there and ``L_surface`` the nested integrator's radiance along
+the ray (the environment where nothing is hit; in a scene of tet meshes
+alone, the environment emitter's value, black without one). The
+environment's parameters (an ``envmap``'s ``data``) are differentiable too.
+Tet meshes of any optical models may share a scene; meshes that overlap in
+space are integrated one after the other, not as one medium
+(:mod:`mi_tetvr.render.surfaces`, :func:`mi_tetvr.render.buffers.model_groups`).
+``sample()`` keeps the ``RBIntegrator`` contract and can be called on any
+rays (with a sampler where the scene has surfaces).
 
 .. code-block:: python
 
     'integrator': {
         'type': 'tetvr',
         'n_sub': 4,
+        'surfaces': {'type': 'prb', 'max_depth': 6},
     }
 """
 from __future__ import annotations
