@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["reference_render", "reference_render_classified"]
+__all__ = ["reference_render", "reference_render_classified", "reference_render_meshes"]
 
 # Optical depth beyond which the rest of a segment's emission is ignored
 # (relative contribution < exp(-80) ~ 2e-35).
@@ -178,18 +178,8 @@ def _segment_integrals(L, s0, s1, xq, wq):
     return I0, I1, tau_tot
 
 
-def reference_render(vertices, tets, color, opacity, origins, directions,
-                     background=(0, 0, 0), t_max=np.inf, n_quad=48):
-    """Brute-force float64 reference of emission-absorption rendering of a tet mesh.
-
-    vertices (n,3) float, tets (m,4) int (any orientation; tets with
-    |volume| <= 1e-14 * scale^3 are skipped, scale = largest bounding-box extent of
-    the referenced vertices), color (n,3) linear RGB per vertex (emission per unit
-    extinction), opacity (n,) extinction per unit length >= 0, origins (k,3),
-    directions (k,3) (normalised inside; a zero direction hits nothing).
-    background: RGB triple (or (k,3)); t_max: scalar or (k,) distance limit.
-    Returns rgb (k,3) float64 and alpha (k,) float64.
-    """
+def _color_pieces(color, opacity):
+    """Linear pieces of a mesh with per-vertex color (n,3) and extinction (n,)."""
     col = np.asarray(color, dtype=np.float64).reshape(-1, 3)
     sig = np.asarray(opacity, dtype=np.float64).reshape(-1)
     if col.shape[0] != sig.shape[0]:
@@ -197,31 +187,16 @@ def reference_render(vertices, tets, color, opacity, origins, directions,
     if np.any(sig < 0.0):
         raise ValueError("opacity must be >= 0")
 
-    def shade(ray, tet, t0, t1, l0, l1, vid, xq, wq):
-        c0 = np.einsum("si,sic->sc", l0, col[vid])
-        c1 = np.einsum("si,sic->sc", l1, col[vid])
-        s0 = np.einsum("si,si->s", l0, sig[vid])
-        s1 = np.einsum("si,si->s", l1, sig[vid])
-        I0, I1, tau = _segment_integrals(t1 - t0, s0, s1, xq, wq)
-        return ray, c0 * I0[:, None] + (c1 - c0) * I1[:, None], np.exp(-tau)
-
-    return _render(vertices, tets, col.shape[0], origins, directions, background, t_max,
-                   n_quad, shade)
+    def pieces(ray, tet, t0, t1, l0, l1, vid):
+        return (ray, t0, t1, np.einsum("si,sic->sc", l0, col[vid]),
+                np.einsum("si,sic->sc", l1, col[vid]), np.einsum("si,si->s", l0, sig[vid]),
+                np.einsum("si,si->s", l1, sig[vid]))
+    return col.shape[0], pieces
 
 
-def reference_render_classified(vertices, tets, scalar, tf_color, tf_opacity, value_range,
-                                origins, directions, background=(0, 0, 0), t_max=np.inf,
-                                n_quad=48):
-    """The same reference for a per-vertex scalar classified *after*
-    interpolation by a transfer function held as R texels.
-
-    scalar (n,); tf_color (R,3) linear RGB and tf_opacity (R,) extinction per
-    unit length at the texel centres ``lo + (k + 0.5) (hi - lo) / R`` of
-    ``value_range = (lo, hi)``, linear between centres and constant outside.
-    Along each tet segment the scalar is linear; the segment is cut where it
-    crosses a texel centre, and on each piece color and extinction are linear
-    in t and integrated as above.
-    """
+def _classified_pieces(scalar, tf_color, tf_opacity, value_range):
+    """Linear pieces of a scalar mesh classified after interpolation: each
+    segment cut where the scalar crosses a texel centre."""
     sca = np.asarray(scalar, dtype=np.float64).reshape(-1)
     tc = np.asarray(tf_color, dtype=np.float64).reshape(-1, 3)
     to = np.asarray(tf_opacity, dtype=np.float64).reshape(-1)
@@ -237,7 +212,7 @@ def reference_render_classified(vertices, tets, scalar, tf_color, tf_opacity, va
         return (np.stack([np.interp(v, centres, tc[:, j]) for j in range(3)], -1),
                 np.interp(v, centres, to))
 
-    def shade(ray, tet, t0, t1, l0, l1, vid, xq, wq):
+    def pieces(ray, tet, t0, t1, l0, l1, vid):
         v0 = np.einsum("si,si->s", l0, sca[vid])
         v1 = np.einsum("si,si->s", l1, sca[vid])
         a = np.searchsorted(centres, np.minimum(v0, v1), side="right")
@@ -261,17 +236,127 @@ def reference_render_classified(vertices, tets, scalar, tf_color, tf_opacity, va
         vb = v0[seg] + fb * (v1 - v0)[seg]
         ca, sa = tf(va)
         cb, sb = tf(vb)
-        I0, I1, tau = _segment_integrals((fb - fa) * L, sa, sb, xq, wq)
-        return ray[seg], ca * I0[:, None] + (cb - ca) * I1[:, None], np.exp(-tau)
-
-    return _render(vertices, tets, sca.shape[0], origins, directions, background, t_max,
-                   n_quad, shade)
+        return ray[seg], t0[seg] + fa * L, t0[seg] + fb * L, ca, cb, sa, sb
+    return sca.shape[0], pieces
 
 
-def _render(vertices, tets, n_values, origins, directions, background, t_max, n_quad, shade):
-    """Clip every ray against every tet, keep the union of the covered
-    intervals, shade the segments (``shade(ray, tet, t0, t1, l0, l1, vid, xq,
-    wq) -> (ray, C, T)`` of pieces in front-to-back order) and composite."""
+def reference_render(vertices, tets, color, opacity, origins, directions,
+                     background=(0, 0, 0), t_max=np.inf, n_quad=48):
+    """Brute-force float64 reference of emission-absorption rendering of a tet mesh.
+
+    vertices (n,3) float, tets (m,4) int (any orientation; tets with
+    |volume| <= 1e-14 * scale^3 are skipped, scale = largest bounding-box extent of
+    the referenced vertices), color (n,3) linear RGB per vertex (emission per unit
+    extinction), opacity (n,) extinction per unit length >= 0, origins (k,3),
+    directions (k,3) (normalised inside; a zero direction hits nothing).
+    background: RGB triple (or (k,3)); t_max: scalar or (k,) distance limit.
+    Returns rgb (k,3) float64 and alpha (k,) float64.
+    """
+    return _render(vertices, tets, _color_pieces(color, opacity), origins, directions,
+                   background, t_max, n_quad)
+
+
+def reference_render_classified(vertices, tets, scalar, tf_color, tf_opacity, value_range,
+                                origins, directions, background=(0, 0, 0), t_max=np.inf,
+                                n_quad=48):
+    """The same reference for a per-vertex scalar classified *after*
+    interpolation by a transfer function held as R texels.
+
+    scalar (n,); tf_color (R,3) linear RGB and tf_opacity (R,) extinction per
+    unit length at the texel centres ``lo + (k + 0.5) (hi - lo) / R`` of
+    ``value_range = (lo, hi)``, linear between centres and constant outside.
+    Along each tet segment the scalar is linear; the segment is cut where it
+    crosses a texel centre, and on each piece color and extinction are linear
+    in t and integrated as above.
+    """
+    return _render(vertices, tets, _classified_pieces(scalar, tf_color, tf_opacity,
+                                                      value_range),
+                   origins, directions, background, t_max, n_quad)
+
+
+def reference_render_meshes(meshes, origins, directions, background=(0, 0, 0), t_max=np.inf,
+                            n_quad=16):
+    """The reference for several meshes in one scene, as one medium.
+
+    ``meshes``: a list of dicts, each ``{"vertices", "tets", "color", "opacity"}``
+    (emission-absorption; ``color`` may be zeros for absorption only) or
+    ``{"vertices", "tets", "scalar", "tf_color", "tf_opacity", "value_range"}``
+    (post-classified). Every mesh's linear pieces along a ray (as in the
+    single-mesh references) are merged in depth order: the ray is cut at
+    every piece end of every mesh, and on each resulting interval the
+    extinctions of the meshes that cover it add and so do their emissions
+    ``sigma_k c_k``; the interval's emission ``int sum_k sigma_k c_k e^{-tau}``
+    (``tau`` the optical depth of the summed extinction, in closed form) is
+    integrated by composite Gauss-Legendre quadrature (sub-intervals of
+    optical depth <= 0.5), and the intervals are composited front to back.
+    Where the meshes do not overlap this is the single-mesh reference's
+    compositing. Returns rgb (k,3) and alpha (k,).
+    """
+    O = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    k = O.shape[0]
+    parts = []
+    for m in meshes:
+        if "scalar" in m:
+            spec = _classified_pieces(m["scalar"], m["tf_color"], m["tf_opacity"],
+                                      m["value_range"])
+        else:
+            spec = _color_pieces(m["color"], m["opacity"])
+        p = _pieces(m["vertices"], m["tets"], spec, origins, directions, t_max)
+        if p is not None:
+            parts.append(p)
+    bg = np.broadcast_to(np.asarray(background, dtype=np.float64), (k, 3))
+    C = np.zeros((k, 3))
+    T = np.ones(k)
+    if not parts:
+        return C + T[:, None] * bg, 1.0 - T
+    ray, t0, t1, c0, c1, s0, s1 = (np.concatenate(x) for x in zip(*parts))
+    keep = t1 > t0
+    ray, t0, t1, c0, c1, s0, s1 = (x[keep] for x in (ray, t0, t1, c0, c1, s0, s1))
+    xq, wq = np.polynomial.legendre.leggauss(int(n_quad))
+    order = np.argsort(ray, kind="stable")
+    bounds = np.searchsorted(ray[order], np.arange(k + 1))
+    for r in range(k):
+        sel = order[bounds[r]:bounds[r + 1]]
+        if not len(sel):
+            continue
+        P = [x[sel] for x in (t0, t1, c0, c1, s0, s1)]
+        cuts = np.unique(np.concatenate([P[0], P[1]]))
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            if T[r] < 1e-30:
+                break
+            mid = 0.5 * (a + b)
+            cover = (P[0] <= mid) & (P[1] >= mid)
+            if not cover.any():
+                continue
+            pa, pb, pc0, pc1, ps0, ps1 = (x[cover] for x in P)
+            span = pb - pa
+
+            def at(t):                                   # sigma_k, sigma_k c_k at t (q,)
+                f = (t[None, :] - pa[:, None]) / span[:, None]
+                sig = ps0[:, None] + f * (ps1 - ps0)[:, None]
+                col = pc0[:, None, :] + f[..., None] * (pc1 - pc0)[:, None, :]
+                return sig.sum(0), (sig[..., None] * col).sum(0)
+            S0, S1 = at(np.array([a, b]))[0]
+            L = b - a
+            tau_L = 0.5 * L * (S0 + S1)
+            n = int(min(np.ceil(tau_L / _TAU_SUB), 2 * _TAU_CUT / _TAU_SUB)) + 1
+            h = L / n
+            s = (np.arange(n)[:, None] * h + 0.5 * (xq[None, :] + 1.0) * h).ravel()
+            tau = S0 * s + 0.5 * (S1 - S0) / L * s * s
+            _, emit = at(a + s)
+            w = np.tile(wq, n) * 0.5 * h
+            C[r] += T[r] * (emit * (w * np.exp(-tau))[:, None]).sum(0)
+            T[r] *= np.exp(-tau_L)
+    return C + T[:, None] * bg, 1.0 - T
+
+
+def _pieces(vertices, tets, spec, origins, directions, t_max):
+    """Every ray clipped against every tet, reduced to the union of the
+    covered intervals; ``spec = (n_values, pieces)`` with ``pieces(ray, tet,
+    t0, t1, l0, l1, vid) -> (ray, t0, t1, c0, c1, s0, s1)`` the linear pieces
+    of the segments, in front-to-back order per ray. Returns the pieces of
+    all rays (None if there are none)."""
+    n_values, piece = spec
     V = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     Tt = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
     O = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
@@ -281,7 +366,6 @@ def _render(vertices, tets, n_values, origins, directions, background, t_max, n_
         raise ValueError("origins and directions must have the same length")
     if n_values != V.shape[0]:
         raise ValueError("the vertex values must have one entry per vertex")
-    bg = np.broadcast_to(np.asarray(background, dtype=np.float64), (k, 3))
     tmax = np.broadcast_to(np.asarray(t_max, dtype=np.float64), (k,)).copy()
 
     norm = np.linalg.norm(D, axis=1)
@@ -289,57 +373,66 @@ def _render(vertices, tets, n_values, origins, directions, background, t_max, n_
     D = D / np.where(valid, norm, 1.0)[:, None]
     tmax[~valid] = -1.0                                   # no hits for zero directions
 
-    xq, wq = np.polynomial.legendre.leggauss(int(n_quad))
-
     Tt, v0, G = _prepare_tets(V, Tt)
     m = Tt.shape[0]
+    if m == 0 or k == 0:
+        return None
+    out = []
+    mc = min(m, _PAIR_BUDGET)
+    kc = max(1, _PAIR_BUDGET // mc)
+    for r0 in range(0, k, kc):
+        r1 = min(k, r0 + kc)
+        parts = []
+        for m0 in range(0, m, mc):
+            m1 = min(m, m0 + mc)
+            ki, mi, t0, t1, l0, l1 = _clip(O[r0:r1], D[r0:r1], tmax[r0:r1],
+                                           v0[m0:m1], G[m0:m1])
+            if ki.size:
+                parts.append((ki + r0, mi + m0, t0, t1, l0, l1))
+        if not parts:
+            continue
+        ray, tet, t0, t1, l0, l1 = (np.concatenate(x) for x in zip(*parts))
+        # sort by (ray, t0) and keep only the union of the covered intervals
+        order = np.lexsort((t0, ray))
+        ray, tet, t0, t1 = ray[order], tet[order], t0[order], t1[order]
+        l0, l1 = l0[order], l1[order]
+        ray, tet, t0, t1, l0, l1 = _union_clip(ray, tet, t0, t1, l0, l1)
+        if ray.size:
+            out.append(piece(ray, tet, t0, t1, l0, l1, Tt[tet]))
+    if not out:
+        return None
+    return tuple(np.concatenate(x) for x in zip(*out))
 
+
+def _render(vertices, tets, spec, origins, directions, background, t_max, n_quad):
+    """One mesh: its linear pieces (:func:`_pieces`) integrated (Eq. 1 by
+    quadrature) and composited front to back."""
+    O = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    k = O.shape[0]
+    bg = np.broadcast_to(np.asarray(background, dtype=np.float64), (k, 3))
+    xq, wq = np.polynomial.legendre.leggauss(int(n_quad))
     C = np.zeros((k, 3))
     T = np.ones(k)
-    if m > 0 and k > 0:
-        mc = min(m, _PAIR_BUDGET)
-        kc = max(1, _PAIR_BUDGET // mc)
-        for r0 in range(0, k, kc):
-            r1 = min(k, r0 + kc)
-            parts = []
-            for m0 in range(0, m, mc):
-                m1 = min(m, m0 + mc)
-                ki, mi, t0, t1, l0, l1 = _clip(O[r0:r1], D[r0:r1], tmax[r0:r1],
-                                               v0[m0:m1], G[m0:m1])
-                if ki.size:
-                    parts.append((ki + r0, mi + m0, t0, t1, l0, l1))
-            if not parts:
-                continue
-            ray = np.concatenate([p[0] for p in parts])
-            tet = np.concatenate([p[1] for p in parts])
-            t0 = np.concatenate([p[2] for p in parts])
-            t1 = np.concatenate([p[3] for p in parts])
-            l0 = np.concatenate([p[4] for p in parts])
-            l1 = np.concatenate([p[5] for p in parts])
-            # sort by (ray, t0) and keep only the union of the covered intervals
-            order = np.lexsort((t0, ray))
-            ray, tet, t0, t1 = ray[order], tet[order], t0[order], t1[order]
-            l0, l1 = l0[order], l1[order]
-            ray, tet, t0, t1, l0, l1 = _union_clip(ray, tet, t0, t1, l0, l1)
-            if ray.size == 0:
-                continue
-            ray, Cseg, Tseg = shade(ray, tet, t0, t1, l0, l1, Tt[tet], xq, wq)
-
-            # front-to-back compositing, pieces are sorted by (ray, t)
-            new_group = np.ones(ray.shape[0], dtype=bool)
-            new_group[1:] = ray[1:] != ray[:-1]
-            group_start = np.maximum.accumulate(np.where(new_group, np.arange(ray.shape[0]), 0))
-            rank = np.arange(ray.shape[0]) - group_start
-            by_rank = np.argsort(rank, kind="stable")
-            counts = np.bincount(rank)
-            pos = 0
-            for cnt in counts:
-                sel = by_rank[pos:pos + cnt]
-                pos += cnt
-                rr = ray[sel]                              # unique within one rank
-                C[rr] += T[rr, None] * Cseg[sel]
-                T[rr] *= Tseg[sel]
-
+    p = _pieces(vertices, tets, spec, origins, directions, t_max)
+    if p is not None:
+        ray, t0, t1, c0, c1, s0, s1 = p
+        I0, I1, tau = _segment_integrals(t1 - t0, s0, s1, xq, wq)
+        Cseg = c0 * I0[:, None] + (c1 - c0) * I1[:, None]
+        Tseg = np.exp(-tau)
+        # front-to-back compositing, pieces are sorted by (ray, t)
+        new_group = np.ones(ray.shape[0], dtype=bool)
+        new_group[1:] = ray[1:] != ray[:-1]
+        group_start = np.maximum.accumulate(np.where(new_group, np.arange(ray.shape[0]), 0))
+        rank = np.arange(ray.shape[0]) - group_start
+        by_rank = np.argsort(rank, kind="stable")
+        counts = np.bincount(rank)
+        pos = 0
+        for cnt in counts:
+            sel = by_rank[pos:pos + cnt]
+            pos += cnt
+            rr = ray[sel]                              # unique within one rank
+            C[rr] += T[rr, None] * Cseg[sel]
+            T[rr] *= Tseg[sel]
     rgb = C + T[:, None] * bg
     alpha = 1.0 - T
     return rgb, alpha

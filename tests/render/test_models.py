@@ -1,8 +1,8 @@
 """Several tet meshes with different optical models in one scene: a color
 mesh, two scalar meshes post-classified by different transfer functions and
 an absorption-only mesh, disjoint, each walked with its own model; against
-the float64 references of each mesh composited in the depth order of their
-(convex) boxes along each ray."""
+the float64 reference of several meshes (every mesh's pieces merged in depth
+order, ``tests.reference.reference_render_meshes``)."""
 import numpy as np
 import pytest
 
@@ -10,7 +10,7 @@ import mitsuba as mi
 import mi_tetvr
 from mi_tetvr.mesh.generate import grid_mesh
 from tests.helpers import Problem, rays_at, render_rays
-from tests.reference import reference_render, reference_render_classified
+from tests.reference import reference_render_meshes
 from tests.render.test_gradients import check_fd
 
 TOL = 3e-3
@@ -29,7 +29,7 @@ TFS = {"peaks": ([[0.0, 0.2, 0.2, 0.9], [0.5, 0.9, 0.2, 0.1], [1.0, 0.1, 0.9, 0.
 
 @pytest.fixture(scope="module")
 def meshes(tmp_path_factory):
-    """name -> (vertices, tets, dict entry, reference(o, d) -> (C, T))."""
+    """name -> (vertices, tets, dict entry, the mesh for the reference)."""
     import json
     from mi_tetvr.transfer import read_transfer_function
     rng = np.random.default_rng(50)
@@ -46,8 +46,8 @@ def meshes(tmp_path_factory):
                                           value_min=vr[0], value_max=vr[1],
                                           tf_resolution=RESOLUTION)
             tc, to = read_transfer_function(path).texels(RESOLUTION)
-            ref = (lambda V, T, s, tc, to, vr: lambda o, d: reference_render_classified(
-                V, T, s, tc, to, vr, o, d))(V, T, scalar, tc, to, vr)
+            ref = dict(vertices=V, tets=T, scalar=scalar, tf_color=tc, tf_opacity=to,
+                       value_range=vr)
         else:
             color = rng.uniform(0, 1, (len(V), 3))
             opacity = rng.uniform(0, 2, len(V))
@@ -56,7 +56,7 @@ def meshes(tmp_path_factory):
                                           opacity, model=model)
             if model == "absorption":
                 color = np.zeros_like(color)
-            ref = (lambda *m: lambda o, d: reference_render(*m, o, d))(V, T, color, opacity)
+            ref = dict(vertices=V, tets=T, color=color, opacity=opacity)
         out[name] = (V, T, entry, ref)
     return out
 
@@ -69,19 +69,6 @@ def entry_t(o, d, lo, hi):
     t0 = np.nanmax(np.minimum(a, b), 1)
     t1 = np.nanmin(np.maximum(a, b), 1)
     return np.where(t1 >= np.maximum(t0, 0), t0, np.inf)
-
-
-def composite(meshes, names, o, d):
-    """The references of the meshes composited front to back per ray."""
-    parts = [meshes[n][3](o, d) for n in names]
-    order = np.argsort(np.stack([entry_t(o, d, *BOXES[n]) for n in names], 1), 1)
-    C, T = np.zeros((len(o), 3)), np.ones(len(o))
-    for j in range(len(names)):
-        for i, (rgb, alpha) in enumerate(parts):
-            sel = order[:, j] == i
-            C[sel] += T[sel, None] * rgb[sel]
-            T[sel] *= 1.0 - alpha[sel]
-    return C + T[:, None] * np.asarray(BG), 1.0 - T
 
 
 def scene_of(meshes, names):
@@ -99,7 +86,8 @@ def test_four_models_in_one_scene(meshes):
     rng = np.random.default_rng(51)
     o, d = rays_at(rng, 384, radius=6.0, target_extent=2.0)
     rgb, alpha = render_rays(scene, o, d)
-    ref_rgb, ref_alpha = composite(meshes, names, o, d)
+    ref_rgb, ref_alpha = reference_render_meshes([meshes[n][3] for n in names], o, d,
+                                                 background=BG)
     seen = [(entry_t(o, d, *BOXES[n]) < np.inf).sum() for n in names]
     assert min(seen) > 30, seen
     # rays through two meshes, in either order
