@@ -57,8 +57,8 @@ the ray (the environment where nothing is hit; in a scene of tet meshes
 alone, the environment emitter's value, black without one). The
 environment's parameters (an ``envmap``'s ``data``) are differentiable too.
 Tet meshes of any optical models may share a scene; meshes that overlap in
-space are integrated one after the other, not as one medium
-(:mod:`mi_tetvr.render.surfaces`, :func:`mi_tetvr.render.buffers.model_groups`).
+space are integrated as one medium, their extinctions and emissions added
+(:mod:`mi_tetvr.render.surfaces`, :mod:`mi_tetvr.render.merged`).
 ``sample()`` keeps the ``RBIntegrator`` contract and can be called on any
 rays (with a sampler where the scene has surfaces).
 
@@ -77,6 +77,7 @@ import mitsuba as mi
 
 from mi_tetvr.render.adjoint import Adjoint
 from mi_tetvr.render.buffers import index_buffers, model_groups, scene_tetmeshes, tet_scene
+from mi_tetvr.render.merged import merged_trace, overlapping
 from mi_tetvr.render.replay import PrimalStates, derivative_seed
 from mi_tetvr.render.surfaces import DEFAULT_SURFACES, NestedIntegrator, SceneParts
 from mi_tetvr.render.walk import WalkSettings, trace
@@ -131,7 +132,9 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         :func:`~mi_tetvr.render.buffers.model_groups`): index buffers cached
         per set of shapes, positions and the optical model's parameters read
         afresh (they change under optimization)."""
-        groups = model_groups(scene_tetmeshes(scene))
+        shapes = scene_tetmeshes(scene)
+        # Meshes that overlap are walked together, one cursor each.
+        groups = [[s] for s in shapes] if overlapping(shapes) else model_groups(shapes)
         key = tuple(tuple(id(s.tet_buffers) for s in g) for g in groups)
         if self._index_cache is None or self._index_cache[0] != key:
             self._index_cache = (key, [index_buffers(g) for g in groups])
@@ -252,7 +255,7 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
                 L, T = self._replay
                 state = (L, T)
             else:
-                C, T = self.volume(walk_scene, ts, ray, settings, active)
+                C, T = self.volume(walk_scene, tets, ts, ray, settings, active)
                 if surfaces is None:
                     L = C + T * self.background(scene, ray.d, active)
                     state = (L, T)
@@ -308,8 +311,12 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
                         flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad))
             for g in ts:
                 g.camera, g.ray_tangent = camera, tangent
-            _, _, _, adj = trace(mode, walk_scene, [g.detached() for g in ts], ray, settings,
-                                 active, adj, ts_ad=ts)
+            if overlapping(tets):
+                _, _, _, adj = merged_trace(mode, walk_scene, [g.detached() for g in ts], ray,
+                                            settings, active, adj, ts, n_sub=self.n_sub)
+            else:
+                _, _, _, adj = trace(mode, walk_scene, [g.detached() for g in ts], ray,
+                                     settings, active, adj, ts_ad=ts)
         if mode == dr.ADMode.Backward:
             if camera:
                 # The ray's gradient into the sensor: the origin's as is, the
@@ -323,12 +330,17 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         dalpha = dr.select(hit, 0.0, adj.dalpha)
         return dL, mi.Bool(True), [dalpha] if self.alpha else [], None
 
-    def volume(self, walk_scene, ts, ray, settings, active):
-        """``(C, T)``: emission and transmittance of the tet meshes along
-        ``ray`` up to ``ray.maxt`` (none without tet meshes)."""
+    def volume(self, walk_scene, tets, ts, ray, settings, active):
+        """``(C, T)``: emission and transmittance of the tet meshes ``tets``
+        (their walks ``ts``) along ``ray`` up to ``ray.maxt`` (none without
+        tet meshes; meshes that overlap as one medium)."""
         if ts is None:
             return mi.Color3f(0.0), dr.full(mi.Float, 1.0, dr.width(ray.o))
-        C, T, _, _ = trace(dr.ADMode.Primal, walk_scene, ts, ray, settings, active)
+        if overlapping(tets):
+            C, T, _, _ = merged_trace(dr.ADMode.Primal, walk_scene, ts, ray, settings, active,
+                                      n_sub=self.n_sub)
+        else:
+            C, T, _, _ = trace(dr.ADMode.Primal, walk_scene, ts, ray, settings, active)
         return C, T
 
     def to_string(self):

@@ -14,6 +14,8 @@ Modules, from the bottom up:
 * :mod:`~mi_tetvr.render.walk`: the traversal (boundary entry, the walk,
   re-entry, a start point inside a mesh);
 * :mod:`~mi_tetvr.render.adjoint`: the derivative modes of the walk;
+* :mod:`~mi_tetvr.render.merged`: meshes that overlap in space, walked
+  together as one medium;
 * :mod:`~mi_tetvr.render.surfaces`: the other shapes of a scene, rendered
   by a nested integrator and seen through the volume.
 
@@ -37,7 +39,9 @@ from mi_tetvr.render.geometry import (crossing, edge_function, face_crossing,  #
                                       face_entry, face_weights, project, ray_frame, tet_face,
                                       walk_step)
 from mi_tetvr.render.optical import Absorption, EmissionAbsorption, OpticalModel  # noqa: E402
-from mi_tetvr.render.segment import clip_segment, interval_terms, segment_integral  # noqa: E402
+from mi_tetvr.render.segment import (clip_segment, interval_terms, merged_integral,  # noqa: E402
+                                     segment_integral)
+from mi_tetvr.render.merged import merged_trace, overlapping  # noqa: E402
 from mi_tetvr.render.surfaces import NestedIntegrator, SceneParts, split_shapes  # noqa: E402
 from mi_tetvr.render.walk import WalkSettings, locate, trace, walk  # noqa: E402
 
@@ -48,7 +52,7 @@ __all__ = [
     "crossing", "edge_function", "face_crossing", "face_entry", "face_weights", "project",
     "ray_frame", "tet_face", "walk_step",
     "Absorption", "EmissionAbsorption", "OpticalModel",
-    "clip_segment", "interval_terms", "segment_integral",
-    "NestedIntegrator", "SceneParts", "split_shapes",
+    "clip_segment", "interval_terms", "merged_integral", "segment_integral",
+    "merged_trace", "overlapping", "NestedIntegrator", "SceneParts", "split_shapes",
     "WalkSettings", "locate", "trace", "walk",
 ]

@@ -95,6 +95,14 @@ class OpticalModel:
         ``length`` whose attributes go linearly from ``a0`` to ``a1``."""
         raise NotImplementedError
 
+    def linear(self, params, a0, a1):
+        """``(c0, c1, s0, s1)``: color and extinction at the ends of a piece
+        whose attributes go linearly from ``a0`` to ``a1`` (between the
+        model's knots: color and extinction are linear on it). Where meshes
+        overlap, the pieces of all of them are integrated as one medium from
+        these (:func:`~mi_tetvr.render.segment.merged_integral`)."""
+        raise NotImplementedError(f"{type(self).__name__} cannot overlap other meshes")
+
 
 class EmissionAbsorption(OpticalModel):
     """Per-vertex color ``c`` (linear RGB, emission per unit extinction) and
@@ -133,6 +141,9 @@ class EmissionAbsorption(OpticalModel):
         tau = length * (a0.s + a1.s) * 0.5
         return C, T, tau
 
+    def linear(self, params, a0, a1):
+        return a0.c, a1.c, a0.s, a1.s
+
 
 class Absorption(OpticalModel):
     """Extinction only (X-ray attenuation): per-vertex extinction ``s``, linear
@@ -167,6 +178,10 @@ class Absorption(OpticalModel):
     def segment(self, params, length, a0, a1):
         tau = length * (a0.s + a1.s) * 0.5
         return dr.zeros(mi.Color3f, dr.width(length)), dr.exp(-tau), tau
+
+    def linear(self, params, a0, a1):
+        zero = dr.zeros(mi.Color3f, dr.width(a0.s))
+        return zero, zero, a0.s, a1.s
 
 
 #: Scatter strategy of the texel reads' reverse-mode derivative (many rays
@@ -281,6 +296,10 @@ class PostClassified(OpticalModel):
         C, T = segment_integral(length, c0, c1, s0, s1, self.n_sub)
         return C, T, length * (s0 + s1) * 0.5
 
+    def linear(self, params, a0, a1):
+        (c0, s0), (c1, s1) = self.classify(params, a0.u, a1.u)
+        return c0, c1, s0, s1
+
 
 #: Samples of the pre-integrated table along the front and back scalar (at
 #: most; fewer for a coarser transfer function) and along the segment length.
@@ -357,6 +376,11 @@ class PreIntegrated(PostClassified):
             done = end
             active &= f < 1.0
         return C, T
+
+    def linear(self, params, a0, a1):
+        raise ValueError("tetvr: a pre-integrated tetmesh (classification 'preintegrated') "
+                         "cannot overlap another tetmesh: its table integrates whole segments "
+                         "of its own medium alone; use classification 'post'")
 
     def segment(self, params, length, a0, a1):
         S, K = self.samples, TABLE_LENGTHS

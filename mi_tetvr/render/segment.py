@@ -133,3 +133,70 @@ def clip_segment(t0, x0, t1, x1, t_begin, t_end):
     f1 = dr.maximum(f1, f0)
     length = dr.select(lo | hi, (f1 - f0) * span, span)
     return length, tree_lerp(x0, x1, f0), tree_lerp(x0, x1, f1)
+
+
+#: Below this optical depth the moments of a sub-interval use their series.
+_SERIES_X = 0.5
+#: Terms of the moments' series (truncation below 1e-9 at x = 0.5).
+_SERIES_TERMS = 9
+
+
+def _exp_moments(x, A):
+    """``m_j = int_0^1 u^j e^{-x u} du`` for ``j = 0, 1, 2`` (``A = e^{-x}``):
+    series below :data:`_SERIES_X`, else the recurrence ``m_j = (j m_{j-1} -
+    A) / x``."""
+    small = x < _SERIES_X
+    xs = dr.select(small, x, 0.0)
+    series = [0.0, 0.0, 0.0]
+    term = 1.0                          # (-x)^n / n!
+    for n in range(_SERIES_TERMS):
+        for j in range(3):
+            series[j] = series[j] + term * (1.0 / (n + j + 1))
+        term = term * (-xs) * (1.0 / (n + 1))
+    inv = dr.rcp(dr.select(small, 1.0, x))
+    m0 = (1.0 - A) * inv
+    m1 = (m0 - A) * inv
+    m2 = (2.0 * m1 - A) * inv
+    return tuple(dr.select(small, s, m) for s, m in zip(series, (m0, m1, m2)))
+
+
+def merged_integral(length, media, n_sub: int):
+    """Emission and transmittance of a piece where several media overlap,
+    each with linear color and extinction (``media``: ``(c0, c1, s0, s1)``
+    per medium): extinctions add, and so do emissions ``s_k c_k``::
+
+        C = int_0^L sum_k s_k(t) c_k(t) e^{-tau(t)} dt,    tau' = sum_k s_k
+
+    On ``n_sub`` sub-intervals the summed extinction is taken constant (its
+    midpoint value, so that the transmittance stays exact) and the quadratic
+    emission density is integrated exactly against the exponential
+    (:func:`_exp_moments`); as :func:`segment_integral`, even ``n_sub`` are
+    extrapolated from ``n_sub`` and ``n_sub / 2`` (error ~ 1/n^4). For one
+    medium the integral is :func:`segment_integral`'s (by another scheme).
+
+    Returns ``(C : Color3f, T : Float)``.
+    """
+    def run(n):
+        dt = length * (1.0 / n)
+        C, T = 0.0, 1.0
+        for i in range(n):
+            ua, ub, um = i / n, (i + 1) / n, (i + 0.5) / n
+            x = 0.0
+            e = [0.0, 0.0, 0.0]
+            for c0, c1, s0, s1 in media:
+                sa, sb = dr.lerp(s0, s1, ua), dr.lerp(s0, s1, ub)
+                ca, cb = dr.lerp(c0, c1, ua), dr.lerp(c0, c1, ub)
+                x = x + dt * dr.lerp(s0, s1, um)
+                # s(u') c(u') over the sub-interval, u' in [0, 1]: e0 + e1 u' + e2 u'^2
+                e[0] = e[0] + sa * ca
+                e[1] = e[1] + sa * (cb - ca) + (sb - sa) * ca
+                e[2] = e[2] + (sb - sa) * (cb - ca)
+            A = dr.exp(-x)
+            m = _exp_moments(x, A)
+            C = C + T * dt * (e[0] * m[0] + e[1] * m[1] + e[2] * m[2])
+            T = T * A
+        return C, T
+    C, T = run(n_sub)
+    if n_sub % 2 == 0:
+        C = (4.0 * C - run(n_sub // 2)[0]) * (1.0 / 3.0)
+    return C, T

@@ -1,0 +1,308 @@
+"""Tet meshes that overlap in space, integrated as one medium.
+
+Where a ray is inside several meshes at once, their extinctions add and so do
+their emissions (each with its own color): the ray is cut at every crossing
+of every mesh (and at every knot of a model that cuts, such as a transfer
+function's texel centres), and on each piece between two cuts every mesh's
+color and extinction are linear, so the piece is integrated as one medium by
+:func:`~mi_tetvr.render.segment.merged_integral`. Disjoint and nested meshes
+along one ray (enter A, enter B, leave B, leave A) are the same walk.
+
+The walk keeps a *cursor* per mesh: whether the ray is inside it, the tet it
+is in and the face it entered through (with the face's corners, as
+:func:`~mi_tetvr.render.geometry.walk_step` carries them). Each iteration
+looks at every cursor's next event (the exit of its tet, or a knot) and at
+the next boundary face Mitsuba's ray tracer reports (entering a mesh, or a
+mesh the ray is inside without a cursor: a camera inside), integrates the
+piece up to the nearest event, and moves on the cursor whose event it is.
+A camera inside several meshes is located in each before the walk (every
+mesh whose bounding box holds the ray's origin is probed).
+
+Derivatives w.r.t. the optical models' parameters (vertex colors, opacities,
+scalars, transfer-function texels) use the same inversion as the single
+walk (:mod:`mi_tetvr.render.adjoint`): the radiance behind each piece is
+recovered from the pixel's value, and the piece is differentiated with
+Dr.Jit's AD locally, through the gathers of its tets' face vertices (their
+reverse mode scatter-adds into the parameters). Memory stays O(rays).
+Vertex positions and camera gradients are not differentiated where meshes
+overlap (refused with an error).
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from mi_tetvr.render import adjoint
+from mi_tetvr.render.buffers import unpack_link
+from mi_tetvr.render.geometry import crossing_at, entry_carry, face_entry, ray_frame, walk_step
+from mi_tetvr.render.pytree import tree_lerp, tree_select, weighted_sum
+from mi_tetvr.render.segment import merged_integral
+from mi_tetvr.render.walk import WalkSettings, locate
+
+#: Most meshes one merged walk takes (each is a cursor in every iteration).
+MAX_MESHES = 8
+
+
+def overlapping(shapes, rel_eps=1e-6):
+    """Whether any two shapes' bounding boxes overlap with a positive volume
+    (boxes that only touch, such as blocks sharing an interface, do not)."""
+    boxes = [s.bbox() for s in shapes]
+    if len(boxes) < 2:
+        return False
+    lo = [min(b.min[i] for b in boxes) for i in range(3)]
+    hi = [max(b.max[i] for b in boxes) for i in range(3)]
+    eps = rel_eps * max(max(h - lw for lw, h in zip(lo, hi)), 1e-30)
+    for i in range(len(boxes)):
+        for j in range(i + 1, len(boxes)):
+            a, b = boxes[i], boxes[j]
+            if all(min(a.max[x], b.max[x]) - max(a.min[x], b.min[x]) > eps for x in range(3)):
+                return True
+    return False
+
+
+def _check(tss, tss_ad):
+    if len(tss) > MAX_MESHES:
+        raise ValueError(f"tetvr: at most {MAX_MESHES} overlapping tet meshes in one scene, got "
+                         f"{len(tss)}; merge some of them into one mesh")
+    if tss_ad is not None and any(adjoint.geometric(g) for g in tss_ad):
+        raise ValueError("tetvr: vertex positions and the camera are not differentiated where "
+                         "tet meshes overlap in space; differentiate colors, opacities, scalars "
+                         "or transfer functions, or move the meshes apart")
+
+
+def _carry_like(ts, o, u, v, d):
+    """A cursor's carry, zero (its structure and types)."""
+    return entry_carry(ts.buf, mi.UInt32(0), mi.UInt32(0), o, u, v, d, mi.Bool(False),
+                       _gather(ts))
+
+
+def _gather(ts):
+    return lambda i, active: ts.model.gather(ts.params, i, active)
+
+
+def _shape_index(tss, si):
+    """Index of the cursor (mesh) a preliminary intersection is on."""
+    k = mi.UInt32(len(tss))
+    for j, ts in enumerate(tss):
+        k = dr.select(ts.owns(si), j, k)
+    return k
+
+
+@dr.syntax
+def _probe(scene, tss, o, u, v, d, t_max, settings: WalkSettings, active):
+    """Locate a ray's origin in every mesh it lies inside: trace from the
+    origin through the boundary faces until each mesh whose bounding box
+    holds the origin has been met; a mesh met first through a face the ray
+    leaves by contains the origin. Returns per mesh ``(inside, tet, f_in)``."""
+    K = len(tss)
+    boxes = [ts.shapes[0].bbox() for ts in tss]
+    todo = [active & dr.all((o >= mi.Point3f(b.min)) & (o <= mi.Point3f(b.max)))
+            for b in boxes]
+    inside = [mi.Bool(False) for _ in range(K)]
+    tet = [mi.UInt32(0) for _ in range(K)]
+    f_in = [mi.UInt32(0) for _ in range(K)]
+    start = mi.Float(0.0)
+    busy = mi.Bool(active)
+    for k in range(K):
+        busy = busy | todo[k]
+    busy &= active
+    while dr.hint(busy, label="tetvr_merged_probe"):
+        inside, tet, f_in, todo = list(inside), list(tet), list(f_in), list(todo)
+        si = scene.ray_intersect_preliminary(mi.Ray3f(o + d * start, d, t_max - start),
+                                             active=busy)
+        hit = busy & si.is_valid()
+        k_hit = _shape_index(tss, si)
+        for k in range(K):
+            mine = hit & (k_hit == k) & todo[k]
+            t_k, f_k, out_k = face_entry(tss[k].buf, si.prim_index, o, u, v, d, mine)
+            t_k, f_k = locate(tss[k].buf, t_k, f_k, o, u, v, d, mi.Float(0.0),
+                              settings.max_steps, mine & out_k)
+            found = mine & out_k
+            inside[k] = inside[k] | found
+            tet[k] = dr.select(found, t_k, tet[k])
+            f_in[k] = dr.select(found, f_k, f_in[k])
+            todo[k] = todo[k] & ~mine
+        start = dr.select(hit, start + si.t + settings.retrace_eps, start)
+        more = mi.Bool(False)
+        for k in range(K):
+            more = more | todo[k]
+        busy = hit & more & (start < t_max)
+    return inside, tet, f_in
+
+
+@dr.syntax
+def merged_trace(mode, scene, tss, ray, settings: WalkSettings, active,
+                 adj: adjoint.Adjoint = None, tss_ad=None, n_sub: int = 4):
+    """Emission and transmittance along rays through tet meshes that may
+    overlap (one :class:`~mi_tetvr.render.buffers.TetScene` per mesh in
+    ``tss``; ``tss_ad`` the same attached to the AD graph in the derivative
+    modes). Same interface and results as
+    :func:`~mi_tetvr.render.walk.trace`; pieces where meshes overlap are
+    integrated with ``2 n_sub`` sub-intervals (the merged integral's error at
+    ``2 n`` is about the single medium's at ``n``)."""
+    _check(tss, tss_ad)
+    primal = mode == dr.ADMode.Primal
+    backward = mode == dr.ADMode.Backward
+    K = len(tss)
+    o = mi.Point3f(ray.o)
+    d = mi.Vector3f(ray.d)
+    t_max = mi.Float(ray.maxt)
+    u, v = ray_frame(d)
+    active = mi.Bool(active)
+    inside, tet, f_in = _probe(scene, tss, o, u, v, d, t_max, settings, active)
+    carry = [tree_select(inside[k], entry_carry(tss[k].buf, tet[k], f_in[k], o, u, v, d,
+                                                inside[k], _gather(tss[k])),
+                         _carry_like(tss[k], o, u, v, d)) for k in range(K)]
+    # A cursor whose last event was a knot of its own keeps the attributes
+    # there (``kept``, ``a_at``): recomputed from t they could fall a hair
+    # short of the knot, and the next cut would not move on.
+    kept = [mi.Bool(False) for _ in range(K)]
+    a_at = [dr.zeros(ts.model.Attributes) for ts in tss]
+    L = mi.Color3f(0.0)
+    T = mi.Float(1.0)
+    t = mi.Float(0.0)
+    need = mi.Bool(True)          # trace for the next boundary face from t_trace
+    t_trace = mi.Float(0.0)
+    t_bnd = mi.Float(dr.inf)
+    k_bnd = mi.UInt32(K)
+    f_bnd = mi.UInt32(0)
+    steps = mi.UInt32(0)
+    inf = mi.Float(dr.inf)
+    while dr.hint(active, label="tetvr_merged"):
+        inside, tet, f_in, carry = list(inside), list(tet), list(f_in), list(carry)
+        kept, a_at = list(kept), list(a_at)
+        si = scene.ray_intersect_preliminary(mi.Ray3f(o + d * t_trace, d, t_max - t_trace),
+                                             active=active & need)
+        hit = need & si.is_valid()
+        t_bnd = dr.select(need, dr.select(hit, t_trace + si.t, inf), t_bnd)
+        k_bnd = dr.select(need, dr.select(hit, _shape_index(tss, si), K), k_bnd)
+        f_bnd = dr.select(need, mi.UInt32(si.prim_index), f_bnd)
+        need = mi.Bool(False)
+        # Every cursor's tet: its crossings and its next event.
+        sts, ends, nows, knots, evs = [], [], [], [], []
+        t_ev = dr.minimum(t_bnd, t_max)
+        for k in range(K):
+            ts = tss[k]
+            st = walk_step(ts.buf, tet[k], f_in[k], o, u, v, d, inside[k], carry[k],
+                           _gather(ts))
+            te, we = crossing_at(carry[k][0], carry[k][2])
+            ae = weighted_sum(we, carry[k][1])
+            tx = dr.maximum(st.t, te)
+            ax = weighted_sum(st.w, st.carry[1])
+            span = tx - te
+            inv = dr.select(span > 0, dr.rcp(dr.select(span > 0, span, 1.0)), 0.0)
+            a_now = tree_select(kept[k], a_at[k], tree_lerp(ae, ax, dr.clip((t - te) * inv,
+                                                                            0.0, 1.0)))
+            ev = tx
+            knot = (mi.Bool(False), a_now)
+            if dr.hint(ts.model.cuts, mode="scalar"):
+                f = ts.model.cut(a_now, ax)
+                knot = (f < 1.0, tree_lerp(a_now, ax, f))
+                ev = dr.select(knot[0], dr.lerp(dr.maximum(t, te), tx, f), tx)
+            ev = dr.select(inside[k], ev, inf)
+            sts.append(st)
+            ends.append((te, we, ae, tx, ax, inv))
+            nows.append(a_now)
+            knots.append(knot)
+            evs.append(ev)
+            t_ev = dr.minimum(t_ev, ev)
+        t_ev = dr.maximum(t_ev, t)
+        # The cursor whose event it is (the first of equal ones) moves on.
+        go = []
+        moved = mi.Bool(False)
+        for k in range(K):
+            go.append(inside[k] & ~moved & (evs[k] <= t_ev))
+            moved |= go[k]
+        # The piece [t, t_ev]: every mesh the ray is inside, as one medium.
+        length = t_ev - t
+        media = []
+        for k in range(K):
+            te, we, ae, tx, ax, inv = ends[k]
+            a1 = tree_select(go[k], tree_select(knots[k][0], knots[k][1], ax),
+                             tree_lerp(ae, ax, dr.clip((t_ev - te) * inv, 0.0, 1.0)))
+            lin = tss[k].model.linear(tss[k].params, nows[k], a1)
+            media.append(tuple(dr.select(inside[k], x, 0.0) for x in lin))
+            kept[k] = go[k] & knots[k][0]
+            a_at[k] = a1
+        C_seg, T_seg = merged_integral(length, media, 2 * n_sub)
+        if dr.hint(not primal, mode="scalar"):
+            adj = _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev,
+                                    length, C_seg, L, T, adj, settings.reduce, n_sub)
+        L += T * C_seg
+        T *= T_seg
+        for k in range(K):
+            st = sts[k]
+            adv = go[k] & ~knots[k][0]
+            nxt_tet, nxt_f = unpack_link(st.link)
+            carry[k] = tree_select(adv, st.carry, carry[k])
+            tet[k] = dr.select(adv, nxt_tet, tet[k])
+            f_in[k] = dr.select(adv, nxt_f, f_in[k])
+            left = adv & (st.link < 0)
+            inside[k] = inside[k] & ~left
+            # Left the mesh: look for the next boundary face past it.
+            t_trace = dr.select(left, ends[k][3] + settings.retrace_eps, t_trace)
+            need |= left
+        # Else the boundary face came first: enter that mesh (or locate the
+        # point in it, where the ray leaves a mesh it was not known inside).
+        at_bnd = ~moved & (t_bnd <= t_ev) & (t_bnd < t_max)
+        for k in range(K):
+            enter = at_bnd & (k_bnd == k) & ~inside[k]
+            ts = tss[k]
+            t_k, f_k, out_k = face_entry(ts.buf, f_bnd, o, u, v, d, enter)
+            t_k, f_k = locate(ts.buf, t_k, f_k, o, u, v, d, t_ev, settings.max_steps,
+                              enter & out_k)
+            carry[k] = tree_select(enter, entry_carry(ts.buf, t_k, f_k, o, u, v, d, enter,
+                                                      _gather(ts)), carry[k])
+            tet[k] = dr.select(enter, t_k, tet[k])
+            f_in[k] = dr.select(enter, f_k, f_in[k])
+            inside[k] = inside[k] | enter
+            kept[k] = kept[k] & ~enter
+        t_trace = dr.select(at_bnd, t_bnd + settings.retrace_eps, t_trace)
+        need |= at_bnd
+        t = t_ev
+        steps += 1
+        any_inside = mi.Bool(False)
+        for k in range(K):
+            any_inside |= inside[k]
+        active &= ((any_inside | need | (t_bnd < t_max)) & (t < t_max) & (T > settings.t_min)
+                   & (steps < settings.max_steps))
+    return L, T, steps, adj
+
+
+def _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev, length, C_seg,
+                      L, T, adj, reduce, n_sub):
+    """One piece in a derivative mode: its emission and optical depth
+    recomputed with the AD graph, through the gathers of each mesh's entry
+    and exit face vertices at the piece's fractions of its tet (constants:
+    the integral of a continuous integrand does not depend on where it is
+    split), and ``d L_pix = T dC - R dtau`` with ``R`` the radiance from
+    behind (:mod:`mi_tetvr.render.adjoint`)."""
+    with dr.resume_grad():
+        media = []
+        tau = mi.Float(0.0)
+        for k, ts in enumerate(tss_ad):
+            te, we, _, tx, _, inv = ends[k]
+            st = sts[k]
+            active = inside[k]
+            ids_e = tuple(c.i for c in carry[k][0])
+            a_e = ts.model.interpolate(ts.params, ids_e, we, active, reduce)
+            a_x = ts.model.interpolate(ts.params, st.exit, st.w, active, reduce)
+            F0 = dr.clip((t - te) * inv, 0.0, 1.0)
+            F1 = dr.clip((t_ev - te) * inv, 0.0, 1.0)
+            lin = ts.model.linear(ts.params, tree_lerp(a_e, a_x, F0), tree_lerp(a_e, a_x, F1))
+            lin = tuple(dr.select(active, x, 0.0) for x in lin)
+            media.append(lin)
+            tau += length * (lin[2] + lin[3]) * 0.5
+        C_d, _ = merged_integral(length, media, 2 * n_sub)
+        R = adj.L_pix - (L + T * C_seg)
+        Lo = T * C_d - tau * R
+        Lo_alpha = tau * adj.T_fin
+        if mode == dr.ADMode.Backward:
+            dr.backward_from(dr.dot(adj.dL, Lo) + adj.dalpha * Lo_alpha,
+                             flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+        else:
+            dLo, dLo_alpha = dr.forward_to(Lo, Lo_alpha,
+                                           flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+            adj.dL += dLo
+            adj.dalpha += dLo_alpha
+    return adj

@@ -1,0 +1,183 @@
+"""Tet meshes that overlap in space, composited as one medium (extinctions
+and emissions add), against the float64 reference of several meshes
+(``tests.reference.reference_render_meshes``: every mesh's pieces merged in
+depth order), and their derivatives against finite differences."""
+import json
+
+import numpy as np
+import pytest
+
+import drjit as dr
+import mitsuba as mi
+import mi_tetvr
+from mi_tetvr.mesh.generate import grid_mesh
+from mi_tetvr.render.merged import overlapping
+from mi_tetvr.transfer import read_transfer_function
+from tests.helpers import Problem, make_rays, rays_at, render_rays, seeded_sampler
+from tests.reference import reference_render_meshes
+from tests.render.test_gradients import check_fd
+from tests.render.test_surfaces import camera_rays, surfaces
+
+TOL = 3e-3
+RESOLUTION = 32
+RANGE = (-1.0, 1.5)
+
+
+@pytest.fixture(scope="module")
+def meshes(tmp_path_factory):
+    """name -> (dict entry, mesh for the reference): a color mesh, a scalar
+    mesh under a peaked transfer function overlapping it, an absorption mesh
+    nested inside the color mesh."""
+    rng = np.random.default_rng(70)
+    out = {}
+    VA, TA = grid_mesh(3, lo=(-1, -1, -1), hi=(0.6, 1, 1), jitter=0.1, seed=1)
+    cA, oA = rng.uniform(0, 1, (len(VA), 3)), rng.uniform(0, 1.5, len(VA))
+    out["color"] = (mi_tetvr.tetmesh_dict(VA, TA, cA, oA),
+                    dict(vertices=VA, tets=TA, color=cA, opacity=oA))
+    VB, TB = grid_mesh(3, lo=(-0.5, -0.8, -0.7), hi=(1.2, 0.7, 0.9), jitter=0.1, seed=2)
+    path = tmp_path_factory.mktemp("tf") / "peaks.json"
+    path.write_text(json.dumps({
+        "color": [[0.0, 0.9, 0.2, 0.1], [0.5, 0.1, 0.8, 0.3], [1.0, 0.2, 0.3, 0.9]],
+        "opacity": [[0.0, 0.2], [0.48, 0.3], [0.5, 5.0], [0.52, 0.3], [1.0, 1.0]],
+        "colorspace": "linear"}))
+    scalar = np.sin(2.0 * VB[:, 0] + VB[:, 1]) + 0.4 * VB[:, 2]
+    tc, to = read_transfer_function(path).texels(RESOLUTION)
+    out["scalar"] = (mi_tetvr.tetmesh_dict(VB, TB, scalar=scalar, transfer_function=str(path),
+                                           value_min=RANGE[0], value_max=RANGE[1],
+                                           tf_resolution=RESOLUTION),
+                     dict(vertices=VB, tets=TB, scalar=scalar, tf_color=tc, tf_opacity=to,
+                          value_range=RANGE))
+    VC, TC = grid_mesh(2, lo=(-0.7, -0.5, -0.5), hi=(0.1, 0.4, 0.5), jitter=0.1, seed=3)
+    oC = rng.uniform(0.5, 2.5, len(VC))
+    out["xray"] = (mi_tetvr.tetmesh_dict(VC, TC, None, oC, model="absorption"),
+                   dict(vertices=VC, tets=TC, color=np.zeros((len(VC), 3)), opacity=oC))
+    return out
+
+
+def scene_of(meshes, names, **extra):
+    return mi.load_dict({"type": "scene", "integrator": {"type": "tetvr"},
+                         **{n: meshes[n][0] for n in names}, **extra})
+
+
+def reference(meshes, names, o, d, **kw):
+    return reference_render_meshes([meshes[n][1] for n in names], o, d, **kw)
+
+
+def test_overlapping_and_nested_meshes_of_three_models(meshes):
+    """A color mesh overlapped by a post-classified scalar mesh, with an
+    absorption mesh nested inside the color mesh (enter A, enter C, leave C,
+    leave A), under an environment: rays from outside and from a camera
+    inside all three."""
+    names = ["color", "scalar", "xray"]
+    scene = scene_of(meshes, names, env={"type": "constant",
+                                         "radiance": {"type": "rgb", "value": [0.2, 0.3, 0.4]}})
+    assert overlapping(scene.integrator().parts.split(scene)[0])
+    rng = np.random.default_rng(71)
+    o, d = rays_at(rng, 300, radius=5.0, target_extent=1.2)
+    inside = np.tile([-0.3, 0.0, 0.0], (100, 1))      # inside all three meshes
+    di = rng.normal(size=(100, 3))
+    o, d = np.vstack([o, inside]), np.vstack([d, di / np.linalg.norm(di, axis=1, keepdims=True)])
+    rgb, alpha = render_rays(scene, o, d)
+    ref, ref_a = reference(meshes, names, o, d, background=(0.2, 0.3, 0.4))
+    err = np.abs(rgb - ref).max()
+    assert err < TOL, f"max |rgb - reference| = {err:.2e}"
+    assert np.abs(alpha - ref_a).max() < TOL
+    # The overlap matters: compositing the meshes one after the other differs.
+    apart = [reference(meshes, [n], o, d) for n in names]
+    assert np.abs(ref_a - (1 - np.prod([1 - a for _, a in apart], 0))).max() < 1e-6
+    seq = np.zeros_like(ref)
+    T = np.ones(len(o))
+    for c, a in apart:        # any fixed order: wrong where the meshes overlap
+        seq += T[:, None] * c
+        T *= 1 - a
+    assert np.abs(seq - ref).max() > 0.05
+
+
+def test_overlapping_meshes_behind_and_around_surfaces(meshes):
+    """Overlapping meshes with the surfaces of tests/render/test_surfaces.py
+    (a sphere inside, a floor and a wall behind): the merged volume up to the
+    surface hit."""
+    names = ["color", "scalar"]
+    d = {"type": "scene", "integrator": {"type": "tetvr",
+                                         "surfaces": {"type": "prb", "max_depth": 2}},
+         **{n: meshes[n][0] for n in names}, **surfaces(ball=False)}
+    scene = mi.load_dict(d)
+    rng = np.random.default_rng(72)
+    o, dirs = camera_rays(rng, 200)
+    rays = make_rays(o, dirs)
+    nested = {"type": "prb", "max_depth": 2}
+    alone = mi.load_dict({"type": "scene", "integrator": nested, **surfaces(ball=False)})
+    t_hit = np.array(alone.ray_intersect(rays).t, np.float64)
+    L_alone = alone.integrator().sample(dr.ADMode.Primal, alone, seeded_sampler(len(o)), rays,
+                                        None, None, True)[0]
+    L_alone = np.array(L_alone, np.float64).reshape(3, -1).T
+    rgb, _ = render_rays(scene, o, dirs, seeded_sampler(len(o)))
+    ref, ref_a = reference(meshes, names, o, dirs, t_max=t_hit)
+    expected = ref + (1 - ref_a)[:, None] * L_alone
+    assert np.abs(rgb - expected).max() < TOL
+
+
+def test_gradients_where_meshes_overlap(meshes):
+    """Colors, opacities, the scalar and the texels of overlapping meshes:
+    adjoint against finite differences, forward against reverse; positions
+    are refused there."""
+    names = ["color", "scalar", "xray"]
+    scene = scene_of(meshes, names)
+    keys = ("color.vertex_color", "color.vertex_opacity", "scalar.vertex_scalar",
+            "scalar.tf_opacity", "xray.vertex_opacity")
+    rng = np.random.default_rng(73)
+    o, d = rays_at(rng, 96, radius=5.0, target_extent=1.0)
+    mesh = meshes["color"][1]
+    problem = Problem((mesh["vertices"], mesh["tets"]), o, d, rng, scene=scene, keys=keys)
+    grads = check_fd(problem, rng, keys=keys)
+    directions = {k: rng.normal(size=len(g)) for k, g in grads.items()}
+    reverse = sum((directions[k] * grads[k]).sum() for k in keys)
+    forward = problem.forward(directions)
+    assert abs(forward - reverse) < 0.01 * abs(reverse), (forward, reverse)
+    with pytest.raises(Exception, match="not differentiated where tet meshes overlap"):
+        Problem(None, o, d, rng, scene=scene, keys=("color.vertex_positions",)).backward()
+
+
+def test_nonconvex_mesh_overlapped_by_a_mesh_of_the_same_model():
+    """A U-shaped mesh (rays leave one arm and re-enter the other) with a
+    box of the same model over one arm: re-entry and overlap in one walk."""
+    from tests.render.test_gradients import ushape
+    rng = np.random.default_rng(74)
+    U = ushape(rng)
+    VB, TB = grid_mesh(3, lo=(0.2, -0.2, -0.8), hi=(1.3, 1.3, 0.8), jitter=0.1, seed=2)
+    B = (VB, TB, rng.uniform(0, 1, (len(VB), 3)), rng.uniform(0, 2, len(VB)))
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetvr"},
+                          "u": mi_tetvr.tetmesh_dict(*U), "b": mi_tetvr.tetmesh_dict(*B)})
+    k = 200
+    o = np.stack([np.full(k, -3.0), rng.uniform(-0.3, 0.9, k), rng.uniform(-0.9, 0.9, k)], 1)
+    d = np.stack([np.ones(k), rng.uniform(-0.1, 0.1, k), rng.uniform(-0.1, 0.1, k)], 1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    rgb, alpha = render_rays(scene, o, d)
+    ref, ref_a = reference_render_meshes(
+        [dict(vertices=m[0], tets=m[1], color=m[2], opacity=m[3]) for m in (U, B)], o, d)
+    assert np.abs(rgb - ref).max() < TOL
+    assert np.abs(alpha - ref_a).max() < TOL
+
+
+def test_merged_walk_moves_on_at_every_knot(meshes, tmp_path):
+    """Each iteration of the merged walk ends at a crossing, a knot or a
+    boundary face, and a cursor that stopped at its own knot keeps the
+    attributes there: recomputed from t they can fall short of the knot by
+    more than the knot tolerance (256 texels, a camera 20 away: float32 t),
+    and the walk would cut there again and again (it ran to max_steps)."""
+    from mi_tetvr.render.merged import merged_trace
+    from tests.helpers import make_rays
+    path = tmp_path / "ramp.json"
+    path.write_text(json.dumps({"color": [[0, 0.9, 0.2, 0.1], [1, 0.1, 0.3, 0.9]],
+                                "opacity": [[0, 0.2], [1, 1.0]], "colorspace": "linear"}))
+    VB, TB = (meshes["scalar"][1][k] for k in ("vertices", "tets"))
+    scene = scene_of(meshes, ["color"], fine=mi_tetvr.tetmesh_dict(
+        VB, TB, scalar=meshes["scalar"][1]["scalar"], transfer_function=str(path),
+        tf_resolution=256))
+    integrator = scene.integrator()
+    ray = make_rays(*rays_at(np.random.default_rng(75), 256, radius=20.0, target_extent=1.0))
+    _, _, steps, _ = merged_trace(dr.ADMode.Primal, scene, integrator.tet_scenes(scene), ray,
+                                  integrator.settings_for(scene), True)
+    steps = np.array(steps)
+    # Measured: at most 299 iterations (tets of both meshes, the ramp's knots, boundary faces).
+    assert 50 < steps.max() < 1000, steps.max()
