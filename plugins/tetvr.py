@@ -312,8 +312,9 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
             for g in ts:
                 g.camera, g.ray_tangent = camera, tangent
             if overlapping(tets):
-                _, _, _, adj = merged_trace(mode, walk_scene, [g.detached() for g in ts], ray,
-                                            settings, active, adj, ts, n_sub=self.n_sub)
+                _, _, _, adj = merged_trace(mode, self.parts.apart(tets),
+                                            [g.detached() for g in ts], ray, settings, active,
+                                            adj, ts, n_sub=self.n_sub)
             else:
                 _, _, _, adj = trace(mode, walk_scene, [g.detached() for g in ts], ray,
                                      settings, active, adj, ts_ad=ts)
@@ -337,8 +338,8 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         if ts is None:
             return mi.Color3f(0.0), dr.full(mi.Float, 1.0, dr.width(ray.o))
         if overlapping(tets):
-            C, T, _, _ = merged_trace(dr.ADMode.Primal, walk_scene, ts, ray, settings, active,
-                                      n_sub=self.n_sub)
+            C, T, _, _ = merged_trace(dr.ADMode.Primal, self.parts.apart(tets), ts, ray,
+                                      settings, active, n_sub=self.n_sub)
         else:
             C, T, _, _ = trace(dr.ADMode.Primal, walk_scene, ts, ray, settings, active)
         return C, T

@@ -10,13 +10,14 @@ along one ray (enter A, enter B, leave B, leave A) are the same walk.
 
 The walk keeps a *cursor* per mesh: whether the ray is inside it, the tet it
 is in and the face it entered through (with the face's corners, as
-:func:`~mi_tetvr.render.geometry.walk_step` carries them). Each iteration
-looks at every cursor's next event (the exit of its tet, or a knot) and at
-the next boundary face Mitsuba's ray tracer reports (entering a mesh, or a
-mesh the ray is inside without a cursor: a camera inside), integrates the
-piece up to the nearest event, and moves on the cursor whose event it is.
-A camera inside several meshes is located in each before the walk (every
-mesh whose bounding box holds the ray's origin is probed).
+:func:`~mi_tetvr.render.geometry.walk_step` carries them), or, outside it,
+the next boundary face of that mesh along the ray (Mitsuba's ray tracer on a
+scene of that mesh alone, so that coincident faces of two meshes are both
+found). Each iteration integrates the piece up to the nearest event of any
+cursor (the exit of its tet, a knot, or entering its mesh) and moves on the
+cursor whose event it is. A ray that starts inside a mesh (a camera inside,
+or a first face it leaves by) is located in it by walking back
+(:func:`~mi_tetvr.render.walk.locate`).
 
 Derivatives w.r.t. the optical models' parameters (vertex colors, opacities,
 scalars, transfer-function texels) use the same inversion as the single
@@ -80,79 +81,33 @@ def _gather(ts):
     return lambda i, active: ts.model.gather(ts.params, i, active)
 
 
-def _shape_index(tss, si):
-    """Index of the cursor (mesh) a preliminary intersection is on."""
-    k = mi.UInt32(len(tss))
-    for j, ts in enumerate(tss):
-        k = dr.select(ts.owns(si), j, k)
-    return k
-
-
 @dr.syntax
-def _probe(scene, tss, o, u, v, d, t_max, settings: WalkSettings, active):
-    """Locate a ray's origin in every mesh it lies inside: trace from the
-    origin through the boundary faces until each mesh whose bounding box
-    holds the origin has been met; a mesh met first through a face the ray
-    leaves by contains the origin. Returns per mesh ``(inside, tet, f_in)``."""
-    K = len(tss)
-    boxes = [ts.shapes[0].bbox() for ts in tss]
-    todo = [active & dr.all((o >= mi.Point3f(b.min)) & (o <= mi.Point3f(b.max)))
-            for b in boxes]
-    inside = [mi.Bool(False) for _ in range(K)]
-    tet = [mi.UInt32(0) for _ in range(K)]
-    f_in = [mi.UInt32(0) for _ in range(K)]
-    start = mi.Float(0.0)
-    busy = mi.Bool(active)
-    for k in range(K):
-        busy = busy | todo[k]
-    busy &= active
-    while dr.hint(busy, label="tetvr_merged_probe"):
-        inside, tet, f_in, todo = list(inside), list(tet), list(f_in), list(todo)
-        si = scene.ray_intersect_preliminary(mi.Ray3f(o + d * start, d, t_max - start),
-                                             active=busy)
-        hit = busy & si.is_valid()
-        k_hit = _shape_index(tss, si)
-        for k in range(K):
-            mine = hit & (k_hit == k) & todo[k]
-            t_k, f_k, out_k = face_entry(tss[k].buf, si.prim_index, o, u, v, d, mine)
-            t_k, f_k = locate(tss[k].buf, t_k, f_k, o, u, v, d, mi.Float(0.0),
-                              settings.max_steps, mine & out_k)
-            found = mine & out_k
-            inside[k] = inside[k] | found
-            tet[k] = dr.select(found, t_k, tet[k])
-            f_in[k] = dr.select(found, f_k, f_in[k])
-            todo[k] = todo[k] & ~mine
-        start = dr.select(hit, start + si.t + settings.retrace_eps, start)
-        more = mi.Bool(False)
-        for k in range(K):
-            more = more | todo[k]
-        busy = hit & more & (start < t_max)
-    return inside, tet, f_in
-
-
-@dr.syntax
-def merged_trace(mode, scene, tss, ray, settings: WalkSettings, active,
+def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
                  adj: adjoint.Adjoint = None, tss_ad=None, n_sub: int = 4):
     """Emission and transmittance along rays through tet meshes that may
-    overlap (one :class:`~mi_tetvr.render.buffers.TetScene` per mesh in
-    ``tss``; ``tss_ad`` the same attached to the AD graph in the derivative
-    modes). Same interface and results as
-    :func:`~mi_tetvr.render.walk.trace`; pieces where meshes overlap are
+    overlap: per mesh a scene of it alone (``scenes``, whose boundary faces
+    are traced) and its :class:`~mi_tetvr.render.buffers.TetScene` (``tss``;
+    ``tss_ad`` the same attached to the AD graph in the derivative modes).
+    Same results as :func:`~mi_tetvr.render.walk.trace`; pieces are
     integrated with ``2 n_sub`` sub-intervals (the merged integral's error at
     ``2 n`` is about the single medium's at ``n``)."""
     _check(tss, tss_ad)
     primal = mode == dr.ADMode.Primal
-    backward = mode == dr.ADMode.Backward
     K = len(tss)
     o = mi.Point3f(ray.o)
     d = mi.Vector3f(ray.d)
     t_max = mi.Float(ray.maxt)
     u, v = ray_frame(d)
     active = mi.Bool(active)
-    inside, tet, f_in = _probe(scene, tss, o, u, v, d, t_max, settings, active)
-    carry = [tree_select(inside[k], entry_carry(tss[k].buf, tet[k], f_in[k], o, u, v, d,
-                                                inside[k], _gather(tss[k])),
-                         _carry_like(tss[k], o, u, v, d)) for k in range(K)]
+    inside = [mi.Bool(False) for _ in range(K)]
+    tet = [mi.UInt32(0) for _ in range(K)]
+    f_in = [mi.UInt32(0) for _ in range(K)]
+    carry = [_carry_like(ts, o, u, v, d) for ts in tss]
+    # Outside a mesh: where to trace its boundary from, and its next face.
+    need = [mi.Bool(active) for _ in range(K)]
+    t_trace = [mi.Float(0.0) for _ in range(K)]
+    t_next = [mi.Float(dr.inf) for _ in range(K)]
+    f_next = [mi.UInt32(0) for _ in range(K)]
     # A cursor whose last event was a knot of its own keeps the attributes
     # there (``kept``, ``a_at``): recomputed from t they could fall a hair
     # short of the knot, and the next cut would not move on.
@@ -161,26 +116,35 @@ def merged_trace(mode, scene, tss, ray, settings: WalkSettings, active,
     L = mi.Color3f(0.0)
     T = mi.Float(1.0)
     t = mi.Float(0.0)
-    need = mi.Bool(True)          # trace for the next boundary face from t_trace
-    t_trace = mi.Float(0.0)
-    t_bnd = mi.Float(dr.inf)
-    k_bnd = mi.UInt32(K)
-    f_bnd = mi.UInt32(0)
     steps = mi.UInt32(0)
     inf = mi.Float(dr.inf)
     while dr.hint(active, label="tetvr_merged"):
         inside, tet, f_in, carry = list(inside), list(tet), list(f_in), list(carry)
+        need, t_trace, t_next, f_next = list(need), list(t_trace), list(t_next), list(f_next)
         kept, a_at = list(kept), list(a_at)
-        si = scene.ray_intersect_preliminary(mi.Ray3f(o + d * t_trace, d, t_max - t_trace),
-                                             active=active & need)
-        hit = need & si.is_valid()
-        t_bnd = dr.select(need, dr.select(hit, t_trace + si.t, inf), t_bnd)
-        k_bnd = dr.select(need, dr.select(hit, _shape_index(tss, si), K), k_bnd)
-        f_bnd = dr.select(need, mi.UInt32(si.prim_index), f_bnd)
-        need = mi.Bool(False)
-        # Every cursor's tet: its crossings and its next event.
+        # Each mesh the ray is outside of: its next boundary face, where needed;
+        # a face the ray leaves by: it is inside, walk back to where it is now.
+        for k in range(K):
+            si = scenes[k].ray_intersect_preliminary(
+                mi.Ray3f(o + d * t_trace[k], d, t_max - t_trace[k]), active=active & need[k])
+            hit = active & need[k] & si.is_valid()
+            t_k, f_k, out_k = face_entry(tss[k].buf, si.prim_index, o, u, v, d, hit)
+            here = hit & out_k
+            t_k, f_k = locate(tss[k].buf, t_k, f_k, o, u, v, d, t, settings.max_steps, here)
+            carry[k] = tree_select(here, entry_carry(tss[k].buf, t_k, f_k, o, u, v, d, here,
+                                                     _gather(tss[k])), carry[k])
+            tet[k] = dr.select(here, t_k, tet[k])
+            f_in[k] = dr.select(here, f_k, f_in[k])
+            inside[k] = inside[k] | here
+            kept[k] = kept[k] & ~here
+            t_next[k] = dr.select(need[k], dr.select(hit & ~out_k, t_trace[k] + si.t, inf),
+                                  t_next[k])
+            f_next[k] = dr.select(need[k], mi.UInt32(si.prim_index), f_next[k])
+            need[k] = mi.Bool(False)
+        # Every cursor's next event: its tet's exit or a knot inside, or
+        # (outside its mesh) its next boundary face.
         sts, ends, nows, knots, evs = [], [], [], [], []
-        t_ev = dr.minimum(t_bnd, t_max)
+        t_ev = mi.Float(t_max)
         for k in range(K):
             ts = tss[k]
             st = walk_step(ts.buf, tet[k], f_in[k], o, u, v, d, inside[k], carry[k],
@@ -199,7 +163,7 @@ def merged_trace(mode, scene, tss, ray, settings: WalkSettings, active,
                 f = ts.model.cut(a_now, ax)
                 knot = (f < 1.0, tree_lerp(a_now, ax, f))
                 ev = dr.select(knot[0], dr.lerp(dr.maximum(t, te), tx, f), tx)
-            ev = dr.select(inside[k], ev, inf)
+            ev = dr.select(inside[k], ev, t_next[k])
             sts.append(st)
             ends.append((te, we, ae, tx, ax, inv))
             nows.append(a_now)
@@ -211,7 +175,7 @@ def merged_trace(mode, scene, tss, ray, settings: WalkSettings, active,
         go = []
         moved = mi.Bool(False)
         for k in range(K):
-            go.append(inside[k] & ~moved & (evs[k] <= t_ev))
+            go.append(active & ~moved & (evs[k] <= t_ev) & (evs[k] < t_max))
             moved |= go[k]
         # The piece [t, t_ev]: every mesh the ray is inside, as one medium.
         length = t_ev - t
@@ -222,7 +186,7 @@ def merged_trace(mode, scene, tss, ray, settings: WalkSettings, active,
                              tree_lerp(ae, ax, dr.clip((t_ev - te) * inv, 0.0, 1.0)))
             lin = tss[k].model.linear(tss[k].params, nows[k], a1)
             media.append(tuple(dr.select(inside[k], x, 0.0) for x in lin))
-            kept[k] = go[k] & knots[k][0]
+            kept[k] = inside[k] & go[k] & knots[k][0]
             a_at[k] = a1
         C_seg, T_seg = merged_integral(length, media, 2 * n_sub)
         if dr.hint(not primal, mode="scalar"):
@@ -231,41 +195,35 @@ def merged_trace(mode, scene, tss, ray, settings: WalkSettings, active,
         L += T * C_seg
         T *= T_seg
         for k in range(K):
+            ts = tss[k]
             st = sts[k]
-            adv = go[k] & ~knots[k][0]
+            # Inside: the next tet (or the knot, staying); leaving the mesh,
+            # trace its boundary again past the exit.
+            adv = go[k] & inside[k] & ~knots[k][0]
             nxt_tet, nxt_f = unpack_link(st.link)
             carry[k] = tree_select(adv, st.carry, carry[k])
             tet[k] = dr.select(adv, nxt_tet, tet[k])
             f_in[k] = dr.select(adv, nxt_f, f_in[k])
             left = adv & (st.link < 0)
             inside[k] = inside[k] & ~left
-            # Left the mesh: look for the next boundary face past it.
-            t_trace = dr.select(left, ends[k][3] + settings.retrace_eps, t_trace)
-            need |= left
-        # Else the boundary face came first: enter that mesh (or locate the
-        # point in it, where the ray leaves a mesh it was not known inside).
-        at_bnd = ~moved & (t_bnd <= t_ev) & (t_bnd < t_max)
-        for k in range(K):
-            enter = at_bnd & (k_bnd == k) & ~inside[k]
-            ts = tss[k]
-            t_k, f_k, out_k = face_entry(ts.buf, f_bnd, o, u, v, d, enter)
-            t_k, f_k = locate(ts.buf, t_k, f_k, o, u, v, d, t_ev, settings.max_steps,
-                              enter & out_k)
+            t_trace[k] = dr.select(left, ends[k][3] + settings.retrace_eps, t_trace[k])
+            need[k] = need[k] | left
+            # Outside: enter the mesh through its next boundary face.
+            enter = go[k] & ~inside[k] & ~left
+            t_k, f_k, _ = face_entry(ts.buf, f_next[k], o, u, v, d, enter)
             carry[k] = tree_select(enter, entry_carry(ts.buf, t_k, f_k, o, u, v, d, enter,
                                                       _gather(ts)), carry[k])
             tet[k] = dr.select(enter, t_k, tet[k])
             f_in[k] = dr.select(enter, f_k, f_in[k])
             inside[k] = inside[k] | enter
             kept[k] = kept[k] & ~enter
-        t_trace = dr.select(at_bnd, t_bnd + settings.retrace_eps, t_trace)
-        need |= at_bnd
+            t_next[k] = dr.select(enter, inf, t_next[k])
         t = t_ev
         steps += 1
-        any_inside = mi.Bool(False)
+        pending = mi.Bool(False)
         for k in range(K):
-            any_inside |= inside[k]
-        active &= ((any_inside | need | (t_bnd < t_max)) & (t < t_max) & (T > settings.t_min)
-                   & (steps < settings.max_steps))
+            pending |= inside[k] | need[k] | (t_next[k] < t_max)
+        active &= pending & (t < t_max) & (T > settings.t_min) & (steps < settings.max_steps)
     return L, T, steps, adj
 
 

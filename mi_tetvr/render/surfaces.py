@@ -50,7 +50,21 @@ def _geometry_key(shape):
 
 
 def _scene_of(objects):
-    return mi.load_dict({"type": "scene", **{f"part_{i}": o for i, o in enumerate(objects)}})
+    """A scene of these shapes and emitters. ``mi.load_dict`` names each
+    object after its key: the keys are the objects' own ids, and any id it
+    changed anyway is given back (``mi.traverse`` of the user's scene keeps
+    its names)."""
+    ids = [o.id() for o in objects]
+    keys, used = [], {"type"}
+    for i, name in enumerate(ids):
+        key = name if name and name not in used else f"_tetvr_part_{i}"
+        used.add(key)
+        keys.append(key)
+    scene = mi.load_dict({"type": "scene", **dict(zip(keys, objects))})
+    for o, name in zip(objects, ids):
+        if o.id() != name:
+            o.set_id(name)
+    return scene
 
 
 class SceneParts:
@@ -70,6 +84,19 @@ class SceneParts:
     def __init__(self):
         self._walk = None
         self._surfaces = None
+        self._apart = {}
+
+    def apart(self, tets):
+        """A scene of each tet mesh alone (the merged walk traces each mesh's
+        boundary apart: coincident faces of two meshes are then both found)."""
+        out, kept = [], {}
+        for s in tets:
+            key = _geometry_key(s)
+            scene = self._apart.get(key) or _scene_of([s])
+            kept[key] = scene
+            out.append(scene)
+        self._apart = kept
+        return out
 
     def split(self, scene):
         """``(tet meshes, walk scene, surfaces scene or None)``."""

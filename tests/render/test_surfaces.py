@@ -294,3 +294,15 @@ def test_bad_input_is_refused(mesh):
                                     "emitter": {"type": "area"}}})
     with pytest.raises(Exception, match="area emitter"):
         render_rays(scene, o, d)
+
+
+def test_scene_parameters_keep_their_names(mesh):
+    """tetvr renders the surfaces (and overlapping meshes) in scenes of their
+    own, which hold the user's objects: their names in ``mi.traverse`` do
+    not change by rendering."""
+    scene = scene_with(mesh, nested={"type": "prb", "max_depth": 2}, env=[0.1, 0.1, 0.1])
+    before = sorted(mi.traverse(scene).keys())
+    o, d = camera_rays(np.random.default_rng(48), 8)
+    render_rays(scene, o, d, seeded_sampler(len(o)))
+    assert sorted(mi.traverse(scene).keys()) == before
+    assert "floor.bsdf.reflectance.value" in before and "mesh0.vertex_color" in before

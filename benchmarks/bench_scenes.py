@@ -1,5 +1,6 @@
-"""Surfaces benchmark: what adding Mitsuba surfaces to a tet volume costs, and
-whether a volume-only scene renders as fast as before.
+"""Scenes benchmark: what adding Mitsuba surfaces to a tet volume costs, what
+overlapping meshes cost, and whether a volume-only scene renders as fast as
+before.
 
 Scene: the jittered ``cells^3`` grid carrying the blob field (as
 ``bench_render.py``), one jittered ray per pixel, ``mi.render`` (primal) and
@@ -11,7 +12,10 @@ configuration is timed warm (median of ``--repeat`` runs):
    sphere (diffuse), lit by a point light, with ``prb`` (``max_depth`` 2) as
    the nested integrator;
 3. **surfaces alone**: Mitsuba's ``prb`` on the same scene without the
-   volume (what the nested integrator costs by itself).
+   volume (what the nested integrator costs by itself);
+4. **two meshes apart / overlapping**: the volume and a copy of it moved by
+   2.2 along x (disjoint: walked one mesh at a time) or by 0.5 (they
+   overlap: the merged walk, one medium), the camera moved back to see both.
 
 With ``--code DIR`` the volume-only configuration is also timed with another
 checkout's code (e.g. the commit before surfaces; ``git worktree add DIR
@@ -21,9 +25,9 @@ spread on a noisy machine.
 
 Usage::
 
-    python benchmarks/bench_surfaces.py                    # 32^3 cells, 256x256
-    python benchmarks/bench_surfaces.py --code ../before   # and the other checkout
-    python benchmarks/bench_surfaces.py --quick            # 8^3 cells, 48x48
+    python benchmarks/bench_scenes.py                    # 32^3 cells, 256x256
+    python benchmarks/bench_scenes.py --code ../before   # and the other checkout
+    python benchmarks/bench_scenes.py --quick            # 8^3 cells, 48x48
 """
 from __future__ import annotations
 
@@ -74,9 +78,14 @@ def surfaces_dict():
     }
 
 
-def jittered(res):
+def jittered(res, back=1.0):
+    """The benchmarks' camera, ``back`` times as far, one jittered ray per pixel."""
     s = sensor_dict(res)
     s["sampler"] = {"type": "independent", "sample_count": 1}
+    if back != 1.0:
+        from common import CAM_ORIGIN
+        s["to_world"] = mi.ScalarTransform4f().look_at(
+            origin=[back * x for x in CAM_ORIGIN], target=[0, 0, 0], up=[0, 1, 0])
     return s
 
 
@@ -108,7 +117,7 @@ def other_checkout(a):
 
 
 def main(a):
-    info = header("surfaces benchmark")
+    info = header("scenes benchmark")
     print(f"mesh: {a.cells}^3 cells ({6 * a.cells ** 3:,} tets), image {a.res}x{a.res}, 1 spp")
     results = {}
     if a.volume_only:
@@ -146,6 +155,14 @@ def main(a):
     alone = mi.load_dict({"type": "scene", "sensor": jittered(a.res),
                           "integrator": {"type": "prb", "max_depth": 2}, **surfaces_dict()})
     results["surfaces alone (prb)"] = time_scene(alone, [], a.repeat)
+    _, V, T, color, opacity = grid_scene(a.cells, 8)
+    for name, shift in (("two meshes apart", 2.2), ("two meshes overlapping", 0.5)):
+        scene = mi.load_dict({
+            "type": "scene", "integrator": {"type": "tetvr"}, "sensor": jittered(a.res, 1.6),
+            "volume": mi_tetvr.tetmesh_dict(V, T, color, opacity),
+            "copy": mi_tetvr.tetmesh_dict(V + [shift, 0.0, 0.0], T, color[:, ::-1].copy(),
+                                          opacity)})
+        results[name] = time_scene(scene, ["volume.vertex_color"], a.repeat)
     v = results["volume only"]
     print(f"{'configuration':24s} {'primal':>10s} {'backward':>10s}")
     for name, t in results.items():
@@ -157,6 +174,12 @@ def main(a):
     results["surfaces cost backward x"] = m["backward_s"] / v["backward_s"]
     print(f"adding the surfaces: primal {results['surfaces cost primal x']:.2f}x, backward "
           f"{results['surfaces cost backward x']:.2f}x the volume-only time")
+    o, p = results["two meshes overlapping"], results["two meshes apart"]
+    results["overlap cost primal x"] = o["primal_s"] / p["primal_s"]
+    results["overlap cost backward x"] = o["backward_s"] / p["backward_s"]
+    print(f"two meshes overlapping (merged walk) / apart: primal "
+          f"{results['overlap cost primal x']:.2f}x, backward "
+          f"{results['overlap cost backward x']:.2f}x")
     write_json(a, info, results)
     return 0
 
