@@ -6,6 +6,8 @@ CUDA with ``MI_TETVR_VARIANT=cuda_ad_rgb python3 -m pytest tests``. It is set
 before any test module is imported, and an unusable variant stops the run with
 a clear message. Shared helpers live in :mod:`tests.helpers`.
 """
+import gc
+
 import pytest
 
 from tests.helpers import DATA, VARIANT, use_variant
@@ -27,3 +29,16 @@ def data_dir():
     if not DATA.is_dir():
         pytest.skip("../shared/data is absent")
     return DATA
+
+
+@pytest.fixture(scope="module", autouse=True)
+def collect_after_module():
+    """Free, after each test module, what its provoked errors keep alive (e.g. an
+    exception's traceback holds the frames of the renderer with their Dr.Jit
+    arrays in a reference cycle), and their AD graphs stay until Python's cycle
+    collector runs. A later forward-mode pass of a nested Mitsuba integrator
+    (``prb``, whose loop isolates its AD traversals) then fails on those
+    graphs' edges (``ad_traverse(): ... outside of the current
+    dr.isolate_grad() scope``)."""
+    yield
+    gc.collect()
