@@ -125,22 +125,26 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
         # Each mesh the ray is outside of: its next boundary face, where needed;
         # a face the ray leaves by: it is inside, walk back to where it is now.
         for k in range(K):
-            si = scenes[k].ray_intersect_preliminary(
-                mi.Ray3f(o + d * t_trace[k], d, t_max - t_trace[k]), active=active & need[k])
-            hit = active & need[k] & si.is_valid()
-            t_k, f_k, out_k = face_entry(tss[k].buf, si.prim_index, o, u, v, d, hit)
-            here = hit & out_k
-            t_k, f_k = locate(tss[k].buf, t_k, f_k, o, u, v, d, t, settings.max_steps, here)
-            carry[k] = tree_select(here, entry_carry(tss[k].buf, t_k, f_k, o, u, v, d, here,
-                                                     _gather(tss[k])), carry[k])
-            tet[k] = dr.select(here, t_k, tet[k])
-            f_in[k] = dr.select(here, f_k, f_in[k])
-            inside[k] = inside[k] | here
-            kept[k] = kept[k] & ~here
-            t_next[k] = dr.select(need[k], dr.select(hit & ~out_k, t_trace[k] + si.t, inf),
-                                  t_next[k])
-            f_next[k] = dr.select(need[k], mi.UInt32(si.prim_index), f_next[k])
-            need[k] = mi.Bool(False)
+            c_k, tet_k, f_k, in_k = carry[k], tet[k], f_in[k], inside[k]
+            kept_k, tn_k, fn_k, need_k = kept[k], t_next[k], f_next[k], need[k] & active
+            if need_k:
+                # (a branch: most iterations trace nothing)
+                si = scenes[k].ray_intersect_preliminary(
+                    mi.Ray3f(o + d * t_trace[k], d, t_max - t_trace[k]), active=need_k)
+                hit = need_k & si.is_valid()
+                tt, ff, out = face_entry(tss[k].buf, si.prim_index, o, u, v, d, hit)
+                here = hit & out
+                tt, ff = locate(tss[k].buf, tt, ff, o, u, v, d, t, settings.max_steps, here)
+                c_k = tree_select(here, entry_carry(tss[k].buf, tt, ff, o, u, v, d, here,
+                                                    _gather(tss[k])), c_k)
+                tet_k = dr.select(here, tt, tet_k)
+                f_k = dr.select(here, ff, f_k)
+                in_k = in_k | here
+                kept_k = kept_k & ~here
+                tn_k = dr.select(hit & ~out, t_trace[k] + si.t, inf)
+                fn_k = mi.UInt32(si.prim_index)
+            carry[k], tet[k], f_in[k], inside[k] = c_k, tet_k, f_k, in_k
+            kept[k], t_next[k], f_next[k], need[k] = kept_k, tn_k, fn_k, mi.Bool(False)
         # Every cursor's next event: its tet's exit or a knot inside, or
         # (outside its mesh) its next boundary face.
         sts, ends, nows, knots, evs = [], [], [], [], []
@@ -210,11 +214,12 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
             need[k] = need[k] | left
             # Outside: enter the mesh through its next boundary face.
             enter = go[k] & ~inside[k] & ~left
-            t_k, f_k, _ = face_entry(ts.buf, f_next[k], o, u, v, d, enter)
-            carry[k] = tree_select(enter, entry_carry(ts.buf, t_k, f_k, o, u, v, d, enter,
-                                                      _gather(ts)), carry[k])
-            tet[k] = dr.select(enter, t_k, tet[k])
-            f_in[k] = dr.select(enter, f_k, f_in[k])
+            c_k, tet_k, f_k = carry[k], tet[k], f_in[k]
+            if enter:
+                tt, ff, _ = face_entry(ts.buf, f_next[k], o, u, v, d, enter)
+                c_k = entry_carry(ts.buf, tt, ff, o, u, v, d, enter, _gather(ts))
+                tet_k, f_k = tt, ff
+            carry[k], tet[k], f_in[k] = c_k, tet_k, f_k
             inside[k] = inside[k] | enter
             kept[k] = kept[k] & ~enter
             t_next[k] = dr.select(enter, inf, t_next[k])
