@@ -147,7 +147,6 @@ class Problem:
     def forward(self, directions):
         """Forward mode along ``directions`` (key -> array) at once."""
         import drjit as dr
-        import mitsuba as mi
         for k, v in directions.items():
             dr.enable_grad(self.params[k])
             dr.set_grad(self.params[k], self._typed(k, v))

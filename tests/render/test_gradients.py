@@ -72,15 +72,20 @@ def test_adjoint_matches_finite_differences_nonconvex():
     check_fd(problem, rng)
 
 
+def check_forward_reverse(problem, grads, rng, trials=2, tol=0.01):
+    """Forward mode along random directions against the reverse-mode
+    gradients ``grads`` (key -> array) of ``problem``: relative ``tol``."""
+    for _ in range(trials):
+        directions = {k: rng.normal(size=len(g)) for k, g in grads.items()}
+        reverse = sum((directions[k] * grads[k]).sum() for k in grads)
+        forward = problem.forward(directions)
+        assert abs(forward - reverse) < tol * abs(reverse), (forward, reverse)
+
+
 def test_forward_matches_reverse():
     rng = np.random.default_rng(22)
     problem = Problem(jittered(rng), *rays_at(rng, 64), rng)
-    grads = problem.backward()
-    for trial in range(2):
-        directions = {k: rng.normal(size=len(g)) for k, g in grads.items()}
-        reverse = sum((directions[k] * grads[k]).sum() for k in KEYS)
-        forward = problem.forward(directions)
-        assert abs(forward - reverse) < 0.01 * abs(reverse), (forward, reverse)
+    check_forward_reverse(problem, problem.backward(), rng)
 
 
 def test_adjoint_matches_recorded_loop():

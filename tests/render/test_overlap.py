@@ -15,7 +15,7 @@ from mi_tetvr.render.merged import overlapping
 from mi_tetvr.transfer import read_transfer_function
 from tests.helpers import Problem, make_rays, rays_at, render_rays, seeded_sampler
 from tests.reference import reference_render_meshes
-from tests.render.test_gradients import check_fd
+from tests.render.test_gradients import check_fd, check_forward_reverse
 from tests.render.test_surfaces import camera_rays, surfaces
 
 TOL = 3e-3
@@ -129,11 +129,7 @@ def test_gradients_where_meshes_overlap(meshes):
     o, d = rays_at(rng, 96, radius=5.0, target_extent=1.0)
     mesh = meshes["color"][1]
     problem = Problem((mesh["vertices"], mesh["tets"]), o, d, rng, scene=scene, keys=keys)
-    grads = check_fd(problem, rng, keys=keys)
-    directions = {k: rng.normal(size=len(g)) for k, g in grads.items()}
-    reverse = sum((directions[k] * grads[k]).sum() for k in keys)
-    forward = problem.forward(directions)
-    assert abs(forward - reverse) < 0.01 * abs(reverse), (forward, reverse)
+    check_forward_reverse(problem, check_fd(problem, rng, keys=keys), rng, trials=1)
     with pytest.raises(Exception, match="not differentiated where tet meshes overlap"):
         Problem(None, o, d, rng, scene=scene, keys=("color.vertex_positions",)).backward()
 

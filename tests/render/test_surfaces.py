@@ -15,7 +15,7 @@ import mi_tetvr
 from mi_tetvr.mesh.generate import grid_mesh
 from tests.helpers import Problem, make_rays, render_rays, seeded_sampler
 from tests.reference import reference_render
-from tests.render.test_gradients import check_fd
+from tests.render.test_gradients import check_fd, check_forward_reverse
 
 TOL = 3e-3  # as tests/render/test_render.py: default settings against the reference
 
@@ -244,13 +244,7 @@ def test_gradients_with_surfaces_against_finite_differences(problem):
 
 
 def test_forward_matches_reverse_with_surfaces(problem):
-    rng = np.random.default_rng(46)
-    grads = problem.backward()
-    for trial in range(2):
-        directions = {k: rng.normal(size=len(g)) for k, g in grads.items()}
-        reverse = sum((directions[k] * grads[k]).sum() for k in grads)
-        forward = problem.forward(directions)
-        assert abs(forward - reverse) < 0.01 * abs(reverse), (forward, reverse)
+    check_forward_reverse(problem, problem.backward(), np.random.default_rng(46))
 
 
 def test_mi_render_backward_reaches_volume_and_surfaces(mesh):
