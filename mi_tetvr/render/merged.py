@@ -19,14 +19,14 @@ cursor whose event it is. A ray that starts inside a mesh (a camera inside,
 or a first face it leaves by) is located in it by walking back
 (:func:`~mi_tetvr.render.walk.locate`).
 
-Derivatives w.r.t. the optical models' parameters (vertex colors, opacities,
-scalars, transfer-function texels) use the same inversion as the single
-walk (:mod:`mi_tetvr.render.adjoint`): the radiance behind each piece is
+Derivatives use the same inversion as the single walk
+(:mod:`mi_tetvr.render.adjoint`): the radiance behind each piece is
 recovered from the pixel's value, and the piece is differentiated with
 Dr.Jit's AD locally, through the gathers of its tets' face vertices (their
-reverse mode scatter-adds into the parameters). Memory stays O(rays).
-Vertex positions and camera gradients are not differentiated where meshes
-overlap (refused with an error).
+reverse mode scatter-adds into the parameters): the optical models'
+parameters and vertex positions (through the face crossings; a piece's ends
+move only where the ray enters or leaves a mesh; :func:`_piece_derivative`).
+Memory stays O(rays). Camera gradients are refused where meshes overlap.
 """
 from __future__ import annotations
 
@@ -35,7 +35,8 @@ import mitsuba as mi
 
 from mi_tetvr.render import adjoint
 from mi_tetvr.render.buffers import unpack_link
-from mi_tetvr.render.geometry import crossing_at, entry_carry, face_entry, ray_frame, walk_step
+from mi_tetvr.render.geometry import (crossing_at, entry_carry, face_crossing, face_entry,
+                                      ray_frame, walk_step)
 from mi_tetvr.render.pytree import tree_lerp, tree_select, weighted_sum
 from mi_tetvr.render.segment import merged_integral
 from mi_tetvr.render.walk import WalkSettings, locate
@@ -65,10 +66,10 @@ def _check(tss, tss_ad):
     if len(tss) > MAX_MESHES:
         raise ValueError(f"tetvr: at most {MAX_MESHES} overlapping tet meshes in one scene, got "
                          f"{len(tss)}; merge some of them into one mesh")
-    if tss_ad is not None and any(adjoint.geometric(g) for g in tss_ad):
-        raise ValueError("tetvr: vertex positions and the camera are not differentiated where "
-                         "tet meshes overlap in space; differentiate colors, opacities, scalars "
-                         "or transfer functions, or move the meshes apart")
+    if tss_ad is not None and any(g.camera for g in tss_ad):
+        raise ValueError("tetvr: camera gradients are not computed where tet meshes overlap "
+                         "in space; differentiate the meshes' parameters, or move the meshes "
+                         "apart")
 
 
 def _carry_like(ts, o, u, v, d):
@@ -113,6 +114,10 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
     # short of the knot, and the next cut would not move on.
     kept = [mi.Bool(False) for _ in range(K)]
     a_at = [dr.zeros(ts.model.Attributes) for ts in tss]
+    # The piece starts where the ray crossed mesh k's boundary (its carried
+    # face): that point moves with the boundary (derivative modes).
+    from_bnd = [mi.Bool(False) for _ in range(K)]
+    geo = tss_ad is not None and any(adjoint.geometric(g) for g in tss_ad)
     L = mi.Color3f(0.0)
     T = mi.Float(1.0)
     t = mi.Float(0.0)
@@ -121,7 +126,7 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
     while dr.hint(active, label="tetvr_merged"):
         inside, tet, f_in, carry = list(inside), list(tet), list(f_in), list(carry)
         need, t_trace, t_next, f_next = list(need), list(t_trace), list(t_next), list(f_next)
-        kept, a_at = list(kept), list(a_at)
+        kept, a_at, from_bnd = list(kept), list(a_at), list(from_bnd)
         # Each mesh the ray is outside of: its next boundary face, where needed;
         # a face the ray leaves by: it is inside, walk back to where it is now.
         for k in range(K):
@@ -194,8 +199,12 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
             a_at[k] = a1
         C_seg, T_seg = merged_integral(length, media, 2 * n_sub)
         if dr.hint(not primal, mode="scalar"):
+            # The piece ends where the ray enters or leaves mesh k.
+            to_bnd = [go[k] & (~inside[k] | (~knots[k][0] & (sts[k].link < 0)))
+                      for k in range(K)]
             adj = _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev,
-                                    length, C_seg, L, T, adj, settings.reduce, n_sub)
+                                    length, C_seg, L, T, adj, settings.reduce, n_sub,
+                                    (from_bnd, to_bnd, f_next) if geo else None, o, d)
         L += T * C_seg
         T *= T_seg
         for k in range(K):
@@ -210,6 +219,7 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
             f_in[k] = dr.select(adv, nxt_f, f_in[k])
             left = adv & (st.link < 0)
             inside[k] = inside[k] & ~left
+            from_bnd[k] = left
             t_trace[k] = dr.select(left, ends[k][3] + settings.retrace_eps, t_trace[k])
             need[k] = need[k] | left
             # Outside: enter the mesh through its next boundary face.
@@ -222,6 +232,7 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
             carry[k], tet[k], f_in[k] = c_k, tet_k, f_k
             inside[k] = inside[k] | enter
             kept[k] = kept[k] & ~enter
+            from_bnd[k] = from_bnd[k] | enter
             t_next[k] = dr.select(enter, inf, t_next[k])
         t = t_ev
         steps += 1
@@ -233,34 +244,64 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
 
 
 def _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev, length, C_seg,
-                      L, T, adj, reduce, n_sub):
+                      L, T, adj, reduce, n_sub, geo, o, d):
     """One piece in a derivative mode: its emission and optical depth
-    recomputed with the AD graph, through the gathers of each mesh's entry
-    and exit face vertices at the piece's fractions of its tet (constants:
-    the integral of a continuous integrand does not depend on where it is
-    split), and ``d L_pix = T dC - R dtau`` with ``R`` the radiance from
-    behind (:mod:`mi_tetvr.render.adjoint`)."""
+    recomputed with the AD graph through the gathers of each mesh's entry
+    and exit face vertices, and ``d L_pix = T dC - R dtau`` with ``R`` the
+    radiance from behind (:mod:`mi_tetvr.render.adjoint`).
+
+    The piece's ends are fixed ray parameters where the integrand is
+    continuous (a tet face or a knot of one mesh: the integral does not
+    depend on where it is split), and the crossings of a mesh's boundary
+    where it enters or leaves that mesh (``geo = (from_bnd, to_bnd,
+    f_next)``, when vertex positions are differentiated):
+    those move with the boundary, and every mesh's attributes at the ends
+    follow through their own crossings, recomputed from the positions."""
+    backward = mode == dr.ADMode.Backward
     with dr.resume_grad():
-        media = []
-        tau = mi.Float(0.0)
+        u, v = ray_frame(d)
+        t0, t1 = mi.Float(t), mi.Float(t_ev)
+        crossings = []
         for k, ts in enumerate(tss_ad):
             te, we, _, tx, _, inv = ends[k]
             st = sts[k]
-            active = inside[k]
             ids_e = tuple(c.i for c in carry[k][0])
-            a_e = ts.model.interpolate(ts.params, ids_e, we, active, reduce)
-            a_x = ts.model.interpolate(ts.params, st.exit, st.w, active, reduce)
-            F0 = dr.clip((t - te) * inv, 0.0, 1.0)
-            F1 = dr.clip((t_ev - te) * inv, 0.0, 1.0)
+            if geo is not None:
+                from_bnd, to_bnd, f_next = geo
+                act = inside[k] | from_bnd[k] | to_bnd[k]
+                te, we = face_crossing(ts.buf, ids_e, o, u, v, d, act, reduce)
+                tx, wx = face_crossing(ts.buf, st.exit, o, u, v, d, act, reduce)
+                face = tuple(dr.gather(mi.UInt32, ts.buf.faces, f_next[k] * 3 + j,
+                                       to_bnd[k]) for j in range(3))
+                tn, _ = face_crossing(ts.buf, face, o, u, v, d, to_bnd[k], reduce)
+                t0 = dr.select(from_bnd[k], te, t0)
+                t1 = dr.select(to_bnd[k], dr.select(inside[k], tx, tn), t1)
+                span = tx - te
+                inv = dr.select(span > 0, dr.rcp(dr.select(span > 0, span, 1.0)), 0.0)
+            else:
+                wx = st.w
+            a_e = ts.model.interpolate(ts.params, ids_e, we, inside[k], reduce)
+            a_x = ts.model.interpolate(ts.params, st.exit, wx, inside[k], reduce)
+            crossings.append((te, a_e, a_x, inv))
+        if geo is not None:
+            length = t1 - t0
+        media = []
+        tau = mi.Float(0.0)
+        for k, ts in enumerate(tss_ad):
+            te, a_e, a_x, inv = crossings[k]
+            # (not clipped: a cut held at a fixed t reads the tet's linear
+            # field there, continued past a face that moved)
+            F0 = (t0 - te) * inv
+            F1 = (t1 - te) * inv
             lin = ts.model.linear(ts.params, tree_lerp(a_e, a_x, F0), tree_lerp(a_e, a_x, F1))
-            lin = tuple(dr.select(active, x, 0.0) for x in lin)
+            lin = tuple(dr.select(inside[k], x, 0.0) for x in lin)
             media.append(lin)
             tau += length * (lin[2] + lin[3]) * 0.5
         C_d, _ = merged_integral(length, media, 2 * n_sub)
         R = adj.L_pix - (L + T * C_seg)
         Lo = T * C_d - tau * R
         Lo_alpha = tau * adj.T_fin
-        if mode == dr.ADMode.Backward:
+        if backward:
             dr.backward_from(dr.dot(adj.dL, Lo) + adj.dalpha * Lo_alpha,
                              flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         else:

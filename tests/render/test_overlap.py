@@ -118,20 +118,53 @@ def test_overlapping_meshes_behind_and_around_surfaces(meshes):
 
 
 def test_gradients_where_meshes_overlap(meshes):
-    """Colors, opacities, the scalar and the texels of overlapping meshes:
-    adjoint against finite differences, forward against reverse; positions
-    are refused there."""
+    """Colors, opacities, the scalar, the texels and the vertex positions of
+    overlapping meshes: adjoint against finite differences, forward against
+    reverse."""
     names = ["color", "scalar", "xray"]
     scene = scene_of(meshes, names)
     keys = ("color.vertex_color", "color.vertex_opacity", "scalar.vertex_scalar",
-            "scalar.tf_opacity", "xray.vertex_opacity")
+            "scalar.tf_opacity", "xray.vertex_opacity", "color.vertex_positions")
     rng = np.random.default_rng(73)
     o, d = rays_at(rng, 96, radius=5.0, target_extent=1.0)
     mesh = meshes["color"][1]
     problem = Problem((mesh["vertices"], mesh["tets"]), o, d, rng, scene=scene, keys=keys)
     check_forward_reverse(problem, check_fd(problem, rng, keys=keys), rng, trials=1)
-    with pytest.raises(Exception, match="not differentiated where tet meshes overlap"):
-        Problem(None, o, d, rng, scene=scene, keys=("color.vertex_positions",)).backward()
+    # The camera is not differentiated there: a clear error.
+    sensor = {"type": "perspective", "to_world": mi.ScalarTransform4f().look_at(
+        origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
+        "film": {"type": "hdrfilm", "width": 8, "height": 8}}
+    scene = scene_of(meshes, names, sensor=sensor)
+    params = mi.traverse(scene)
+    dr.enable_grad(params["sensor.to_world"])
+    with pytest.raises(Exception, match="camera gradients are not computed where"):
+        dr.backward(dr.mean(mi.render(scene, params, spp=1), axis=None))
+
+
+def test_boundary_of_a_nested_mesh_moves(meshes):
+    """Moving the boundary vertices of the absorption mesh nested in the
+    color mesh moves where the rays enter and leave it inside the color
+    medium: the crossings of its boundary carry the positions' derivative
+    (against central differences; rays kept away from its silhouette)."""
+    names = ["color", "xray"]
+    scene = scene_of(meshes, names)
+    key = "xray.vertex_positions"
+    rng = np.random.default_rng(77)
+    k = 64           # rays through the middle of the nested box, along x
+    o = np.stack([np.full(k, -3.0), rng.uniform(-0.3, 0.2, k), rng.uniform(-0.3, 0.3, k)], 1)
+    d = np.stack([np.ones(k), rng.uniform(-0.05, 0.05, k), rng.uniform(-0.05, 0.05, k)], 1)
+    problem = Problem(None, o, d, rng, scene=scene, keys=(key,))
+    g = problem.backward()[key]
+    V = meshes["xray"][1]["vertices"]
+    # the vertices on the faces x = lo and x = hi, away from the box's edges
+    lo, hi = V.min(0), V.max(0)
+    face = (np.isclose(V[:, 0], lo[0]) | np.isclose(V[:, 0], hi[0])) & np.all(
+        (V[:, 1:] > lo[1:] + 1e-6) & (V[:, 1:] < hi[1:] - 1e-6), 1)
+    entries = 3 * np.nonzero(face)[0]          # their x coordinates
+    assert len(entries) > 0 and np.abs(g[entries]).max() > 1e-3
+    fd = np.array([problem.finite_difference(key, i, 1e-3) for i in entries])
+    err = np.linalg.norm(g[entries] - fd) / np.linalg.norm(fd)
+    assert err < 0.05, (g[entries], fd)
 
 
 def test_nonconvex_mesh_overlapped_by_a_mesh_of_the_same_model():
