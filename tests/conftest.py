@@ -33,12 +33,11 @@ def data_dir():
 
 @pytest.fixture(scope="module", autouse=True)
 def collect_after_module():
-    """Free, after each test module, what its provoked errors keep alive (e.g. an
-    exception's traceback holds the frames of the renderer with their Dr.Jit
-    arrays in a reference cycle), and their AD graphs stay until Python's cycle
-    collector runs. A later forward-mode pass of a nested Mitsuba integrator
-    (``prb``, whose loop isolates its AD traversals) then fails on those
-    graphs' edges (``ad_traverse(): ... outside of the current
-    dr.isolate_grad() scope``)."""
+    """Collect reference cycles after each test module. An error a test
+    provokes on purpose keeps, through its traceback, the renderer's frames
+    and their Dr.Jit arrays alive until Python's cycle collector runs; a later
+    forward-mode pass through a nested Mitsuba integrator (``prb``, whose
+    loop isolates its AD traversals) then fails on those arrays' AD edges
+    (``ad_traverse(): ... outside of the current dr.isolate_grad() scope``)."""
     yield
     gc.collect()
