@@ -44,7 +44,7 @@ Derivatives: ``mi.render`` with parameters, ``dr.backward`` and ``dr.forward``
 reach ``<id>.vertex_color``, ``<id>.vertex_opacity`` and ``<id>.vertex_positions``
 (post-classified: ``vertex_scalar``, ``tf_color``, ``tf_opacity``; the ``alpha``
 AOV's gradient flows too), and ``dr.backward`` also the sensor's ``to_world``
-(:mod:`mi_tetvr.render.camera`; not where tet meshes overlap); through a
+(:mod:`mi_tetvr.render.camera`); through a
 differentiable nested integrator, the surfaces' parameters too (their
 radiance's adjoint is ``T * δL``). The
 adjoint re-walks the rays and records nothing (see

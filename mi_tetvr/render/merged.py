@@ -24,9 +24,10 @@ Derivatives use the same inversion as the single walk
 recovered from the pixel's value, and the piece is differentiated with
 Dr.Jit's AD locally, through the gathers of its tets' face vertices (their
 reverse mode scatter-adds into the parameters): the optical models'
-parameters and vertex positions (through the face crossings; a piece's ends
-move only where the ray enters or leaves a mesh; :func:`_piece_derivative`).
-Memory stays O(rays). Camera gradients are refused where meshes overlap.
+parameters, vertex positions (through the face crossings; a piece's ends
+move only where the ray enters or leaves a mesh) and the camera (every
+crossed vertex moved the other way; :func:`_piece_derivative`). Memory stays
+O(rays).
 """
 from __future__ import annotations
 
@@ -35,8 +36,8 @@ import mitsuba as mi
 
 from mi_tetvr.render import adjoint
 from mi_tetvr.render.buffers import unpack_link
-from mi_tetvr.render.geometry import (crossing_at, entry_carry, face_crossing, face_entry,
-                                      ray_frame, walk_step)
+from mi_tetvr.render.geometry import (corner, crossing_at, entry_carry, face_crossing,
+                                      face_entry, ray_frame, walk_step)
 from mi_tetvr.render.pytree import tree_lerp, tree_select, weighted_sum
 from mi_tetvr.render.segment import merged_integral
 from mi_tetvr.render.walk import WalkSettings, locate
@@ -66,10 +67,6 @@ def _check(tss, tss_ad):
     if len(tss) > MAX_MESHES:
         raise ValueError(f"tetvr: at most {MAX_MESHES} overlapping tet meshes in one scene, got "
                          f"{len(tss)}; merge some of them into one mesh")
-    if tss_ad is not None and any(g.camera for g in tss_ad):
-        raise ValueError("tetvr: camera gradients are not computed where tet meshes overlap "
-                         "in space; differentiate the meshes' parameters, or move the meshes "
-                         "apart")
 
 
 def _carry_like(ts, o, u, v, d):
@@ -254,13 +251,44 @@ def _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev, leng
     continuous (a tet face or a knot of one mesh: the integral does not
     depend on where it is split), and the crossings of a mesh's boundary
     where it enters or leaves that mesh (``geo = (from_bnd, to_bnd,
-    f_next)``, when vertex positions are differentiated):
+    f_next)``, when vertex positions or the camera are differentiated):
     those move with the boundary, and every mesh's attributes at the ends
-    follow through their own crossings, recomputed from the positions."""
+    follow through their own crossings, recomputed from the positions (and,
+    for the camera, from leaf copies of them)."""
     backward = mode == dr.ADMode.Backward
     with dr.resume_grad():
         u, v = ray_frame(d)
         t0, t1 = mi.Float(t), mi.Float(t_ev)
+        camera = geo is not None and tss_ad[0].camera
+        moved = []          # (the camera) each corner's position and offset leaf
+
+        def crossing_of(ts, ids, act):
+            """A face crossing from the positions (attached); with a camera,
+            from leaf copies of the corners' positions (copies of values the
+            loop gathers: a leaf made of a constant would be shared by the
+            loop's iterations), whose gradients are moved onto the ray (moving
+            the ray is moving every vertex the other way: the single walk's
+            :func:`~mi_tetvr.render.adjoint.camera_grads`)."""
+            if not camera:
+                return face_crossing(ts.buf, ids, o, u, v, d, act, reduce)
+            corners = []
+            for i in ids:
+                P = mi.Point3f(dr.detach(ts.buf.position(i, act)))
+                dr.enable_grad(P)
+                if not backward:
+                    # the ray's tangent (origin, direction) as the vertex's:
+                    # -(do + w x (P - o)) with w = d x dd
+                    dP = 0.0
+                    if ts.ray_tangent is not None:
+                        do, dd = ts.ray_tangent
+                        dP = -(do + dr.cross(dr.cross(d, dd), P - o))
+                    if adjoint.moves_vertices(ts):
+                        dP = dP + dr.forward_to(ts.buf.position(i, act),
+                                                flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+                    dr.set_grad(P, dP)
+                moved.append((ts, i, act, P))
+                corners.append(corner(i, P, o, u, v, d))
+            return crossing_at(tuple(corners))
         crossings = []
         for k, ts in enumerate(tss_ad):
             te, we, _, tx, _, inv = ends[k]
@@ -269,11 +297,11 @@ def _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev, leng
             if geo is not None:
                 from_bnd, to_bnd, f_next = geo
                 act = inside[k] | from_bnd[k] | to_bnd[k]
-                te, we = face_crossing(ts.buf, ids_e, o, u, v, d, act, reduce)
-                tx, wx = face_crossing(ts.buf, st.exit, o, u, v, d, act, reduce)
+                te, we = crossing_of(ts, ids_e, act)
+                tx, wx = crossing_of(ts, st.exit, act)
                 face = tuple(dr.gather(mi.UInt32, ts.buf.faces, f_next[k] * 3 + j,
                                        to_bnd[k]) for j in range(3))
-                tn, _ = face_crossing(ts.buf, face, o, u, v, d, to_bnd[k], reduce)
+                tn, _ = crossing_of(ts, face, to_bnd[k])
                 t0 = dr.select(from_bnd[k], te, t0)
                 t1 = dr.select(to_bnd[k], dr.select(inside[k], tx, tn), t1)
                 span = tx - te
@@ -304,9 +332,16 @@ def _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev, leng
         if backward:
             dr.backward_from(dr.dot(adj.dL, Lo) + adj.dalpha * Lo_alpha,
                              flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+            for ts, i, act, P in moved:
+                g = mi.Vector3f(dr.grad(P))
+                # (not in place: the two may start as one array object)
+                adj.g_o = adj.g_o - g
+                adj.g_w = adj.g_w - dr.cross(dr.detach(P) - o, g)
+                if adjoint.moves_vertices(ts):
+                    dr.backward_from(dr.dot(ts.buf.position(i, act, reduce), dr.detach(g)))
         else:
             dLo, dLo_alpha = dr.forward_to(Lo, Lo_alpha,
                                            flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
-            adj.dL += dLo
-            adj.dalpha += dLo_alpha
+            adj.dL = adj.dL + dLo
+            adj.dalpha = adj.dalpha + dLo_alpha
     return adj
