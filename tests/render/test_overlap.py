@@ -233,7 +233,7 @@ def test_camera_gradients_where_meshes_overlap():
     are transparent (no silhouette term), against central differences of the
     rendered loss (5 %); forward against reverse (1 %). As
     tests/render/test_gradients.py does for one mesh."""
-    from tests.render.test_gradients import camera_scene
+    from tests.render.test_gradients import camera_scene, check_camera_poses
     V, T = grid_mesh(5, jitter=0.1, seed=2)
 
     def field(P, shift):
@@ -244,32 +244,9 @@ def test_camera_gradients_where_meshes_overlap():
     V2 = V + [0.6, 0.1, 0.0]
     scene = camera_scene((V, T, *field(V, 0.0)), 24, 50,
                          mesh1=mi_tetvr.tetmesh_dict(V2, T, *field(V2, 0.6)))
-    params = mi.traverse(scene)
-    base = mi.AffineTransform4f(params["sensor.to_world"])
-    w = mi.TensorXf(np.random.default_rng(78).normal(size=(24, 24, 4)).astype(np.float32))
-
-    def loss(to_world):
-        params["sensor.to_world"] = to_world
-        params.update()
-        return dr.sum(mi.render(scene, params, spp=1) * w, axis=None)
-
-    poses = {"translate x": (lambda x: mi.AffineTransform4f().translate(
-                 mi.Vector3f(x, 0, 0)) @ base, 1e-3),
-             "rotate about y (degrees)": (lambda x: base @ mi.AffineTransform4f().rotate(
-                 mi.Vector3f(0, 1, 0), x), 0.05)}
-    for name, (pose, h) in poses.items():
-        x = mi.Float(0.0)
-        dr.enable_grad(x)
-        dr.backward(loss(pose(x)))
-        reverse = float(dr.grad(x)[0])
-        fd = (float(loss(pose(mi.Float(h))).array[0])
-              - float(loss(pose(mi.Float(-h))).array[0])) / (2 * h)
-        assert abs(fd) > 1e-2, (name, fd)
-        assert abs(reverse - fd) < 0.05 * abs(fd), (name, reverse, fd)
-        x = mi.Float(0.0)
-        dr.enable_grad(x)
-        dr.set_grad(x, 1.0)
-        forward = float(np.array(dr.forward_to(loss(pose(x)))).ravel()[0])
-        assert abs(forward - reverse) < 0.01 * abs(reverse), (name, forward, reverse)
-    params["sensor.to_world"] = base
-    params.update()
+    base = mi.AffineTransform4f(mi.traverse(scene)["sensor.to_world"])
+    check_camera_poses(scene, {
+        "translate x": (lambda x: mi.AffineTransform4f().translate(
+            mi.Vector3f(x, 0, 0)) @ base, 1e-3),
+        "rotate about y (degrees)": (lambda x: base @ mi.AffineTransform4f().rotate(
+            mi.Vector3f(0, 1, 0), x), 0.05)}, 78)
