@@ -37,7 +37,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from common import grid_scene, header, make_parser, render_steps, sensor_dict, timed, write_json
+from common import (CAM_ORIGIN, grid_scene, header, make_parser, render_steps, sensor_dict,
+                    timed, write_json)
 
 
 def parse_args(argv=None):
@@ -50,6 +51,8 @@ def parse_args(argv=None):
     p.add_argument("--volume-only", action="store_true",
                    help="time the volume-only scene alone (what --code runs)")
     a = p.parse_args(argv)
+    if a.code and not (Path(a.code) / "mi_tetvr").is_dir():
+        p.error(f"--code {a.code}: not a checkout of mi_tetvr (no mi_tetvr/ in it)")
     if a.quick:
         a.cells, a.res, a.rounds = 8, 48, 1
     return a
@@ -83,7 +86,6 @@ def jittered(res, back=1.0):
     s = sensor_dict(res)
     s["sampler"] = {"type": "independent", "sample_count": 1}
     if back != 1.0:
-        from common import CAM_ORIGIN
         s["to_world"] = mi.ScalarTransform4f().look_at(
             origin=[back * x for x in CAM_ORIGIN], target=[0, 0, 0], up=[0, 1, 0])
     return s

@@ -123,7 +123,13 @@ def cmd_render(a):
     except Exception as e:
         sys.exit(f"mi-tetvr: cannot load {scene_path}: {_plugin_error(e)}")
     t1 = time.time()
-    img = np.array(mi.render(scene, spp=a.spp or 0))
+    try:
+        img = np.array(mi.render(scene, spp=a.spp or 0))
+    except Exception as e:
+        # (Dr.Jit wraps the integrator's error: report the innermost one)
+        while (e.__cause__ or e.__context__) is not None:
+            e = e.__cause__ or e.__context__
+        sys.exit(f"mi-tetvr: cannot render {scene_path}: {_plugin_error(e)}")
     t2 = time.time()
     rgb = img[..., :3]
     alpha = img[..., 3] if img.shape[-1] > 3 else None

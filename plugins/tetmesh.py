@@ -231,6 +231,10 @@ class TetMeshShape(mi.Mesh):
         topo = mesh.topology
         super().__init__("tetmesh", len(mesh.vertices), len(topo.boundary_faces),
                          props, False, False)
+        if self.is_emitter():
+            raise ValueError("tetmesh: a tet volume cannot be an area emitter; it emits through "
+                             "its colors (color, or a transfer function): remove its 'area' "
+                             "emitter")
         self.mesh = mesh
         self.topology = topo
         self.optical_model = MODELS[model]

@@ -312,13 +312,8 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
                         flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad))
             for g in ts:
                 g.camera, g.ray_tangent = camera, tangent
-            if overlapping(tets):
-                _, _, _, adj = merged_trace(mode, self.parts.apart(tets),
-                                            [g.detached() for g in ts], ray, settings, active,
-                                            adj, ts, n_sub=self.n_sub)
-            else:
-                _, _, _, adj = trace(mode, walk_scene, [g.detached() for g in ts], ray,
-                                     settings, active, adj, ts_ad=ts)
+            _, _, _, adj = self.walk(mode, walk_scene, tets, [g.detached() for g in ts], ray,
+                                     settings, active, adj, ts)
         if mode == dr.ADMode.Backward:
             if camera:
                 # The ray's gradient into the sensor: the origin's as is, the
@@ -332,17 +327,22 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         dalpha = dr.select(hit, 0.0, adj.dalpha)
         return dL, mi.Bool(True), [dalpha] if self.alpha else [], None
 
+    def walk(self, mode, walk_scene, tets, ts, ray, settings, active, adj=None, ts_ad=None):
+        """The walk of :func:`~mi_tetvr.render.walk.trace` through the tet
+        meshes ``tets`` (their walks ``ts``, ``ts_ad``) along ``ray`` up to
+        ``ray.maxt``; meshes that overlap in space take the merged walk
+        (:func:`~mi_tetvr.render.merged.merged_trace`), as one medium."""
+        if overlapping(tets):
+            return merged_trace(mode, self.parts.apart(tets), ts, ray, settings, active, adj,
+                                ts_ad, n_sub=self.n_sub)
+        return trace(mode, walk_scene, ts, ray, settings, active, adj, ts_ad)
+
     def volume(self, walk_scene, tets, ts, ray, settings, active):
-        """``(C, T)``: emission and transmittance of the tet meshes ``tets``
-        (their walks ``ts``) along ``ray`` up to ``ray.maxt`` (none without
-        tet meshes; meshes that overlap as one medium)."""
+        """``(C, T)``: emission and transmittance of the tet meshes along
+        ``ray`` (none without tet meshes)."""
         if ts is None:
             return mi.Color3f(0.0), dr.full(mi.Float, 1.0, dr.width(ray.o))
-        if overlapping(tets):
-            C, T, _, _ = merged_trace(dr.ADMode.Primal, self.parts.apart(tets), ts, ray,
-                                      settings, active, n_sub=self.n_sub)
-        else:
-            C, T, _, _ = trace(dr.ADMode.Primal, walk_scene, ts, ray, settings, active)
+        C, T, _, _ = self.walk(dr.ADMode.Primal, walk_scene, tets, ts, ray, settings, active)
         return C, T
 
     def to_string(self):

@@ -43,11 +43,29 @@ def test_render_scene(scenes, tmp_path, name):
     assert np.array(mi.Bitmap(str(png))).shape == (16, 24, 3)
 
 
-def test_render_errors(tmp_path):
+def test_render_errors(scenes, tmp_path):
     r = run("render", "missing.xml", "-o", str(tmp_path / "x.exr"))
     assert r.returncode != 0 and "not found" in r.stderr
     r = run("render", "scenes/default.xml", "-o", str(tmp_path / "x.tif"), "--res", "8x8")
     assert r.returncode != 0 and "unsupported image format" in r.stderr
+    # Errors of the scene itself, at load and while rendering: a message, no traceback.
+    shape = '<shape type="tetmesh"><string name="filename" value="{}"/>{}</shape>'
+    for extra, said in [
+            (shape.format(scenes / "meshes" / "blob.vtu", '<emitter type="area"/>'),
+             "cannot be an area emitter"),
+            (shape.format(scenes / "meshes" / "blob.vtu", "") + shape.format(
+                scenes / "meshes" / "radial_scalar.vtu",
+                f'<string name="transfer_function" value="{scenes / "tf_radial.json"}"/>'
+                '<string name="classification" value="preintegrated"/>'),
+             "cannot overlap another tetmesh")]:
+        path = tmp_path / "bad.xml"
+        path.write_text('<scene version="3.0.0"><integrator type="tetvr"/>'
+                        '<sensor type="perspective"><film type="hdrfilm">'
+                        '<integer name="width" value="8"/><integer name="height" value="8"/>'
+                        f'</film></sensor>{extra}</scene>')
+        r = run("render", str(path), "-o", str(tmp_path / "x.exr"))
+        assert r.returncode != 0 and said in r.stderr, r.stderr
+        assert "Traceback" not in r.stderr
 
 
 def test_info(tmp_path):

@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
+import threading
 import warnings
 from pathlib import Path
 
@@ -65,12 +66,18 @@ def tets_from_cells(mesh: meshio.Mesh, path) -> np.ndarray:
     return np.concatenate(tets).astype(np.int64)
 
 
+#: ``sys.stdout``/``sys.stderr`` are process-wide: two threads that redirect
+#: them at once (Mitsuba loads a scene's shapes in parallel) could each restore
+#: the other's buffer and leave the process writing into it.
+_REDIRECT = threading.Lock()
+
+
 def _read_meshio(path) -> meshio.Mesh:
     """meshio's reading; what it printed becomes the error's reason (meshio
     exits with ``SystemExit`` on files it cannot parse)."""
     said = io.StringIO()
     try:
-        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+        with _REDIRECT, contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
             return meshio.read(path)
     except (Exception, SystemExit) as e:
         text = " ".join(said.getvalue().split())

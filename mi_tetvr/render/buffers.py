@@ -207,10 +207,8 @@ class TetScene:
 
     def detached(self):
         """The same scene with its buffers detached from the AD graph."""
-        ts = TetScene(self.shapes, self.face_offsets, dr.detach(self.buf), self.model,
-                      dr.detach(self.params))
-        ts.camera, ts.ray_tangent = self.camera, self.ray_tangent
-        return ts
+        return TetScene(self.shapes, self.face_offsets, dr.detach(self.buf), self.model,
+                        dr.detach(self.params))
 
     def owns(self, si):
         """Whether a preliminary intersection is on one of :attr:`shapes`."""

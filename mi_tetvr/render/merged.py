@@ -63,7 +63,7 @@ def overlapping(shapes, rel_eps=1e-6):
     return False
 
 
-def _check(tss, tss_ad):
+def _check(tss):
     if len(tss) > MAX_MESHES:
         raise ValueError(f"tetvr: at most {MAX_MESHES} overlapping tet meshes in one scene, got "
                          f"{len(tss)}; merge some of them into one mesh")
@@ -89,7 +89,7 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
     Same results as :func:`~mi_tetvr.render.walk.trace`; pieces are
     integrated with ``2 n_sub`` sub-intervals (the merged integral's error at
     ``2 n`` is about the single medium's at ``n``)."""
-    _check(tss, tss_ad)
+    _check(tss)
     primal = mode == dr.ADMode.Primal
     K = len(tss)
     o = mi.Point3f(ray.o)
@@ -183,8 +183,14 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
         for k in range(K):
             go.append(active & ~moved & (evs[k] <= t_ev) & (evs[k] < t_max))
             moved |= go[k]
-        # The piece [t, t_ev]: every mesh the ray is inside, as one medium.
-        length = t_ev - t
+        # The piece [t, t_ev]: every mesh the ray is inside, as one medium
+        # (none inside: an empty piece, which may reach to an infinite t_max,
+        # whose length times a zero extinction would be NaN).
+        any_in = mi.Bool(False)
+        for k in range(K):
+            any_in |= inside[k]
+        t_end = dr.select(any_in, t_ev, t)
+        length = t_end - t
         media = []
         for k in range(K):
             te, we, ae, tx, ax, inv = ends[k]
@@ -199,7 +205,7 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
             # The piece ends where the ray enters or leaves mesh k.
             to_bnd = [go[k] & (~inside[k] | (~knots[k][0] & (sts[k].link < 0)))
                       for k in range(K)]
-            adj = _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev,
+            adj = _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_end,
                                     length, C_seg, L, T, adj, settings.reduce, n_sub,
                                     (from_bnd, to_bnd, f_next) if geo else None, o, d)
         L += T * C_seg
@@ -260,15 +266,15 @@ def _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev, leng
         u, v = ray_frame(d)
         t0, t1 = mi.Float(t), mi.Float(t_ev)
         camera = geo is not None and tss_ad[0].camera
-        moved = []          # (the camera) each corner's position and offset leaf
+        moved = []          # (the camera) each corner's mesh, index, mask, leaf position
 
         def crossing_of(ts, ids, act):
             """A face crossing from the positions (attached); with a camera,
-            from leaf copies of the corners' positions (copies of values the
-            loop gathers: a leaf made of a constant would be shared by the
-            loop's iterations), whose gradients are moved onto the ray (moving
-            the ray is moving every vertex the other way: the single walk's
-            :func:`~mi_tetvr.render.adjoint.camera_grads`)."""
+            from leaf copies of the corners' positions, whose gradients are
+            moved onto the ray (moving the ray is moving every vertex the
+            other way: the single walk's
+            :func:`~mi_tetvr.render.adjoint.camera_grads`) and, where the
+            positions are differentiated too, into them."""
             if not camera:
                 return face_crossing(ts.buf, ids, o, u, v, d, act, reduce)
             corners = []

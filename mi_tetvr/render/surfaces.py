@@ -26,16 +26,10 @@ def is_tetmesh(shape):
 
 def split_shapes(scene):
     """``(tetmeshes, surfaces)``: the scene's ``tetmesh`` shapes and its other
-    shapes. A ``tetmesh`` that is an area emitter is an error (a volume
-    emits through its colors)."""
+    shapes."""
     tets, surfaces = [], []
     for s in scene.shapes():
         (tets if is_tetmesh(s) else surfaces).append(s)
-    for s in tets:
-        if s.is_emitter():
-            raise ValueError(f"tetvr: the tetmesh {s.id()!r} is an area emitter; a tet volume "
-                             f"emits through its colors (vertex_color, or a transfer "
-                             f"function), not as a surface: remove its 'area' emitter")
     return tets, surfaces
 
 

@@ -194,3 +194,20 @@ def test_face_keys_of_repaired_boundary_are_faces_of_dropped_tets():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         build_topology(v, t[keep])
+
+
+def test_reading_in_parallel_leaves_stdout_and_stderr_alone(tmp_path):
+    """Mitsuba loads a scene's shapes on several threads; the reader's
+    capture of meshio's messages must leave ``sys.stdout``/``sys.stderr`` as
+    they were (a race left the process writing into a reader's buffer, and
+    the command line's error messages vanished)."""
+    import sys
+    from concurrent.futures import ThreadPoolExecutor
+    v, t = grid_mesh(3)
+    path = tmp_path / "m.vtu"
+    write_tetmesh(path, TetMesh(v, t))
+    out, err = sys.stdout, sys.stderr
+    with ThreadPoolExecutor(8) as pool:
+        meshes = list(pool.map(lambda _: read_tetmesh(path), range(64)))
+    assert all(len(m.tets) == len(t) for m in meshes)
+    assert sys.stdout is out and sys.stderr is err
