@@ -11,6 +11,10 @@ Free functions over numpy arrays. Every initializer returns
   closed surface.
 * :func:`delaunay_init` -- Delaunay tetrahedralization of sparse points (e.g.
   COLMAP's), after statistical outlier removal.
+* :func:`unbounded_init` -- a whole unbounded scene: the Delaunay
+  tetrahedralization of sparse points together with points on far shells
+  around the cameras, so that every camera is inside the mesh and cells grow
+  with the distance (as Radiance Meshes and Radiant Foam start).
 
 The box they fill comes from the data: :mod:`mi_tetvr.recon.hull` (visual
 hull of alpha masks, what the cameras see) or
@@ -29,7 +33,7 @@ from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.topology import FLAT_TOLERANCE, MeshError, check_bounds, orient_tets
 
 __all__ = ["grid_init", "grid_shape", "grid_sample", "tetwild_init", "delaunay_init", "box_surface",
-           "remove_outliers",
+           "remove_outliers", "unbounded_init", "shell_points",
            "orient_and_compact"]
 
 
@@ -389,3 +393,90 @@ def delaunay_init(points, outlier_std: float | None = 2.0, k_neighbors: int = 8,
     if len(t) == 0:
         raise MeshError("every Delaunay tet is flat: the points are (nearly) coplanar")
     return v, t
+
+
+# --------------------------------------------------------------------------- unbounded
+def shell_points(center, radii, per_shell: int, seed: int = 0):
+    """Points on concentric spheres: ``per_shell`` on each (a Fibonacci
+    lattice, randomly rotated per shell so that shells do not line up).
+
+    Parameters
+    ----------
+    center : (3,) float
+    radii : (s,) float
+    per_shell : int
+    seed : int
+
+    Returns
+    -------
+    (s * per_shell, 3) float64
+    """
+    from scipy.spatial.transform import Rotation
+    i = np.arange(per_shell) + 0.5
+    z = 1.0 - 2.0 * i / per_shell
+    phi = np.pi * (1.0 + 5 ** 0.5) * i
+    r = np.sqrt(1.0 - z * z)
+    unit = np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+    rotations = Rotation.random(len(radii), random_state=seed).as_matrix()
+    return np.concatenate([np.asarray(center, np.float64) + rad * unit @ rot.T
+                           for rad, rot in zip(np.asarray(radii, np.float64), rotations)])
+
+
+def unbounded_init(points, cameras, far: float = 8.0, shells: int = 6,
+                   per_shell: int | None = None, outlier_std: float | None = 2.0,
+                   seed: int = 0):
+    """A mesh over a whole unbounded scene, cameras inside.
+
+    The sparse points (statistical outliers removed, :func:`remove_outliers`)
+    are tetrahedralized together with points on ``shells`` spheres around the
+    scene's centre whose radii grow geometrically from just outside the
+    cameras and the bulk of the points (``r0``) to ``far * r0``: every shell
+    carries as many points, so the cells grow in proportion to their
+    distance, as a grid in mip-NeRF 360's contracted space does. The convex
+    hull is the outermost shell; a learned background lies beyond.
+
+    Parameters
+    ----------
+    points : (k, 3) float
+        Sparse points of the scene (e.g. structure from motion's).
+    cameras : (c, 3) float
+        Camera centres: the mesh contains them.
+    far : float
+        Radius of the outermost shell over ``r0``.
+    shells : int
+        Number of shells (at least 1).
+    per_shell : int, optional
+        Points per shell (default: the scene points over the shells, within
+        200 .. 2000: as many points far away as near).
+    outlier_std : float or None
+        Outlier removal of the points (``None``: keep all).
+    seed : int
+
+    Returns
+    -------
+    vertices : (n, 3) float64
+    tets : (m, 4) int64
+        Positively oriented, conforming (:func:`delaunay_init`).
+    is_shell : (n,) bool
+        The vertices that are shell points (no point of the scene).
+    """
+    from scipy.spatial import cKDTree
+    p = np.unique(np.asarray(points, np.float64).reshape(-1, 3), axis=0)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if outlier_std is not None and len(p) >= 20:
+        p = p[remove_outliers(p, outlier_std)]
+    c = np.asarray(cameras, np.float64).reshape(-1, 3)
+    if len(c) == 0:
+        raise ValueError("unbounded_init needs the camera centres")
+    center = np.median(np.concatenate([c, p]) if len(p) else c, axis=0)
+    dist = np.linalg.norm(p - center, axis=1) if len(p) else np.zeros(0)
+    r_cam = float(np.linalg.norm(c - center, axis=1).max())
+    r0 = 1.1 * max(r_cam, float(np.percentile(dist, 90)) if len(dist) else 0.0, 1e-6)
+    p = p[dist < far * r0 * 0.95] if len(p) else p
+    if per_shell is None:
+        per_shell = int(np.clip(len(p) // max(int(shells), 1), 200, 2000))
+    radii = r0 * float(far) ** (np.arange(max(int(shells), 1)) / max(int(shells) - 1, 1))
+    shell = shell_points(center, radii, per_shell, seed)
+    vertices, tets = delaunay_init(np.concatenate([p, shell]), outlier_std=None, seed=seed)
+    is_shell = cKDTree(shell).query(vertices)[0] < 1e-6 * radii[-1]
+    return vertices, tets, is_shell

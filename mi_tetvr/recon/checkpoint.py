@@ -3,7 +3,8 @@
 One ``.npz`` file holds the mesh (``vertices``, ``tets``) and the fitted
 values (``value:<name>``, e.g. ``value:color``), the run's state (``step``, ``stage``, ``stage_start``,
 ``elapsed``, ``shortened``, the ``history`` and the view-picking ``rng`` as
-JSON), the ``config`` (JSON, for the record) and Adam's state
+JSON), the ``config`` (JSON, for the record), a learned ``environment`` and the
+photos' color transforms (``appearance``) when fitted, and Adam's state
 (``<key>:t``, ``<key>:m``, ``<key>:v`` per optimized parameter). A run
 resumed from it takes the same views, seeds and steps as one that never
 stopped.
@@ -35,7 +36,8 @@ def save_checkpoint(trainer: Trainer, path):
              shortened=state.shortened, history=json.dumps(state.history),
              config=json.dumps(dataclasses.asdict(trainer.config)),
              rng=json.dumps(state.rng.bit_generator.state), **trainer.opt.state_dict(),
-             **({} if trainer.environment() is None else {"environment": trainer.environment()}))
+             **({} if trainer.environment() is None else {"environment": trainer.environment()}),
+             **({} if trainer.appearance() is None else {"appearance": trainer.appearance()}))
     tmp.replace(path)
 
 
@@ -66,6 +68,7 @@ def load_checkpoint(path, dataset, config: FitConfig) -> Trainer:
     values = {k[len("value:"):]: ckpt[k] for k in ckpt.files if k.startswith("value:")}
     trainer = Trainer(dataset, ckpt["vertices"], ckpt["tets"], config.for_stage(state.stage),
                       values, state=state,
-                      environment=ckpt["environment"] if "environment" in ckpt else None)
+                      environment=ckpt["environment"] if "environment" in ckpt else None,
+                      appearance=ckpt["appearance"] if "appearance" in ckpt else None)
     trainer.opt.load_state_dict(ckpt)
     return trainer

@@ -19,13 +19,23 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["FitConfig", "coarse_to_fine"]
+__all__ = ["FitConfig", "coarse_to_fine", "INITS"]
+
+#: The starting meshes made from the data (any other ``init`` is a mesh file).
+INITS = ("auto", "grid", "tetwild", "delaunay", "unbounded")
 
 
 @dataclass
 class FitConfig:
     """Settings of a reconstruction (all have working defaults)."""
-    init: str = "grid"                 # grid | tetwild | delaunay | path to a mesh file
+    # What the images show: "object" (views of an object, with alpha masks: a grid over
+    # the visual hull, RGBA or a constant background) or "unbounded" (photos of a scene
+    # in its surroundings: the sparse points and far shells tetrahedralized, a learned
+    # background, an exposure per photo, an L1 loss); "auto": "object" when some training
+    # pixel is transparent, else "unbounded" (mi_tetvr.recon.pipeline.for_capture).
+    scene: str = "auto"                # auto | object | unbounded
+    init: str = "auto"                 # auto (grid, or unbounded for unbounded scenes) |
+                                       # grid | tetwild | delaunay | unbounded | a mesh file
     resolution: int | None = None      # cells along the largest axis (grid, tetwild); None:
                                        # chosen for the time budget, 32 without one
     bounds: list | None = None         # [[x0, y0, z0], [x1, y1, z1]]; default: from the data
@@ -38,12 +48,21 @@ class FitConfig:
     lr_opacity: float = 0.05           # optical depth per cell, per step
     lr_position: float = 0.0           # cell sizes per step; 0 = positions fixed
     decay: float = 0.1                 # learning rates fall exponentially to decay * lr
-    loss: str = "l2"                   # l1 | l2
+    loss: str | None = None            # l1 | l2; None: l2, l1 for unbounded scenes (the
+                                       # median of the residuals: robust to the pixels
+                                       # that change between photos)
     loss_space: str = "srgb"           # linear | srgb: compare linear RGB, or the sRGB
                                        # pictures the metrics score (alpha stays linear)
-    background: list | str | None = None  # None: fit RGBA; a color: composite over it;
-                                       # "learn": an environment map learned with the
-                                       # volume (photos of an object in its surroundings)
+    background: list | str | None = None  # None: fit RGBA (learn for unbounded scenes);
+                                       # a color: composite over it; "learn": an
+                                       # environment map learned with the volume (what
+                                       # lies beyond the mesh)
+    appearance: bool | None = None     # a per-photo affine color transform (exposure,
+                                       # white balance) fitted with the volume, identity
+                                       # on held-out views; None: on for unbounded scenes
+    appearance_prior: float = 0.01     # weight of its squared distance from the identity
+    lr_appearance: float = 0.005       # its entries' step (the transforms' mean is kept at
+                                       # the identity: the held-out photos' transform)
     init_color: float = 0.5
     init_opacity: float = 0.05         # optical depth per cell
     regularizer: float = 10.0          # weight lambda of the tet-quality term (DiffTetVR
@@ -114,7 +133,9 @@ class FitConfig:
 
     def validate(self):
         """Raise ``ValueError`` on a setting out of range."""
-        if self.loss not in ("l1", "l2"):
+        if self.scene not in ("auto", "object", "unbounded"):
+            raise ValueError(f"scene must be auto, object or unbounded, got {self.scene!r}")
+        if self.loss not in (None, "l1", "l2"):
             raise ValueError(f"loss must be 'l1' or 'l2', got {self.loss!r}")
         if self.loss_space not in ("linear", "srgb"):
             raise ValueError(f"loss_space must be 'linear' or 'srgb', got {self.loss_space!r}")
@@ -123,7 +144,8 @@ class FitConfig:
                 raise ValueError(f"{name} must be >= 1")
         if self.time_budget is not None and not self.time_budget > 0:
             raise ValueError("time_budget must be > 0 minutes")
-        for name in ("lr_color", "lr_opacity", "lr_position", "init_opacity", "regularizer"):
+        for name in ("lr_color", "lr_opacity", "lr_position", "init_opacity", "regularizer",
+                     "lr_appearance", "appearance_prior"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0")
         if not 0 < self.decay <= 1:
@@ -139,7 +161,7 @@ class FitConfig:
         if self.model == "absorption" and (self.optimize != "volume" or self.background):
             raise ValueError("model absorption fits an attenuation from transmittance images: "
                              "no optimize tf/scalar, no background")
-        if self.optimize != "volume" and self.init in ("grid", "tetwild", "delaunay"):
+        if self.optimize != "volume" and self.init in INITS:
             raise ValueError(f"optimize {self.optimize} needs the scalar mesh as init (a file)")
         if self.optimize == "scalar" and self.transfer_function is None:
             raise ValueError("optimize scalar needs the transfer function (--tf)")
@@ -162,7 +184,7 @@ class FitConfig:
             if bad:
                 raise ValueError(f"unknown stage settings {bad}: use iterations, lr_position, "
                                  f"split, prune, grid")
-            if st.get("grid") is not None and (self.init != "grid" or int(st["grid"]) < 1):
+            if st.get("grid") is not None and (self.init not in ("grid", "auto") or int(st["grid"]) < 1):
                 raise ValueError(f"bad stage {st}: 'grid' needs init 'grid' and a resolution >= 1")
             if int(st.get("iterations", 0)) < 0 or not 0 <= st.get("split", 0) <= 1:
                 raise ValueError(f"bad stage {st}: iterations >= 0, split in [0, 1]")

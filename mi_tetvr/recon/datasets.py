@@ -131,6 +131,8 @@ class Dataset:
         Mean reprojection error of each point in pixels (COLMAP).
     point_track_lengths : (k,) int64 or None
         Number of images that observe each point (COLMAP).
+    protocol : str
+        How the test views were chosen (recorded in a fit's ``metrics.json``).
     """
     train: List[View]
     test: List[View] = field(default_factory=list)
@@ -141,6 +143,7 @@ class Dataset:
     point_colors: Optional[np.ndarray] = None
     point_errors: Optional[np.ndarray] = None
     point_track_lengths: Optional[np.ndarray] = None
+    protocol: str = ""
 
     @property
     def views(self) -> List[View]:
@@ -208,6 +211,16 @@ def _image_file_size(path: Path):
     from PIL import Image
     with Image.open(path) as im:
         return im.size
+
+
+def holdout_protocol(holdout: Holdout, order: str) -> str:
+    """Words for a held-out split made by :func:`_holdout_split`."""
+    if holdout is None or (isinstance(holdout, (int, np.integer)) and holdout == 0):
+        return "no held-out views"
+    if isinstance(holdout, (int, np.integer)):
+        return (f"every {int(holdout)}th image held out ({order}, from the first)"
+                + (" as in LLFF and Mip-NeRF 360" if int(holdout) == 8 else ""))
+    return f"the images at {sorted(int(i) for i in holdout)} held out ({order})"
 
 
 def _holdout_split(items: list, holdout: Holdout):
@@ -396,9 +409,12 @@ def load_nerf(path, downscale: int = 1, holdout: Holdout = 8, *, load_images: bo
                                         f"image under {root}")
         out[split] = [v for v in views if not isinstance(v, FileNotFoundError)]
     train, test = out.get("train", []), out.get("test")
+    protocol = "the data set's own test split"
     if test is None:
         train, test = _holdout_split(train, holdout)
-    return Dataset(train=train, test=test, points=None, bbox=bbox, name=root.name, root=root)
+        protocol = holdout_protocol(holdout, "in file order")
+    return Dataset(train=train, test=test, points=None, bbox=bbox, name=root.name, root=root,
+                   protocol=protocol)
 
 
 def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train", "test"), *,
@@ -584,7 +600,8 @@ def load_colmap(path, images=None, downscale: int = 1, holdout: Holdout = 8, *,
         points = colors = errors = tracks = None
     name = path.name if path.name not in ("0", "sparse") else model.parent.name
     return Dataset(train=train, test=test, points=points, bbox=None, name=name, root=path,
-                   point_colors=colors, point_errors=errors, point_track_lengths=tracks)
+                   point_colors=colors, point_errors=errors, point_track_lengths=tracks,
+                   protocol=holdout_protocol(holdout, "sorted by name"))
 
 
 def load_dataset(path, downscale: int = 1, holdout: Holdout = 8, **kw) -> Dataset:

@@ -26,7 +26,8 @@ from mi_tetvr.recon.metrics import psnr
 from mi_tetvr.recon.plots import plot_history, save_comparison
 from mi_tetvr.recon.trainer import RunState, Trainer
 
-__all__ = ["run", "next_stage", "write_outputs", "write_fitted", "evaluate_mesh", "initial_mesh",
+__all__ = ["run", "next_stage", "for_capture", "capture_kind", "with_sparse_points",
+           "unbounded_stages", "SCORE_VIEWS", "write_outputs", "write_fitted", "evaluate_mesh", "initial_mesh",
            "data_bounds", "scalar_from_colors", "calibrate", "resolution_for_budget", "budget_stages", "DEFAULT_RESOLUTION",
            "BUDGET_STEPS", "COARSE_SHARE", "PIXELS_PER_VERTEX",
            "resolution_limits", "data_warnings"]
@@ -60,6 +61,84 @@ RESOLUTION_RANGE = (12, 96)
 #: budgets: 2 gives C60 42.53 dB (384k vertices), 4 gave 42.71 dB (192k) but
 #: cost the engine 2.2 dB and setup.sh's one-minute job 3.2 dB.
 PIXELS_PER_VERTEX = 2
+#: An unbounded scene's stages (:func:`unbounded_stages`): after each but the
+#: last, tets empty below this optical depth per cell are pruned and the edges
+#: at this fraction of the vertices (largest image-loss gradients) are split.
+UNBOUNDED_STAGES = 4
+UNBOUNDED_PRUNE = 0.01
+UNBOUNDED_SPLIT = 0.05
+#: Training views whose gradients rank vertices for a split (evenly spaced).
+SCORE_VIEWS = 16
+
+
+def capture_kind(dataset):
+    """``object`` when some training pixel is transparent (alpha masks: views
+    of an object), else ``unbounded`` (photos of a scene in its surroundings)."""
+    if any(float(v.image[..., 3].min()) < 0.5 for v in dataset.train):
+        return "object"
+    return "unbounded"
+
+
+def for_capture(config: FitConfig, dataset):
+    """The config with what ``scene``, ``init``, ``loss``, ``appearance`` and
+    ``background`` leave open decided for the data (see :class:`FitConfig`):
+    an unbounded scene starts from its sparse points and far shells
+    (``init="unbounded"``), learns its background and a color transform per
+    photo, with an L1 loss; an object a grid, L2, no transform."""
+    kind = config.scene
+    if kind == "auto":
+        kind = "object" if (config.model != "emission" or config.optimize != "volume"
+                            or config.init not in ("auto", "unbounded")) \
+            else capture_kind(dataset)
+    unbounded = kind == "unbounded"
+    changes = {"scene": kind}
+    if config.init == "auto":
+        changes["init"] = "unbounded" if unbounded else "grid"
+    if config.loss is None:
+        changes["loss"] = "l1" if unbounded else "l2"
+    if config.appearance is None:
+        changes["appearance"] = unbounded
+    if unbounded and config.background is None:
+        changes["background"] = "learn"
+    return config.updated(**changes)
+
+
+def with_sparse_points(dataset, work_dir, progress=True, log=print):
+    """The data set with sparse points: its own (a COLMAP model's, those
+    seen from at least 3 photos when there are enough of them), else
+    triangulated from its training photos and their known poses
+    (:func:`mi_tetvr.recon.sfm.triangulate`, cached in
+    ``work_dir/sparse_points.npz``)."""
+    if dataset.points is not None:
+        tracks = dataset.point_track_lengths
+        if tracks is not None and np.count_nonzero(tracks >= 3) >= 100:
+            keep = tracks >= 3
+            colors = None if dataset.point_colors is None else dataset.point_colors[keep]
+            return dataclasses.replace(dataset, points=dataset.points[keep], point_colors=colors)
+        return dataset
+    cache = Path(work_dir) / "sparse_points.npz"
+    if cache.is_file():
+        data = np.load(cache)
+        points, colors = data["points"], data["colors"]
+    else:
+        from mi_tetvr.recon.sfm import triangulate
+        log(f"no sparse points in the data set: triangulating them from the "
+            f"{len(dataset.train)} training photos and their poses")
+        points, colors, errors, _ = triangulate(dataset.train, Path(work_dir) / "sfm",
+                                                progress=progress, log=log)
+        log(f"{len(points):,} points, mean reprojection error {float(np.mean(errors)):.2f} px")
+        np.savez(cache, points=points, colors=colors)
+    return dataclasses.replace(dataset, points=points, point_colors=colors)
+
+
+def unbounded_stages(config: FitConfig):
+    """An unbounded scene's stages: :data:`UNBOUNDED_STAGES` of equal length
+    (time shares with a budget), each but the last followed by pruning and a
+    split of the vertices with the largest gradients (cells where the error is)."""
+    n = max(int(config.iterations) // UNBOUNDED_STAGES, 1)
+    grow = {"split": UNBOUNDED_SPLIT, "prune": UNBOUNDED_PRUNE}
+    return [{"iterations": n, **grow} for _ in range(UNBOUNDED_STAGES - 1)] + \
+        [{"iterations": max(int(config.iterations) - n * (UNBOUNDED_STAGES - 1), 1)}]
 
 
 def initial_mesh(config: FitConfig, dataset):
@@ -70,7 +149,11 @@ def initial_mesh(config: FitConfig, dataset):
     transfer function or a scalar is fitted)."""
     from mi_tetvr.mesh import initial as initmesh
     from mi_tetvr.mesh.io import choose_scalar, read_tetmesh
+    if config.init == "auto":
+        config = for_capture(config, dataset)
     init = config.init
+    if init == "unbounded":
+        return unbounded_mesh(config, dataset)
     if init not in ("grid", "tetwild", "delaunay"):
         if config.optimize == "volume":
             mesh = read_tetmesh(init)
@@ -92,6 +175,28 @@ def initial_mesh(config: FitConfig, dataset):
         return (*initmesh.grid_init(bounds, resolution), None)
     edge = float(np.max(bounds[1] - bounds[0])) / resolution
     return (*initmesh.tetwild_init(bounds=bounds, edge_length_abs=edge), None)
+
+
+def unbounded_mesh(config: FitConfig, dataset):
+    """The starting mesh of an unbounded scene (:func:`mi_tetvr.mesh.initial
+    .unbounded_init` of the data set's sparse points and its cameras), the
+    vertices at points starting from the points' colors, the shells' from the
+    photos' mean color."""
+    from scipy.spatial import cKDTree
+
+    from mi_tetvr.color import srgb_to_linear
+    from mi_tetvr.mesh.initial import unbounded_init
+    if dataset.points is None or len(dataset.points) < 4:
+        raise ValueError("init 'unbounded' needs sparse points (a COLMAP model, or photos "
+                         "with poses to triangulate them from)")
+    centers = np.array([v.camera.center for v in dataset.views])
+    vertices, tets, is_shell = unbounded_init(dataset.points, centers, seed=config.seed)
+    mean = np.mean([v.image[..., :3].reshape(-1, 3).mean(0) for v in dataset.train], 0)
+    color = np.tile(mean, (len(vertices), 1))
+    if dataset.point_colors is not None:
+        d, i = cKDTree(dataset.points).query(vertices[~is_shell])
+        color[~is_shell] = srgb_to_linear(np.asarray(dataset.point_colors, np.float64)[i] / 255)
+    return vertices, tets, {"color": np.clip(color, 0.0, 1.0)}
 
 
 def data_bounds(config: FitConfig, dataset):
@@ -256,6 +361,11 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.npz"
     budget = None if config.time_budget is None else 60.0 * config.time_budget
+    config = for_capture(config, dataset)
+    if config.init in ("unbounded", "delaunay"):
+        dataset = with_sparse_points(dataset, out, progress, log)
+        if config.stages is None and config.init == "unbounded":
+            config = config.updated(stages=unbounded_stages(config))
     if config.bounds is None and config.init in ("grid", "tetwild"):
         # the region once (a visual hull is carved from every view): calibration,
         # limits, warnings, the mesh and each grid stage read it, config.json keeps it
@@ -408,20 +518,24 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
         values.update({k: grid_sample(bounds, current, values[k], vertices) for k in points})
         log(f"grid {current} -> {grid}: {len(tets):,} tets")
         return Trainer(trainer.dataset, vertices, tets, config.for_stage(state.stage), values,
-                       state=state, environment=trainer.environment())
+                       state=state, environment=trainer.environment(),
+                       appearance=trainer.appearance())
     moments = trainer.opt.moments()
     data = {k: values[k] for k in points}
     for k, (_, m, v) in moments.items():
         data[f"{k}:m"], data[f"{k}:v"] = m, v
     split = stage["split"] > 0 and (config.target_tets is None or len(tets) < config.target_tets)
     # Scored on this stage's mesh; pruning only removes vertices of empty tets.
-    scores = trainer.vertex_scores(trainer.dataset.train, config.select) if split else None
+    train = trainer.dataset.train
+    scored = train[::max(1, len(train) // SCORE_VIEWS)]
+    scores = trainer.vertex_scores(scored, config.select) if split else None
     if stage["prune"] is not None:
         if trainer.field.extinction is None:
             raise ValueError("'prune' needs a fitted extinction (colors and opacities or an "
                              "attenuation)")
-        res = prune_empty(vertices, tets, values[trainer.field.extinction],
-                          float(stage["prune"]) / trainer.h, point_data=data)
+        # in optical depth per each vertex's cell
+        res = prune_empty(vertices, tets, values[trainer.field.extinction] * trainer.cell,
+                          float(stage["prune"]), point_data=data)
         log(f"pruned {len(tets) - len(res.tets):,} empty tets")
         vertices, tets, data = res.vertices, res.tets, res.point_data
         scores = None if scores is None else scores[res.vertex_parent]
@@ -434,7 +548,8 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
     # per-vertex moments carry over directly.
     values.update({k: data[k] for k in points})
     new = Trainer(trainer.dataset, vertices, tets, config.for_stage(state.stage), values,
-                  state=state, environment=trainer.environment())
+                  state=state, environment=trainer.environment(),
+                  appearance=trainer.appearance())
     new.opt.set_moments({k: (t, data[f"{k}:m"], data[f"{k}:v"])
                          for k, (t, _, _) in moments.items()})
     return new
@@ -483,7 +598,14 @@ def write_outputs(trainer: Trainer, out: Path):
     metrics.update(step=trainer.state.step, seconds=trainer.state.elapsed,
                    vertices=len(vertices), tets=len(tets), inverted_tets=trainer.inverted_tets(),
                    shortened_position_steps=trainer.state.shortened,
-                   split="test" if trainer.dataset.test else "train (no test views)")
+                   split="test" if trainer.dataset.test else "train (no test views)",
+                   protocol={"test_views": trainer.dataset.protocol or "given",
+                             "metrics": "PSNR and SSIM of sRGB images in [0, 1]"
+                             + ("" if trainer.field.signal == "rgba" else
+                                " (here: transmittance)"),
+                             "appearance": "none" if not trainer.appearance_index else
+                             "a color transform per training photo; held-out photos "
+                             "scored without one (the identity)"})
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     renders = out / "test"
     renders.mkdir(exist_ok=True)

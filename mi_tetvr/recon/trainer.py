@@ -29,7 +29,21 @@ from mi_tetvr.recon.metrics import composite, display_rgb, image_metrics, transm
 from mi_tetvr.recon.optim import VertexAdam
 
 __all__ = ["Trainer", "RunState", "K_POSITION", "K_ENVIRONMENT", "ENVIRONMENT_SIZE",
-           "pixel_center_data"]
+           "MULTISCALE", "pixel_center_data", "vertex_cell_sizes"]
+
+#: A mesh whose vertices' cell sizes (95th over 5th percentile) differ by more
+#: than this is multiscale: opacities start and step per vertex's own cell.
+MULTISCALE = 4.0
+
+
+def vertex_cell_sizes(vertices, tets):
+    """(n,) mean length of the edges at each vertex."""
+    from mi_tetvr.mesh.topology import unique_edges
+    e = unique_edges(tets)
+    length = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
+    total = np.bincount(e.ravel(), np.repeat(length, 2), len(vertices))
+    count = np.bincount(e.ravel(), minlength=len(vertices))
+    return total / np.maximum(count, 1)
 
 #: The fitted mesh's vertex positions in the scene.
 K_POSITION = key("vertex_positions")
@@ -90,6 +104,10 @@ class Trainer:
     environment : (h, w, 3) float, optional
         The learned background's texels (``config.background == "learn"``;
         default: the training images' mean color everywhere).
+    appearance : (len(dataset.train), 12) float, optional
+        The training photos' color transforms (``config.appearance``; default:
+        the identity): per photo the row-major 3x3 matrix minus the identity
+        and the offset (:meth:`apply_appearance`).
 
     Attributes
     ----------
@@ -97,13 +115,17 @@ class Trainer:
         The tets, consistently oriented.
     h : float
         The mesh's mean edge length: the unit of the opacity and position settings.
+    cell : (n,) float
+        Each vertex's cell size (the mean length of its edges) on a mesh whose
+        cells differ in size by more than :data:`MULTISCALE` (an unbounded
+        scene's): its opacity settings are per *its* cell. Else ``h`` everywhere.
     params : mitsuba.SceneParameters
     opt : VertexAdam
     state : RunState
     """
 
     def __init__(self, dataset, vertices, tets, config: FitConfig, values=None,
-                 state: RunState | None = None, environment=None):
+                 state: RunState | None = None, environment=None, appearance=None):
         from mi_tetvr.mesh.topology import build_topology
 
         self.config = config
@@ -117,7 +139,15 @@ class Trainer:
         #: Half the mesh's box diagonal (the unit of a known transfer function's opacity).
         self.radius = bounding_radius(vertices)
         self.field = make_field(config, self.h, values, self.tets, self.radius)
-        values = {**self.field.initial(n), **(values or {})}
+        self.cell = np.full(n, self.h)
+        initial = self.field.initial(n)
+        if self.field.extinction is not None:
+            cell = vertex_cell_sizes(np.asarray(vertices, np.float64), self.tets)
+            lo, hi = np.percentile(cell, [5, 95])
+            if hi > MULTISCALE * lo:
+                self.cell = cell
+                initial[self.field.extinction] = np.full(n, config.init_opacity) / cell
+        values = {**initial, **(values or {})}
         scene = {"type": "scene", "integrator": {"type": "tetvr", "n_sub": config.n_sub},
                  MESH_ID: self.field.shape(vertices, self.tets, values)}
         #: Whether the background is learned: then the renders already hold
@@ -150,6 +180,17 @@ class Trainer:
             rates[K_ENVIRONMENT] = config.lr_color
         self.opt = VertexAdam(self.params, rates, n, shared=self.field.shared + (K_ENVIRONMENT,))
         self.params.update(self.opt)
+        #: Where the opacity step is scaled per vertex (multiscale meshes).
+        self._step_scale = None
+        if self.field.extinction is not None and not np.all(self.cell == self.h):
+            self._step_scale = mi.Float((self.h / self.cell).astype(np.float32))
+        self.appearance_index = {}
+        if config.appearance:
+            self.appearance_index = {id(v): i for i, v in enumerate(dataset.train)}
+            init = np.zeros((len(dataset.train), 12)) if appearance is None else appearance
+            self._appearance_opt = mi.ad.Adam(lr=config.lr_appearance)
+            self._appearance_opt["appearance"] = mi.Float(
+                np.asarray(init, np.float32).reshape(len(dataset.train), 12).ravel())
         self.regularizer = None
         if config.regularizer > 0 and config.lr_position > 0:
             from mi_tetvr.recon.regularizer import QualityRegularizer
@@ -188,9 +229,35 @@ class Trainer:
             return rgb
         return dr.concat([rgb, image[..., 3:4]], axis=-1)
 
+    def apply_appearance(self, image, view):
+        """The (h, w, 4) render as photo ``view`` recorded it: its color
+        transform ``rgb' = (I + D) rgb + b`` (``D``, ``b`` the view's 12
+        fitted values) applied to the linear RGB; alpha kept. Views without
+        one (held-out views, fits without ``appearance``) are returned as is."""
+        i = self.appearance_index.get(id(view))
+        if i is None:
+            return image
+        p = [dr.gather(mi.Float, self._appearance_opt["appearance"], 12 * i + j)
+             for j in range(12)]
+        h, w = image.shape[0], image.shape[1]
+        idx = dr.arange(mi.UInt32, h * w)
+        ch = [dr.gather(mi.Float, image.array, 4 * idx + c) for c in range(4)]
+        out = [ch[c] + p[3 * c] * ch[0] + p[3 * c + 1] * ch[1] + p[3 * c + 2] * ch[2] + p[9 + c]
+               for c in range(3)]
+        return mi.TensorXf(dr.ravel(mi.Vector4f(*out, ch[3])), shape=(h, w, 4))
+
+    def appearance(self):
+        """The training photos' color transforms as (len(train), 12) numpy,
+        or ``None`` (see :meth:`apply_appearance`)."""
+        if not self.appearance_index:
+            return None
+        return np.array(self._appearance_opt["appearance"], np.float64).reshape(-1, 12)
+
     def loss(self, image, view):
-        """Image loss (L1 or L2, mean over pixels and channels) of a render
-        against a training view (see :meth:`_compared`)."""
+        """Image loss (L1 or L2, mean over pixels and channels) of a render,
+        through the view's color transform, against a training view (see
+        :meth:`_compared`)."""
+        image = self.apply_appearance(image, view)
         diff = self._compared(image) - self._compared(self.targets[id(view)])
         if self.config.loss == "l1":
             return dr.mean(dr.abs(diff), axis=None)
@@ -205,7 +272,7 @@ class Trainer:
             if self.field.signal == "transmittance":
                 d = dr.detach(image[..., 3]) - self.targets[id(view)][..., 3]
                 return dr.mean(dr.square(d), axis=None)
-            a = display_rgb(dr.detach(image), bg)
+            a = display_rgb(self.apply_appearance(dr.detach(image), view), bg)
             b = display_rgb(self.targets[id(view)], bg)
             return dr.mean(dr.square(a - b), axis=None)
 
@@ -240,7 +307,24 @@ class Trainer:
         # The learning rates fall exponentially to ``decay`` times their base over the stage.
         if progress is None:
             progress = (state.step - state.stage_start) / max(cfg.iterations, 1)
-        self.opt.step(lr_scale=cfg.decay ** min(max(progress, 0.0), 1.0))
+        lr_scale = cfg.decay ** min(max(progress, 0.0), 1.0)
+        if self._step_scale is not None:
+            k = self.field.point_arrays[self.field.extinction][0]
+            before = dr.detach(self.opt[k])
+        self.opt.step(lr_scale=lr_scale)
+        if self._step_scale is not None:
+            # Adam's step in units of each vertex's own cell
+            self.opt[k] = before + (self.opt[k] - before) * self._step_scale
+        if self.appearance_index:
+            if cfg.appearance_prior > 0:
+                a = self._appearance_opt["appearance"]
+                dr.backward(cfg.appearance_prior * dr.mean(dr.square(a)))
+            self._appearance_opt.set_learning_rate(cfg.lr_appearance * lr_scale)
+            self._appearance_opt.step()
+            # the mean transform is the identity (what held-out photos get): the
+            # volume keeps the photos' mean exposure and white balance
+            a = np.array(self._appearance_opt["appearance"]).reshape(-1, 12)
+            self._appearance_opt["appearance"] = mi.Float((a - a.mean(0)).ravel())
         self.field.project(self.opt)
         if self.learned_background:
             self.opt[K_ENVIRONMENT] = dr.maximum(self.opt[K_ENVIRONMENT], 0.0)
@@ -300,6 +384,8 @@ class Trainer:
             for k, w in weights.items():
                 score += w * np.abs(np.array(dr.grad(self.opt[k]))).reshape(n, -1).sum(1)
         self.opt.clear_grads()
+        if self.appearance_index:
+            dr.clear_grad(self._appearance_opt["appearance"])
         return score
 
     # -- evaluation -------------------------------------------------------------

@@ -170,3 +170,40 @@ def test_geometry_summary_on_grid():
         assert np.isclose(r[k], q)
     text = format_summary(r)
     assert "tets" in text and "quality_mean" in text and len(text.splitlines()) == len(r)
+
+
+def test_unbounded_init_contains_cameras_and_grows_with_distance():
+    """Sparse points of a scene and cameras around it: every camera and
+    kept point lies in the mesh (scipy's point location in its own Delaunay
+    of the vertices: the hull is convex), the scene points are vertices, and
+    the cells on the shells grow in proportion to their radius."""
+    from scipy.spatial import Delaunay
+
+    from mi_tetvr.mesh.initial import unbounded_init
+    from mi_tetvr.mesh.topology import build_topology, unique_edges
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-1, 1, (800, 3))
+    angle = rng.uniform(0, 2 * np.pi, 12)
+    cameras = np.stack([2 * np.cos(angle), 2 * np.sin(angle), rng.uniform(-0.5, 0.5, 12)], -1)
+    V, T, shell = unbounded_init(points, cameras, far=8.0, shells=4, outlier_std=None)
+    topo = build_topology(V, T)
+    assert topo.n_flipped == 0
+    assert Delaunay(V).find_simplex(cameras).min() >= 0
+    # the scene points are vertices (up to the joggle of degenerate spots)
+    d = np.linalg.norm(V[~shell][:, None] - points[None], axis=-1).min(1)
+    assert (~shell).sum() == len(points) and d.max() < 1e-3
+    # shells: 4 radii r0 * 8^(k/3), as many points on each; edges between shell
+    # vertices of one shell scale with the radius
+    center = np.median(np.concatenate([cameras, points]), 0)
+    r = np.linalg.norm(V[shell] - center, axis=1)
+    radii = np.unique(np.round(r / r.min(), 3))
+    np.testing.assert_allclose(radii, 8.0 ** (np.arange(4) / 3), rtol=1e-3)
+    e = unique_edges(T)
+    both = shell[e[:, 0]] & shell[e[:, 1]]
+    ra = np.linalg.norm(V[e[both, 0]] - center, axis=1)
+    rb = np.linalg.norm(V[e[both, 1]] - center, axis=1)
+    same = np.abs(ra - rb) < 1e-6 * ra
+    length = np.linalg.norm(V[e[both, 0]] - V[e[both, 1]], axis=1)[same] / ra[same]
+    k = np.round(np.log(ra[same] / r.min()) / np.log(8.0) * 3).astype(int)
+    medians = [np.median(length[k == i]) for i in range(4)]
+    np.testing.assert_allclose(medians, medians[0], rtol=0.1)

@@ -1,0 +1,158 @@
+"""Photos of scenes in their surroundings: what the fit decides for them
+(``for_capture``), the per-photo color transform, opacities per cell on
+multiscale meshes, and the unbounded fit end to end on real photos."""
+import json
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_tetvr.grid import make_dataset, make_volume
+from mi_tetvr.mesh.scenes import default_volume
+from mi_tetvr.recon.config import FitConfig
+from mi_tetvr.recon.datasets import Dataset, View, load_colmap, load_nerf
+from mi_tetvr.recon.pipeline import for_capture, initial_mesh, run
+from mi_tetvr.recon.trainer import Trainer, vertex_cell_sizes
+from mi_tetvr.transfer import read_transfer_function
+from tests.helpers import ROOT
+
+CFG = FitConfig(resolution=4, iterations=24, views_per_step=2, lr_color=0.08, lr_opacity=0.3,
+                n_sub=2, jitter=False, checkpoint_every=4, log_every=4)
+MAUPERTUIS = ROOT.parent / "shared" / "data" / "colmap-maupertuis"
+QUIET = dict(progress=False, log=lambda *a: None)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("data")
+    tf = read_transfer_function(ROOT / "scenes" / "tf_default.json")
+    make_dataset(make_volume(default_volume(16)), tf, views=6, res=16, out_dir=out,
+                 test_views=2, fov=30, progress=False)
+    return load_nerf(out)
+
+
+def opaque(data, sky=(0.2, 0.5, 0.8), gains=None):
+    """The views as photos in front of a colored sky (alpha 1), the training
+    ones with a gain per channel (exposure and white balance)."""
+    def photo(v, g):
+        rgb = (v.image[..., :3] + (1 - v.image[..., 3:]) * np.asarray(sky)) * g
+        return View(v.name, v.camera, np.concatenate([rgb, np.ones_like(rgb[..., :1])], -1)
+                    .astype(np.float32))
+    gains = np.ones((len(data.train), 3)) if gains is None else gains
+    return Dataset(train=[photo(v, g) for v, g in zip(data.train, gains)],
+                   test=[photo(v, 1.0) for v in data.test])
+
+
+def test_for_capture_decides_by_alpha_and_keeps_what_is_set(data):
+    obj = for_capture(CFG, data)
+    assert (obj.scene, obj.init, obj.loss, obj.appearance, obj.background) == \
+        ("object", "grid", "l2", False, None)
+    scene = for_capture(CFG, opaque(data))
+    assert (scene.scene, scene.init, scene.loss, scene.appearance, scene.background) == \
+        ("unbounded", "unbounded", "l1", True, "learn")
+    mine = for_capture(CFG.updated(loss="l2", appearance=False, background=[1, 1, 1],
+                                   init="grid"), opaque(data))
+    assert (mine.loss, mine.appearance, mine.background, mine.init) == \
+        ("l2", False, [1, 1, 1], "grid")
+    # X-ray and transfer-function fits are never unbounded scenes
+    assert for_capture(CFG.updated(model="absorption"), opaque(data)).scene == "object"
+    with pytest.raises(ValueError, match="scene"):
+        CFG.updated(scene="outdoor")
+
+
+def test_appearance_is_the_affine_color_transform(data):
+    """apply_appearance against numpy's matrix product, and only on
+    training views."""
+    cfg = for_capture(CFG.updated(appearance=True, scene="object"), data)
+    V, T, _ = initial_mesh(cfg, data)
+    trainer = Trainer(data, V, T, cfg)
+    rng = np.random.default_rng(0)
+    a = rng.normal(0, 0.2, (len(data.train), 12))
+    trainer._appearance_opt["appearance"] = mi.Float(a.ravel().astype(np.float32))
+    image = rng.uniform(0, 1, (16, 16, 4)).astype(np.float32)
+    got = np.array(trainer.apply_appearance(mi.TensorXf(image), data.train[1]))
+    m = np.eye(3) + a[1, :9].reshape(3, 3)
+    np.testing.assert_allclose(got[..., :3], image[..., :3] @ m.T + a[1, 9:], atol=1e-5)
+    np.testing.assert_array_equal(got[..., 3], image[..., 3])
+    held_out = np.array(trainer.apply_appearance(mi.TensorXf(image), data.test[0]))
+    np.testing.assert_array_equal(held_out, image)
+
+
+def test_appearance_recovers_exposures(data):
+    """Photos rendered from the fit's own starting volume with a gain per
+    channel each (mean 1) and the volume held fixed: the fitted transforms
+    take each render to its photo."""
+    cfg = for_capture(CFG.updated(scene="object", appearance=True), data)
+    V, T, _ = initial_mesh(cfg, data)
+    volume = Trainer(data, V, T, cfg)
+    rng = np.random.default_rng(1)
+    gains = np.exp(rng.normal(0, 0.2, (len(data.train), 3)))
+    gains /= gains.mean(0)
+    views = []
+    for v, g in zip(data.train, gains):
+        image = volume.render_view(v)
+        image[..., :3] *= g
+        views.append(View(v.name, v.camera, image))
+    photos = Dataset(train=views, test=data.test, root=data.root)
+    fixed = cfg.updated(lr_color=0.0, lr_opacity=0.0, lr_appearance=0.01, decay=0.2,
+                        appearance_prior=0.0, views_per_step=len(views), iterations=150)
+    trainer = Trainer(photos, V, T, fixed)
+    for _ in range(fixed.iterations):
+        trainer.step()
+    # The volume's colors are nearly grey, so a gain is any mix of its row's
+    # entries and the offset: what must match is the transformed render.
+    for v, target in zip(data.train, views):
+        start = volume.render_view(v)
+        got = np.array(trainer.apply_appearance(mi.TensorXf(start), target))
+        error = np.abs(got[..., :3] - target.image[..., :3]).max()
+        before = np.abs(start[..., :3] - target.image[..., :3]).max()
+        assert error < 0.1 * before, (error, before)
+
+
+def test_multiscale_opacity_is_per_cell(data):
+    """On a mesh whose cells differ 100x in size, opacities start at
+    init_opacity over each vertex's own cell, and Adam's first step (of size
+    lr for every parameter with a gradient) moves each vertex's opacity by
+    lr_opacity over its cell."""
+    from mi_tetvr.mesh.initial import unbounded_init
+    rng = np.random.default_rng(2)
+    V, T, _ = unbounded_init(rng.uniform(-0.5, 0.5, (300, 3)),
+                             [v.camera.center for v in data.views], far=100.0, shells=3)
+    cfg = CFG.updated(scene="object", init="unbounded")
+    trainer = Trainer(data, V, T, cfg)
+    cell = vertex_cell_sizes(V, trainer.tets)
+    assert cell.max() > 50 * cell.min()
+    np.testing.assert_allclose(trainer.cell, cell)
+    k = "volume.vertex_opacity"
+    before = np.array(trainer.opt[k])
+    np.testing.assert_allclose(before * cell, cfg.init_opacity, rtol=1e-5)
+    trainer.step(progress=0.0)
+    moved = np.abs(np.array(trainer.opt[k]) - before)
+    stepped = (moved > 0) & (np.array(trainer.opt[k]) > 0)     # not clipped at zero
+    assert stepped.sum() > 20
+    # (Adam's epsilon shortens the steps of the tiniest gradients by < 0.3 %)
+    np.testing.assert_allclose(moved[stepped] * cell[stepped], cfg.lr_opacity, rtol=5e-3)
+
+
+@pytest.mark.skipif(not MAUPERTUIS.is_dir(), reason="../shared/data absent")
+def test_unbounded_fit_of_real_photos(tmp_path):
+    """colmap-maupertuis (4 aerial photos, a COLMAP model): the default fit
+    meshes the sparse points and far shells around every camera, prunes and
+    splits between stages, learns, and says how it was scored."""
+    from scipy.spatial import Delaunay
+    photos = load_colmap(MAUPERTUIS, downscale=16)
+    cfg = FitConfig(iterations=16, n_sub=2, log_every=4, checkpoint_every=100)
+    V0, T0, _ = initial_mesh(for_capture(cfg, photos), photos)
+    assert Delaunay(V0).find_simplex([v.camera.center for v in photos.views]).min() >= 0
+    logs = []
+    metrics = run(photos, tmp_path, cfg, progress=False, log=logs.append)
+    saved = json.loads((tmp_path / "config.json").read_text())
+    assert saved["init"] == "unbounded" and saved["background"] == "learn"
+    assert any(s.startswith("pruned") for s in logs) and any(s.startswith("split") for s in logs)
+    assert metrics["tets"] > len(T0)
+    history = metrics_history = np.load(tmp_path / "checkpoint.npz")
+    psnr = json.loads(str(history["history"]))["psnr"]
+    assert np.mean(psnr[-4:]) > np.mean(psnr[:4]) + 1.0
+    assert "every 8th image" in metrics["protocol"]["test_views"]
+    assert metrics["split"] == "test" and len(metrics["views"]) == 1
