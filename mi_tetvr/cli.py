@@ -8,6 +8,8 @@
     mi-tetvr eval MESH DATA [--background R,G,B]
     mi-tetvr refine MESH --select ATTRIBUTE [--rank magnitude|value] --fraction F -o OUT
     mi-tetvr viewpoint MESH --out DIR [--tf TF --scalar NAME] [--res R] [--starts N]
+    mi-tetvr process-data IMAGES_DIR|VIDEO --out DATA [--matcher M] [--reference DATASET]
+    mi-tetvr make-capture --out DATA [--views N] [--res WxH] [--spp S]
 """
 from __future__ import annotations
 
@@ -237,7 +239,9 @@ def cmd_fit(a):
             "init", "resolution", "iterations", "time_budget", "views_per_step", "lr_color",
             "lr_opacity", "lr_position", "loss", "loss_space", "regularizer", "downscale", "seed",
             "n_sub", "model", "optimize", "scalar", "transfer_function", "opacity_scale",
-            "tf_resolution", "tf_smoothing", "tf_init", "smoothing")}
+            "tf_resolution", "tf_smoothing", "tf_init", "smoothing", "scene")}
+        if a.appearance is not None:
+            overrides["appearance"] = a.appearance
         if a.background is not None:
             overrides["background"] = _background(a.background)
         if a.value_range is not None:
@@ -323,6 +327,63 @@ def cmd_make_dataset(a):
     make_dataset(volume, tf, views=a.views, res=a.res, out_dir=a.out, test_views=a.test_views,
                  seed=a.seed, radius=a.radius, fov=a.fov, opacity_scale=a.opacity_scale)
     print(f"wrote {a.views} training and {a.test_views} test views at {a.res}x{a.res} to {a.out}")
+
+
+def cmd_process_data(a):
+    from mi_tetvr.recon.sfm import align_cameras, run_sfm
+    from mi_tetvr.recon.datasets import load_colmap, load_dataset
+    try:
+        s = run_sfm(a.images, a.out, matcher=a.matcher, max_image_size=a.max_image_size,
+                    camera_model=a.camera_model, max_frames=a.max_frames,
+                    single_camera=not a.camera_per_image, progress=not a.quiet)
+    except (ValueError, FileNotFoundError) as e:
+        sys.exit(f"mi-tetvr: {e}")
+    except KeyboardInterrupt:
+        sys.exit("mi-tetvr: interrupted")
+    cam = s["camera"]
+    print(f"{a.out}: registered {s['images_registered']} of {s['images_given']} images, "
+          f"{s['points']:,} points, mean reprojection error "
+          f"{s['mean_reprojection_error']:.2f} px, mean track length "
+          f"{s['mean_track_length']:.2f}, {s['seconds']:.1f} s ({cam['model']} "
+          f"f = {cam['params'][0]:.1f} px) -> {s['model']}")
+    if a.reference:
+        try:
+            ref = load_dataset(a.reference, holdout=None, load_images=False)
+            est = load_colmap(a.out, holdout=None, load_images=False)
+        except (ValueError, FileNotFoundError) as e:
+            sys.exit(f"mi-tetvr: --reference: {e}")
+        ref_cams = {Path(v.name).stem: v.camera for v in ref.views}
+        pairs = [(v.camera, ref_cams[Path(v.name).stem]) for v in est.views
+                 if Path(v.name).stem in ref_cams]
+        if len(pairs) < 3:
+            print(f"against {a.reference}: {len(pairs)} image name(s) in common, at least 3 "
+                  f"are needed to compare the cameras")
+        else:
+            r = align_cameras([p[0] for p in pairs], [p[1] for p in pairs])
+            print(f"against {a.reference} ({len(pairs)} images in common, similarity scale "
+                  f"{r['scale']:.4g}): rotation error mean {r['rotation_error_deg_mean']:.2f}, "
+                  f"median {r['rotation_error_deg_median']:.2f}, max "
+                  f"{r['rotation_error_deg_max']:.2f} deg (relative rotations: max "
+                  f"{r['relative_rotation_error_deg_max']:.2f} deg); position error mean "
+                  f"{100 * r['position_error_mean']:.2f} %, median "
+                  f"{100 * r['position_error_median']:.2f} %, max "
+                  f"{100 * r['position_error_max']:.2f} % of the reference cameras' extent "
+                  f"(bounding-box diagonal {r['scene_size']:.4g})")
+    print(f"next: mi-tetvr fit {a.out} --out {Path(a.out).with_name(Path(a.out).name + '_fit')}"
+          f"  (add --downscale N for large photos)")
+
+
+def cmd_make_capture(a):
+    _set_variant(a.variant)
+    from mi_tetvr.recon.capture import make_room_capture
+    try:
+        width, height = (int(x) for x in a.res.lower().split("x"))
+    except ValueError:
+        sys.exit(f"mi-tetvr: --res must be WxH, got {a.res!r}")
+    info = make_room_capture(a.out, views=a.views, width=width, height=height, spp=a.spp,
+                             seed=a.seed)
+    print(f"wrote {info['views']} photos of {width}x{height} (path traced, {a.spp} spp, OpenCV "
+          f"lens, exposure and white balance per photo) and transforms.json to {a.out}")
 
 
 def _is_image_data(path):
@@ -491,8 +552,19 @@ def main(argv=None):
     f.add_argument("--out", required=True, help="output folder (also the checkpoint)")
     f.add_argument("--config",
                    help="JSON file of fit settings (see mi_tetvr.recon.config.FitConfig)")
-    f.add_argument("--init", help="grid (default), tetwild, delaunay or a mesh file (the "
-                   "scalar mesh with --optimize tf or scalar)")
+    f.add_argument("--scene", choices=("auto", "object", "unbounded"),
+                   help="object: views of an object with alpha masks (a grid over its visual "
+                   "hull); unbounded: photos of a scene in its surroundings (its sparse points "
+                   "and far shells tetrahedralized, a learned background, a color transform "
+                   "per photo, L1 loss, cells added where the error is); auto (default): "
+                   "object when the images have transparent pixels")
+    f.add_argument("--init", help="auto (default: grid for objects, unbounded for scenes), "
+                   "grid, tetwild, delaunay, unbounded or a mesh file (the scalar mesh with "
+                   "--optimize tf or scalar)")
+    f.add_argument("--appearance", action=argparse.BooleanOptionalAction, default=None,
+                   help="fit an exposure and white balance (an affine color transform) per "
+                   "training photo; held-out photos are scored without one (default: on for "
+                   "unbounded scenes)")
     f.add_argument("--model", choices=("emission", "absorption"),
                    help="emission (default): colors and opacities from images; absorption: an "
                    "X-ray attenuation (point data 'attenuation') from transmittance images")
@@ -550,6 +622,37 @@ def main(argv=None):
     e.add_argument("--json", help="also write the metrics to this file")
     e.add_argument("--variant", default="llvm_ad_rgb")
     e.set_defaults(func=cmd_eval)
+    mc = sub.add_parser("make-capture", help="path-trace a photo capture of a textured room "
+                        "with objects from cameras inside it (a test capture: transforms.json, "
+                        "lens distortion, exposure changes, noise, no masks)")
+    mc.add_argument("--out", required=True)
+    mc.add_argument("--views", type=int, default=48, help="photos (default 48)")
+    mc.add_argument("--res", default="320x240", help="WxH (default 320x240)")
+    mc.add_argument("--spp", type=int, default=12, help="samples per pixel (default 12)")
+    mc.add_argument("--seed", type=int, default=0)
+    mc.add_argument("--variant", default="llvm_ad_rgb")
+    mc.set_defaults(func=cmd_make_capture)
+    pd = sub.add_parser("process-data", help="camera poses of photos or a video by structure "
+                        "from motion (COLMAP through pycolmap, CPU): a COLMAP data set for fit")
+    pd.add_argument("images", help="folder of photos (.jpg, .png, ...) or a video file")
+    pd.add_argument("--out", required=True, help="data set folder: images/, database.db, "
+                    "sparse/0 (a COLMAP data set for fit and eval)")
+    pd.add_argument("--matcher", choices=("exhaustive", "sequential"),
+                    help="image pairs matched: all (default for photos) or neighbours in name "
+                    "order (default for a video)")
+    pd.add_argument("--max-image-size", type=int, default=1600,
+                    help="longest image side for feature extraction (default 1600)")
+    pd.add_argument("--camera-model", default="SIMPLE_RADIAL",
+                    help="COLMAP camera model (default SIMPLE_RADIAL; SIMPLE_PINHOLE, PINHOLE, "
+                    "RADIAL, OPENCV, ...)")
+    pd.add_argument("--camera-per-image", action="store_true",
+                    help="fit intrinsics per photo (photos from different cameras or zooms)")
+    pd.add_argument("--max-frames", type=int, default=100,
+                    help="frames taken evenly from a video (default 100)")
+    pd.add_argument("--reference", help="a data set with known cameras of the same images "
+                    "(NeRF-style or COLMAP): print the pose errors after a similarity alignment")
+    pd.add_argument("--quiet", action="store_true", help="no progress bar")
+    pd.set_defaults(func=cmd_process_data)
     rf = sub.add_parser("refine", help="split the edges around the top vertices of a "
                         "point-data array")
     rf.add_argument("mesh")

@@ -122,13 +122,31 @@ def with_sparse_points(dataset, work_dir, progress=True, log=print):
         points, colors = data["points"], data["colors"]
     else:
         from mi_tetvr.recon.sfm import triangulate
+        views = _full_resolution(dataset)
         log(f"no sparse points in the data set: triangulating them from the "
-            f"{len(dataset.train)} training photos and their poses")
-        points, colors, errors, _ = triangulate(dataset.train, Path(work_dir) / "sfm",
+            f"{len(views)} training photos ({views[0].camera.width}x"
+            f"{views[0].camera.height}) and their poses")
+        points, colors, errors, _ = triangulate(views, Path(work_dir) / "sfm",
                                                 progress=progress, log=log)
         log(f"{len(points):,} points, mean reprojection error {float(np.mean(errors)):.2f} px")
         np.savez(cache, points=points, colors=colors)
     return dataclasses.replace(dataset, points=points, point_colors=colors)
+
+
+def _full_resolution(dataset):
+    """The training views as their files hold them (features are found in
+    the photos, not in the downscaled copies a fit trains on)."""
+    from mi_tetvr.recon.datasets import load_dataset
+    if dataset.root is None:
+        return dataset.train
+    try:
+        full = load_dataset(dataset.root, holdout=None)
+    except (ValueError, FileNotFoundError):
+        return dataset.train
+    by_name = {v.name: v for v in full.views}
+    if not all(v.name in by_name for v in dataset.train):
+        return dataset.train
+    return [by_name[v.name] for v in dataset.train]
 
 
 def unbounded_stages(config: FitConfig):
