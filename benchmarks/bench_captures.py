@@ -56,8 +56,9 @@ def score(out, dataset):
 
 
 def main():
-    p = make_parser(__doc__, repeat=None)
-    p.add_argument("data", help="a photo capture (transforms.json or a COLMAP model)")
+    p = make_parser(__doc__, repeat=None, quick="colmap-maupertuis at 1/16 for half a minute")
+    p.add_argument("data", nargs="?", help="a photo capture (transforms.json or a COLMAP "
+                   "model)")
     p.add_argument("--downscale", type=int, default=2)
     p.add_argument("--time-budget", type=float, default=10.0, help="minutes per fit")
     p.add_argument("--out", default="bench_captures_out", help="where the fits are written")
@@ -66,6 +67,15 @@ def main():
     p.add_argument("--reuse", action="store_true", help="score the fits already in --out "
                    "(OUT/this, OUT/code) instead of running them again")
     a = p.parse_args()
+    if a.quick:
+        a.data = a.data or str(Path(__file__).resolve().parents[2] / "shared" / "data" /
+                               "colmap-maupertuis")
+        a.downscale, a.time_budget = 16, 0.5
+        if not Path(a.data).is_dir():
+            print(f"{a.data} absent: nothing to run")
+            return
+    if a.data is None:
+        p.error("the data set is required (or --quick)")
     info = header_info("photo captures: default fit, held-out sRGB PSNR / SSIM")
     print(f"# mi_tetvr {info['title']} (mitsuba {info['mitsuba']}, {info['device']}, "
           f"{info['cpu_count']} CPU cores)")
