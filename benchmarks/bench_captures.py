@@ -80,7 +80,10 @@ def main():
     print(f"# mi_tetvr {info['title']} (mitsuba {info['mitsuba']}, {info['device']}, "
           f"{info['cpu_count']} CPU cores)")
     from mi_tetvr.recon.datasets import load_dataset
-    dataset = load_dataset(a.data, downscale=a.downscale)
+    try:
+        dataset = load_dataset(a.data, downscale=a.downscale)
+    except (ValueError, FileNotFoundError) as e:
+        p.error(str(e))
     print(f"{a.data}: {len(dataset.train)} training, {len(dataset.test)} held-out photos "
           f"({dataset.test[0].camera.width}x{dataset.test[0].camera.height}); "
           f"{dataset.protocol}")

@@ -37,7 +37,8 @@ def save_checkpoint(trainer: Trainer, path):
              config=json.dumps(dataclasses.asdict(trainer.config)),
              rng=json.dumps(state.rng.bit_generator.state), **trainer.opt.state_dict(),
              **({} if trainer.environment() is None else {"environment": trainer.environment()}),
-             **({} if trainer.appearance() is None else {"appearance": trainer.appearance()}))
+             **({} if trainer.appearance() is None else
+                {"appearance": trainer.appearance(), **trainer.appearance_opt.state_dict()}))
     tmp.replace(path)
 
 
@@ -71,4 +72,6 @@ def load_checkpoint(path, dataset, config: FitConfig) -> Trainer:
                       environment=ckpt["environment"] if "environment" in ckpt else None,
                       appearance=ckpt["appearance"] if "appearance" in ckpt else None)
     trainer.opt.load_state_dict(ckpt)
+    if trainer.appearance_index:
+        trainer.appearance_opt.load_state_dict(ckpt)
     return trainer

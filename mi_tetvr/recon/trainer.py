@@ -188,9 +188,11 @@ class Trainer:
         if config.appearance:
             self.appearance_index = {id(v): i for i, v in enumerate(dataset.train)}
             init = np.zeros((len(dataset.train), 12)) if appearance is None else appearance
-            self._appearance_opt = mi.ad.Adam(lr=config.lr_appearance)
-            self._appearance_opt["appearance"] = mi.Float(
-                np.asarray(init, np.float32).reshape(len(dataset.train), 12).ravel())
+            start = mi.Float(np.asarray(init, np.float32).reshape(len(dataset.train), 12).ravel())
+            #: The transforms' optimizer (its state is checkpointed as the volume's).
+            self.appearance_opt = VertexAdam({"appearance": start},
+                                             {"appearance": config.lr_appearance},
+                                             len(dataset.train), shared=("appearance",))
         self.regularizer = None
         if config.regularizer > 0 and config.lr_position > 0:
             from mi_tetvr.recon.regularizer import QualityRegularizer
@@ -237,7 +239,7 @@ class Trainer:
         i = self.appearance_index.get(id(view))
         if i is None:
             return image
-        p = [dr.gather(mi.Float, self._appearance_opt["appearance"], 12 * i + j)
+        p = [dr.gather(mi.Float, self.appearance_opt["appearance"], 12 * i + j)
              for j in range(12)]
         h, w = image.shape[0], image.shape[1]
         idx = dr.arange(mi.UInt32, h * w)
@@ -251,7 +253,7 @@ class Trainer:
         or ``None`` (see :meth:`apply_appearance`)."""
         if not self.appearance_index:
             return None
-        return np.array(self._appearance_opt["appearance"], np.float64).reshape(-1, 12)
+        return np.array(self.appearance_opt["appearance"], np.float64).reshape(-1, 12)
 
     def loss(self, image, view):
         """Image loss (L1 or L2, mean over pixels and channels) of a render,
@@ -317,14 +319,13 @@ class Trainer:
             self.opt[k] = before + (self.opt[k] - before) * self._step_scale
         if self.appearance_index:
             if cfg.appearance_prior > 0:
-                a = self._appearance_opt["appearance"]
+                a = self.appearance_opt["appearance"]
                 dr.backward(cfg.appearance_prior * dr.mean(dr.square(a)))
-            self._appearance_opt.set_learning_rate(cfg.lr_appearance * lr_scale)
-            self._appearance_opt.step()
+            self.appearance_opt.step(lr_scale=lr_scale)
             # the mean transform is the identity (what held-out photos get): the
             # volume keeps the photos' mean exposure and white balance
-            a = np.array(self._appearance_opt["appearance"]).reshape(-1, 12)
-            self._appearance_opt["appearance"] = mi.Float((a - a.mean(0)).ravel())
+            a = np.array(self.appearance_opt["appearance"]).reshape(-1, 12)
+            self.appearance_opt["appearance"] = mi.Float((a - a.mean(0)).ravel())
         self.field.project(self.opt)
         if self.learned_background:
             self.opt[K_ENVIRONMENT] = dr.maximum(self.opt[K_ENVIRONMENT], 0.0)
@@ -385,7 +386,7 @@ class Trainer:
                 score += w * np.abs(np.array(dr.grad(self.opt[k]))).reshape(n, -1).sum(1)
         self.opt.clear_grads()
         if self.appearance_index:
-            dr.clear_grad(self._appearance_opt["appearance"])
+            dr.clear_grad(self.appearance_opt["appearance"])
         return score
 
     # -- evaluation -------------------------------------------------------------

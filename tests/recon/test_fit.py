@@ -8,28 +8,14 @@ import pytest
 
 import mitsuba as mi
 
-from mi_tetvr.recon.datasets import load_nerf
 from mi_tetvr.recon.config import FitConfig, coarse_to_fine
 from mi_tetvr.recon.pipeline import (PIXELS_PER_VERTEX, budget_stages, evaluate_mesh,
                                      initial_mesh, next_stage, resolution_for_budget,
                                      resolution_limits, run)
 from mi_tetvr.recon.trainer import Trainer
-from mi_tetvr.mesh.scenes import default_volume
-from mi_tetvr.transfer import read_transfer_function
-from mi_tetvr.grid import make_dataset, make_volume
-from tests.helpers import ROOT
 
-CFG = FitConfig(resolution=4, iterations=24, views_per_step=2, lr_color=0.08, lr_opacity=0.3,
-                n_sub=2, jitter=False, checkpoint_every=4, log_every=4)
+from tests.recon.conftest import CFG
 
-
-@pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data")
-    tf = read_transfer_function(ROOT / "scenes" / "tf_default.json")
-    make_dataset(make_volume(default_volume(16)), tf, views=6, res=16, out_dir=out,
-                 test_views=2, fov=30, progress=False)
-    return load_nerf(out)
 
 
 def params_of(out):

@@ -3,33 +3,21 @@
 multiscale meshes, and the unbounded fit end to end on real photos."""
 import json
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_tetvr.grid import make_dataset, make_volume
-from mi_tetvr.mesh.scenes import default_volume
 from mi_tetvr.recon.config import FitConfig
-from mi_tetvr.recon.datasets import Dataset, View, load_colmap, load_nerf
+from mi_tetvr.recon.datasets import Dataset, View, load_colmap
 from mi_tetvr.recon.pipeline import for_capture, initial_mesh, run
 from mi_tetvr.recon.trainer import Trainer, vertex_cell_sizes
-from mi_tetvr.transfer import read_transfer_function
 from tests.helpers import ROOT
 
-CFG = FitConfig(resolution=4, iterations=24, views_per_step=2, lr_color=0.08, lr_opacity=0.3,
-                n_sub=2, jitter=False, checkpoint_every=4, log_every=4)
+from tests.recon.conftest import CFG
+
 MAUPERTUIS = ROOT.parent / "shared" / "data" / "colmap-maupertuis"
 QUIET = dict(progress=False, log=lambda *a: None)
 
-
-@pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data")
-    tf = read_transfer_function(ROOT / "scenes" / "tf_default.json")
-    make_dataset(make_volume(default_volume(16)), tf, views=6, res=16, out_dir=out,
-                 test_views=2, fov=30, progress=False)
-    return load_nerf(out)
 
 
 def opaque(data, sky=(0.2, 0.5, 0.8), gains=None):
@@ -69,7 +57,7 @@ def test_appearance_is_the_affine_color_transform(data):
     trainer = Trainer(data, V, T, cfg)
     rng = np.random.default_rng(0)
     a = rng.normal(0, 0.2, (len(data.train), 12))
-    trainer._appearance_opt["appearance"] = mi.Float(a.ravel().astype(np.float32))
+    trainer.appearance_opt["appearance"] = mi.Float(a.ravel().astype(np.float32))
     image = rng.uniform(0, 1, (16, 16, 4)).astype(np.float32)
     got = np.array(trainer.apply_appearance(mi.TensorXf(image), data.train[1]))
     m = np.eye(3) + a[1, :9].reshape(3, 3)
@@ -151,8 +139,17 @@ def test_unbounded_fit_of_real_photos(tmp_path):
     assert saved["init"] == "unbounded" and saved["background"] == "learn"
     assert any(s.startswith("pruned") for s in logs) and any(s.startswith("split") for s in logs)
     assert metrics["tets"] > len(T0)
-    history = metrics_history = np.load(tmp_path / "checkpoint.npz")
-    psnr = json.loads(str(history["history"]))["psnr"]
+    psnr = json.loads(str(np.load(tmp_path / "checkpoint.npz")["history"]))["psnr"]
     assert np.mean(psnr[-4:]) > np.mean(psnr[:4]) + 1.0
     assert "every 8th image" in metrics["protocol"]["test_views"]
+    # resumed: the photos' transforms and their Adam moments come back
+    from mi_tetvr.recon.checkpoint import load_checkpoint
+    ck = np.load(tmp_path / "checkpoint.npz")
+    back = load_checkpoint(tmp_path / "checkpoint.npz", photos, for_capture(
+        cfg.updated(stages=json.loads((tmp_path / "config.json").read_text())["stages"]),
+        photos))
+    np.testing.assert_allclose(back.appearance(), ck["appearance"], atol=1e-7)
+    assert np.abs(ck["appearance:m"]).max() > 0
+    for k, v in back.appearance_opt.state_dict().items():
+        np.testing.assert_array_equal(v, ck[k])
     assert metrics["split"] == "test" and len(metrics["views"]) == 1
