@@ -422,9 +422,32 @@ def shell_points(center, radii, per_shell: int, seed: int = 0):
                            for rad, rot in zip(np.asarray(radii, np.float64), rotations)])
 
 
+def contracted_grid_points(center, r0: float, far: float, count: int, seed: int = 0):
+    """About ``count`` points between the radii ``r0`` and ``far * r0`` of
+    ``center`` on a jittered grid in mip-NeRF 360's contracted space
+    (``x / r0`` inside the unit ball, ``(2 - 1 / |x|) x / |x|`` beyond it),
+    mapped back to world space: the grid cells grow with the square of the
+    distance.
+
+    Returns
+    -------
+    (k, 3) float64
+    """
+    outer = 2.0 - 1.0 / float(far)
+    volume = 4.0 / 3.0 * np.pi * (outer ** 3 - 1.0)
+    g = max(int(np.ceil((count * 64.0 / volume) ** (1.0 / 3.0))), 2)
+    axis = (np.arange(g) + 0.5) / g * 4.0 - 2.0
+    q = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    q = q + np.random.default_rng(seed).uniform(-0.2, 0.2, q.shape) * (4.0 / g)
+    n = np.linalg.norm(q, axis=1)
+    q, n = q[(n > 1.0) & (n < outer)], n[(n > 1.0) & (n < outer)]
+    world = q / n[:, None] / (2.0 - n[:, None])          # |world| = 1 / (2 - |q|)
+    return np.asarray(center, np.float64) + float(r0) * world
+
+
 def unbounded_init(points, cameras, far: float = 8.0, shells: int = 6,
                    per_shell: int | None = None, outlier_std: float | None = 2.0,
-                   seed: int = 0):
+                   seed: int = 0, outer: str = "shells"):
     """A mesh over a whole unbounded scene, cameras inside.
 
     The sparse points (statistical outliers removed, :func:`remove_outliers`)
@@ -451,6 +474,10 @@ def unbounded_init(points, cameras, far: float = 8.0, shells: int = 6,
     outlier_std : float or None
         Outlier removal of the points (``None``: keep all).
     seed : int
+    outer : str
+        ``"shells"`` (the spheres above) or ``"contracted"`` (as many points
+        on a grid in contracted space between ``r0`` and ``far * r0``,
+        :func:`contracted_grid_points`).
 
     Returns
     -------
@@ -476,7 +503,12 @@ def unbounded_init(points, cameras, far: float = 8.0, shells: int = 6,
     if per_shell is None:
         per_shell = int(np.clip(len(p) // max(int(shells), 1), 200, 2000))
     radii = r0 * float(far) ** (np.arange(max(int(shells), 1)) / max(int(shells) - 1, 1))
-    shell = shell_points(center, radii, per_shell, seed)
+    if outer == "shells":
+        shell = shell_points(center, radii, per_shell, seed)
+    elif outer == "contracted":
+        shell = contracted_grid_points(center, r0, far, len(radii) * per_shell, seed)
+    else:
+        raise ValueError(f"outer must be shells or contracted, got {outer!r}")
     vertices, tets = delaunay_init(np.concatenate([p, shell]), outlier_std=None, seed=seed)
     is_shell = cKDTree(shell).query(vertices)[0] < 1e-6 * radii[-1]
     return vertices, tets, is_shell

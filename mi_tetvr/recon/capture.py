@@ -94,16 +94,17 @@ def _scene_dict(seed=0):
     return scene
 
 
-def room_cameras(n, width, height, fov_x=70.0, seed=0):
+def room_cameras(n, width, height, fov_x=70.0, seed=0, arc=360.0):
     """``n`` cameras inside the room on a ring around the objects (radius
-    1.2 to 1.6, height 0.6 to 1.4, evenly spaced in angle with jitter), each
-    looking at the objects. Returns a list of pinhole
+    1.2 to 1.6, height 0.6 to 1.4, evenly spaced with jitter over ``arc``
+    degrees of the ring: 360 walks all around, less walks part of the way),
+    each looking at the objects. Returns a list of pinhole
     :class:`~mi_tetvr.recon.camera.Camera`."""
     from mi_tetvr.recon.camera import Camera
     rng = np.random.default_rng(seed + 1)
     cams = []
     for i in range(n):
-        phi = 2 * np.pi * (i + rng.uniform(-0.3, 0.3)) / n
+        phi = np.radians(arc) * (i + rng.uniform(-0.3, 0.3)) / n
         r, z = rng.uniform(1.2, 1.6), rng.uniform(0.6, 1.4)
         origin = TARGET + [r * np.cos(phi), r * np.sin(phi), z - TARGET[2]]
         target = TARGET + rng.uniform(-0.15, 0.15, 3)
@@ -145,7 +146,7 @@ def _render_rays(scene, integrator, origin, dirs, seed):
 
 def make_room_capture(out_dir, views=48, width=400, height=300, fov_x=70.0, spp=64,
                       distortion=(-0.12, 0.03, 0.001, -0.001), exposure_sigma=0.15,
-                      gain_sigma=0.03, noise=0.01, seed=0, progress=True):
+                      gain_sigma=0.03, noise=0.01, seed=0, arc=360.0, progress=True):
     """Render the room capture (see the module docstring) to ``out_dir``.
 
     Parameters
@@ -167,6 +168,8 @@ def make_room_capture(out_dir, views=48, width=400, height=300, fov_x=70.0, spp=
     noise : float
         Standard deviation of Gaussian sensor noise in linear RGB.
     seed : int
+    arc : float
+        Degrees of the ring the cameras spread over (360: all around the objects).
 
     Returns
     -------
@@ -182,7 +185,7 @@ def make_room_capture(out_dir, views=48, width=400, height=300, fov_x=70.0, spp=
     (out / "images").mkdir(parents=True, exist_ok=True)
     scene = mi.load_dict(_scene_dict(seed))
     integrator = scene.integrator()
-    cams = room_cameras(views, width, height, fov_x, seed)
+    cams = room_cameras(views, width, height, fov_x, seed, arc)
     f = cams[0].fx
     k1, k2, p1, p2 = (float(v) for v in distortion)
     lens = pycolmap.Camera(model="OPENCV", width=width, height=height,
@@ -211,6 +214,6 @@ def make_room_capture(out_dir, views=48, width=400, height=300, fov_x=70.0, spp=
             "room": ROOM.tolist(), "target": TARGET.tolist(), "views": views,
             "width": width, "height": height, "fov_x_deg": fov_x, "spp": spp,
             "distortion_opencv": [k1, k2, p1, p2], "exposures": exposures.tolist(),
-            "gains": gains.tolist(), "noise_linear_sigma": noise, "seed": seed}
+            "gains": gains.tolist(), "noise_linear_sigma": noise, "seed": seed, "arc_deg": arc}
     (out / "capture_info.json").write_text(json.dumps(info, indent=1) + "\n")
     return info

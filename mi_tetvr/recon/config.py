@@ -36,6 +36,10 @@ class FitConfig:
     scene: str = "auto"                # auto | object | unbounded
     init: str = "auto"                 # auto (grid, or unbounded for unbounded scenes) |
                                        # grid | tetwild | delaunay | unbounded | a mesh file
+    outer: str = "shells"              # unbounded init beyond the scene points: "shells"
+                                       # (spheres, radii growing geometrically) or
+                                       # "contracted" (a grid in mip-NeRF 360's contracted
+                                       # space); mi_tetvr.mesh.initial.unbounded_init
     resolution: int | None = None      # cells along the largest axis (grid, tetwild); None:
                                        # chosen for the time budget, 32 without one
     bounds: list | None = None         # [[x0, y0, z0], [x1, y1, z1]]; default: from the data
@@ -135,6 +139,8 @@ class FitConfig:
         """Raise ``ValueError`` on a setting out of range."""
         if self.scene not in ("auto", "object", "unbounded"):
             raise ValueError(f"scene must be auto, object or unbounded, got {self.scene!r}")
+        if self.outer not in ("shells", "contracted"):
+            raise ValueError(f"outer must be shells or contracted, got {self.outer!r}")
         if self.loss not in (None, "l1", "l2"):
             raise ValueError(f"loss must be 'l1' or 'l2', got {self.loss!r}")
         if self.loss_space not in ("linear", "srgb"):

@@ -208,7 +208,8 @@ def unbounded_mesh(config: FitConfig, dataset):
         raise ValueError("init 'unbounded' needs sparse points (a COLMAP model, or photos "
                          "with poses to triangulate them from)")
     centers = np.array([v.camera.center for v in dataset.views])
-    vertices, tets, is_shell = unbounded_init(dataset.points, centers, seed=config.seed)
+    vertices, tets, is_shell = unbounded_init(dataset.points, centers, seed=config.seed,
+                                              outer=config.outer)
     mean = np.mean([v.image[..., :3].reshape(-1, 3).mean(0) for v in dataset.train], 0)
     color = np.tile(mean, (len(vertices), 1))
     if dataset.point_colors is not None:

@@ -207,3 +207,36 @@ def test_unbounded_init_contains_cameras_and_grows_with_distance():
     k = np.round(np.log(ra[same] / r.min()) / np.log(8.0) * 3).astype(int)
     medians = [np.median(length[k == i]) for i in range(4)]
     np.testing.assert_allclose(medians, medians[0], rtol=0.1)
+
+
+def test_contracted_grid_points_are_a_grid_in_contracted_space():
+    """mip-NeRF 360's contraction (written here from its paper) of the points
+    lands between radius 1 and 2 - 1/far, with nearest neighbours about one
+    grid cell apart everywhere (a uniform grid there), so in world space the
+    spacing grows with the square of the distance; the unbounded init with
+    ``outer="contracted"`` keeps the cameras inside."""
+    from scipy.spatial import cKDTree
+
+    from mi_tetvr.mesh.initial import contracted_grid_points, unbounded_init
+    center, r0, far = np.array([0.5, -1.0, 2.0]), 3.0, 8.0
+    q = contracted_grid_points(center, r0, far, 6000, seed=1)
+    x = (q - center) / r0
+    n = np.linalg.norm(x, axis=1, keepdims=True)
+    c = np.where(n <= 1, x, (2 - 1 / n) * x / n)
+    cn = np.linalg.norm(c, axis=1)
+    assert cn.min() >= 1.0 and cn.max() <= 2.0 - 1.0 / far
+    assert 0.8 * 6000 < len(q) < 1.5 * 6000
+    nn = cKDTree(c).query(c, k=2)[0][:, 1]
+    cell = (4 / 3 * np.pi * ((2 - 1 / far) ** 3 - 1) / len(q)) ** (1 / 3)   # volume per point
+    assert 0.5 * cell < np.median(nn) < 1.1 * cell
+    near, far_ = cn < 1.2, cn > 1.7
+    assert abs(np.median(nn[near]) / np.median(nn[far_]) - 1) < 0.15
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-1, 1, (500, 3))
+    angle = rng.uniform(0, 2 * np.pi, 8)
+    cameras = np.stack([2 * np.cos(angle), 2 * np.sin(angle), rng.uniform(-0.5, 0.5, 8)], -1)
+    from scipy.spatial import Delaunay
+    V, T, shell = unbounded_init(points, cameras, outer="contracted", outlier_std=None)
+    assert Delaunay(V).find_simplex(cameras).min() >= 0 and (~shell).sum() == len(points)
+    with pytest.raises(ValueError, match="outer"):
+        unbounded_init(points, cameras, outer="cube")
