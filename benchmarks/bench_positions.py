@@ -25,16 +25,17 @@ from common import header, make_parser, write_json
 
 def parse_args(argv=None):
     p = make_parser(__doc__, repeat=None,
-                    quick="--steps 5 --res 16 --views 4 --resolution 4 --lrs 0.3")
+                    quick="--steps 5 --res 16 --views 4 --grid-resolution 4 --lrs 0.3")
     p.add_argument("--steps", type=int, default=200)
     p.add_argument("--res", type=int, default=64)
     p.add_argument("--views", type=int, default=32)
-    p.add_argument("--resolution", type=int, default=16, help="grid cells along the largest axis")
+    p.add_argument("--grid-resolution", type=int, default=16,
+                   help="grid cells along the largest axis")
     p.add_argument("--lrs", default="0.03,0.1,0.3,1.0",
                    help="position learning rates in cell sizes per step")
     a = p.parse_args(argv)
     if a.quick:
-        a.steps, a.res, a.views, a.resolution, a.lrs = 5, 16, 4, 4, "0.3"
+        a.steps, a.res, a.views, a.grid_resolution, a.lrs = 5, 16, 4, 4, "0.3"
     return a
 
 
@@ -49,7 +50,8 @@ from mi_tetvr.recon.config import FitConfig  # noqa: E402
 from mi_tetvr.recon.pipeline import run  # noqa: E402
 from mi_tetvr.mesh.scenes import default_volume  # noqa: E402
 from mi_tetvr.transfer import read_transfer_function  # noqa: E402
-from mi_tetvr.grid import make_dataset, make_volume  # noqa: E402
+from mi_tetvr.grid import make_volume  # noqa: E402
+from mi_tetvr.recon.synthetic import make_dataset  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -62,7 +64,7 @@ def main(a):
     make_dataset(make_volume(default_volume(64)), tf, views=a.views, res=a.res,
                  out_dir=tmp / "data", test_views=8, fov=30, progress=False)
     data = load_nerf(tmp / "data")
-    base = FitConfig(resolution=a.resolution, iterations=a.steps, views_per_step=4,
+    base = FitConfig(grid_resolution=a.grid_resolution, iterations=a.steps, views_per_step=4,
                      lr_color=0.03, lr_opacity=0.1, n_sub=4, jitter=False)
     runs = [("color only", base)]
     for lr in (float(x) for x in a.lrs.split(",")):

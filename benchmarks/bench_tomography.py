@@ -153,7 +153,8 @@ def main(a):
     import mitsuba as mi
     mi.set_variant(a.variant)
     from mi_tetvr.grid.volume import Volume
-    from mi_tetvr.grid.xray import make_xray_dataset, reconstruct_slices
+    from mi_tetvr.grid.xray import reconstruct_slices
+    from mi_tetvr.recon.synthetic import make_xray_dataset
     from mi_tetvr.mesh.io import read_tetmesh
     from mi_tetvr.mesh.sample import sample_field
     from mi_tetvr.recon.config import FitConfig
@@ -192,7 +193,7 @@ def main(a):
         stages = [{"iterations": a.steps // 6, "grid": r // 2},
                   {"iterations": a.steps // 3, "grid": r, "split": fraction},
                   {"iterations": a.steps - a.steps // 6 - a.steps // 3}]
-    cfg = FitConfig(model="absorption", init="grid", resolution=r, bounds=bounds.tolist(),
+    cfg = FitConfig(model="absorption", init="grid", grid_resolution=r, bounds=bounds.tolist(),
                     stages=stages, views_per_step=a.views_per_step, lr_opacity=a.lr,
                     smoothing=a.smoothing, decay=a.decay)
     t0 = time.perf_counter()

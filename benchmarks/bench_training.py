@@ -7,7 +7,7 @@ The engine CT (``../shared/data/engine-ct``, transfer function
 Each checkout then runs the same fixed-settings command (the other one
 through ``benchmarks/checkout_cli.py``)::
 
-    mi-tetvr fit DATA --restart --resolution R --iterations N
+    mi-tetvr fit DATA --restart --config {"resolution": R, "iterations": N}
 
 (``R`` cells along the largest axis, ``N`` steps, the checkout's defaults for
 everything else), alternating between the two checkouts ``--repeat`` times.
@@ -36,25 +36,31 @@ from fit_suite import DATA, SETS, load_set_volume  # noqa: E402
 
 
 def parse_args(argv=None):
-    p = make_parser(__doc__, repeat=2, quick="--views 4 --res 32 --resolution 8 --iterations 5")
+    p = make_parser(__doc__, repeat=2, quick="--views 4 --res 32 --grid-resolution 8 --iterations 5")
     p.add_argument("--code", help="the other checkout (its fit runs with PYTHONPATH=DIR)")
     p.add_argument("--out", default="out/training", help="data and fits (default out/training)")
     p.add_argument("--views", type=int, default=24, help="training views (default 24)")
     p.add_argument("--res", type=int, default=256, help="view size (default 256)")
-    p.add_argument("--resolution", type=int, default=48, help="fit --resolution (default 48)")
+    p.add_argument("--grid-resolution", type=int, default=48,
+                   help="the fit's grid resolution (default 48)")
     p.add_argument("--iterations", type=int, default=150, help="fit --iterations (default 150)")
     a = p.parse_args(argv)
     if a.quick:
-        a.views, a.res, a.resolution, a.iterations = 4, 32, 8, 5
+        a.views, a.res, a.grid_resolution, a.iterations = 4, 32, 8, 5
     return a
 
 
 def run_fit(code, data, out, a):
     """One fit; returns (steps per second, metrics.json)."""
+    out.mkdir(parents=True, exist_ok=True)
+    # settings as a config file: its key "resolution" reads in checkouts before and after
+    # the flag became --grid-resolution
+    config = out.resolve() / "bench_config.json"
+    config.write_text(json.dumps({"resolution": a.grid_resolution,
+                                  "iterations": a.iterations}))
     cmd = (checkout_command(code) if code else [sys.executable, "-m", "mi_tetvr.cli"]) + [
         "fit", str(data.resolve()), "--out", str(out.resolve()), "--restart",
-        "--resolution", str(a.resolution), "--iterations", str(a.iterations),
-        "--variant", a.variant]
+        "--config", str(config), "--variant", a.variant]
     r = subprocess.run(cmd, capture_output=True, text=True)
     out.mkdir(parents=True, exist_ok=True)
     (out / "fit.log").write_text(r.stdout + r.stderr)
@@ -69,7 +75,7 @@ def main(argv=None):
     import mitsuba as mi
     mi.set_variant(a.variant)
     import mi_tetvr  # noqa: F401
-    from mi_tetvr.grid import make_dataset
+    from mi_tetvr.recon.synthetic import make_dataset
     from mi_tetvr.recon.datasets import load_dataset
     from mi_tetvr.recon.pipeline import evaluate_mesh
     info = header("training benchmark")
@@ -86,7 +92,7 @@ def main(argv=None):
     codes = {"this checkout": None}
     if a.code:
         codes[f"--code {a.code}"] = a.code
-    print(f"engine CT, {a.views} views of {a.res}x{a.res}; fit --resolution {a.resolution} "
+    print(f"engine CT, {a.views} views of {a.res}x{a.res}; grid resolution {a.grid_resolution} "
           f"--iterations {a.iterations}")
     runs = {k: [] for k in codes}
     for rep in range(a.repeat):

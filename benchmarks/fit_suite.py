@@ -85,7 +85,7 @@ def load_set_volume(spec):
 
 def prepare(name, spec, out, quick):
     """The data folder of a set (rendered once and kept) and how to load it."""
-    from mi_tetvr.grid import make_dataset
+    from mi_tetvr.recon.synthetic import make_dataset
     if "nerf" in spec:
         return DATA / spec["nerf"]
     folder = out / f"{name}_data"

@@ -24,6 +24,7 @@ If no variant is set at import, call :func:`register` after
 from __future__ import annotations
 
 import importlib
+import itertools
 import sys
 
 from .mesh import MeshError, TetMesh, Topology, build_topology, quality, read_tetmesh, write_tetmesh
@@ -64,6 +65,28 @@ def register():
             if _registered_variant is not None:
                 importlib.reload(mod)
     _registered_variant = variant
+
+
+#: Topologies handed from a fit to the ``tetmesh`` plugin that takes them (by a
+#: token in its properties); the latest few only.
+_HANDED = {}
+_TOKENS = itertools.count()
+
+
+def hand_over_topology(topology) -> str:
+    """Keep ``topology`` for the ``tetmesh`` built next from the same arrays (its property
+    ``topology_id`` is the token returned): a mesh whose topology was built once is not
+    built again by the shape."""
+    token = f"topology-{next(_TOKENS)}"
+    _HANDED[token] = topology
+    while len(_HANDED) > 4:
+        _HANDED.pop(next(iter(_HANDED)))
+    return token
+
+
+def take_topology(token):
+    """The topology :func:`hand_over_topology` kept under ``token`` (once), or None."""
+    return _HANDED.pop(token, None) if token else None
 
 
 def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, **props):

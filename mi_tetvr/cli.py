@@ -1,20 +1,29 @@
 """The ``mi-tetvr`` command line.
 
-    mi-tetvr render SCENE.xml -o OUT.exr|.png [--spp N] [--res WxH] [--variant V]
-    mi-tetvr info MESH [--json] [--repair] [--cell-to-point]
-    mi-tetvr make-scenes [DIR]
-    mi-tetvr make-dataset VOLUME --tf TF --views N --res R --out DIR
-    mi-tetvr fit DATA --out DIR [--config FILE.json] [--time-budget MIN] [...]
-    mi-tetvr eval MESH DATA [--background R,G,B]
-    mi-tetvr refine MESH --select ATTRIBUTE [--rank magnitude|value] --fraction F -o OUT
-    mi-tetvr viewpoint MESH --out DIR [--tf TF --scalar NAME] [--res R] [--starts N]
-    mi-tetvr process-data IMAGES_DIR|VIDEO --out DATA [--matcher M] [--reference DATASET]
-    mi-tetvr make-capture --out DATA [--views N] [--res WxH] [--spp S]
+    mi-tetvr render SCENE.xml -o OUT.exr|.png [-o ...] [--res WxH] [--spp N]
+    mi-tetvr info MESH [--json]
+    mi-tetvr make-scenes [-o DIR]
+    mi-tetvr make-dataset VOLUME|MESH (--tf TF | --xray) -o DIR [--views N] [--res WxH]
+    mi-tetvr make-capture -o DIR [--views N] [--res WxH] [--spp S]
+    mi-tetvr process-data IMAGES_DIR|VIDEO -o DIR [--reference DATA]
+    mi-tetvr fit DATA -o DIR [--config FILE] [--print-config] [--time-budget MIN] [...]
+    mi-tetvr eval FIT_DIR|MESH DATA [-o METRICS.json]
+    mi-tetvr refine MESH --select ARRAY [--fraction F] -o OUT
+    mi-tetvr viewpoint MESH -o DIR [--tf TF] [--res WxH]
+
+Conventions (every command): ``-o/--out`` names what a command writes (a file or a
+folder); ``--res WxH`` (or ``N`` for N x N) is an image size in pixels; ``--variant``
+picks the Mitsuba variant of the commands that render; ``--quiet`` hides progress bars
+(in a log file they are a line every few seconds); ``--repair`` and ``--cell-to-point``
+apply to every mesh a command reads; ``--opacity-scale`` is a transfer function's
+opacity per mesh radius (default 1). Errors are one line, ``mi-tetvr: ...``, exit
+status 2 for bad usage and 1 otherwise; ``MI_TETVR_TRACEBACK=1`` shows the traceback.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import textwrap
 import sys
 import time
 from pathlib import Path
@@ -24,13 +33,20 @@ import numpy as np
 
 def _set_variant(name):
     import mitsuba as mi
+    if name not in mi.variants():
+        sys.exit(f"mi-tetvr: Mitsuba variant '{name}' is not available here (available: "
+                 f"{', '.join(v for v in mi.variants() if '_ad_' in v and v.endswith('_rgb'))}"
+                 f"; mi_tetvr renders with {' or '.join(VARIANTS)})")
     try:
         mi.set_variant(name)
-    except Exception as e:  # unknown or unavailable variant
+        import mi_tetvr
+        mi_tetvr.register()
+    except Exception as e:  # unavailable on this machine, or not a variant mi_tetvr renders in
         sys.exit(f"mi-tetvr: cannot use Mitsuba variant '{name}': {e}")
-    import mi_tetvr
-    mi_tetvr.register()
     return mi
+
+
+IMAGE_SUFFIXES = (".exr", ".png", ".jpg", ".jpeg")
 
 
 def _write_render(path, rgb, alpha=None):
@@ -108,14 +124,11 @@ def cmd_render(a):
     scene_path = Path(a.scene)
     if not scene_path.exists():
         sys.exit(f"mi-tetvr: scene file not found: {scene_path}")
-    res = None
-    if a.res:
-        try:
-            res = tuple(int(x) for x in a.res.lower().split("x"))
-            if len(res) != 2 or min(res) < 1:
-                raise ValueError
-        except ValueError:
-            sys.exit(f"mi-tetvr: --res must look like 512x512, got '{a.res}'")
+    res = a.res
+    for out in a.out:
+        if Path(out).suffix.lower() not in IMAGE_SUFFIXES:
+            sys.exit(f"mi-tetvr: unsupported image format '{Path(out).suffix}' for {out} (use "
+                     f"{', '.join(IMAGE_SUFFIXES)})")
     t0 = time.time()
     try:
         props = {k: True for k in ("repair", "cell_to_point") if getattr(a, k)}
@@ -135,10 +148,10 @@ def cmd_render(a):
     t2 = time.time()
     rgb = img[..., :3]
     alpha = img[..., 3] if img.shape[-1] > 3 else None
-    for out in a.output:
+    for out in a.out:
         _write_render(out, rgb, alpha)
     print(f"rendered {scene_path} at {img.shape[1]}x{img.shape[0]} (load {t1 - t0:.1f} s, "
-          f"render {t2 - t1:.1f} s) -> {', '.join(a.output)}")
+          f"render {t2 - t1:.1f} s) -> {', '.join(a.out)}")
 
 
 def mesh_report(path, color="color", opacity="opacity", repair=False, cell_to_point=False):
@@ -197,68 +210,45 @@ def cmd_info(a):
 
 def cmd_make_scenes(a):
     from mi_tetvr.mesh.scenes import make_scene_meshes
-    for p in make_scene_meshes(a.dir):
+    for p in make_scene_meshes(a.out):
         print(f"wrote {p}")
-
-
-def _background(text):
-    """'white', 'black' or 'r,g,b' (linear) -> list, None for RGBA fitting,
-    'learn' for a learned environment."""
-    if text is None or text == "none":
-        return None
-    if text == "learn":
-        return text
-    named = {"white": [1.0, 1.0, 1.0], "black": [0.0, 0.0, 0.0]}
-    if text in named:
-        return named[text]
-    try:
-        vals = [float(x) for x in text.split(",")]
-    except ValueError:
-        vals = []
-    if len(vals) != 3:
-        raise SystemExit(f"mi-tetvr: --background must be none, learn, white, black or r,g,b; "
-                         f"got {text!r}")
-    return vals
 
 
 def _load_data(path, downscale, holdout):
     from mi_tetvr.recon.datasets import load_dataset
-    try:
-        return load_dataset(path, downscale=downscale, holdout=holdout)
-    except (ValueError, FileNotFoundError) as e:
-        sys.exit(f"mi-tetvr: {e}")
+    data = load_dataset(path, downscale=downscale or 1, holdout=holdout)
+    if not data.train:
+        raise ValueError(f"{path}: the data set has no training views (its frames list is "
+                         f"empty, or none of its image files was found)")
+    return data
+
+
+def fit_config(a):
+    """The FitConfig of a ``fit`` command line: the --config file's (or the defaults), with
+    the options given on the command line over it."""
+    from mi_tetvr.recon.config import FitConfig
+    cfg = FitConfig.from_file(a.config) if a.config else FitConfig()
+    return cfg.updated(**{name: getattr(a, dest) for dest, name in a.config_dests.items()
+                          if getattr(a, dest) is not None})
 
 
 def cmd_fit(a):
+    import dataclasses
+    cfg = fit_config(a)
+    if a.print_config:
+        print(json.dumps(dataclasses.asdict(cfg), indent=2))
+        return
+    from mi_tetvr.recon.config import INITS
+    if cfg.init not in INITS and not Path(cfg.init).is_file():
+        sys.exit(f"mi-tetvr: --init {cfg.init}: no such mesh file (or one of "
+                 f"{', '.join(INITS)})")
     _set_variant(a.variant)
-    from mi_tetvr.recon.config import FitConfig
     from mi_tetvr.recon.pipeline import run
-    try:
-        cfg = FitConfig.from_file(a.config) if a.config else FitConfig()
-        overrides = {k: getattr(a, k) for k in (
-            "init", "resolution", "iterations", "time_budget", "views_per_step", "lr_color",
-            "lr_opacity", "lr_position", "loss", "loss_space", "regularizer", "downscale", "seed",
-            "n_sub", "model", "optimize", "scalar", "transfer_function", "opacity_scale",
-            "tf_resolution", "tf_smoothing", "tf_init", "smoothing", "scene")}
-        if a.appearance is not None:
-            overrides["appearance"] = a.appearance
-        if a.background is not None:
-            overrides["background"] = _background(a.background)
-        if a.value_range is not None:
-            try:
-                overrides["value_range"] = [float(x) for x in a.value_range.split(",")]
-            except ValueError:
-                raise ValueError(f"--value-range must be lo,hi; got {a.value_range!r}") from None
-        if a.freeze_boundary is not None:
-            overrides["freeze_boundary"] = a.freeze_boundary
-        cfg = cfg.updated(**overrides)
-    except ValueError as e:
-        sys.exit(f"mi-tetvr: {e}")
     data = _load_data(a.data, cfg.downscale, a.holdout)
     print(f"{a.data}: {len(data.train)} training and {len(data.test)} test views "
           f"({data.train[0].camera.width}x{data.train[0].camera.height})")
     try:
-        metrics = run(data, a.out, cfg, resume=not a.restart)
+        metrics = run(data, a.out, cfg, resume=not a.restart, progress=not a.quiet)
     except KeyboardInterrupt:
         sys.exit("mi-tetvr: interrupted; progress saved (run the same command to resume)")
     m = metrics["mean"]
@@ -271,62 +261,114 @@ def cmd_fit(a):
 
 
 def cmd_eval(a):
+    from mi_tetvr.recon.config import parse_background
+    result = Path(a.result)
+    if not result.exists():
+        sys.exit(f"mi-tetvr: not found: {result}")
+    background = parse_background(a.background) if a.background else None
     _set_variant(a.variant)
-    from mi_tetvr.recon.pipeline import evaluate_mesh
-    data = _load_data(a.data, a.downscale, a.holdout)
-    if a.background == "learn":
-        sys.exit("mi-tetvr: eval scores the mesh over a constant background; a fit with a "
-                 "learned background scores itself (its metrics.json) and writes the "
-                 "background to background.exr")
-    metrics = evaluate_mesh(a.mesh, data, background=_background(a.background),
-                            split=a.split)
+    from mi_tetvr.recon.pipeline import evaluate_fit, evaluate_mesh
+    if result.is_dir():
+        if a.background or a.repair or a.cell_to_point:
+            sys.exit("mi-tetvr: --background, --repair and --cell-to-point apply to a mesh "
+                     "file; a fit folder is scored with its own settings")
+        metrics = evaluate_fit(result, a.data, split=a.split, downscale=a.downscale,
+                               holdout=a.holdout)
+    else:
+        if background == "learn":
+            sys.exit("mi-tetvr: a learned background is in the fit's folder: eval that "
+                     "folder (mi-tetvr eval FIT_DIR DATA)")
+        data = _load_data(a.data, a.downscale, a.holdout)
+        metrics = evaluate_mesh(result, data, background=background, split=a.split,
+                                repair=a.repair, cell_to_point=a.cell_to_point)
     for name, m in metrics["views"].items():
         print(f"  {name:<24s} PSNR {m['psnr']:6.2f} dB  SSIM {m['ssim']:.4f}")
     m = metrics["mean"]
-    print(f"mean PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} (sRGB; linear PSNR "
-          f"{m['psnr_linear']:.2f} dB) ({len(metrics['views'])} views)")
-    if a.json:
-        Path(a.json).write_text(json.dumps(metrics, indent=2))
+    what = metrics.get("scored", "sRGB")
+    linear = f"; linear PSNR {m['psnr_linear']:.2f} dB" if what == "sRGB" else ""
+    print(f"mean PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} ({what}{linear}) "
+          f"({len(metrics['views'])} views)")
+    if a.out:
+        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.out).write_text(json.dumps(metrics, indent=2))
 
 
 MESH_SUFFIXES = (".vtu", ".msh", ".mesh", ".vtk")
 
 
+def _refuse(a, names, why):
+    """Exit naming the options among ``names`` that were given but do not apply."""
+    given = [f"--{n.replace('_', '-')}" for n in names
+             if getattr(a, n) not in (None, False)]
+    if given:
+        sys.exit(f"mi-tetvr: {', '.join(given)} {'does' if len(given) == 1 else 'do'} not "
+                 f"apply {why}")
+
+
 def cmd_make_dataset(a):
-    _set_variant(a.variant)
-    from mi_tetvr.grid import load_volume, make_dataset
-    from mi_tetvr.transfer import read_transfer_function
+    from mi_tetvr.recon.config import _numbers
     path = Path(a.volume)
     if not path.exists():
         sys.exit(f"mi-tetvr: file not found: {path}")
-    try:
-        vr = None if a.value_range is None else tuple(float(x) for x in a.value_range.split(","))
-        if a.xray:
-            from mi_tetvr.grid.xray import make_xray_dataset
-            info = make_xray_dataset(load_volume(path, value_range=vr), a.out, views=a.views,
-                                     test_views=a.test_views, beam=a.beam,
-                                     scale=a.attenuation, max_depth=a.max_depth)["info"]
-            print(f"wrote {a.views} training and {a.test_views} test {a.beam}-beam projections "
-                  f"(attenuation {info['attenuation_scale']:.4g} per unit, largest optical depth "
-                  f"{info['max_depth']:.2f}) to {a.out}")
-            return
+    vr = None if a.value_range is None else _numbers(2)(a.value_range)
+    is_mesh = path.suffix.lower() in MESH_SUFFIXES and not _is_image_data(path)
+    if a.xray:
+        _refuse(a, ("tf", "scalar", "res", "seed"), "to X-ray projections (one pixel per "
+                "voxel; the angles are even, not random)")
+        if a.opacity_scale != OPACITY_SCALE:
+            sys.exit("mi-tetvr: --opacity-scale does not apply to X-ray projections "
+                     "(--attenuation or --max-depth set the attenuation)")
+        if is_mesh:
+            sys.exit(f"mi-tetvr: --xray projects a grid volume, not the tet mesh {path}")
+        if (a.beam or "parallel") == "parallel":
+            _refuse(a, ("fov", "radius"), "to a parallel beam (--beam cone has them)")
+    else:
+        _refuse(a, ("beam", "attenuation", "max_depth"), "without --xray")
         if a.tf is None:
             sys.exit("mi-tetvr: make-dataset needs --tf (or --xray for X-ray projections)")
-        if path.suffix.lower() in MESH_SUFFIXES and not _is_image_data(path):
-            from mi_tetvr.recon.synthetic import make_mesh_dataset
-            info = make_mesh_dataset(path, a.tf, a.out, views=a.views, test_views=a.test_views,
-                                     res=a.res, scalar=a.scalar, opacity_scale=a.opacity_scale,
-                                     fov=a.fov or 40.0, seed=a.seed)
-            print(f"wrote {a.views} training and {a.test_views} test views at {a.res}x{a.res} "
-                  f"of '{info['scalar']}' to {a.out}")
-            return
-        volume = load_volume(path, value_range=vr)
-        tf = read_transfer_function(a.tf)
-    except (ValueError, FileNotFoundError, KeyError) as e:
-        sys.exit(f"mi-tetvr: {e}")
-    make_dataset(volume, tf, views=a.views, res=a.res, out_dir=a.out, test_views=a.test_views,
-                 seed=a.seed, radius=a.radius, fov=a.fov, opacity_scale=a.opacity_scale)
-    print(f"wrote {a.views} training and {a.test_views} test views at {a.res}x{a.res} to {a.out}")
+        if is_mesh:
+            _refuse(a, ("radius",), "to a tet mesh (the cameras frame its bounding sphere "
+                    "in --fov)")
+        else:
+            _refuse(a, ("scalar", "repair", "cell_to_point"), "to a grid volume")
+    _set_variant(a.variant)
+    from mi_tetvr.grid import load_volume
+    from mi_tetvr.recon.synthetic import make_dataset
+    from mi_tetvr.transfer import read_transfer_function
+    seed = 0 if a.seed is None else a.seed
+    if a.xray:
+        from mi_tetvr.grid.xray import MAX_DEPTH
+        from mi_tetvr.recon.synthetic import make_xray_dataset
+        beam = a.beam or "parallel"
+        geometry = {} if beam == "parallel" else {
+            "distance": 3.0 if a.radius is None else a.radius,
+            "fov": 40.0 if a.fov is None else a.fov}
+        info = make_xray_dataset(load_volume(path, value_range=vr), a.out, views=a.views,
+                                 test_views=a.test_views, beam=beam, scale=a.attenuation,
+                                 max_depth=MAX_DEPTH if a.max_depth is None else a.max_depth,
+                                 progress=not a.quiet, **geometry)["info"]
+        print(f"wrote {a.views} training and {a.test_views} test {beam}-beam projections "
+              f"(attenuation {info['attenuation_scale']:.4g} per unit, largest optical depth "
+              f"{info['max_depth']:.2f}) to {a.out}")
+        return
+    res = a.res or (256, 256)
+    if is_mesh:
+        from mi_tetvr.recon.synthetic import make_mesh_dataset
+        info = make_mesh_dataset(path, a.tf, a.out, views=a.views, test_views=a.test_views,
+                                 res=res, scalar=a.scalar, opacity_scale=a.opacity_scale,
+                                 fov=40.0 if a.fov is None else a.fov, seed=seed,
+                                 value_range=vr, repair=a.repair,
+                                 cell_to_point=a.cell_to_point, progress=not a.quiet)
+        print(f"wrote {a.views} training and {a.test_views} test views at {res[0]}x{res[1]} "
+              f"of '{info['scalar']}' to {a.out}")
+        return
+    volume = load_volume(path, value_range=vr)
+    tf = read_transfer_function(a.tf)
+    make_dataset(volume, tf, views=a.views, res=res, out_dir=a.out, test_views=a.test_views,
+                 seed=seed, radius=4.0 if a.radius is None else a.radius, fov=a.fov,
+                 opacity_scale=a.opacity_scale, progress=not a.quiet)
+    print(f"wrote {a.views} training and {a.test_views} test views at {res[0]}x{res[1]} to "
+          f"{a.out}")
 
 
 def cmd_process_data(a):
@@ -376,12 +418,9 @@ def cmd_process_data(a):
 def cmd_make_capture(a):
     _set_variant(a.variant)
     from mi_tetvr.recon.capture import make_room_capture
-    try:
-        width, height = (int(x) for x in a.res.lower().split("x"))
-    except ValueError:
-        sys.exit(f"mi-tetvr: --res must be WxH, got {a.res!r}")
+    width, height = a.res
     info = make_room_capture(a.out, views=a.views, width=width, height=height, spp=a.spp,
-                             seed=a.seed)
+                             seed=a.seed, progress=not a.quiet)
     print(f"wrote {info['views']} photos of {width}x{height} (path traced, {a.spp} spp, OpenCV "
           f"lens, exposure and white balance per photo) and transforms.json to {a.out}")
 
@@ -403,9 +442,9 @@ def cmd_refine(a):
         out = refine_mesh(mesh, a.select, a.fraction, rank=a.rank)
     except (ValueError, FileNotFoundError, KeyError) as e:
         sys.exit(f"mi-tetvr: {e}")
-    write_tetmesh(a.output, out)
+    write_tetmesh(a.out, out)
     print(f"{a.mesh}: {len(mesh.tets):,} tets, {len(mesh.vertices):,} vertices -> "
-          f"{len(out.tets):,} tets, {len(out.vertices):,} vertices -> {a.output}")
+          f"{len(out.tets):,} tets, {len(out.vertices):,} vertices -> {a.out}")
 
 
 def cmd_viewpoint(a):
@@ -415,22 +454,23 @@ def cmd_viewpoint(a):
 
     import mi_tetvr
     from mi_tetvr.mesh.topology import bounding_radius
-    from mi_tetvr.render.viewpoint import (ViewpointSearch, best_viewpoint, default_starts,
+    from mi_tetvr.apps.viewpoint import (ViewpointSearch, best_viewpoint, default_starts,
                                            orbit_scene, plot_viewpoints)
-    from tqdm import tqdm
+    from mi_tetvr.progress import progress_bar as tqdm
     path = Path(a.mesh)
     if not path.exists():
         sys.exit(f"mi-tetvr: mesh file not found: {path}")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
-            mesh = mi_tetvr.read_tetmesh(path, repair=a.repair)
+            mesh = mi_tetvr.read_tetmesh(path, repair=a.repair, cell_to_point=a.cell_to_point)
         except (ValueError, FileNotFoundError, KeyError) as e:
             sys.exit(f"mi-tetvr: {e}")
     lo, hi = mesh.bounds
     radius = bounding_radius(mesh.vertices)
     fov = 40.0
-    shape = {"type": "tetmesh", "filename": str(path.resolve()), "repair": a.repair}
+    shape = {"type": "tetmesh", "filename": str(path.resolve()), "repair": a.repair,
+             "cell_to_point": a.cell_to_point}
     if a.tf:
         shape["transfer_function"] = str(Path(a.tf).resolve())
         if a.scalar:
@@ -438,6 +478,8 @@ def cmd_viewpoint(a):
         shape["opacity_scale"] = a.opacity_scale / radius
     elif a.scalar:
         sys.exit("mi-tetvr: --scalar needs --tf")
+    elif a.opacity_scale != OPACITY_SCALE:
+        sys.exit("mi-tetvr: --opacity-scale scales a transfer function's opacity: it needs --tf")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -451,7 +493,7 @@ def cmd_viewpoint(a):
         result = best_viewpoint(search, starts, a.iterations, a.samples, bar.update)
     result["seconds"] = time.time() - t0
     result.update(mesh=str(path), distance=distance, target=centre.tolist(), fov=fov,
-                  resolution=a.res, iterations=a.iterations)
+                  resolution=list(a.res), iterations=a.iterations)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "viewpoint.json").write_text(json.dumps(result, indent=1) + "\n")
@@ -465,178 +507,207 @@ def cmd_viewpoint(a):
           f"{result['seconds']:.0f} s -> {out}")
 
 
+# --------------------------------------------------------------------------------------------
+# the shared flags
+# --------------------------------------------------------------------------------------------
+
+#: The default of ``--opacity-scale`` (a transfer function's opacity per mesh radius).
+OPACITY_SCALE = 1.0
+#: The default of ``--test-views``.
+TEST_VIEWS = 8
+VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+
+
+def image_size(text):
+    """``WxH`` or ``N`` (N x N) -> (width, height)."""
+    try:
+        parts = tuple(int(x) for x in str(text).lower().split("x"))
+        if len(parts) == 1:
+            parts = parts * 2
+        if len(parts) != 2 or min(parts) < 1:
+            raise ValueError
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be WxH (e.g. 640x480) or N, got {text!r}")
+    return parts
+
+
+def _out(parser, help, required=True, append=False):
+    parser.add_argument("-o", "--out", required=required, action="append" if append else None,
+                        help=help)
+
+
+def _variant(parser):
+    parser.add_argument("--variant", default="llvm_ad_rgb",
+                        help="Mitsuba variant: llvm_ad_rgb (CPU, default) or cuda_ad_rgb (GPU)")
+
+
+def _quiet(parser):
+    parser.add_argument("-q", "--quiet", action="store_true",
+                        help="no progress bars (in a log file they write a line every few "
+                             "seconds)")
+
+
 def _mesh_flags(parser):
     """The flags of the commands that read a mesh file."""
     parser.add_argument("--repair", action="store_true",
-                        help="drop folded, flat and duplicate tets (reported)")
+                        help="drop folded, flat and duplicate tets of the mesh read (reported)")
     parser.add_argument("--cell-to-point", action="store_true",
-                        help="average per-cell arrays onto the vertices")
+                        help="average the mesh's per-cell arrays onto its vertices")
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(prog="mi-tetvr", description=__doc__.split("\n")[0])
-    sub = p.add_subparsers(dest="cmd", required=True)
+def _res(parser, default, help="image size in pixels, WxH or N"):
+    parser.add_argument("--res", type=image_size, default=default,
+                        help=f"{help} (default {default})" if default else help)
+
+
+def _opacity_scale(parser, default=OPACITY_SCALE):
+    parser.add_argument("--opacity-scale", type=float, default=default,
+                        help="with a transfer function: its opacity per mesh radius times this "
+                             f"(per unit length on a grid volume; default {OPACITY_SCALE:g})")
+
+
+def _setting_type(f):
+    """The Python type a FitConfig field holds (from its annotation)."""
+    text = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+    for name, kind in (("bool", bool), ("int", int), ("float", float), ("str", str)):
+        if text.split(" | ")[0] == name:
+            return kind
+    return str
+
+
+def config_flags(parser):
+    """One option per :class:`~mi_tetvr.recon.config.FitConfig` field, generated from the
+    fields: ``--name-with-dashes`` (or the field's ``flag``), its type, choices and help
+    with the default; every option's default is ``None`` (the config file's or the field's
+    value stands). Returns {dest: field name}."""
+    import dataclasses
+
+    from mi_tetvr.recon.config import FitConfig
+    group = parser.add_argument_group("fit settings (mi_tetvr.recon.config.FitConfig; also "
+                                      "the keys of --config)")
+    dests = {}
+    for f in dataclasses.fields(FitConfig):
+        meta = f.metadata
+        flag = meta.get("flag", "--" + f.name.replace("_", "-"))
+        default = "chosen by the run" if f.default is None else json.dumps(f.default)
+        help = meta["help"] if "default" in meta["help"] else \
+            f"{meta['help']} (default: {default})"
+        help = help.replace("%", "%%")
+        kind = _setting_type(f)
+        kw = dict(dest=f"cfg_{f.name}", default=None, help=help)
+        if kind is bool:
+            kw["action"] = argparse.BooleanOptionalAction
+        else:
+            parse = meta.get("parse", kind)
+
+            def typed(text, parse=parse, name=f.name):
+                try:
+                    return parse(text)
+                except ValueError as e:
+                    raise argparse.ArgumentTypeError(str(e)) from None
+            typed.__name__ = kind.__name__
+            kw["type"] = typed
+            if "choices" in meta:
+                kw["choices"] = meta["choices"]
+            if "choices" not in meta:
+                kw["metavar"] = meta.get("metavar", {int: "N", float: "X"}.get(kind, "TEXT"))
+        group.add_argument(flag, **kw)
+        dests[f"cfg_{f.name}"] = f.name
+    return dests
+
+
+def build_parser():
+    """The ``mi-tetvr`` argument parser (one subparser per command)."""
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        ver = version("mi_tetvr")
+    except PackageNotFoundError:
+        ver = "unknown"
+    p = argparse.ArgumentParser(
+        prog="mi-tetvr", description="Differentiable volume rendering of tetrahedral meshes "
+        "in Mitsuba 3.", epilog=textwrap.fill(
+            "Conventions: " + __doc__.split("Conventions (every command): ")[1].split("\n\n")[0]
+            .replace("\n", " ").replace("%", "%%").replace("``", "'"), 88),
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--version", action="version", version=f"mi-tetvr {ver}")
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+
     r = sub.add_parser("render", help="render a Mitsuba XML scene with tetmesh shapes")
-    r.add_argument("scene")
-    r.add_argument("-o", "--output", action="append", required=True,
-                   help="output image (.exr: linear RGBA; .png: sRGB); repeatable")
+    r.add_argument("scene", help="Mitsuba XML scene")
+    _out(r, "output image (.exr: linear RGBA; .png/.jpg: sRGB); repeatable", append=True)
     r.add_argument("--spp", type=int, default=0, help="samples per pixel (default: the scene's)")
-    r.add_argument("--res", help="resolution WxH of every sensor's film (default: the scene's)")
-    _mesh_flags(r)
+    _res(r, None, "film size of every sensor, WxH or N (default: the scene's)")
     r.add_argument("--classification", choices=("post", "pre"),
                    help="how tetmesh shapes with a transfer function classify their scalar: "
                         "post (along each ray, the default) or pre (vertices shaded at load)")
-    r.add_argument("--variant", default="llvm_ad_rgb", help="llvm_ad_rgb (default) or cuda_ad_rgb")
+    _mesh_flags(r)
+    _variant(r)
     r.set_defaults(func=cmd_render)
-    i = sub.add_parser("info", help="counts, bounds, boundary, quality and attributes of a mesh")
-    i.add_argument("mesh")
-    i.add_argument("--color", default="color", help="color point-data name")
-    i.add_argument("--opacity", default="opacity", help="opacity point-data name")
+
+    i = sub.add_parser("info", help="counts, bounds, boundary, quality and arrays of a mesh")
+    i.add_argument("mesh", help="tet mesh file (.vtu, .vtk, .msh, .mesh, ...)")
+    i.add_argument("--color", default="color", help="color point array (default color)")
+    i.add_argument("--opacity", default="opacity", help="opacity point array (default opacity)")
     i.add_argument("--json", action="store_true", help="print the report as JSON (always, "
                    "also for a mesh with problems)")
     _mesh_flags(i)
     i.set_defaults(func=cmd_info)
-    v = sub.add_parser("viewpoint", help="the camera position of highest opacity entropy "
-                       "(DiffDVR's best viewpoint), by gradient ascent on the sphere")
-    v.add_argument("mesh")
-    v.add_argument("--out", required=True, help="folder for viewpoint.json, view.png and "
-                   "viewpoint.png (the entropy over the sphere, the ascent paths)")
-    v.add_argument("--tf", help="transfer function (post-classifies the scalar)")
-    v.add_argument("--scalar", help="the scalar point array (default: the only one)")
-    v.add_argument("--opacity-scale", type=float, default=4.0,
-                   help="with --tf: extinction per the mesh's bounding radius (default 4)")
-    v.add_argument("--res", type=int, default=128, help="image size (default 128)")
-    v.add_argument("--starts", type=int, default=8, help="ascent starts (default 8)")
-    v.add_argument("--iterations", type=int, default=20, help="steps per start (default 20)")
-    v.add_argument("--samples", type=int, default=256,
-                   help="Fibonacci-sphere views for comparison (default 256)")
-    v.add_argument("--quiet", action="store_true", help="no progress bar")
-    v.add_argument("--repair", action="store_true",
-                   help="drop folded, flat and duplicate tets (reported)")
-    v.add_argument("--variant", default="llvm_ad_rgb", help="llvm_ad_rgb (default) or cuda_ad_rgb")
-    v.set_defaults(func=cmd_viewpoint)
+
     m = sub.add_parser("make-scenes", help="(re)generate the meshes of the bundled scenes")
-    m.add_argument("dir", nargs="?", default=None)
+    _out(m, "folder of the scenes (default: the project's scenes/)", required=False)
     m.set_defaults(func=cmd_make_scenes)
+
     d = sub.add_parser("make-dataset", help="render a scalar volume or tet mesh into a "
                        "NeRF-style data set, or project a volume into X-ray images")
     d.add_argument("volume", help="scalar grid (.npy, .cvol, .mhd, .vti, raw .gz) or scalar "
                    "tet mesh (.vtu, .vtk, .msh, .mesh)")
+    _out(d, "data set folder")
     d.add_argument("--tf", help="transfer function (.json or DiffTetVR .xml)")
     d.add_argument("--scalar", help="the tet mesh's scalar point array (default: the only one)")
+    d.add_argument("--views", type=int, default=64, help="training views (default 64)")
+    d.add_argument("--test-views", type=int, default=TEST_VIEWS,
+                   help=f"held-out views (default {TEST_VIEWS})")
+    _res(d, None, "image size, WxH or N (default 256; X-ray: one pixel per voxel)")
+    d.add_argument("--value-range", help="lo,hi of the values the transfer function spans "
+                   "(default: the data's range)")
+    _opacity_scale(d)
+    d.add_argument("--radius", type=float, help="grid volume: camera distance from the centre "
+                   "of its [-1, 1]^3 box (default 4); X-ray cone beam: source distance "
+                   "(default 3)")
+    d.add_argument("--fov", type=float, help="horizontal field of view in degrees (default: "
+                   "frames the grid's box; 40 around a tet mesh and for a cone beam)")
+    d.add_argument("--seed", type=int, help="seed of the random held-out cameras (default 0)")
     d.add_argument("--xray", action="store_true", help="X-ray transmittance images (.npy) of "
                    "the grid volume's attenuation: exact line integrals of its trilinear field")
-    d.add_argument("--beam", choices=("parallel", "cone"), default="parallel",
-                   help="X-ray: parallel beam (orthographic, over 180 degrees; default) or cone "
-                   "beam (perspective, over 360)")
+    d.add_argument("--beam", choices=("parallel", "cone"), help="X-ray: parallel beam "
+                   "(orthographic, over 180 degrees; default) or cone beam (perspective, "
+                   "over 360)")
     d.add_argument("--attenuation", type=float, help="X-ray: attenuation per unit length of a "
                    "normalised value 1 (default: from --max-depth)")
-    d.add_argument("--max-depth", type=float, default=2.5, help="X-ray: the largest optical "
-                   "depth of a training ray (default 2.5)")
-    d.add_argument("--views", type=int, default=64, help="training views (default 64)")
-    d.add_argument("--test-views", type=int, default=8, help="test views (default 8)")
-    d.add_argument("--res", type=int, default=256, help="image size (default 256)")
-    d.add_argument("--value-range", help="lo,hi of the raw values mapped to [0, 1] "
-                   "(default: the data's range)")
-    d.add_argument("--opacity-scale", type=float, default=1.0, help="multiplies the transfer "
-                   "function's opacity (on a tet mesh: per mesh radius)")
-    d.add_argument("--radius", type=float, default=4.0, help="camera distance (default 4)")
-    d.add_argument("--fov", type=float, help="horizontal fov in degrees (default: frames the "
-                   "[-1, 1]^3 box; 40 around a tet mesh)")
-    d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--out", required=True)
-    d.add_argument("--variant", default="llvm_ad_rgb")
+    d.add_argument("--max-depth", type=float, help="X-ray: the largest optical depth of a "
+                   "training ray (default 2.5)")
+    _mesh_flags(d)
+    _quiet(d)
+    _variant(d)
     d.set_defaults(func=cmd_make_dataset)
-    f = sub.add_parser("fit", help="reconstruct a tet-mesh volume from a multi-view data set")
-    f.add_argument("data", help="NeRF-style folder (transforms*.json) or COLMAP model folder")
-    f.add_argument("--out", required=True, help="output folder (also the checkpoint)")
-    f.add_argument("--config",
-                   help="JSON file of fit settings (see mi_tetvr.recon.config.FitConfig)")
-    f.add_argument("--scene", choices=("auto", "object", "unbounded"),
-                   help="object: views of an object with alpha masks (a grid over its visual "
-                   "hull); unbounded: photos of a scene in its surroundings (its sparse points "
-                   "and far shells tetrahedralized, a learned background, a color transform "
-                   "per photo, L1 loss, cells added where the error is); auto (default): "
-                   "object when the images have transparent pixels")
-    f.add_argument("--init", help="auto (default: grid for objects, unbounded for scenes), "
-                   "grid, tetwild, delaunay, unbounded or a mesh file (the scalar mesh with "
-                   "--optimize tf or scalar)")
-    f.add_argument("--appearance", action=argparse.BooleanOptionalAction, default=None,
-                   help="fit an exposure and white balance (an affine color transform) per "
-                   "training photo; held-out photos are scored without one (default: on for "
-                   "unbounded scenes)")
-    f.add_argument("--model", choices=("emission", "absorption"),
-                   help="emission (default): colors and opacities from images; absorption: an "
-                   "X-ray attenuation (point data 'attenuation') from transmittance images")
-    f.add_argument("--optimize", choices=("volume", "tf", "scalar"),
-                   help="volume (default): per-vertex colors and opacities; tf: the transfer "
-                   "function over the init mesh's scalar; scalar: the scalar under --tf")
-    f.add_argument("--scalar", help="the init mesh's scalar point array (default: the only one)")
-    f.add_argument("--tf", dest="transfer_function",
-                   help="the known transfer function (--optimize scalar)")
-    f.add_argument("--opacity-scale", type=float, help="its opacity per mesh radius (as "
-                   "make-dataset)")
-    f.add_argument("--value-range", help="lo,hi: the scalar range the transfer function spans "
-                   "(default: the init mesh's scalar range)")
-    f.add_argument("--tf-resolution", type=int, help="transfer-function texels (default 64)")
-    f.add_argument("--tf-smoothing", type=float,
-                   help="weight of the transfer function's smoothing prior (default 0.01)")
-    f.add_argument("--smoothing", type=float, help="weight of the smoothing prior across "
-                   "edges of a fitted attenuation or scalar (default 0)")
-    f.add_argument("--tf-init", choices=("flat", "random"), help="start of a fitted transfer "
-                   "function (default flat)")
-    f.add_argument("--resolution", type=int, help="grid cells along the largest axis "
-                   "(default: chosen for --time-budget, else 32)")
-    f.add_argument("--iterations", type=int,
-                   help="optimizer steps (default 1500; ignored with --time-budget)")
-    f.add_argument("--time-budget", type=float,
-                   help="minutes for this command, outputs included: mesh size and steps "
-                   "are fitted to it (resuming a run gives it the budget again)")
-    f.add_argument("--views-per-step", type=int)
-    f.add_argument("--lr-color", type=float)
-    f.add_argument("--lr-opacity", type=float, help="optical depth per cell and step")
-    f.add_argument("--lr-position", type=float, help="cell sizes per step; 0 = fixed")
-    f.add_argument("--regularizer", type=float, help="tet-quality weight (with positions)")
-    f.add_argument("--loss", choices=["l1", "l2"])
-    f.add_argument("--loss-space", choices=["linear", "srgb"],
-                   help="compare linear RGB or the sRGB pictures the metrics score")
-    f.add_argument("--background", help="none (fit RGBA, default), learn (an environment map "
-                   "fitted with the volume: photos of a scene in its surroundings), white, "
-                   "black or r,g,b (linear)")
-    f.add_argument("--freeze-boundary", action=argparse.BooleanOptionalAction, default=None)
-    f.add_argument("--downscale", type=int, help="shrink images by this factor")
-    f.add_argument("--holdout", type=int, default=8,
-                   help="with a train split only: every N-th view is a test view (default 8)")
-    f.add_argument("--n-sub", type=int)
-    f.add_argument("--seed", type=int)
-    f.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
-    f.add_argument("--variant", default="llvm_ad_rgb")
-    f.set_defaults(func=cmd_fit)
-    e = sub.add_parser("eval", help="PSNR/SSIM of a mesh on a data set's test views")
-    e.add_argument("mesh")
-    e.add_argument("data")
-    e.add_argument("--background", help="none (default), white, black or r,g,b")
-    e.add_argument("--downscale", type=int, default=1)
-    e.add_argument("--holdout", type=int, default=8)
-    e.add_argument("--split", choices=["test", "train"], default="test")
-    e.add_argument("--json", help="also write the metrics to this file")
-    e.add_argument("--variant", default="llvm_ad_rgb")
-    e.set_defaults(func=cmd_eval)
+
     mc = sub.add_parser("make-capture", help="path-trace a photo capture of a textured room "
                         "with objects from cameras inside it (a test capture: transforms.json, "
                         "lens distortion, exposure changes, noise, no masks)")
-    mc.add_argument("--out", required=True)
+    _out(mc, "capture folder")
     mc.add_argument("--views", type=int, default=48, help="photos (default 48)")
-    mc.add_argument("--res", default="320x240", help="WxH (default 320x240)")
+    _res(mc, (320, 240))
     mc.add_argument("--spp", type=int, default=12, help="samples per pixel (default 12)")
-    mc.add_argument("--seed", type=int, default=0)
-    mc.add_argument("--variant", default="llvm_ad_rgb")
+    mc.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    _quiet(mc)
+    _variant(mc)
     mc.set_defaults(func=cmd_make_capture)
+
     pd = sub.add_parser("process-data", help="camera poses of photos or a video by structure "
                         "from motion (COLMAP through pycolmap, CPU): a COLMAP data set for fit")
     pd.add_argument("images", help="folder of photos (.jpg, .png, ...) or a video file")
-    pd.add_argument("--out", required=True, help="data set folder: images/, database.db, "
-                    "sparse/0 (a COLMAP data set for fit and eval)")
+    _out(pd, "data set folder: images/, database.db, sparse/0 (a COLMAP data set for fit and "
+             "eval)")
     pd.add_argument("--matcher", choices=("exhaustive", "sequential"),
                     help="image pairs matched: all (default for photos) or neighbours in name "
                     "order (default for a video)")
@@ -651,22 +722,119 @@ def main(argv=None):
                     help="frames taken evenly from a video (default 100)")
     pd.add_argument("--reference", help="a data set with known cameras of the same images "
                     "(NeRF-style or COLMAP): print the pose errors after a similarity alignment")
-    pd.add_argument("--quiet", action="store_true", help="no progress bar")
+    _quiet(pd)
     pd.set_defaults(func=cmd_process_data)
+
+    f = sub.add_parser("fit", help="reconstruct a tet-mesh volume from a multi-view data set")
+    f.add_argument("data", help="NeRF-style folder (transforms*.json) or COLMAP model folder")
+    _out(f, "output folder (also the checkpoint a later run resumes)")
+    f.add_argument("--config", help="fit settings as JSON or YAML (keys: the settings below, "
+                   "with underscores); options given here override it")
+    f.add_argument("--print-config", action="store_true",
+                   help="print the settings this command would fit with (JSON) and exit")
+    f.add_argument("--holdout", type=int, default=8,
+                   help="with a train split only: every N-th view is a test view (default 8)")
+    f.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
+    _quiet(f)
+    _variant(f)
+    f.set_defaults(func=cmd_fit, config_dests=config_flags(f))
+
+    e = sub.add_parser("eval", help="PSNR/SSIM of a fit (or a colored mesh) on a data set's "
+                       "views, scored as the fit scores itself")
+    e.add_argument("result", help="a fit's output folder (scores what it fitted: colors, an "
+                   "attenuation, a scalar or a transfer function, with its background), or "
+                   "a mesh file with color and opacity arrays")
+    e.add_argument("data", help="the data set")
+    _out(e, "also write the metrics to this JSON file", required=False)
+    e.add_argument("--background", help="a mesh file's background: none (default), white, "
+                   "black or r,g,b (a fit folder uses its own)")
+    e.add_argument("--downscale", type=int, help="shrink images by this factor (default: the "
+                   "fit's, else 1)")
+    e.add_argument("--holdout", type=int, default=8,
+                   help="with a train split only: every N-th view is a test view (default 8)")
+    e.add_argument("--split", choices=["test", "train"], default="test")
+    _mesh_flags(e)
+    _variant(e)
+    e.set_defaults(func=cmd_eval)
+
     rf = sub.add_parser("refine", help="split the edges around the top vertices of a "
                         "point-data array")
-    rf.add_argument("mesh")
+    rf.add_argument("mesh", help="tet mesh file")
+    _out(rf, "refined mesh file (.vtu, ...)")
     rf.add_argument("--select", required=True, help="point-data array to rank vertices by "
                     "(or color, opacity)")
     rf.add_argument("--rank", choices=["magnitude", "value"], default="magnitude",
                     help="magnitude (default): largest absolute values (vector norms) first, "
                     "negative as much as positive; value: highest signed values first")
     rf.add_argument("--fraction", type=float, default=0.05, help="top fraction (default 0.05)")
-    rf.add_argument("-o", "--output", required=True)
     _mesh_flags(rf)
     rf.set_defaults(func=cmd_refine)
-    a = p.parse_args(argv)
-    a.func(a)
+
+    v = sub.add_parser("viewpoint", help="the camera position of highest opacity entropy "
+                       "(DiffDVR's best viewpoint), by gradient ascent on the sphere")
+    v.add_argument("mesh", help="tet mesh file")
+    _out(v, "folder for viewpoint.json, view.png and viewpoint.png (the entropy over the "
+            "sphere, the ascent paths)")
+    v.add_argument("--tf", help="transfer function (post-classifies the scalar)")
+    v.add_argument("--scalar", help="the scalar point array (default: the only one)")
+    _opacity_scale(v)
+    _res(v, (128, 128))
+    v.add_argument("--starts", type=int, default=8, help="ascent starts (default 8)")
+    v.add_argument("--iterations", type=int, default=20, help="steps per start (default 20)")
+    v.add_argument("--samples", type=int, default=256,
+                   help="Fibonacci-sphere views for comparison (default 256)")
+    _mesh_flags(v)
+    _quiet(v)
+    _variant(v)
+    v.set_defaults(func=cmd_viewpoint)
+    return p
+
+
+def command_summary():
+    """Markdown lines, one per command: its positional arguments, required options and
+    the names of its other options (the fit settings in one group), with its help. The
+    README's command list is this text (a test keeps them equal)."""
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    helps = {c.dest: c.help for c in sub._choices_actions}
+    lines = []
+    for name, p in sub.choices.items():
+        words, optional = [f"mi-tetvr {name}"], []
+        for a in p._actions:
+            if isinstance(a, argparse._HelpAction):
+                continue
+            if not a.option_strings:
+                words.append(a.dest.upper().replace("-", "_"))
+            elif a.dest.startswith("cfg_"):
+                continue
+            elif a.required:
+                words.append(f"{a.option_strings[0]} {a.dest.upper()}")
+            else:
+                optional.append(max(a.option_strings, key=len))
+        if any(a.dest.startswith("cfg_") for a in p._actions):
+            optional.append("[every FitConfig setting: --time-budget, --scene, --init, ...]")
+        lines.append(f"- `{' '.join(words)}` — {helps[name]}")
+        if optional:
+            lines.append(f"  options: {', '.join(f'`{o}`' if o.startswith('-') else o for o in optional)}")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    import os
+    a = build_parser().parse_args(argv)
+    if os.environ.get("MI_TETVR_TRACEBACK"):
+        return a.func(a)
+    try:
+        return a.func(a)
+    except KeyboardInterrupt:
+        sys.exit("mi-tetvr: interrupted")
+    except (ValueError, KeyError, OSError, RuntimeError) as e:
+        # what a command could not do with its input: one line (the library's messages say
+        # what is wrong and the way past it); MI_TETVR_TRACEBACK=1 shows where
+        text = str(e).strip("'\"") if isinstance(e, KeyError) else str(e)
+        if isinstance(e, FileNotFoundError) and e.filename and str(e.filename) not in text:
+            text = f"file not found: {e.filename}"
+        sys.exit(f"mi-tetvr: {text or type(e).__name__}")
 
 
 if __name__ == "__main__":

@@ -91,6 +91,7 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
+from mi_tetvr import take_topology
 from mi_tetvr.mesh import TetMesh, read_tetmesh
 from mi_tetvr.mesh.io import choose_scalar
 from mi_tetvr.render.buffers import shape_index_arrays
@@ -136,7 +137,8 @@ def mesh_from_properties(props) -> TetMesh:
         mesh = TetMesh(_tensor(props, "vertices"), _tensor(props, "tets"),
                        _tensor(props, "color"),
                        None if opacity is None else opacity.reshape(-1),
-                       None if scalar is None else {"scalar": scalar.reshape(-1)})
+                       None if scalar is None else {"scalar": scalar.reshape(-1)},
+                       topology=take_topology(props.get("topology_id", None)))
         tf = _transfer_function(props)
         if tf is not None:
             if scalar is None:

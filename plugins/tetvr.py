@@ -32,6 +32,12 @@ shapes by walking the tet adjacency.
    - |bool|
    - Add the coverage as an AOV channel named ``alpha``: 1 - T, and 1 where
      a surface is hit. (Default: true)
+ * - kept_primals
+   - |int|
+   - Primal renders kept for the derivative passes that differentiate them (several views
+     rendered before one ``dr.backward``); past it the oldest are dropped and their
+     derivative pass renders the primal again, with a warning. See
+     :mod:`mi_tetvr.render.replay`. (Default: 16)
  * - surfaces
    - |integrator|
    - Child integrator (named ``surfaces``) that renders the scene's other
@@ -44,7 +50,7 @@ Derivatives: ``mi.render`` with parameters, ``dr.backward`` and ``dr.forward``
 reach ``<id>.vertex_color``, ``<id>.vertex_opacity`` and ``<id>.vertex_positions``
 (post-classified: ``vertex_scalar``, ``tf_color``, ``tf_opacity``; the ``alpha``
 AOV's gradient flows too), and ``dr.backward`` also the sensor's ``to_world``
-(:mod:`mi_tetvr.render.camera`); through a
+(:func:`mi_tetvr.camera.orbit_to_world`); through a
 differentiable nested integrator, the surfaces' parameters too (their
 radiance's adjoint is ``T * δL``). The
 adjoint re-walks the rays and records nothing (see
@@ -79,7 +85,7 @@ import mitsuba as mi
 from mi_tetvr.render.adjoint import Adjoint
 from mi_tetvr.render.buffers import index_buffers, model_groups, scene_tetmeshes, tet_scene
 from mi_tetvr.render.merged import merged_trace, overlapping
-from mi_tetvr.render.replay import PrimalStates, derivative_seed
+from mi_tetvr.render.replay import CAPACITY, PrimalStates, derivative_seed
 from mi_tetvr.render.surfaces import DEFAULT_SURFACES, NestedIntegrator, SceneParts
 from mi_tetvr.render.walk import WalkSettings, trace
 
@@ -120,7 +126,7 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
                                          else mi.load_dict(DEFAULT_SURFACES))
         self.parts = SceneParts()
         self._index_cache = None
-        self._states = PrimalStates()
+        self._states = PrimalStates(int(props.get("kept_primals", CAPACITY)))
         self._record = None    # (key, inputs) while render() runs with gradients enabled
         self._replay = None    # the kept primal state while a derivative pass runs
 

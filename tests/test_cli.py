@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import mitsuba as mi
-from tests.helpers import ROOT
+from tests.helpers import ROOT, VARIANT
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.io import write_tetmesh
 from mi_tetvr.mesh.tetmesh import TetMesh
@@ -30,17 +30,26 @@ def scenes(tmp_path_factory):
 
 @pytest.mark.parametrize("name", SCENES)
 def test_render_scene(scenes, tmp_path, name):
+    """``mi-tetvr render`` of each bundled scene writes what Mitsuba renders of that file at
+    that film size and sample count: the EXR is ``mi.render``'s RGBA (same seed, so
+    equal), the PNG its RGB as 8-bit sRGB (Mitsuba's own conversion, within one level);
+    and the volume is in the picture."""
+    from mi_tetvr import cli
     exr, png = tmp_path / f"{name}.exr", tmp_path / f"{name}.png"
-    r = run("render", str(scenes / f"{name}.xml"), "-o", str(exr), "-o", str(png),
-            "--res", "24x16", "--spp", "1")
-    assert r.returncode == 0, r.stderr
-    bmp = mi.Bitmap(str(exr))
-    assert bmp.pixel_format() == mi.Bitmap.PixelFormat.RGBA
-    img = np.array(bmp)
-    assert img.shape == (16, 24, 4)
-    assert np.all(np.isfinite(img)) and img[..., 3].max() > 0.05  # the volume is visible
-    assert np.all((img[..., 3] >= 0) & (img[..., 3] <= 1))
-    assert np.array(mi.Bitmap(str(png))).shape == (16, 24, 3)
+    cli.main(["render", str(scenes / f"{name}.xml"), "-o", str(exr), "-o", str(png),
+              "--res", "24x16", "--spp", "2", "--variant", VARIANT])
+    mi.file_resolver().prepend(str(scenes))
+    scene = mi.load_string(cli.scene_xml(scenes / f"{name}.xml", (24, 16)))
+    ref = np.array(mi.render(scene, spp=2))
+    img = np.array(mi.Bitmap(str(exr)))
+    assert img.shape == ref.shape == (16, 24, 4)
+    np.testing.assert_allclose(img, ref, rtol=1e-6, atol=1e-7)
+    assert img[..., 3].max() > 0.05 and np.all((img[..., 3] >= 0) & (img[..., 3] <= 1))
+    srgb = np.array(mi.Bitmap(np.ascontiguousarray(ref[..., :3])).convert(
+        mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=True))
+    written = np.array(mi.Bitmap(str(png))).astype(np.float64) / 255
+    assert written.shape == (16, 24, 3)
+    assert np.abs(written - np.clip(srgb, 0, 1)).max() <= 1 / 255 + 1e-6
 
 
 def test_render_errors(scenes, tmp_path):
@@ -90,15 +99,27 @@ def test_make_dataset_fit_eval(tmp_path):
     r = run("make-dataset", str(tmp_path / "vol.npy"), "--tf", "scenes/tf_default.json",
             "--views", "4", "--test-views", "2", "--res", "12", "--fov", "30", "--out", str(data))
     assert r.returncode == 0, r.stderr
-    r = run("fit", str(data), "--out", str(out), "--resolution", "3", "--iterations", "4",
+    r = run("fit", str(data), "--out", str(out), "--grid-resolution", "3", "--iterations", "4",
             "--views-per-step", "2", "--n-sub", "2")
     assert r.returncode == 0, r.stderr
     assert "test PSNR" in r.stdout
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["step"] == 4 and len(metrics["views"]) == 2
-    r = run("eval", str(out / "mesh.vtu"), str(data), "--json", str(tmp_path / "m.json"))
+    r = run("eval", str(out / "mesh.vtu"), str(data), "-o", str(tmp_path / "m.json"))
     assert r.returncode == 0, r.stderr
     assert "mean PSNR" in r.stdout and (tmp_path / "m.json").is_file()
+    # the mesh file scores as the fit scored itself (its metrics.json), and so does the folder
+    scored = json.loads((tmp_path / "m.json").read_text())["mean"]
+    assert scored["psnr"] == pytest.approx(metrics["mean"]["psnr"], abs=1e-4)
+    r = run("eval", str(out), str(data), "-o", str(tmp_path / "f.json"))
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "f.json").read_text())["mean"]["psnr"] == \
+        pytest.approx(metrics["mean"]["psnr"], abs=1e-4)
+    # resuming into the folder with other settings is refused, naming them and the way out
+    r = run("fit", str(data), "--out", str(out), "--grid-resolution", "3", "--iterations", "4",
+            "--views-per-step", "2", "--n-sub", "2", "--model", "absorption")
+    assert r.returncode == 1 and "model: \"emission\" there, \"absorption\" now" in r.stderr
+    assert "--restart" in r.stderr and "Traceback" not in r.stderr
     # Bad input: a clear message, no traceback.
     r = run("fit", str(tmp_path / "nowhere"), "--out", str(out))
     assert r.returncode != 0 and "not found" in r.stderr and "Traceback" not in r.stderr
@@ -133,10 +154,20 @@ def test_transfer_function_and_xray_commands(tmp_path):
             "--test-views", "2", "--out", str(xray))
     assert r.returncode == 0, r.stderr
     assert len(list((xray / "train").glob("*.npy"))) == 6
-    r = run("fit", str(xray), "--model", "absorption", "--resolution", "4", "--iterations", "3",
-            "--out", str(fit))
+    r = run("fit", str(xray), "--model", "absorption", "--grid-resolution", "4", "--iterations",
+            "3", "--out", str(fit))
     assert r.returncode == 0, r.stderr
     assert "(transmittance)" in r.stdout
+    # eval scores what was fitted: the attenuation's transmittance, as the fit did; its
+    # mesh alone (no colors) is refused with the way to score it
+    r = run("eval", str(fit), str(xray), "-o", str(tmp_path / "att.json"))
+    assert r.returncode == 0, r.stderr
+    assert "(transmittance)" in r.stdout
+    fitted = json.loads((fit / "metrics.json").read_text())["mean"]["psnr"]
+    assert json.loads((tmp_path / "att.json").read_text())["mean"]["psnr"] == \
+        pytest.approx(fitted, abs=1e-4)
+    r = run("eval", str(fit / "mesh.vtu"), str(xray))
+    assert r.returncode == 1 and "mi-tetvr eval FIT_DIR DATA" in r.stderr
     import meshio
     assert "attenuation" in meshio.read(fit / "mesh.vtu").point_data
     r = run("make-dataset", str(tmp_path / "vol.npy"), "--out", str(tmp_path / "x"))

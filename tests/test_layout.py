@@ -8,7 +8,46 @@ import pytest
 
 from tests.helpers import ROOT
 
-PACKAGES = ["mi_tetvr", "mi_tetvr.mesh", "mi_tetvr.render", "mi_tetvr.grid", "mi_tetvr.recon"]
+PACKAGES = ["mi_tetvr", "mi_tetvr.mesh", "mi_tetvr.render", "mi_tetvr.grid", "mi_tetvr.recon",
+            "mi_tetvr.apps"]
+
+#: The layers, lowest first: a module imports only from its own layer and those below.
+LAYERS = [("mi_tetvr.color", "mi_tetvr.transfer", "mi_tetvr.camera", "mi_tetvr.progress",
+           "mi_tetvr._lazy"),
+          ("mi_tetvr.mesh",), ("mi_tetvr.render",), ("mi_tetvr.grid",), ("mi_tetvr.recon",),
+          ("mi_tetvr.apps",), ("mi_tetvr.cli",)]
+
+
+def _layer(module):
+    for rank, names in enumerate(LAYERS):
+        if any(module == n or module.startswith(n + ".") for n in names):
+            return rank
+    return None
+
+
+def test_no_module_imports_a_layer_above_its_own():
+    """Every import of mi_tetvr's modules (also those inside functions) reaches its own
+    layer or one below: the numpy utilities, mesh, render, grid, recon, apps, cli."""
+    import ast
+    bad = []
+    for path in sorted((ROOT / "mi_tetvr").rglob("*.py")):
+        module = ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(
+            ".__init__")
+        rank = _layer(module)
+        if rank is None:             # the package's own __init__ (registration, exports)
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [node.module]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            for name in names:
+                other = _layer(name)
+                if other is not None and other > rank:
+                    bad.append(f"{module} imports {name}")
+    assert not bad, bad
 
 
 @pytest.mark.parametrize("name", PACKAGES)
@@ -29,7 +68,8 @@ import numpy as np
 from mi_tetvr.mesh import grid_mesh, build_topology
 from mi_tetvr.grid import make_volume
 assert make_volume(np.random.rand(4, 5, 6)).values.max() == 1.0
-from mi_tetvr.recon import Camera, FitConfig, psnr
+from mi_tetvr.recon import FitConfig, psnr
+from mi_tetvr.camera import Camera
 from mi_tetvr import TransferFunction
 v, t = grid_mesh(2)
 assert build_topology(v, t).boundary_faces.shape[1] == 3

@@ -122,13 +122,13 @@ def _tutorial(name):
 
 def test_best_viewpoint_tutorial(tmp_path):
     """``tutorials/best_viewpoint.py`` shrunk (24x24, 2 starts, 32 samples):
-    the climb ends at least as high as its starts and within 2 % of the best
-    sampled view (measured 100.07 %); its files are written."""
+    the chosen view is within 2 % of the best sampled view (measured 100.07 %); its files
+    are written."""
     r = _tutorial("best_viewpoint").main(["--res", "24", "--starts", "2", "--iterations", "4",
                                           "--samples", "32", "--quiet", "--out", str(tmp_path),
                                           "--variant", VARIANT])
-    starts = [p[0][2] for p in r["paths"]]
-    assert r["entropy"] >= max(starts) - 1e-9
+    # (that the climbs go uphill is tests/apps/test_viewpoint.py's: at this size the two
+    # starts are already the best points of their short paths)
     assert r["ratio_to_best_sampled"] > 0.98, r["ratio_to_best_sampled"]
     for f in r["files"].values():
         assert Path(f).is_file()

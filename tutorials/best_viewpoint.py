@@ -58,7 +58,7 @@ def main(argv=None):
     mi.set_variant(a.variant)
     import mi_tetvr  # noqa: F401  (registers the plugins)
     from mi_tetvr.mesh.topology import bounding_radius
-    from mi_tetvr.render.viewpoint import (ViewpointSearch, best_viewpoint, default_starts,
+    from mi_tetvr.apps.viewpoint import (ViewpointSearch, best_viewpoint, default_starts,
                                            orbit_scene, plot_viewpoints)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

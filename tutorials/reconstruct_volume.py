@@ -41,7 +41,8 @@ from mi_tetvr.recon.config import FitConfig, coarse_to_fine  # noqa: E402
 from mi_tetvr.recon.pipeline import run  # noqa: E402
 from mi_tetvr.mesh.scenes import default_volume  # noqa: E402
 from mi_tetvr.transfer import read_transfer_function  # noqa: E402
-from mi_tetvr.grid import make_dataset, make_volume  # noqa: E402
+from mi_tetvr.grid import make_volume  # noqa: E402
+from mi_tetvr.recon.synthetic import make_dataset  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -73,12 +74,12 @@ def main(argv=None):
 
     # 3a. Uniform grid: colors and opacities only, 5 stages' worth of steps.
     base = FitConfig(views_per_step=4, lr_color=0.03, lr_opacity=0.1, n_sub=4)
-    uniform = run(data, out / "uniform", base.updated(resolution=a.uniform,
+    uniform = run(data, out / "uniform", base.updated(grid_resolution=a.uniform,
                                                        iterations=5 * a.steps),
                   resume=False, progress=not a.quiet, log=log)
     # 3b. Coarse to fine: DiffTetVR's schedule, 2 rounds of (colors, joint + split 5 %).
     stages = coarse_to_fine(rounds=2, steps=a.steps, lr_position=0.05, split=0.05)
-    c2f = run(data, out / "coarse_to_fine", base.updated(resolution=a.coarse, stages=stages),
+    c2f = run(data, out / "coarse_to_fine", base.updated(grid_resolution=a.coarse, stages=stages),
               resume=False, progress=not a.quiet, log=log)
 
     # 4. Compare (both meshes are in out/*/mesh.vtu; open them in ParaView).

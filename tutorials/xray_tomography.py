@@ -58,7 +58,8 @@ def main(argv=None):
     mi.set_variant(a.variant)
     import mi_tetvr
     from mi_tetvr.grid import load_volume, make_volume
-    from mi_tetvr.grid.xray import make_xray_dataset, reconstruct_slices
+    from mi_tetvr.grid.xray import reconstruct_slices
+    from mi_tetvr.recon.synthetic import make_xray_dataset
     from mi_tetvr.mesh.sample import sample_field
     from mi_tetvr.mesh.scenes import default_volume
     from mi_tetvr.recon.config import FitConfig

@@ -1,7 +1,7 @@
 """The grid ray marcher: a regular-grid volume rendered in Dr.Jit under a transfer function.
 
 The grid baseline for comparisons with the tet renderer, and the renderer of the ground-truth
-images of :func:`mi_tetvr.grid.dataset.make_dataset`. Needs a Mitsuba variant when called
+images of :func:`mi_tetvr.recon.synthetic.make_dataset`. Needs a Mitsuba variant when called
 (not at import).
 
 Conventions
@@ -25,8 +25,8 @@ Transfer function
     table): ``t = (s - lo) / (hi - lo)`` with ``value_range=(lo, hi)`` (default ``(0, 1)``,
     i.e. the normalised scalar), clamped like :meth:`TransferFunction.__call__`.
 Cameras
-    :class:`mi_tetvr.recon.camera.Camera` (rays through the pixel centers, see
-    :mod:`mi_tetvr.recon.camera`) or a Mitsuba sensor.
+    :class:`mi_tetvr.camera.Camera` (rays through the pixel centers, see
+    :mod:`mi_tetvr.camera`) or a Mitsuba sensor.
 """
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_tetvr.grid.volume import Volume
-from mi_tetvr.recon.camera import Camera
+from mi_tetvr.camera import Camera
 from mi_tetvr.transfer import TransferFunction
 
 __all__ = ["TFEval", "GridField", "render_rays", "render_volume", "camera_rays"]
@@ -196,14 +196,14 @@ def render_rays(field, tf, origins, directions, step: float = 0.25, value_range=
 
 
 def camera_rays(camera):
-    """Rays through the pixel centers of a :class:`~mi_tetvr.recon.camera.Camera` or a
+    """Rays through the pixel centers of a :class:`~mi_tetvr.camera.Camera` or a
     Mitsuba sensor.
 
     Parameters
     ----------
     camera : Camera or mitsuba Sensor
         A camera's rays are :meth:`Camera.rays_drjit
-        <mi_tetvr.recon.camera.Camera.rays_drjit>`; a sensor's come from its ``sample_ray`` at
+        <mi_tetvr.camera.Camera.rays_drjit>`; a sensor's come from its ``sample_ray`` at
         the film positions of the pixel centers.
 
     Returns

@@ -2,7 +2,7 @@
 
 A volume is the ground truth for reconstruction (its images under a transfer function,
 rendered by :mod:`mi_tetvr.grid.marcher` and written as a data set by
-:mod:`mi_tetvr.grid.dataset`). Numpy only: works without a Mitsuba variant.
+:mod:`mi_tetvr.recon.synthetic`). Numpy only: works without a Mitsuba variant.
 
 Conventions
 -----------

@@ -10,22 +10,19 @@ exp(-integral of mu)``.
 :func:`xray_cameras` places parallel-beam (orthographic) or cone-beam
 (perspective) cameras on a circle around the volume's z axis, the geometry of
 a CT scanner, so that image row ``j`` of a parallel-beam view is the
-projection of one z slice of samples; :func:`make_xray_dataset` writes a NeRF-style data
+projection of one z slice of samples; :func:`mi_tetvr.recon.synthetic.make_xray_dataset` writes a NeRF-style data
 set of such images (``.npy`` transmittance) that ``mi-tetvr fit --model
 absorption`` reads.
 """
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import numpy as np
 
+from mi_tetvr.camera import Camera
 from mi_tetvr.grid.volume import Volume, trilinear_numpy
-from mi_tetvr.recon.camera import Camera
 
 __all__ = ["line_integrals", "xray_cameras", "rotation_axis", "project_volume",
-           "make_xray_dataset", "parallel_angles", "reconstruct_slices", "MAX_DEPTH"]
+           "parallel_angles", "reconstruct_slices", "MAX_DEPTH"]
 
 #: Default largest optical depth of a data set's rays (transmittance e^-2.5 = 8 %):
 #: the attenuation scale is chosen for it.
@@ -148,72 +145,6 @@ def project_volume(volume: Volume, camera: Camera, scale: float = 1.0) -> np.nda
     o, d = camera.rays()
     depth = scale * line_integrals(volume, o, d)
     return np.exp(-depth).reshape(camera.height, camera.width)
-
-
-def make_xray_dataset(volume: Volume, out_dir, views: int = 64, test_views: int = 16,
-                      beam: str = "parallel", scale: float | None = None,
-                      max_depth: float = MAX_DEPTH, distance: float = 3.0, fov: float = 40.0,
-                      progress: bool = True) -> dict:
-    """Write an X-ray data set of ``volume``: ``views`` training projections
-    evenly over 180 degrees (parallel beam; 360 for a cone beam) and
-    ``test_views`` held-out ones at angles between them.
-
-    Parameters
-    ----------
-    volume : Volume
-    out_dir : path
-        Receives ``transforms_{train,test}.json`` (orthographic cameras:
-        ``camera_model``, ``ortho_width``, ``ortho_height``; the volume's box as
-        ``aabb``), ``{train,test}/<name>.npy`` (float32 transmittance) and
-        ``xray_info.json`` (the volume, beam, angles, attenuation scale).
-    scale : float, optional
-        Attenuation per world unit of a normalised value 1 (default: the one
-        whose largest optical depth over the training views is ``max_depth``).
-
-    Returns
-    -------
-    dict
-        ``info`` (what ``xray_info.json`` holds) and the ``train`` / ``test``
-        views (:class:`~mi_tetvr.recon.datasets.View`).
-    """
-    from tqdm import tqdm
-
-    from mi_tetvr.recon.datasets import Dataset, View, write_nerf
-    span = 180.0 if beam == "parallel" else 360.0
-    # held-out angles halfway between training ones, spread over the scan
-    angles = {"train": parallel_angles(views) * span / 180.0,
-              "test": (np.arange(test_views) * (views / max(test_views, 1)) + 0.5) * span / views}
-    depth = {}
-    bar = tqdm(total=views + test_views, desc="project", disable=not progress)
-    cams = {k: xray_cameras(volume, a, beam, distance, fov) for k, a in angles.items()}
-    for split, cs in cams.items():
-        depth[split] = []
-        for cam in cs:
-            o, d = cam.rays()
-            depth[split].append(line_integrals(volume, o, d).reshape(cam.height, cam.width))
-            bar.update(1)
-    bar.close()
-    if scale is None:
-        scale = max_depth / max(max(float(x.max()) for x in depth["train"]), 1e-12)
-    posed = {}
-    for split, cs in cams.items():
-        posed[split] = []
-        for i, (cam, dep) in enumerate(zip(cs, depth[split])):
-            img = np.zeros((cam.height, cam.width, 4), np.float32)
-            img[..., 3] = 1.0 - np.exp(-scale * dep)
-            posed[split].append(View(f"p_{i:03d}", cam, img))
-    lo, hi = volume.bounds()
-    write_nerf(Dataset(posed["train"], posed["test"], bbox=np.stack([lo, hi])), out_dir,
-               image_format="npy")
-    info = {"volume": volume.info(), "beam": beam, "attenuation_scale": float(scale),
-            "max_depth": float(max(float(x.max()) for x in depth["train"]) * scale),
-            "angles_train_deg": angles["train"].tolist(),
-            "angles_test_deg": angles["test"].tolist(),
-            "model": "absorption: transmittance exp(-integral of scale * trilinear value), "
-                     "exact (two-point Gauss-Legendre between grid-plane crossings), through "
-                     "pixel centres"}
-    (Path(out_dir) / "xray_info.json").write_text(json.dumps(info, indent=1) + "\n")
-    return {"info": info, "train": posed["train"], "test": posed["test"]}
 
 
 def reconstruct_slices(grid: Volume, views, scale: float, method: str = "fbp",

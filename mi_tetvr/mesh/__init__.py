@@ -32,7 +32,7 @@ Modules
 from .topology import (EDGES, FACES, FLAT_TOLERANCE, MeshError, Orientation, Topology,
                        bbox_diagonal, build_topology, check_bounds, edge_lengths, face_keys, flip_tets,
                        format_summary, geometry_summary, mean_edge_length, orient_tets, quality,
-                       signed_volumes, validate_arrays, validate_attributes)
+                       repair_tets, signed_volumes, validate_arrays, validate_attributes)
 from .tetmesh import DEFAULT_COLOR, DEFAULT_OPACITY, TetMesh
 from .io import read_tetmesh, write_tetmesh
 from .generate import KUHN_TETS, blob_field, blob_mesh, grid_mesh, grid_tets
@@ -46,7 +46,7 @@ __all__ = [
     "FACES", "EDGES", "FLAT_TOLERANCE", "MeshError", "Topology", "Orientation",
     "check_bounds", "signed_volumes", "bbox_diagonal", "flip_tets", "orient_tets", "face_keys",
     "edge_lengths", "mean_edge_length", "quality", "validate_arrays", "validate_attributes",
-    "build_topology", "geometry_summary", "format_summary",
+    "build_topology", "geometry_summary", "format_summary", "repair_tets",
     # the mesh class
     "TetMesh", "DEFAULT_COLOR", "DEFAULT_OPACITY",
     # files

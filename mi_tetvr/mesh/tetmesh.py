@@ -58,6 +58,9 @@ class TetMesh:
         Per-tet arrays (listed and written; meshes derived by refinement drop
         them; :func:`~mi_tetvr.mesh.io.read_tetmesh` converts them to point
         data on request).
+    topology : Topology, optional
+        :func:`~mi_tetvr.mesh.build_topology` of these arrays when it was built
+        already (a fit hands it on to its ``tetmesh``): kept, not rebuilt.
 
     Attributes
     ----------
@@ -81,9 +84,15 @@ class TetMesh:
     """
 
     def __init__(self, vertices, tets, color=None, opacity=None, point_data=None,
-                 cell_data=None):
+                 cell_data=None, topology=None):
         self._cache = {}
         self._vertices, self._tets = validate_arrays(vertices, tets)
+        if topology is not None:
+            # the topology of these very arrays, built before (handed on, not rebuilt)
+            if topology.tets.shape != self._tets.shape or not np.array_equal(
+                    np.sort(topology.tets, axis=1), np.sort(self._tets, axis=1)):
+                raise ValueError("TetMesh: the topology given is not that of these tets")
+            self._cache["topology"] = topology
         n = len(self._vertices)
         color, opacity = validate_attributes(n, color, opacity)
         self.color = np.tile(np.asarray(DEFAULT_COLOR, float), (n, 1)) if color is None else color

@@ -1,7 +1,7 @@
 """Reconstruction: a tet-mesh volume fitted to images.
 
 Data in
-    :mod:`~mi_tetvr.recon.camera` (:class:`Camera`: the one pinhole camera --
+    :mod:`~mi_tetvr.camera` (:class:`Camera`: the one pinhole camera --
     OpenGL / OpenCV / COLMAP conventions, rays, projection, Mitsuba sensors),
     :mod:`~mi_tetvr.recon.datasets` (:class:`View`, :class:`Dataset`, NeRF and
     COLMAP readers, the NeRF writer), :mod:`~mi_tetvr.recon.images` (image files),
@@ -26,7 +26,6 @@ from __future__ import annotations
 
 from mi_tetvr._lazy import lazy_exports
 
-from .camera import Camera, fibonacci_cameras, look_at, random_cameras
 from .config import FitConfig, coarse_to_fine
 from .datasets import Dataset, View, load_colmap, load_dataset, load_nerf, write_nerf
 from .hull import frusta_bounds, visual_hull_bounds
@@ -39,7 +38,7 @@ _LAZY = {"VertexAdam": "optim", "Trainer": "trainer", "RunState": "trainer",
          "save_checkpoint": "checkpoint", "load_checkpoint": "checkpoint",
          "run": "pipeline", "evaluate_mesh": "pipeline", "initial_mesh": "pipeline"}
 
-__all__ = ["Camera", "look_at", "fibonacci_cameras", "random_cameras",
+__all__ = [
            "View", "Dataset", "load_dataset", "load_nerf", "load_colmap", "write_nerf",
            "read_image", "write_image", "downscale_image",
            "frusta_bounds", "visual_hull_bounds",

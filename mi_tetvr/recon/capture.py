@@ -99,8 +99,8 @@ def room_cameras(n, width, height, fov_x=70.0, seed=0, arc=360.0):
     1.2 to 1.6, height 0.6 to 1.4, evenly spaced with jitter over ``arc``
     degrees of the ring: 360 walks all around, less walks part of the way),
     each looking at the objects. Returns a list of pinhole
-    :class:`~mi_tetvr.recon.camera.Camera`."""
-    from mi_tetvr.recon.camera import Camera
+    :class:`~mi_tetvr.camera.Camera`."""
+    from mi_tetvr.camera import Camera
     rng = np.random.default_rng(seed + 1)
     cams = []
     for i in range(n):
@@ -178,7 +178,7 @@ def make_room_capture(out_dir, views=48, width=400, height=300, fov_x=70.0, spp=
     """
     import mitsuba as mi
     import pycolmap
-    from tqdm import tqdm
+    from mi_tetvr.progress import progress_bar as tqdm
 
     from mi_tetvr.color import linear_to_srgb
     out = Path(out_dir)

@@ -19,114 +19,213 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["FitConfig", "coarse_to_fine", "INITS"]
+__all__ = ["FitConfig", "coarse_to_fine", "INITS", "RENAMED", "setting", "parse_background"]
+
+#: Settings renamed since: old name -> name (old config files still read).
+RENAMED = {"resolution": "grid_resolution"}
 
 #: The starting meshes made from the data (any other ``init`` is a mesh file).
 INITS = ("auto", "grid", "tetwild", "delaunay", "unbounded")
 
 
+def _numbers(n):
+    def parse(text):
+        try:
+            values = [float(x) for x in str(text).split(",")]
+        except ValueError:
+            values = []
+        if len(values) != n:
+            raise ValueError(f"expected {n} comma-separated numbers, got {text!r}")
+        return values
+    return parse
+
+
+def _json(text):
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"not JSON ({e}): {text!r}") from None
+
+
+def parse_background(text):
+    """``none`` (None: fit RGBA), ``learn``, ``white``, ``black`` or ``r,g,b`` (linear)."""
+    if text is None or text == "none":
+        return None
+    if text == "learn":
+        return text
+    named = {"white": [1.0, 1.0, 1.0], "black": [0.0, 0.0, 0.0]}
+    if text in named:
+        return named[text]
+    try:
+        return _numbers(3)(text)
+    except ValueError:
+        raise ValueError(f"background must be none, learn, white, black or r,g,b; "
+                         f"got {text!r}") from None
+
+
+def _bounds(text):
+    v = _numbers(6)(text)
+    return [v[:3], v[3:]]
+
+
+def setting(default, help, choices=None, flag=None, metavar=None, parse=None):
+    """A :class:`FitConfig` field with its help text (and choices) written once: the
+    ``mi-tetvr fit`` options are generated from them (:func:`mi_tetvr.cli.config_flags`);
+    ``parse`` reads the setting from command-line text (default: from its type)."""
+    meta = {"help": help}
+    if parse is not None:
+        meta["parse"] = parse
+    if choices is not None:
+        meta["choices"] = tuple(choices)
+    if flag is not None:
+        meta["flag"] = flag
+    if metavar is not None:
+        meta["metavar"] = metavar
+    return dataclasses.field(default=default, metadata=meta)
+
+
 @dataclass
 class FitConfig:
-    """Settings of a reconstruction (all have working defaults)."""
-    # What the images show: "object" (views of an object, with alpha masks: a grid over
-    # the visual hull, RGBA or a constant background) or "unbounded" (photos of a scene
-    # in its surroundings: the sparse points and far shells tetrahedralized, a learned
-    # background, an exposure per photo, an L1 loss); "auto": "object" when some training
-    # pixel is transparent, else "unbounded" (mi_tetvr.recon.pipeline.for_capture).
-    scene: str = "auto"                # auto | object | unbounded
-    init: str = "auto"                 # auto (grid, or unbounded for unbounded scenes) |
-                                       # grid | tetwild | delaunay | unbounded | a mesh file
-    outer: str = "shells"              # unbounded init beyond the scene points: "shells"
-                                       # (spheres, radii growing geometrically) or
-                                       # "contracted" (a grid in mip-NeRF 360's contracted
-                                       # space); mi_tetvr.mesh.initial.unbounded_init
-    resolution: int | None = None      # cells along the largest axis (grid, tetwild); None:
-                                       # chosen for the time budget, 32 without one
-    bounds: list | None = None         # [[x0, y0, z0], [x1, y1, z1]]; default: from the data
-    iterations: int = 1500             # with a time budget: only the stages' time shares
-    time_budget: float | None = None   # minutes for the whole command, outputs included: the
-                                       # steps (and the mesh size, unless set) fill it; a
-                                       # resumed run gets it again
-    views_per_step: int = 2
-    lr_color: float = 0.02
-    lr_opacity: float = 0.05           # optical depth per cell, per step
-    lr_position: float = 0.0           # cell sizes per step; 0 = positions fixed
-    decay: float = 0.1                 # learning rates fall exponentially to decay * lr
-    loss: str | None = None            # l1 | l2; None: l2, l1 for unbounded scenes (the
-                                       # median of the residuals: robust to the pixels
-                                       # that change between photos)
-    loss_space: str = "srgb"           # linear | srgb: compare linear RGB, or the sRGB
-                                       # pictures the metrics score (alpha stays linear)
-    background: list | str | None = None  # None: fit RGBA (learn for unbounded scenes);
-                                       # a color: composite over it; "learn": an
-                                       # environment map learned with the volume (what
-                                       # lies beyond the mesh)
-    appearance: bool | None = None     # a per-photo affine color transform (exposure,
-                                       # white balance) fitted with the volume, identity
-                                       # on held-out views; None: on for unbounded scenes
-    appearance_prior: float = 0.01     # weight of its squared distance from the identity
-    lr_appearance: float = 0.005       # its entries' step (the transforms' mean is kept at
-                                       # the identity: the held-out photos' transform)
-    init_color: float = 0.5
-    init_opacity: float = 0.05         # optical depth per cell
-    regularizer: float = 10.0          # weight lambda of the tet-quality term (DiffTetVR
-    regularizer_beta: float = 100.0    # Eq. 21, their values); used when positions move
-    freeze_boundary: bool = True       # keep boundary vertices fixed when positions move
-    safeguard: bool = True             # shorten position steps that would invert a tet
-    n_sub: int = 4                     # sub-intervals per tet segment while fitting
-    spp: int = 1
-    jitter: bool | None = None         # random sub-pixel positions; False: pixel centers (for
-                                       # targets rendered through pixel centers); None: False
-                                       # for data sets made by make-dataset, else True
-    downscale: int = 1
-    seed: int = 0
-    checkpoint_every: int = 100
-    log_every: int = 10
-    # Coarse-to-fine: a list of stages run one after the other, each
-    # {"iterations": N, "lr_position": x (0: colors and opacities only),
-    #  "split": fraction of vertices to refine after the stage,
-    #  "prune": opacity threshold (optical depth per cell) to drop empty tets after it,
-    #  "grid": resolution of a regular grid the stage trains on (``init`` grid only): the
-    #          previous stage's field is sampled onto it; the first stage's sets the start}.
-    # None: one stage of ``iterations`` steps with ``lr_position``; with a time budget and
-    # no resolution, a coarse grid and then the fine one (see mi_tetvr.recon.pipeline).
-    stages: list | None = None
-    target_tets: int | None = None     # no more splits once the mesh has this many tets
-    select: str = "gradient"           # refinement criterion: gradient | color | opacity
-    # What is fitted (mi_tetvr.recon.fields): volume (colors and opacities), tf (the texels
-    # of a transfer function over the init mesh's scalar field) or scalar (the scalar field
-    # under a known transfer function); model absorption fits an X-ray attenuation.
-    optimize: str = "volume"           # volume | tf | scalar
-    model: str = "emission"            # emission | absorption
-    scalar: str | None = None          # the init mesh's scalar point array (default: the only one)
-    value_range: list | None = None    # [lo, hi] the transfer function spans; default: the
-                                       # scalar's range
-    transfer_function: str | None = None  # the known transfer function (optimize scalar)
-    opacity_scale: float = 1.0         # its opacity is per mesh radius times this (as
-                                       # make-dataset renders a mesh)
-    tf_resolution: int = 64            # texels of a fitted or known transfer function
-    tf_init: str = "flat"              # flat (init_color, init_opacity) | random
-    tf_smoothing: float = 0.01         # weight of DiffDVR's smoothing prior (Eq. 12); their
-                                       # 0.4 went with an L1 loss: beside this L2 loss of
-                                       # sRGB pictures it smooths 40x as hard (Blunt Fin,
-                                       # random start, 300 steps: 37.3 dB at 0.4, 48.8 at
-                                       # 0.01; benchmarks/bench_tf_fit.py)
-    lr_scalar: float = 0.01            # scalar range per step
-    smoothing: float = 0.0             # weight of the mean squared difference across edges
-                                       # of a fitted attenuation (optical depth per cell) or
-                                       # scalar (over its range): DiffDVR's 3D prior
-    scalar_init: str = "colors"        # optimize scalar: colors (a color fit first, scalars
-                                       # matched to it) | mesh (the init mesh's scalar)
+    """Settings of a reconstruction (all have working defaults). Each field's
+    help is in its metadata (``dataclasses.fields(FitConfig)``); ``mi-tetvr fit
+    --help`` lists them all."""
+    scene: str = setting(
+        "auto", "what the images show: object (views of an object with alpha masks: a grid over "
+        "its visual hull), unbounded (photos of a scene in its surroundings: its sparse points "
+        "and far cells tetrahedralized, a learned background, a color transform per photo, L1 "
+        "loss, cells added where the error is); auto: object when some training pixel is "
+        "transparent", choices=("auto", "object", "unbounded"))
+    init: str = setting(
+        "auto", "the starting mesh: auto (grid for objects, unbounded for scenes), grid, "
+        "tetwild, delaunay, unbounded, or a mesh file (the scalar mesh with optimize tf or "
+        "scalar)", metavar="INIT|MESH")
+    repair: bool = setting(
+        False, "init mesh file: drop folded, flat and duplicate tets (reported)")
+    cell_to_point: bool = setting(
+        False, "init mesh file: average per-cell arrays onto the vertices")
+    outer: str = setting(
+        "shells", "unbounded init beyond the scene points: shells (spheres with geometrically "
+        "growing radii) or contracted (a grid in mip-NeRF 360's contracted space)",
+        choices=("shells", "contracted"))
+    grid_resolution: int | None = setting(
+        None, "grid cells along the box's largest axis (init grid, tetwild); default: chosen "
+        "for the time budget, else 32")
+    bounds: list | None = setting(
+        None, "the box to reconstruct in, x0,y0,z0,x1,y1,z1; default: the visual hull of the "
+        "alpha masks, else the data set's", metavar="X0,Y0,Z0,X1,Y1,Z1", parse=_bounds)
+    iterations: int = setting(
+        1500, "optimizer steps (with a time budget only the stages' shares count)")
+    time_budget: float | None = setting(
+        None, "minutes for the whole command, outputs included: the steps (and the mesh size, "
+        "unless set) fill it; a resumed run gets it again", metavar="MIN")
+    views_per_step: int = setting(2, "training views rendered per optimizer step")
+    lr_color: float = setting(0.02, "color step")
+    lr_opacity: float = setting(0.05, "opacity step: optical depth per cell")
+    lr_position: float = setting(0.0, "position step in cell sizes; 0: positions fixed")
+    decay: float = setting(0.1, "learning rates fall exponentially to decay * lr")
+    loss: str | None = setting(
+        None, "image loss; default: l2, l1 for unbounded scenes (robust to the pixels that "
+        "change between photos)", choices=("l1", "l2"))
+    loss_space: str = setting(
+        "srgb", "compare linear RGB, or the sRGB pictures the metrics score (alpha stays "
+        "linear)", choices=("linear", "srgb"))
+    background: list | str | None = setting(
+        None, "none: fit RGBA; learn: an environment map fitted with the volume (what lies "
+        "beyond the mesh); white, black or r,g,b (linear): composite over it; default: none, "
+        "learn for unbounded scenes", metavar="none|learn|white|black|R,G,B",
+        parse=parse_background)
+    appearance: bool | None = setting(
+        None, "fit an exposure and white balance (an affine color transform) per training "
+        "photo, identity on held-out photos; default: on for unbounded scenes")
+    appearance_prior: float = setting(0.01, "weight of the transforms' squared distance from "
+                                            "the identity")
+    lr_appearance: float = setting(0.005, "the color transforms' step (their mean is kept at "
+                                          "the identity: the held-out photos' transform)")
+    init_color: float = setting(0.5, "starting color (linear, every channel)")
+    init_opacity: float = setting(0.05, "starting opacity: optical depth per cell")
+    regularizer: float = setting(10.0, "weight lambda of the tet-quality term (DiffTetVR "
+                                       "Eq. 21) when positions move")
+    regularizer_beta: float = setting(100.0, "beta of the tet-quality term (DiffTetVR Eq. 21)")
+    freeze_boundary: bool = setting(True, "keep boundary vertices fixed when positions move")
+    safeguard: bool = setting(True, "shorten position steps that would invert a tet")
+    n_sub: int = setting(4, "sub-intervals per tet segment while fitting")
+    spp: int = setting(1, "rays per pixel in each training render")
+    jitter: bool | None = setting(
+        None, "random sub-pixel ray positions (off: pixel centers, for targets rendered through "
+        "pixel centers); default: off for data sets made by make-dataset, else on")
+    downscale: int = setting(1, "shrink the images by this factor")
+    seed: int = setting(0, "random seed (views picked, initial mesh)")
+    checkpoint_every: int = setting(100, "steps between checkpoints")
+    log_every: int = setting(10, "steps between log lines (a file, not a terminal)")
+    stages: list | None = setting(
+        None, "coarse-to-fine stages as JSON, run one after the other, each {\"iterations\": N, "
+        "\"lr_position\": x (0: colors and opacities only), \"split\": fraction of vertices "
+        "refined after the stage, \"prune\": optical depth per cell below which empty tets "
+        "are dropped after it, \"grid\": the resolution of a regular grid the stage trains on "
+        "(init grid only)}; default: one stage, or with a time budget a coarse grid and then "
+        "the fine one (unbounded scenes: four stages with splits and pruning)",
+        metavar="JSON", parse=_json)
+    target_tets: int | None = setting(None, "no more splits once the mesh has this many tets")
+    select: str = setting("gradient", "refinement criterion",
+                          choices=("gradient", "color", "opacity"))
+    optimize: str = setting(
+        "volume", "what is fitted: volume (per-vertex colors and opacities), tf (the transfer "
+        "function over the init mesh's scalar), scalar (the scalar under a known transfer "
+        "function)", choices=("volume", "tf", "scalar"))
+    model: str = setting(
+        "emission", "emission: colors and opacities from images; absorption: an X-ray "
+        "attenuation (point data 'attenuation') from transmittance images",
+        choices=("emission", "absorption"))
+    scalar: str | None = setting(None, "the init mesh's scalar point array (default: the only "
+                                       "one)")
+    value_range: list | None = setting(
+        None, "lo,hi: the scalar range the transfer function spans (default: the init mesh's "
+        "scalar range)", metavar="LO,HI", parse=_numbers(2))
+    transfer_function: str | None = setting(
+        None, "the known transfer function (optimize scalar), .json or DiffTetVR .xml",
+        flag="--tf", metavar="TF")
+    opacity_scale: float = setting(
+        1.0, "the transfer function's opacity per mesh radius times this (as make-dataset "
+        "renders a mesh)")
+    tf_resolution: int = setting(64, "texels of a fitted or known transfer function")
+    tf_init: str = setting("flat", "start of a fitted transfer function: flat (init_color, "
+                                   "init_opacity) or random", choices=("flat", "random"))
+    tf_smoothing: float = setting(
+        0.01, "weight of DiffDVR's smoothing prior (Eq. 12) on a fitted transfer function; "
+        "their 0.4 went with an L1 loss (Blunt Fin, random start, 300 steps: 37.3 dB at 0.4, "
+        "48.8 at 0.01; benchmarks/bench_tf_fit.py)")
+    lr_scalar: float = setting(0.01, "scalar step, in scalar ranges")
+    smoothing: float = setting(
+        0.0, "weight of the mean squared difference across edges of a fitted attenuation "
+        "(optical depth per cell) or scalar (over its range): DiffDVR's 3D prior")
+    scalar_init: str = setting(
+        "colors", "optimize scalar: start from a color fit the scalars are matched to (colors) "
+        "or from the init mesh's scalar (mesh)", choices=("colors", "mesh"))
 
     @classmethod
     def from_file(cls, path):
-        """Read a JSON config (keys as the field names; unknown keys are an error)."""
-        data = json.loads(Path(path).read_text())
+        """Read a JSON or YAML config (``.yaml``/``.yml``; keys as the field names, unknown
+        keys are an error)."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"config file not found: {path}")
+        text = path.read_text()
+        try:
+            if path.suffix.lower() in (".yaml", ".yml"):
+                import yaml
+                data = yaml.safe_load(text)
+            else:
+                data = json.loads(text)
+        except Exception as e:
+            raise ValueError(f"cannot read the config {path}: {e}") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"the config {path} must be a mapping of setting names to values")
         return cls().updated(**data)
 
     def updated(self, **kw):
         """A validated copy with the given settings changed (``None`` values
         leave a setting as it is); unknown names are an error."""
+        kw = {RENAMED.get(k, k): v for k, v in kw.items()}
         names = {f.name for f in dataclasses.fields(self)}
         bad = sorted(set(kw) - names)
         if bad:
@@ -135,17 +234,33 @@ class FitConfig:
         cfg.validate()
         return cfg
 
+    def to_dict(self):
+        """The settings as a JSON-ready dict (what ``config.json`` holds)."""
+        return dataclasses.asdict(self)
+
+    def differences(self, saved: dict, ignore=()):
+        """The settings that differ from ``saved`` (a :meth:`to_dict` of another config,
+        e.g. a checkpoint's), as ``{name: (saved value, this value)}``; settings that
+        are ``None`` here (chosen by the run) and those in ``ignore`` are not compared."""
+        saved = {RENAMED.get(k, k): v for k, v in saved.items()}
+        out = {}
+        for name, value in self.to_dict().items():
+            if name in ignore or value is None or name not in saved:
+                continue
+            if not _same(value, saved[name]):
+                out[name] = (saved[name], value)
+        return out
+
     def validate(self):
         """Raise ``ValueError`` on a setting out of range."""
-        if self.scene not in ("auto", "object", "unbounded"):
-            raise ValueError(f"scene must be auto, object or unbounded, got {self.scene!r}")
-        if self.outer not in ("shells", "contracted"):
-            raise ValueError(f"outer must be shells or contracted, got {self.outer!r}")
-        if self.loss not in (None, "l1", "l2"):
-            raise ValueError(f"loss must be 'l1' or 'l2', got {self.loss!r}")
-        if self.loss_space not in ("linear", "srgb"):
-            raise ValueError(f"loss_space must be 'linear' or 'srgb', got {self.loss_space!r}")
-        for name in ("iterations", "views_per_step", "resolution", "n_sub", "spp", "downscale"):
+        for f in dataclasses.fields(self):
+            choices = f.metadata.get("choices")
+            value = getattr(self, f.name)
+            if choices and value is not None and value not in choices:
+                raise ValueError(f"{f.name} must be {', '.join(map(str, choices))}; "
+                                 f"got {value!r}")
+        for name in ("iterations", "views_per_step", "grid_resolution", "n_sub", "spp",
+                     "downscale", "checkpoint_every", "log_every"):
             if getattr(self, name) is not None and int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1")
         if self.time_budget is not None and not self.time_budget > 0:
@@ -160,10 +275,6 @@ class FitConfig:
                 (isinstance(self.background, str) or len(self.background) != 3):
             raise ValueError(f"background must be None, 'learn' or three linear RGB values, "
                              f"got {self.background!r}")
-        if self.optimize not in ("volume", "tf", "scalar"):
-            raise ValueError(f"optimize must be volume, tf or scalar, got {self.optimize!r}")
-        if self.model not in ("emission", "absorption"):
-            raise ValueError(f"model must be emission or absorption, got {self.model!r}")
         if self.model == "absorption" and (self.optimize != "volume" or self.background):
             raise ValueError("model absorption fits an attenuation from transmittance images: "
                              "no optimize tf/scalar, no background")
@@ -171,15 +282,11 @@ class FitConfig:
             raise ValueError(f"optimize {self.optimize} needs the scalar mesh as init (a file)")
         if self.optimize == "scalar" and self.transfer_function is None:
             raise ValueError("optimize scalar needs the transfer function (--tf)")
-        if self.tf_init not in ("flat", "random") or int(self.tf_resolution) < 2:
-            raise ValueError("tf_init must be flat or random, tf_resolution >= 2")
-        if self.scalar_init not in ("colors", "mesh"):
-            raise ValueError(f"scalar_init must be colors or mesh, got {self.scalar_init!r}")
+        if int(self.tf_resolution) < 2:
+            raise ValueError("tf_resolution must be >= 2")
         if self.value_range is not None and not (len(self.value_range) == 2 and
                                                  self.value_range[0] < self.value_range[1]):
             raise ValueError(f"value_range must be [lo, hi] with lo < hi, got {self.value_range}")
-        if self.select not in ("gradient", "color", "opacity"):
-            raise ValueError(f"select must be gradient, color or opacity, got {self.select!r}")
         for i, st in enumerate(self.stage_list()):
             if i and st["grid"] is not None and any(
                     p["split"] or p["prune"] is not None or p["lr_position"]
@@ -211,6 +318,18 @@ class FitConfig:
         st = self.stage_list()[i]
         return dataclasses.replace(self, iterations=max(st["iterations"], 1),
                                    lr_position=st["lr_position"])
+
+
+def _same(a, b) -> bool:
+    """Settings equal, numbers up to rounding (lists element by element)."""
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and \
+            not isinstance(a, bool) and not isinstance(b, bool):
+        return abs(a - b) <= 1e-9 * max(abs(a), abs(b), 1.0)
+    return a == b
 
 
 def coarse_to_fine(rounds=3, steps=300, lr_position=0.05, split=0.05, final=None):

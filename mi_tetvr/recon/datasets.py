@@ -1,7 +1,7 @@
 """Multi-view image data sets with known cameras, converted exactly to Mitsuba sensors.
 
 A :class:`Dataset` holds posed :class:`View` s (a name, a pinhole
-:class:`~mi_tetvr.recon.camera.Camera` and its image) split into ``train`` and ``test``,
+:class:`~mi_tetvr.camera.Camera` and its image) split into ``train`` and ``test``,
 optionally with COLMAP's sparse points and a scene box. Loaders:
 :func:`load_nerf` (NeRF / instant-ngp ``transforms*.json``) and :func:`load_colmap` (a COLMAP
 sparse model through pycolmap); :func:`write_nerf` writes a NeRF-convention data set that
@@ -19,11 +19,11 @@ Images
     background (NeRF-synthetic's white background: ``composite(1.0)``).
 Cameras
     Pixel coordinates, camera frames, the conversion of NeRF (OpenGL) and COLMAP (OpenCV)
-    poses and the exact Mitsuba sensor are those of :mod:`mi_tetvr.recon.camera`. NeRF's
+    poses and the exact Mitsuba sensor are those of :mod:`mi_tetvr.camera`. NeRF's
     ``transform_matrix`` is an OpenGL camera-to-world (:meth:`Camera.from_opengl
-    <mi_tetvr.recon.camera.Camera.from_opengl>`); COLMAP's pose is a world-to-camera
+    <mi_tetvr.camera.Camera.from_opengl>`); COLMAP's pose is a world-to-camera
     ``[R | t]`` in OpenCV axes (:meth:`Camera.from_colmap
-    <mi_tetvr.recon.camera.Camera.from_colmap>`); both are refused unless rigid.
+    <mi_tetvr.camera.Camera.from_colmap>`); both are refused unless rigid.
 Held-out views
     When a data set has no test split (NeRF without ``transforms_test.json`` /
     ``transforms_val.json``, instant-ngp's single ``transforms.json``, every COLMAP model), the
@@ -45,7 +45,7 @@ from typing import Dict, List, Optional, Sequence, Union
 
 import numpy as np
 
-from mi_tetvr.recon.camera import OPENGL_TO_MITSUBA, Camera, as_rigid
+from mi_tetvr.camera import OPENGL_TO_MITSUBA, Camera, as_rigid
 from mi_tetvr.recon.hull import frusta_bounds
 from mi_tetvr.recon.images import check_factor, downscale_image, read_image, write_image
 from mi_tetvr.recon.undistort import Lens, nerf_lens
@@ -69,7 +69,7 @@ class View:
     ----------
     name : str
     camera : Camera
-        Intrinsics and pose (:mod:`mi_tetvr.recon.camera`).
+        Intrinsics and pose (:mod:`mi_tetvr.camera`).
     image : (camera.height, camera.width, 4) float32 or None
         Premultiplied linear RGB and alpha (what ``tetvr`` renders over black, with its
         ``alpha`` AOV). ``None`` for a camera without picture (e.g. to render one).
@@ -106,7 +106,7 @@ class View:
 
     def downscaled(self, factor: int) -> "View":
         """This view with its image area-averaged by ``factor`` and its camera downscaled
-        accordingly (:meth:`Camera.downscaled <mi_tetvr.recon.camera.Camera.downscaled>`)."""
+        accordingly (:meth:`Camera.downscaled <mi_tetvr.camera.Camera.downscaled>`)."""
         factor = check_factor(factor)
         img = None if self.image is None else downscale_image(self.image, factor)
         return View(self.name, self.camera.downscaled(factor), img)
@@ -133,6 +133,11 @@ class Dataset:
         Number of images that observe each point (COLMAP).
     protocol : str
         How the test views were chosen (recorded in a fit's ``metrics.json``).
+    pixel_sampling : str
+        What a pixel is, as the data set records it (NeRF json key ``pixel_sampling``):
+        ``"centers"`` (rendered through pixel centres: point samples, as ``mi-tetvr
+        make-dataset`` writes them) or ``"area"`` (averages over the pixel, as photos
+        and path-traced renders are); ``""`` when it does not say.
     """
     train: List[View]
     test: List[View] = field(default_factory=list)
@@ -144,6 +149,7 @@ class Dataset:
     point_errors: Optional[np.ndarray] = None
     point_track_lengths: Optional[np.ndarray] = None
     protocol: str = ""
+    pixel_sampling: str = ""
 
     @property
     def views(self) -> List[View]:
@@ -339,7 +345,7 @@ def load_nerf(path, downscale: int = 1, holdout: Holdout = 8, *, load_images: bo
     (:mod:`mi_tetvr.recon.undistort`); closer focal lengths become their geometric mean.
     Frames whose image is missing are skipped with a warning. ``transform_matrix`` is
     camera-to-world in OpenGL axes (looks along -z, y up; :meth:`Camera.from_opengl
-    <mi_tetvr.recon.camera.Camera.from_opengl>`). A top-level ``aabb`` ``[[x0, y0, z0], [x1, y1,
+    <mi_tetvr.camera.Camera.from_opengl>`). A top-level ``aabb`` ``[[x0, y0, z0], [x1, y1,
     z1]]`` becomes ``Dataset.bbox``.
 
     Parameters
@@ -349,7 +355,7 @@ def load_nerf(path, downscale: int = 1, holdout: Holdout = 8, *, load_images: bo
         training views, split by ``holdout``).
     downscale : int
         Integer area-averaging factor applied to each image as it is decoded (intrinsics divided
-        exactly, see :meth:`Camera.downscaled <mi_tetvr.recon.camera.Camera.downscaled>`).
+        exactly, see :meth:`Camera.downscaled <mi_tetvr.camera.Camera.downscaled>`).
     holdout : int, sequence of int or None
         Used only when there is no test (or val) split: frames whose index in file order is a
         multiple of ``holdout`` (default 8: frames 0, 8, 16, ...) form the test split; a sequence
@@ -383,11 +389,12 @@ def load_nerf(path, downscale: int = 1, holdout: Holdout = 8, *, load_images: bo
             raise FileNotFoundError(f"{root}: no transforms_train.json or transforms.json")
 
     out: Dict[str, List[View]] = {}
-    bbox = None
+    bbox, sampling = None, ""
     for split, name in files.items():
         fpath = root / name
         with open(fpath) as f:
             meta = json.load(f)
+        sampling = sampling or str(meta.get("pixel_sampling", ""))
         if bbox is None and "aabb" in meta and np.size(meta["aabb"]) == 6:
             bbox = np.asarray(meta["aabb"], np.float64).reshape(2, 3)
         frames = meta.get("frames", [])
@@ -414,7 +421,7 @@ def load_nerf(path, downscale: int = 1, holdout: Holdout = 8, *, load_images: bo
         train, test = _holdout_split(train, holdout)
         protocol = holdout_protocol(holdout, "in file order")
     return Dataset(train=train, test=test, points=None, bbox=bbox, name=root.name, root=root,
-                   protocol=protocol)
+                   protocol=protocol, pixel_sampling=sampling)
 
 
 def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train", "test"), *,
@@ -424,12 +431,13 @@ def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train",
     One ``transforms_<split>.json`` per split, with ``camera_angle_x``, ``fl_x, fl_y, cx, cy, w,
     h`` (top-level when every view of the split shares them, else per frame) and
     ``transform_matrix`` (camera-to-world in OpenGL axes, :attr:`Camera.c2w_opengl
-    <mi_tetvr.recon.camera.Camera.c2w_opengl>`); the images go to ``<split>/<name>.<format>``.
+    <mi_tetvr.camera.Camera.c2w_opengl>`); the images go to ``<split>/<name>.<format>``.
     ``png``: 8-bit sRGB RGBA with straight alpha (the premultiplied color is divided by alpha);
     ``exr``: linear premultiplied float32 (exact); ``npy``: X-ray transmittance ``1 - alpha``
     (H, W) float32. Orthographic cameras are written with ``"camera_model": "orthographic"``,
     ``ortho_width`` and ``ortho_height`` (world units).
-    A data set ``bbox`` is written as ``aabb``. Sparse points are not written.
+    A data set ``bbox`` is written as ``aabb``, its ``pixel_sampling`` as ``pixel_sampling``.
+    Sparse points are not written.
 
     Parameters
     ----------
@@ -449,12 +457,12 @@ def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train",
     fmt = image_format.lower().lstrip(".")
     if fmt not in ("png", "exr", "npy"):
         raise ValueError(f"image_format must be 'png', 'exr' or 'npy', got {image_format!r}")
-    bbox = None
+    bbox, sampling = None, ""
     if isinstance(dataset_or_views, Dataset):
         groups = {split_names[0]: dataset_or_views.train}
         if dataset_or_views.test:
             groups[split_names[1]] = dataset_or_views.test
-        bbox = dataset_or_views.bbox
+        bbox, sampling = dataset_or_views.bbox, dataset_or_views.pixel_sampling
     elif isinstance(dataset_or_views, dict):
         groups = dict(dataset_or_views)
     else:
@@ -481,6 +489,8 @@ def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train",
             meta.update(cam(views[0]))
         if bbox is not None:
             meta["aabb"] = np.asarray(bbox, np.float64).reshape(2, 3).tolist()
+        if sampling:
+            meta["pixel_sampling"] = sampling
         frames, used = [], set()
         for i, v in enumerate(views):
             if v.image is None:
@@ -522,9 +532,9 @@ def load_colmap(path, images=None, downscale: int = 1, holdout: Holdout = 8, *,
     ``OPENCV_FISHEYE``) and non-square pixels are resampled at load into square-pixel pinhole
     images (:mod:`mi_tetvr.recon.undistort`).
     COLMAP's world-to-camera ``[R | t]`` (camera looks along +z, y down, x right) becomes the
-    camera's pose through :meth:`Camera.from_colmap <mi_tetvr.recon.camera.Camera.from_colmap>`.
+    camera's pose through :meth:`Camera.from_colmap <mi_tetvr.camera.Camera.from_colmap>`.
     COLMAP's pixel convention (top-left corner at 0, pixel centers at +0.5) is the one of
-    :mod:`mi_tetvr.recon.camera`, so ``cx, cy`` are kept as they are. Images are sorted by
+    :mod:`mi_tetvr.camera`, so ``cx, cy`` are kept as they are. Images are sorted by
     name.
 
     Parameters

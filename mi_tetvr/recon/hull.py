@@ -1,7 +1,7 @@
 """The region to reconstruct, from cameras and alpha masks.
 
-Free functions over :class:`~mi_tetvr.recon.camera.Camera` s and
-:class:`~mi_tetvr.recon.datasets.View` s (camera convention: :mod:`mi_tetvr.recon.camera`),
+Free functions over :class:`~mi_tetvr.camera.Camera` s and
+:class:`~mi_tetvr.recon.datasets.View` s (camera convention: :mod:`mi_tetvr.camera`),
 numpy and scipy only. They give the mesh initializers of :mod:`mi_tetvr.mesh.initial` their box.
 
 * :func:`frusta_bounds` -- the box of what every camera sees (the intersection of the viewing
@@ -127,7 +127,7 @@ def visual_hull_bounds(views, threshold: float = 0.05, resolution: int = 64,
     """The box enclosing the visual hull of alpha masks.
 
     A voxel grid over ``initial_bounds`` is carved: a voxel is kept when its center projects
-    (:meth:`Camera.project <mi_tetvr.recon.camera.Camera.project>`) onto a pixel with
+    (:meth:`Camera.project <mi_tetvr.camera.Camera.project>`) onto a pixel with
     ``alpha > threshold`` in every view whose image it falls in, and falls in at least
     ``min_views`` images. Views it projects outside of (or behind) do not carve it
     (``outside='keep'``; ``'carve'`` removes it, right when every view sees the whole object).

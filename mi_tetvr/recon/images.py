@@ -10,8 +10,9 @@ import numpy as np
 
 from mi_tetvr.color import linear_to_srgb, srgb_to_linear
 
-__all__ = ["read_image", "write_image", "downscale_image",
-           "check_factor"]
+from mi_tetvr.camera import check_factor
+
+__all__ = ["read_image", "write_image", "downscale_image"]
 
 
 _SRGB_LUT8 = srgb_to_linear(np.arange(256) / 255.0).astype(np.float32)
@@ -155,9 +156,3 @@ def write_image(path, image: np.ndarray) -> None:
         Image.fromarray(rgb8, "RGB").save(path, quality=95)
     else:
         raise ValueError(f"unsupported image format '{path.suffix}' (use .png, .exr or .jpg)")
-
-
-def check_factor(factor) -> int:
-    if int(factor) != factor or factor < 1:
-        raise ValueError(f"downscale factor must be a positive integer, got {factor!r}")
-    return int(factor)

@@ -21,14 +21,16 @@ from pathlib import Path
 import numpy as np
 
 from mi_tetvr.recon.checkpoint import load_checkpoint, save_checkpoint
-from mi_tetvr.recon.config import FitConfig
+from mi_tetvr.recon.config import RENAMED, FitConfig
 from mi_tetvr.recon.metrics import psnr
 from mi_tetvr.recon.plots import plot_history, save_comparison
 from mi_tetvr.recon.trainer import RunState, Trainer
 
 __all__ = ["run", "next_stage", "for_capture", "capture_kind", "with_sparse_points",
-           "unbounded_stages", "SCORE_VIEWS", "write_outputs", "write_fitted", "evaluate_mesh", "initial_mesh",
-           "data_bounds", "scalar_from_colors", "calibrate", "resolution_for_budget", "budget_stages", "DEFAULT_RESOLUTION",
+           "unbounded_stages", "SCORE_VIEWS", "write_outputs", "write_fitted", "evaluate_mesh",
+           "evaluate_fit", "initial_mesh", "data_bounds", "scalar_from_colors", "calibrate",
+           "resolution_for_budget", "budget_stages", "DEFAULT_RESOLUTION", "check_resume",
+           "RESUMABLE",
            "BUDGET_STEPS", "COARSE_SHARE", "PIXELS_PER_VERTEX",
            "resolution_limits", "data_warnings"]
 
@@ -174,9 +176,10 @@ def initial_mesh(config: FitConfig, dataset):
         return unbounded_mesh(config, dataset)
     if init not in ("grid", "tetwild", "delaunay"):
         if config.optimize == "volume":
-            mesh = read_tetmesh(init)
+            mesh = read_tetmesh(init, repair=config.repair, cell_to_point=config.cell_to_point)
             return mesh.vertices, mesh.tets, None
-        mesh = read_tetmesh(init, color=None, opacity=None)
+        mesh = read_tetmesh(init, color=None, opacity=None, repair=config.repair,
+                            cell_to_point=config.cell_to_point)
         if config.optimize == "scalar" and config.scalar_init == "colors" and \
                 config.value_range is not None:
             return mesh.vertices, mesh.tets, None     # the scalar comes from the colors
@@ -188,7 +191,7 @@ def initial_mesh(config: FitConfig, dataset):
             raise ValueError("init 'delaunay' needs sparse points (a COLMAP data set)")
         return (*initmesh.delaunay_init(dataset.points), None)
     bounds = data_bounds(config, dataset)
-    resolution = config.stage_list()[0]["grid"] or config.resolution or DEFAULT_RESOLUTION
+    resolution = config.stage_list()[0]["grid"] or config.grid_resolution or DEFAULT_RESOLUTION
     if init == "grid":
         return (*initmesh.grid_init(bounds, resolution), None)
     edge = float(np.max(bounds[1] - bounds[0])) / resolution
@@ -254,21 +257,22 @@ def resolution_for_budget(seconds, measured, steps=BUDGET_STEPS, limits=RESOLUTI
     return int(np.clip(round(r), limits[0], limits[1]))
 
 
-def calibrate(config: FitConfig, dataset, seconds, log=print):
+def calibrate(config: FitConfig, dataset, seconds, log=print, now=time.perf_counter):
     """Pick the grid resolution for ``seconds`` of optimization: time a few
     steps on two coarse grids over the data's region and extrapolate
     (:func:`resolution_for_budget`). Returns the resolution."""
     measured = []
     for r in CALIBRATION:
-        vertices, tets, values = initial_mesh(dataclasses.replace(config, resolution=r), dataset)
+        vertices, tets, values = initial_mesh(dataclasses.replace(config, grid_resolution=r),
+                                              dataset)
         trainer = Trainer(dataset, vertices, tets, config.for_stage(0), values,
                           state=RunState(rng=np.random.default_rng(config.seed + 1)))
         for _ in range(2):              # compiles the kernels
             trainer.step()
-        t0 = time.perf_counter()
+        t0 = now()
         for _ in range(3):
             trainer.step()
-        measured.append((r, (time.perf_counter() - t0) / 3))
+        measured.append((r, (now() - t0) / 3))
     r = resolution_for_budget(seconds, measured, limits=resolution_limits(config, dataset))
     log("step time " + ", ".join(f"{t:.3f} s at grid {q}" for q, t in measured)
         + f": grid {r} for {seconds / 60:.1f} min of steps")
@@ -326,13 +330,13 @@ def data_warnings(config: FitConfig, dataset):
     return out
 
 
-def output_seconds(trainer: Trainer):
+def output_seconds(trainer: Trainer, now=time.perf_counter):
     """Estimated time of :func:`write_outputs`: one test render timed, times
     the views, with a margin for the files and plots."""
     views = trainer.dataset.test or trainer.dataset.train[:1]
-    t0 = time.perf_counter()
+    t0 = now()
     trainer.render_view(views[0])
-    return 0.5 + 1.5 * len(views) * (time.perf_counter() - t0)
+    return 0.5 + 1.5 * len(views) * (now() - t0)
 
 
 class _Clock:
@@ -341,22 +345,42 @@ class _Clock:
     :func:`output_seconds`); each stage gets the share of what is left that
     its ``iterations`` weigh among the stages still to run."""
 
-    def __init__(self, end, weights):
-        self.end, self.weights = end, weights
+    def __init__(self, end, weights, now=time.perf_counter):
+        self.end, self.weights, self.now = end, weights, now
         self.stage_begin = self.stage_end = None
 
     def begin_stage(self, stage, reserve):
-        now = time.perf_counter()
+        now = self.now()
         left = max(self.end - reserve - now, 0.0)
         share = self.weights[stage] / max(sum(self.weights[stage:]), 1e-9)
         self.stage_begin, self.stage_end = now, now + left * share
 
     def progress(self):
-        now = time.perf_counter()
+        now = self.now()
         return (now - self.stage_begin) / max(self.stage_end - self.stage_begin, 1e-9)
 
 
-def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=print):
+#: Settings a resumed run may change: its time, its length, how often it logs and saves
+#: (a stage's steps and position rate are in its checkpointed settings).
+RESUMABLE = ("time_budget", "iterations", "lr_position", "checkpoint_every", "log_every")
+
+
+def check_resume(config: FitConfig, ckpt_path):
+    """Raise ``ValueError`` naming the settings in which ``config`` differs from the run
+    checkpointed at ``ckpt_path`` (other than :data:`RESUMABLE` ones and those left to the
+    run): resuming would mix the saved state with other settings."""
+    saved = json.loads(str(np.load(ckpt_path)["config"]))
+    diff = config.differences(saved, ignore=RESUMABLE)
+    if diff:
+        said = "; ".join(f"{k}: {json.dumps(a)} there, {json.dumps(b)} now"
+                         for k, (a, b) in diff.items())
+        raise ValueError(f"{ckpt_path.parent} holds a run with other settings ({said}); "
+                         f"use the same settings to resume it, --restart to start it over, "
+                         f"or another --out")
+
+
+def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=print,
+        now=time.perf_counter):
     """Fit, checkpointing to ``out_dir``; returns the final metrics dict.
 
     Runs ``config``'s stages in order (one stage unless ``config.stages``);
@@ -369,18 +393,21 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     decay over each stage's share of it.
     A run interrupted (Ctrl-C) still writes the mesh and metrics
     (:func:`write_outputs`); ``resume=True`` continues from
-    ``out_dir/checkpoint.npz``. ``progress`` shows a progress bar.
+    ``out_dir/checkpoint.npz``. ``progress`` shows a progress bar. ``now`` is
+    the clock the time budget is kept by (seconds; tests pass a simulated one).
     """
-    from tqdm import tqdm
+    from mi_tetvr.progress import progress_bar as tqdm
 
     from mi_tetvr.mesh.topology import build_topology, format_summary, geometry_summary
 
-    t_start = time.perf_counter()
+    t_start = now()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.npz"
     budget = None if config.time_budget is None else 60.0 * config.time_budget
     config = for_capture(config, dataset)
+    if resume and ckpt_path.exists():
+        check_resume(config, ckpt_path)
     if config.init in ("unbounded", "delaunay"):
         dataset = with_sparse_points(dataset, out, progress, log)
         if config.stages is None and config.init == "unbounded":
@@ -390,10 +417,11 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
         # limits, warnings, the mesh and each grid stage read it, config.json keeps it
         config = dataclasses.replace(config, bounds=data_bounds(config, dataset).tolist())
     if resume and ckpt_path.exists():
-        if config.resolution is None and config.stages is None:
+        if config.grid_resolution is None and config.stages is None:
             # the mesh sizes and stages the run chose when it began
             saved = json.loads(str(np.load(ckpt_path)["config"]))
-            config = dataclasses.replace(config, resolution=saved["resolution"],
+            saved = {RENAMED.get(k, k): v for k, v in saved.items()}
+            config = dataclasses.replace(config, grid_resolution=saved["grid_resolution"],
                                          stages=saved["stages"])
         trainer = load_checkpoint(ckpt_path, dataset, config)
         log(f"resumed from {ckpt_path} at step {trainer.state.step} "
@@ -401,11 +429,11 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     else:
         for text in data_warnings(config, dataset):
             log(f"warning: {text}")
-        if config.resolution is None and config.init in ("grid", "tetwild"):
+        if config.grid_resolution is None and config.init in ("grid", "tetwild"):
             resolution = DEFAULT_RESOLUTION
             if budget is not None:
-                resolution = calibrate(config, dataset, 0.85 * budget, log)
-            config = dataclasses.replace(config, resolution=resolution)
+                resolution = calibrate(config, dataset, 0.85 * budget, log, now)
+            config = dataclasses.replace(config, grid_resolution=resolution)
             if budget is not None and config.init == "grid" and config.stages is None:
                 config = config.updated(stages=budget_stages(config, resolution))
                 log("stages: " + " -> ".join(f"grid {st['grid']}" for st in config.stages))
@@ -414,27 +442,29 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
             # recorded in config.json: the range the transfer function spans
             s = values["scalar"]
             config = dataclasses.replace(config, value_range=[float(s.min()), float(s.max())])
-        log(format_summary(geometry_summary(vertices, build_topology(vertices, tets, warn=False))))
+        topology = build_topology(vertices, tets)      # once: the summary and the trainer's
+        log(format_summary(geometry_summary(vertices, topology)))
         if config.optimize == "scalar" and config.scalar_init == "colors":
             values = {"scalar": scalar_from_colors(config, dataset, vertices, tets, progress,
                                                    log)}
-        trainer = Trainer(dataset, vertices, tets, config.for_stage(0), values)
+        trainer = Trainer(dataset, vertices, tets, config.for_stage(0), values,
+                          topology=topology)
     (out / "config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2))
     stages = config.stage_list()
 
     clock = None
     if budget is not None:
-        clock = _Clock(t_start + budget, [max(st["iterations"], 1) for st in stages])
-        reserve = output_seconds(trainer)
+        clock = _Clock(t_start + budget, [max(st["iterations"], 1) for st in stages], now)
+        reserve = output_seconds(trainer, now)
         clock.begin_stage(trainer.state.stage, reserve)
-        bar = tqdm(total=round(max(clock.end - reserve - time.perf_counter(), 0.0)),
+        bar = tqdm(total=round(max(clock.end - reserve - now(), 0.0)),
                    disable=not progress,
                    unit="s", dynamic_ncols=True,
                    bar_format="{l_bar}{bar}| {n:.0f}/{total} s [{elapsed}{postfix}]")
     else:
         bar = tqdm(total=sum(st["iterations"] for st in stages), initial=trainer.state.step,
                    disable=not progress, unit="step", dynamic_ncols=True)
-    steps_begin, train_begin = trainer.state.step, time.perf_counter()
+    steps_begin, train_begin = trainer.state.step, now()
     seconds = trainer.state.elapsed
     recent_mse = collections.deque(maxlen=config.log_every)   # sRGB MSE of the last steps
     interrupted = False
@@ -442,10 +472,10 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
         while True:
             end = trainer.state.stage_start + stages[trainer.state.stage]["iterations"]
             while (clock.progress() < 1.0) if clock else (trainer.state.step < end):
-                t0 = time.perf_counter()
+                t0 = now()
                 loss, mse = trainer.step(clock.progress() if clock else None)
                 state = trainer.state
-                dt = time.perf_counter() - t0
+                dt = now() - t0
                 seconds += dt
                 state.elapsed = seconds
                 h = state.history
@@ -462,7 +492,7 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
                 if state.step % config.checkpoint_every == 0:
                     save_checkpoint(trainer, ckpt_path)
                 if clock is None and state.step == steps_begin + 5:
-                    rate = (time.perf_counter() - train_begin) / 5
+                    rate = (now() - train_begin) / 5
                     total = sum(st["iterations"] for st in stages) - steps_begin
                     log(f"estimated time: {rate * total / 60:.1f} min "
                         f"({rate:.2f} s per step; --time-budget fits the run to a time)")
@@ -470,7 +500,7 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
                 break
             trainer = next_stage(trainer, config, log)
             if clock:
-                clock.begin_stage(trainer.state.stage, output_seconds(trainer))
+                clock.begin_stage(trainer.state.stage, output_seconds(trainer, now))
             save_checkpoint(trainer, ckpt_path)
     except KeyboardInterrupt:
         interrupted = True
@@ -478,12 +508,12 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     finally:
         bar.close()
         save_checkpoint(trainer, ckpt_path)
-    optimization = time.perf_counter() - train_begin
+    optimization = now() - train_begin
     if clock:
         log(f"time budget: {trainer.state.step - steps_begin} steps in {optimization:.0f} s")
     result = write_outputs(trainer, out)
     result["optimization_seconds"] = optimization
-    result["wall_seconds"] = time.perf_counter() - t_start
+    result["wall_seconds"] = now() - t_start
     (out / "metrics.json").write_text(json.dumps(result, indent=2))
     if interrupted:
         raise KeyboardInterrupt
@@ -495,7 +525,7 @@ def scalar_from_colors(config: FitConfig, dataset, vertices, tets, progress=True
     remedy for its non-convexity, :mod:`mi_tetvr.recon.density`): per-vertex
     colors and opacities fitted on the mesh for ``config.iterations`` steps,
     then the scalar whose classified color matches them. Returns (n,) float."""
-    from tqdm import tqdm
+    from mi_tetvr.progress import progress_bar as tqdm
 
     from mi_tetvr.recon.density import match_scalars
     from mi_tetvr.recon.fields import ScalarField
@@ -532,7 +562,7 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
     if grid is not None:
         from mi_tetvr.mesh.initial import grid_init, grid_sample
         bounds = data_bounds(config, trainer.dataset)
-        current = stage["grid"] or config.resolution
+        current = stage["grid"] or config.grid_resolution
         vertices, tets = grid_init(bounds, grid)
         values.update({k: grid_sample(bounds, current, values[k], vertices) for k in points})
         log(f"grid {current} -> {grid}: {len(tets):,} tets")
@@ -601,11 +631,12 @@ def write_fitted(trainer: Trainer, out: Path):
 
 
 def write_outputs(trainer: Trainer, out: Path):
-    """Write what was fitted (:func:`write_fitted`), ``metrics.json``,
+    """Write what was fitted (:func:`write_fitted`),
     ``test/*.png`` (render | target; X-ray transmittance in grey),
     ``progress.png`` and, with a learned background, ``background.exr`` (its
     latitude-longitude texels, linear RGB: Mitsuba's ``envmap`` with the
-    identity ``to_world`` renders it) to ``out``; returns the metrics."""
+    identity ``to_world`` renders it) to ``out``; returns the metrics (which
+    :func:`run` writes to ``metrics.json`` with its timings)."""
     vertices, tets, _ = trainer.arrays()
     write_fitted(trainer, out)
     if trainer.learned_background:
@@ -625,7 +656,6 @@ def write_outputs(trainer: Trainer, out: Path):
                              "appearance": "none" if not trainer.appearance_index else
                              "a color transform per training photo; held-out photos "
                              "scored without one (the identity)"})
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     renders = out / "test"
     renders.mkdir(exist_ok=True)
     # an absorbing volume over white shows its transmittance
@@ -637,13 +667,47 @@ def write_outputs(trainer: Trainer, out: Path):
     return metrics
 
 
-def evaluate_mesh(mesh_path, dataset, background=None, n_sub=4, split="test"):
-    """Score a mesh file on a data set's views (``split`` test or train):
-    PSNR/SSIM per view and their mean (as :meth:`Trainer.evaluate`)."""
+def evaluate_mesh(mesh_path, dataset, background=None, n_sub=4, split="test", repair=False,
+                  cell_to_point=False):
+    """Score a mesh file with ``color`` and ``opacity`` point arrays on a data set's views
+    (``split`` test or train): PSNR/SSIM per view and their mean (as
+    :meth:`Trainer.evaluate`). A mesh without them (an attenuation, a scalar) is an error
+    that points to :func:`evaluate_fit`."""
     from mi_tetvr.mesh.io import read_tetmesh
-    mesh = read_tetmesh(mesh_path)
+    mesh = read_tetmesh(mesh_path, color=None, opacity=None, repair=repair,
+                        cell_to_point=cell_to_point)
+    missing = [k for k in ("color", "opacity") if k not in mesh.point_data]
+    if missing:
+        raise ValueError(
+            f"{mesh_path} has no {' and no '.join(repr(k) for k in missing)} point array "
+            f"(it holds {sorted(mesh.point_data) or 'no point arrays'}): a mesh fitted with "
+            f"--model absorption or --optimize scalar/tf is scored from its fit folder, "
+            f"mi-tetvr eval FIT_DIR DATA")
+    n = len(mesh.vertices)
+    color = np.asarray(mesh.point_data["color"], np.float64).reshape(n, -1)[:, :3]
+    opacity = np.asarray(mesh.point_data["opacity"], np.float64).reshape(n)
     cfg = FitConfig(background=background, n_sub=n_sub)
     trainer = Trainer(dataset, mesh.vertices, mesh.tets, cfg,
-                      {"color": mesh.color, "opacity": mesh.opacity})
+                      {"color": color, "opacity": opacity})
     views = dataset.test if split == "test" and dataset.test else dataset.train
-    return trainer.evaluate(views)
+    return {**trainer.evaluate(views), "scored": "sRGB"}
+
+
+def evaluate_fit(fit_dir, data, split="test", downscale=None, holdout=8):
+    """Score what a fit in ``fit_dir`` fitted (its checkpoint: colors and opacities, an
+    attenuation, a scalar or a transfer function, with its background and settings) on
+    the data set ``data`` (a path, loaded at the fit's downscale unless given), as the fit
+    scores itself: PSNR/SSIM per view and their mean, ``scored`` says of what."""
+    from mi_tetvr.recon.datasets import load_dataset
+    fit_dir = Path(fit_dir)
+    ckpt, saved = fit_dir / "checkpoint.npz", fit_dir / "config.json"
+    if not ckpt.is_file() or not saved.is_file():
+        raise FileNotFoundError(f"{fit_dir} is not a fit's output folder (it has no "
+                                f"checkpoint.npz and config.json); give a fit's --out folder "
+                                f"or a mesh file")
+    config = FitConfig.from_file(saved)
+    dataset = load_dataset(data, downscale=downscale or config.downscale, holdout=holdout)
+    trainer = load_checkpoint(ckpt, dataset, config)
+    views = dataset.test if split == "test" and dataset.test else dataset.train
+    scored = "transmittance" if trainer.field.signal == "transmittance" else "sRGB"
+    return {**trainer.evaluate(views), "scored": scored}

@@ -39,10 +39,9 @@ def plot_history(history, path, test_psnr=None):
     test_psnr : float, optional
         Drawn as a horizontal line.
     """
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(7, 4))
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(7, 4))
+    ax = fig.subplots()
     t = np.asarray(history["time"]) / 60.0
     loss = np.asarray(history["loss"])
     if len(loss):
@@ -66,7 +65,6 @@ def plot_history(history, path, test_psnr=None):
     ax.set_title("mi-tetvr fit")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def plot_transfer_functions(path, tfs, value_range=(0.0, 1.0), samples=512):
@@ -80,16 +78,14 @@ def plot_transfer_functions(path, tfs, value_range=(0.0, 1.0), samples=512):
     value_range : (float, float)
         The scalar values the normalised axis [0, 1] spans (axis labels).
     """
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     from mi_tetvr.color import linear_to_srgb
     t = (np.arange(samples) + 0.5) / samples
     x = value_range[0] + t * (value_range[1] - value_range[0])
     n = len(tfs)
-    fig, axes = plt.subplots(1 + n, 1, figsize=(7, 3 + 0.5 * n), sharex=True,
-                             gridspec_kw={"height_ratios": [6] + [1] * n})
+    fig = Figure(figsize=(7, 3 + 0.5 * n))
+    axes = fig.subplots(1 + n, 1, sharex=True, gridspec_kw={"height_ratios": [6] + [1] * n})
     for (label, tf), ax in zip(tfs.items(), axes[1:]):
         color, opacity = tf(t)
         axes[0].plot(x, opacity, label=label)
@@ -102,4 +98,3 @@ def plot_transfer_functions(path, tfs, value_range=(0.0, 1.0), samples=512):
     axes[-1].set_xlabel("scalar")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)

@@ -29,7 +29,7 @@ photos 20 - 50 degrees apart (``colmap-maupertuis``) do not reconstruct at all.
 Conventions
 -----------
 Camera poses and pixel coordinates are COLMAP's (OpenCV axes, top-left image corner at 0),
-converted by :class:`mi_tetvr.recon.camera.Camera` as everywhere in the project; images in
+converted by :class:`mi_tetvr.camera.Camera` as everywhere in the project; images in
 memory are premultiplied linear RGBA (:mod:`mi_tetvr.recon.images`), written for COLMAP as
 8-bit sRGB PNG.
 """
@@ -82,7 +82,7 @@ def _quiet_colmap(level: int = 1):
 
 
 def _progress(total: int, enabled: bool, desc: str):
-    from tqdm.auto import tqdm
+    from mi_tetvr.progress import progress_bar as tqdm
     return tqdm(total=total, disable=not enabled, desc=desc, unit="step", leave=False,
                 dynamic_ncols=True)
 
@@ -531,7 +531,7 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
 
 def _cam_from_world(camera) -> np.ndarray:
     """(3, 4) COLMAP world-to-camera ``[R | t]`` of a Camera (the inverse of
-    :meth:`Camera.from_colmap <mi_tetvr.recon.camera.Camera.from_colmap>`)."""
+    :meth:`Camera.from_colmap <mi_tetvr.camera.Camera.from_colmap>`)."""
     c2w = camera.c2w_opencv
     r = c2w[:3, :3].T
     return np.hstack([r, (-r @ c2w[:3, 3])[:, None]])
@@ -733,7 +733,7 @@ def align_cameras(estimated: Sequence, reference: Sequence, *, robust: bool = Fa
         similarity found).
     """
     import pycolmap
-    from mi_tetvr.recon.camera import Camera
+    from mi_tetvr.camera import Camera
     est, ref = list(estimated), list(reference)
     if len(est) != len(ref):
         raise ValueError(f"align_cameras: {len(est)} estimated and {len(ref)} reference "

@@ -56,10 +56,12 @@ ENVIRONMENT_SIZE = (32, 16)
 
 
 def pixel_center_data(dataset):
-    """True for data sets rendered through pixel centers (``mi-tetvr
-    make-dataset`` writes ``volume_info.json``, or ``xray_info.json`` for
-    X-ray projections), whose pixels are point samples rather than pixel
-    averages."""
+    """True for data sets rendered through pixel centers, whose pixels are point samples
+    rather than pixel averages: what the data set records (``Dataset.pixel_sampling``,
+    written by ``mi-tetvr make-dataset``). Data sets made before it recorded this are
+    known by the info file ``make-dataset`` wrote beside them."""
+    if getattr(dataset, "pixel_sampling", ""):
+        return dataset.pixel_sampling == "centers"
     root = getattr(dataset, "root", None)
     return root is not None and any((Path(root) / f).is_file()
                                     for f in ("volume_info.json", "xray_info.json"))
@@ -108,6 +110,9 @@ class Trainer:
         The training photos' color transforms (``config.appearance``; default:
         the identity): per photo the row-major 3x3 matrix minus the identity
         and the offset (:meth:`apply_appearance`).
+    topology : mi_tetvr.mesh.Topology, optional
+        ``build_topology(vertices, tets)`` when the caller built it already: the
+        trainer and its ``tetmesh`` use it instead of building it again.
 
     Attributes
     ----------
@@ -125,13 +130,18 @@ class Trainer:
     """
 
     def __init__(self, dataset, vertices, tets, config: FitConfig, values=None,
-                 state: RunState | None = None, environment=None, appearance=None):
+                 state: RunState | None = None, environment=None, appearance=None,
+                 topology=None):
+        import dataclasses
+
+        import mi_tetvr
         from mi_tetvr.mesh.topology import build_topology
 
         self.config = config
         self.dataset = dataset
         self.state = state or RunState(rng=np.random.default_rng(config.seed))
-        topology = build_topology(vertices, tets)
+        if topology is None:
+            topology = build_topology(vertices, tets)
         self.tets = topology.tets.astype(np.int64)
         self.boundary = np.unique(topology.boundary_faces)
         self.h = mean_edge_length(vertices, self.tets)
@@ -148,8 +158,12 @@ class Trainer:
                 self.cell = cell
                 initial[self.field.extinction] = np.full(n, config.init_opacity) / cell
         values = {**initial, **(values or {})}
+        shape = self.field.shape(vertices, self.tets, values)
+        # the shape's tets are the oriented ones: their topology is this one, built once
+        shape["topology_id"] = mi_tetvr.hand_over_topology(
+            dataclasses.replace(topology, n_flipped=0))
         scene = {"type": "scene", "integrator": {"type": "tetvr", "n_sub": config.n_sub},
-                 MESH_ID: self.field.shape(vertices, self.tets, values)}
+                 MESH_ID: shape}
         #: Whether the background is learned: then the renders already hold
         #: it (``C + T * env``) and only their RGB is compared.
         self.learned_background = config.background == "learn"

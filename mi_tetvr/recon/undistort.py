@@ -10,7 +10,7 @@ the larger of ``fx, fy`` times the smallest zoom at which every pixel of the
 new image sees a point of the old one (the widest view without invented
 borders, as COLMAP's undistorter with ``blank_pixels = 0``). Resampling is bilinear on the
 premultiplied linear RGBA (:func:`scipy.ndimage.map_coordinates`). Pixel
-coordinates are those of :mod:`mi_tetvr.recon.camera` (and COLMAP): the
+coordinates are those of :mod:`mi_tetvr.camera` (and COLMAP): the
 top-left corner at 0, centres at +0.5.
 """
 from __future__ import annotations

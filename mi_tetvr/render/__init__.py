@@ -30,7 +30,6 @@ if _mi.variant() is None:
                       "mitsuba.set_variant('llvm_ad_rgb') (or 'cuda_ad_rgb') first")
 
 from mi_tetvr.render.adjoint import Adjoint  # noqa: E402
-from mi_tetvr.render.camera import orbit_to_world  # noqa: E402
 from mi_tetvr.render.buffers import (MeshBuffers, TetScene, index_buffers,  # noqa: E402
                                      model_groups, offset_links, pack_links,
                                      scene_tetmeshes,
@@ -46,7 +45,7 @@ from mi_tetvr.render.surfaces import NestedIntegrator, SceneParts, split_shapes 
 from mi_tetvr.render.walk import WalkSettings, locate, trace, walk  # noqa: E402
 
 __all__ = [
-    "Adjoint", "orbit_to_world",
+    "Adjoint",
     "MeshBuffers", "TetScene", "index_buffers", "model_groups", "offset_links", "pack_links",
     "scene_tetmeshes", "shape_index_arrays", "tet_scene", "unpack_link",
     "crossing", "edge_function", "face_crossing", "face_entry", "face_weights", "project",

@@ -18,10 +18,14 @@ A primal render is kept only while some differentiable input of the scene
 parameters) has gradients enabled, and it is used only while those inputs
 are the very same arrays (any update of a parameter makes a new array):
 otherwise the derivative pass renders the primal itself, as Mitsuba does.
-At most :data:`CAPACITY` renders are kept (oldest dropped first).
+At most :data:`CAPACITY` renders are kept (the ``tetvr`` property
+``kept_primals``; oldest dropped first): a derivative pass whose primal was
+dropped renders it again, with a warning (the same gradients, one more
+render's time).
 """
 from __future__ import annotations
 
+import warnings
 from collections import OrderedDict
 
 import drjit as dr
@@ -44,7 +48,10 @@ class PrimalStates:
 
     def __init__(self, capacity=CAPACITY):
         self.capacity = int(capacity)
+        if self.capacity < 1:
+            raise ValueError(f"tetvr: kept_primals must be >= 1, got {capacity}")
         self._states = OrderedDict()
+        self._dropped = OrderedDict()      # keys of the renders dropped (the latest 1024)
 
     @staticmethod
     def key(scene, sensor, seed, spp):
@@ -58,14 +65,24 @@ class PrimalStates:
         dr.schedule(state)
         self._states.pop(key, None)
         self._states[key] = (int(primal_seed), state, list(inputs))
+        self._dropped.pop(key, None)
         while len(self._states) > self.capacity:
-            self._states.popitem(last=False)
+            old, _ = self._states.popitem(last=False)
+            self._dropped[old] = None
+            if len(self._dropped) > 1024:
+                self._dropped.popitem(last=False)
 
     def take(self, key, inputs):
         """``(primal_seed, state)`` kept under ``key`` if it was rendered with
         exactly these ``inputs`` (removed either way), else None."""
         entry = self._states.pop(key, None)
         if entry is None:
+            if self._dropped.pop(key, "absent") is None:
+                warnings.warn(
+                    f"tetvr: more than {self.capacity} primal renders awaited their "
+                    f"derivative pass, and this one's was dropped: it renders its primal "
+                    f"again (same gradients, one more render's time); raise the integrator's "
+                    f"kept_primals to keep more", RuntimeWarning, stacklevel=3)
             return None
         seed, state, kept = entry
         same = len(kept) == len(inputs) and all(

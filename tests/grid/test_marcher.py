@@ -7,7 +7,7 @@ from scipy.integrate import quad
 
 from mi_tetvr.grid import marcher as M
 from mi_tetvr.grid import volume as V
-from mi_tetvr.recon.camera import fibonacci_cameras
+from mi_tetvr.camera import fibonacci_cameras
 from mi_tetvr.transfer import TransferFunction
 from tests.grid.test_volume import scipy_trilinear_case
 

@@ -3,14 +3,15 @@ grid ray marcher (6 training and 2 test views of 16x16 pixels) and the small
 fit settings that go with it (one compiled set of kernels for every module)."""
 import pytest
 
-from mi_tetvr.grid import make_dataset, make_volume
+from mi_tetvr.grid import make_volume
+from mi_tetvr.recon.synthetic import make_dataset
 from mi_tetvr.mesh.scenes import default_volume
 from mi_tetvr.recon.config import FitConfig
 from mi_tetvr.recon.datasets import load_nerf
 from mi_tetvr.transfer import read_transfer_function
 from tests.helpers import ROOT
 
-CFG = FitConfig(resolution=4, iterations=24, views_per_step=2, lr_color=0.08, lr_opacity=0.3,
+CFG = FitConfig(grid_resolution=4, iterations=24, views_per_step=2, lr_color=0.08, lr_opacity=0.3,
                 n_sub=2, jitter=False, checkpoint_every=4, log_every=4)
 
 

@@ -7,10 +7,10 @@ import pytest
 from PIL import Image
 
 from mi_tetvr.recon import datasets as D
-from mi_tetvr.recon.camera import Camera
+from mi_tetvr.camera import Camera
 from mi_tetvr.recon.images import read_image, write_image
 from mi_tetvr.color import srgb_to_linear
-from tests.recon.test_camera import (KNOWN_POSE, assert_rays_hit, check_known_pose, gl_look_at,
+from tests.test_camera import (KNOWN_POSE, assert_rays_hit, check_known_pose, gl_look_at,
                                      mitsuba_ray_dirs)
 
 

@@ -4,10 +4,10 @@ import math
 import numpy as np
 import pytest
 
-from mi_tetvr.recon.camera import Camera
+from mi_tetvr.camera import Camera
 from mi_tetvr.recon.datasets import Dataset, View
 from mi_tetvr.recon.hull import frusta_bounds, visual_hull_bounds
-from tests.recon.test_camera import box_mask, mi_look_at, sphere_mask
+from tests.test_camera import box_mask, mi_look_at, sphere_mask
 
 
 def test_frusta_bounds():

@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from mi_tetvr.recon import sfm
-from mi_tetvr.recon.camera import Camera, random_cameras
+from mi_tetvr.camera import Camera, random_cameras
 from mi_tetvr.recon.datasets import View, load_colmap, load_dataset
 from tests.helpers import DATA
 

@@ -9,10 +9,11 @@ import pytest
 
 import mi_tetvr
 from mi_tetvr.grid.volume import make_volume
-from mi_tetvr.grid.xray import line_integrals, make_xray_dataset
+from mi_tetvr.grid.xray import line_integrals
+from mi_tetvr.recon.synthetic import make_xray_dataset
 from mi_tetvr.mesh.initial import grid_init
 from mi_tetvr.mesh.sample import sample_field
-from mi_tetvr.recon.camera import Camera
+from mi_tetvr.camera import Camera
 from mi_tetvr.recon.config import FitConfig
 from mi_tetvr.recon.datasets import load_nerf
 from mi_tetvr.recon.images import read_image, write_image

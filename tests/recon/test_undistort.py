@@ -172,7 +172,8 @@ def test_distorted_capture_reconstructs_like_the_pinhole_one(tmp_path):
     the pinhole data set does."""
     from scipy.ndimage import map_coordinates
 
-    from mi_tetvr.grid import make_dataset, make_volume
+    from mi_tetvr.grid import make_volume
+    from mi_tetvr.recon.synthetic import make_dataset
     from mi_tetvr.mesh.scenes import default_volume
     from mi_tetvr.recon.config import FitConfig
     from mi_tetvr.recon.pipeline import run
@@ -200,7 +201,7 @@ def test_distorted_capture_reconstructs_like_the_pinhole_one(tmp_path):
             write_image(out / path.relative_to(pin), img)
         meta.update(fl_x=f, fl_y=f, cx=w / 2, cy=h / 2, w=w, h=h, **coeffs)
         (out / f"transforms_{split}.json").write_text(json.dumps(meta))
-    cfg = FitConfig(resolution=6, iterations=60, lr_color=0.05, lr_opacity=0.2, n_sub=2,
+    cfg = FitConfig(grid_resolution=6, iterations=60, lr_color=0.05, lr_opacity=0.2, n_sub=2,
                     jitter=False)
     scores = {}
     for name in ("pinhole", "distorted"):

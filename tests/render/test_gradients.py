@@ -1,7 +1,10 @@
 """Derivatives of tetvr: the adjoint (inversion trick) against central finite
 differences of the primal, forward mode against reverse mode, and against
 Dr.Jit's AD through a recorded (evaluated) loop of the primal renderer."""
+import warnings
+
 import numpy as np
+import pytest
 
 import drjit as dr
 import mitsuba as mi
@@ -361,8 +364,15 @@ def test_primal_states_guard_and_capacity():
     assert seed == 3 and kept is state and len(states) == 0
     for i in range(3):
         states.put(("k", i), i, state, [a])
-    assert len(states) == 2 and states.take(("k", 0), [a]) is None
+    # a dropped render's derivative pass is told it renders the primal again
+    with pytest.warns(RuntimeWarning, match="more than 2 primal renders.*kept_primals"):
+        assert len(states) == 2 and states.take(("k", 0), [a]) is None
     assert states.take(("k", 2), [a])[0] == 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")              # never kept: nothing to say
+        assert states.take(("never", 0), [a]) is None
+    with pytest.raises(ValueError, match="kept_primals"):
+        PrimalStates(capacity=0)
 
 
 def test_camera_gradients_against_finite_differences():
@@ -372,7 +382,7 @@ def test_camera_gradients_against_finite_differences():
     of the rendered loss (5 %), on a volume whose boundary is transparent
     (the silhouette has no boundary term); forward mode against reverse
     (1 %)."""
-    from mi_tetvr.render import orbit_to_world
+    from mi_tetvr.camera import orbit_to_world
     V, T = grid_mesh(6, jitter=0.1, seed=2)
     C = np.clip(np.stack([0.5 + 0.4 * V[:, 0], 0.5 + 0.4 * V[:, 1], 0.6 - 0.3 * V[:, 2]], 1),
                 0, 1)

@@ -8,8 +8,8 @@ import pytest
 
 import mitsuba as mi
 
-from mi_tetvr.recon import camera as C
-from mi_tetvr.recon.camera import Camera
+from mi_tetvr import camera as C
+from mi_tetvr.camera import Camera
 
 
 # ---------------------------------------------------------------------------------------------

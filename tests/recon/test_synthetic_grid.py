@@ -7,7 +7,7 @@ from PIL import Image
 
 from mi_tetvr.color import srgb_to_linear
 from mi_tetvr.grid import volume as V
-from mi_tetvr.grid.dataset import make_dataset
+from mi_tetvr.recon.synthetic import make_dataset
 from mi_tetvr.transfer import TransferFunction
 
 

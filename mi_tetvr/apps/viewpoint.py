@@ -1,7 +1,7 @@
 """Best viewpoint by gradient ascent of the opacity entropy (DiffDVR Sec. 5.1).
 
-The camera sits on a sphere around the mesh (:func:`~mi_tetvr.render.camera.
-orbit_to_world`: longitude, latitude, a fixed distance) and looks at its
+The camera sits on a sphere around the mesh (:func:`~mi_tetvr.camera.orbit_to_world`:
+longitude, latitude, a fixed distance) and looks at its
 centre. The objective is the *opacity entropy* of the image: the Shannon
 entropy of the alpha channel read as a distribution over the pixels,
 normalized by ``log N`` so that it lies in [0, 1] (1: the opacity is spread
@@ -20,7 +20,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_tetvr.render.camera import orbit_to_world
+from mi_tetvr.camera import fibonacci_sphere
+from mi_tetvr.camera import orbit_to_world
 
 
 def _opaque(x):
@@ -38,15 +39,6 @@ def opacity_entropy(alpha):
     p = a / dr.maximum(dr.sum(a), 1e-30)
     plogp = dr.select(p > 0, p * dr.log(dr.select(p > 0, p, 1.0)), 0.0)
     return -dr.sum(plogp) / math.log(n)
-
-
-def fibonacci_sphere(n):
-    """``(longitude, latitude)`` in degrees of ``n`` points spread evenly
-    over the sphere (the golden-angle spiral)."""
-    k = np.arange(n) + 0.5
-    lat = np.degrees(np.arcsin(1.0 - 2.0 * k / n))
-    lon = np.degrees(np.pi * (1.0 + 5.0 ** 0.5) * k) % 360.0
-    return lon, lat
 
 
 class ViewpointSearch:
@@ -121,11 +113,12 @@ class ViewpointSearch:
 
 def orbit_scene(shape, bounds, res=128, fov=40.0):
     """A scene to search views of: ``shape`` (a ``tetmesh`` dict), ``tetvr``,
-    and a ``res`` x ``res`` perspective sensor through pixel centres with
-    ``fov`` (degrees). Returns ``(scene, centre, distance)``: the box
+    and a perspective sensor of ``res`` (N for N x N, or (width, height)) pixels
+    through pixel centres with ``fov`` (degrees, horizontal). Returns ``(scene, centre, distance)``: the box
     ``bounds``' centre and the distance at which its bounding sphere fills the
     view (what :class:`ViewpointSearch` takes)."""
     from mi_tetvr.mesh.topology import bounding_radius
+    width, height = (int(res), int(res)) if np.isscalar(res) else (int(res[0]), int(res[1]))
     lo, hi = np.asarray(bounds, np.float64)
     centre = (lo + hi) / 2
     distance = 1.05 * bounding_radius(bounds) / math.sin(math.radians(fov / 2))
@@ -133,7 +126,7 @@ def orbit_scene(shape, bounds, res=128, fov=40.0):
         "type": "scene", "integrator": {"type": "tetvr"},
         "sensor": {"type": "perspective", "fov": fov,
                    "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
-                   "film": {"type": "hdrfilm", "width": res, "height": res,
+                   "film": {"type": "hdrfilm", "width": width, "height": height,
                             "rfilter": {"type": "box"}}},
         "volume": shape})
     return scene, centre, distance
@@ -175,11 +168,10 @@ def best_viewpoint(search, starts, iterations=20, samples=256, progress=None):
 def plot_viewpoints(result, path):
     """The sampled entropies over the sphere (longitude, latitude) with the
     ascent paths and the chosen view."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
     s = result["samples"]
-    fig, ax = plt.subplots(figsize=(8, 4.2))
+    fig = Figure(figsize=(8, 4.2))
+    ax = fig.subplots()
     sc = ax.scatter(s["longitude"], s["latitude"], c=s["entropy"], cmap="viridis", s=18)
     fig.colorbar(sc, ax=ax, label="opacity entropy")
     for p in result["paths"]:
@@ -198,4 +190,3 @@ def plot_viewpoints(result, path):
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)

@@ -6,7 +6,9 @@ numpy arrays with :meth:`Camera.rays`, as a Dr.Jit ``mi.Ray3f`` with :meth:`Came
 builds the Mitsuba ``perspective`` sensor that reproduces it exactly
 (:meth:`Camera.sensor_dict`) and converts from and to the OpenGL (NeRF) and OpenCV (COLMAP)
 camera axes. :func:`fibonacci_cameras` and :func:`random_cameras` place cameras on a sphere
-around a target. Everything but :meth:`Camera.rays_drjit` and :meth:`Camera.sensor_dict` is
+around a target, :func:`box_cameras` around a box, :func:`fibonacci_sphere` gives the
+spiral's longitudes and latitudes, and :func:`orbit_to_world` a differentiable Dr.Jit pose
+by longitude, latitude and distance (camera gradients through ``mi.render``). Everything but :meth:`Camera.rays_drjit` and :meth:`Camera.sensor_dict` is
 numpy and works without a Mitsuba variant.
 
 Conventions
@@ -65,10 +67,10 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
-from mi_tetvr.recon.images import check_factor
 
 __all__ = ["Camera", "look_at", "as_rigid", "default_fov", "fibonacci_cameras",
-           "random_cameras", "OPENGL_TO_MITSUBA", "OPENCV_TO_MITSUBA"]
+           "random_cameras", "fibonacci_sphere", "box_cameras", "orbit_to_world", "check_factor",
+           "OPENGL_TO_MITSUBA", "OPENCV_TO_MITSUBA"]
 
 #: ``c2w_opengl @ OPENGL_TO_MITSUBA`` is Mitsuba's ``to_world`` (and vice versa: an involution).
 OPENGL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
@@ -535,6 +537,13 @@ def default_fov(radius: float, margin: float = 1.05) -> float:
     return math.degrees(2.0 * math.asin(r))
 
 
+def check_factor(factor) -> int:
+    """A downscale factor as an int (a positive integer), else ``ValueError``."""
+    if int(factor) != factor or factor < 1:
+        raise ValueError(f"downscale factor must be a positive integer, got {factor!r}")
+    return int(factor)
+
+
 def _resolution(res) -> Tuple[int, int]:
     if isinstance(res, (int, np.integer)):
         return int(res), int(res)
@@ -549,6 +558,21 @@ def _frame(up):
     e1 = np.cross(u, a)
     e1 /= np.linalg.norm(e1)
     return e1, np.cross(u, e1), u
+
+
+def _spiral(n: int, hemisphere: bool = False):
+    """The Fibonacci (golden-angle) spiral of ``n`` points evenly over the unit sphere (or
+    its ``z >= 0`` half): their heights ``z`` and azimuths ``phi`` (radians)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - i / n if hemisphere else 1.0 - 2.0 * i / n
+    return z, math.pi * (3.0 - math.sqrt(5.0)) * i
+
+
+def fibonacci_sphere(n: int):
+    """``(longitude, latitude)`` in degrees of ``n`` points spread evenly over the sphere:
+    the spiral :func:`fibonacci_cameras` places its cameras on (pole along ``z``)."""
+    z, phi = _spiral(n)
+    return np.degrees(phi) % 360.0, np.degrees(np.arcsin(z))
 
 
 def fibonacci_cameras(n: int, radius: float = 4.0, res=256, fov: Optional[float] = None,
@@ -579,10 +603,8 @@ def fibonacci_cameras(n: int, radius: float = 4.0, res=256, fov: Optional[float]
         raise ValueError(f"n must be >= 1, got {n}")
     w, h = _resolution(res)
     fov = default_fov(radius) if fov is None else float(fov)
-    i = np.arange(n) + 0.5
-    z = 1.0 - i / n if hemisphere else 1.0 - 2.0 * i / n
+    z, phi = _spiral(n, hemisphere)
     r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    phi = math.pi * (3.0 - math.sqrt(5.0)) * i
     e1, e2, e3 = _frame(up)
     dirs = (r * np.cos(phi))[:, None] * e1 + (r * np.sin(phi))[:, None] * e2 + z[:, None] * e3
     t = np.asarray(target, np.float64)
@@ -609,3 +631,43 @@ def random_cameras(n: int, radius: float = 4.0, res=256, fov: Optional[float] = 
         d = np.where((d @ u)[:, None] < 0, d - 2 * (d @ u)[:, None] * u, d)
     t = np.asarray(target, np.float64)
     return [Camera.look_at(t + radius * x, t, up, w, h, fov_x=fov) for x in d]
+
+
+def box_cameras(bounds, views: int, test_views: int, res=256, fov: float = 40.0, seed: int = 0,
+                up=(0.0, 0.0, 1.0)):
+    """Cameras around the box ``bounds`` (2, 3), at the distance where its bounding sphere
+    fills ``fov`` (degrees): ``views`` on a Fibonacci sphere (:func:`fibonacci_cameras`) and
+    ``test_views`` at random (:func:`random_cameras` with ``seed``). Returns
+    ``(train, test)`` lists of Camera."""
+    lo, hi = np.asarray(bounds, np.float64).reshape(2, 3)
+    centre = (lo + hi) / 2
+    distance = 1.05 * (np.linalg.norm(hi - lo) / 2) / np.sin(np.radians(fov / 2))
+    train = fibonacci_cameras(views, distance, res, fov, up=up, target=centre)
+    test = random_cameras(test_views, distance, res, fov, seed=seed, up=up, target=centre) \
+        if test_views else []
+    return train, test
+
+
+def orbit_to_world(longitude, latitude, distance, target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0)):
+    """The ``to_world`` of a camera at ``distance`` from ``target``, at
+    ``longitude`` and ``latitude`` (degrees; Dr.Jit values keep their
+    gradients) about the ``up`` axis, looking at the target.
+
+    Latitude 0 is the plane through the target orthogonal to ``up``, +90 the
+    pole along ``up`` (avoid it: the view's up vector degenerates there).
+    Longitude 0 lies along the first axis of ``mi.coordinate_system(up)``. Needs a Mitsuba
+    variant. The derivative passes of ``tetvr`` differentiate the image w.r.t. the rays when
+    the sensor's ``to_world`` carries gradients (:mod:`mi_tetvr.render.adjoint`), except the
+    silhouette: which pixels see the mesh has no boundary term, so a camera gradient is
+    exact for a volume whose boundary is transparent.
+    """
+    import drjit as dr
+    import mitsuba as mi
+    up = dr.normalize(mi.Vector3f(up))
+    e1, e2 = mi.coordinate_system(up)
+    lon = dr.deg2rad(mi.Float(longitude))
+    lat = dr.deg2rad(mi.Float(latitude))
+    direction = dr.cos(lat) * (dr.cos(lon) * e1 + dr.sin(lon) * e2) + dr.sin(lat) * up
+    target = mi.Point3f(target)
+    return mi.AffineTransform4f().look_at(origin=target + mi.Float(distance) * direction,
+                                          target=target, up=up)

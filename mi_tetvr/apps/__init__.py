@@ -1,0 +1,19 @@
+"""Applications of the differentiable renderer that are not reconstruction.
+
+:mod:`~mi_tetvr.apps.viewpoint`
+    The best viewpoint of a volume (DiffDVR Sec. 5.1): gradient ascent of the opacity
+    entropy over the camera's position on a sphere, and its plot.
+
+Needs a Mitsuba variant (it renders).
+"""
+from __future__ import annotations
+
+from mi_tetvr._lazy import lazy_exports
+
+_LAZY = {"ViewpointSearch": "viewpoint", "best_viewpoint": "viewpoint",
+         "default_starts": "viewpoint", "opacity_entropy": "viewpoint",
+         "orbit_scene": "viewpoint", "plot_viewpoints": "viewpoint"}
+
+__all__ = [*_LAZY]
+
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY, globals())

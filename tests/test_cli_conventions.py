@@ -1,0 +1,245 @@
+"""The command line's conventions and its errors, in process (``mi_tetvr.cli.main``).
+
+Every command accepts the shared flags of what it does (the lists below are this test's
+own, written from what each command does, not read from the parser); the fit's options
+are FitConfig's fields; bad input ends in one ``mi-tetvr: ...`` line that names the problem
+and the way past it, never a traceback.
+"""
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from mi_tetvr import cli
+from mi_tetvr.recon.config import FitConfig
+from tests.helpers import ROOT, VARIANT
+
+# positional arguments each command needs to parse
+POSITIONAL = {"render": ["s.xml"], "info": ["m.vtu"], "make-scenes": [],
+              "make-dataset": ["v.npy"], "make-capture": [], "process-data": ["photos"],
+              "fit": ["data"], "eval": ["fit", "data"], "refine": ["m.vtu"],
+              "viewpoint": ["m.vtu"]}
+REQUIRED = {"refine": ["--select", "x"]}
+WRITES = set(POSITIONAL) - {"info"}
+RENDERS = {"render", "make-dataset", "make-capture", "fit", "eval", "viewpoint"}
+SHOWS_PROGRESS = {"make-dataset", "make-capture", "process-data", "fit", "viewpoint"}
+READS_MESHES = {"render", "info", "make-dataset", "fit", "eval", "refine", "viewpoint"}
+MAKES_IMAGES = {"render", "make-dataset", "make-capture", "viewpoint"}
+
+
+def parse(cmd, *flags):
+    out = ["-o", "x"] if cmd in WRITES else []
+    return cli.build_parser().parse_args([cmd, *POSITIONAL[cmd], *out, *REQUIRED.get(cmd, []),
+                                          *flags])
+
+
+def fails(argv, capsys=None):
+    """Run the command line; the SystemExit's message (or code)."""
+    with pytest.raises(SystemExit) as e:
+        cli.main(argv)
+    return e.value.code
+
+
+def test_the_commands_are_those_listed():
+    sub = next(a for a in cli.build_parser()._actions if a.dest == "cmd")
+    assert set(sub.choices) == set(POSITIONAL)
+
+
+@pytest.mark.parametrize("cmd", sorted(POSITIONAL))
+def test_every_command_accepts_the_shared_flags(cmd, capsys):
+    parser_of = next(a for a in cli.build_parser()._actions if a.dest == "cmd").choices[cmd]
+    flags = {s for a in parser_of._actions for s in a.option_strings}
+    assert ({"-o", "--out"} <= flags) == (cmd in WRITES)
+    assert ("--variant" in flags) == (cmd in RENDERS)
+    assert ({"-q", "--quiet"} <= flags) == (cmd in SHOWS_PROGRESS)
+    assert ({"--repair", "--cell-to-point"} <= flags) == (cmd in READS_MESHES)
+    assert ("--res" in flags) == (cmd in MAKES_IMAGES)
+    if cmd in WRITES:
+        assert parse(cmd).out in ("x", ["x"])
+    if cmd in RENDERS:
+        assert parse(cmd, "--variant", "cuda_ad_rgb").variant == "cuda_ad_rgb"
+        help = next(a.help for a in parser_of._actions if a.dest == "variant")
+        assert "llvm_ad_rgb" in help and "cuda_ad_rgb" in help
+    if cmd in SHOWS_PROGRESS:
+        assert parse(cmd, "-q").quiet and not parse(cmd).quiet
+    if cmd in READS_MESHES:
+        a = parse(cmd, "--repair", "--cell-to-point")
+        repair = a.cfg_repair if cmd == "fit" else a.repair
+        cell = a.cfg_cell_to_point if cmd == "fit" else a.cell_to_point
+        assert repair and cell
+    if cmd in MAKES_IMAGES:
+        assert tuple(parse(cmd, "--res", "40x30").res) == (40, 30)
+        assert tuple(parse(cmd, "--res", "32").res) == (32, 32)
+        with pytest.raises(SystemExit):
+            parse(cmd, "--res", "40by30")
+        assert "WxH" in capsys.readouterr().err
+
+
+def test_version_and_opacity_scale_default(capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.startswith("mi-tetvr ")
+    # one default of the same quantity everywhere
+    defaults = {parse(c).opacity_scale for c in ("make-dataset", "viewpoint")}
+    assert defaults == {FitConfig().opacity_scale} == {cli.OPACITY_SCALE}
+
+
+def _sample(f):
+    """A value for the field ``f`` other than its default, and its command-line text."""
+    kind = cli._setting_type(f)
+    if "choices" in f.metadata:
+        value = next(c for c in f.metadata["choices"] if c != f.default)
+        return value, [value]
+    special = {"bounds": ([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]], ["0,0,0,1,2,3"]),
+               "value_range": ([0.0, 2.0], ["0,2"]),
+               "stages": ([{"iterations": 3}], ['[{"iterations": 3}]']),
+               "background": ([1.0, 1.0, 1.0], ["white"]), "init": ("m.vtu", ["m.vtu"])}
+    if f.name in special:
+        return special[f.name]
+    if kind is bool:
+        return (not f.default, [] if not f.default else None)
+    if kind is int:
+        return 3, ["3"]
+    if kind is float:
+        return 0.25, ["0.25"]
+    return "name", ["name"]
+
+
+@pytest.mark.parametrize("field", [f.name for f in dataclasses.fields(FitConfig)])
+def test_every_fit_setting_is_an_option(field):
+    """Each FitConfig field has its option, parsed to the field's type, with the help
+    written in the field (and its default)."""
+    f = next(f for f in dataclasses.fields(FitConfig) if f.name == field)
+    fit = next(a for a in cli.build_parser()._actions if a.dest == "cmd").choices["fit"]
+    action = next(a for a in fit._actions if a.dest == f"cfg_{field}")
+    assert f.metadata["help"].split(";")[0] in action.help.replace("%%", "%")
+    value, text = _sample(f)
+    flag = action.option_strings[0]
+    if cli._setting_type(f) is bool:
+        argv = [flag] if value else ["--no-" + flag[2:]]
+    else:
+        argv = [flag, *text]
+    extra = []
+    if field == "optimize":          # tf needs the scalar mesh
+        extra = ["--init", "m.vtu"]
+    a = parse("fit", *argv, *extra)
+    assert cli.fit_config(a).to_dict()[field] == value
+
+
+def test_config_file_print_config_and_overrides(tmp_path, capsys):
+    (tmp_path / "c.yaml").write_text("lr_color: 0.3\nstages:\n  - iterations: 5\n"
+                                     "resolution: 7\n")      # the setting's earlier name
+    cli.main(["fit", "data", "-o", "out", "--config", str(tmp_path / "c.yaml"),
+              "--lr-opacity", "0.4", "--print-config"])
+    cfg = json.loads(capsys.readouterr().out)
+    assert cfg["lr_color"] == 0.3 and cfg["lr_opacity"] == 0.4
+    assert cfg["stages"] == [{"iterations": 5}] and cfg["grid_resolution"] == 7
+    assert cfg == FitConfig.from_file(tmp_path / "c.yaml").updated(lr_opacity=0.4).to_dict()
+    (tmp_path / "bad.json").write_text('{"lr_colour": 1}')
+    msg = fails(["fit", "d", "-o", "o", "--config", str(tmp_path / "bad.json")])
+    assert msg.startswith("mi-tetvr: unknown fit settings ['lr_colour']")
+    msg = fails(["fit", "d", "-o", "o", "--config", str(tmp_path / "none.json")])
+    assert "not found" in msg and "none.json" in msg
+    msg = fails(["fit", "d", "-o", "o", "--loss", "l1", "--lr-color", "-1"])
+    assert msg == "mi-tetvr: lr_color must be >= 0"
+
+
+# -- errors, not tracebacks ----------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def meshes(tmp_path_factory):
+    """A folded mesh with a scalar, and a colored grid mesh."""
+    import meshio
+
+    from mi_tetvr.mesh.generate import grid_mesh
+    from tests.mesh.test_io import folded_grid
+    d = tmp_path_factory.mktemp("meshes")
+    v, t = folded_grid()
+    meshio.write(d / "folded.vtu", meshio.Mesh(v, [("tetra", t)],
+                                               point_data={"density": v[:, 0] + 1.0}))
+    v, t = grid_mesh(2)
+    meshio.write(d / "attenuation.vtu", meshio.Mesh(v, [("tetra", t)],
+                                                    point_data={"attenuation": v[:, 0] + 1}))
+    return d
+
+
+def test_variant_errors(tmp_path):
+    for bad in ("scalar_rgb", "no_such_variant"):
+        msg = fails(["make-capture", "-o", str(tmp_path), "--variant", bad])
+        assert msg.startswith("mi-tetvr: ") and bad in msg and "llvm_ad_rgb" in msg
+
+
+def test_missing_and_wrong_files(tmp_path, meshes):
+    msg = fails(["eval", str(tmp_path / "missing.vtu"), str(tmp_path), "--variant", VARIANT])
+    assert msg == f"mi-tetvr: not found: {tmp_path / 'missing.vtu'}"
+    msg = fails(["fit", str(tmp_path), "-o", str(tmp_path / "o"), "--init",
+                 str(tmp_path / "missing.vtu")])
+    assert "missing.vtu" in msg and "no such mesh file" in msg
+    # a data set whose frames list is empty
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "transforms.json").write_text('{"camera_angle_x": 0.7, "frames": []}')
+    msg = fails(["fit", str(tmp_path / "empty"), "-o", str(tmp_path / "o"), "--variant",
+                 VARIANT])
+    assert msg.startswith("mi-tetvr: ") and "no training views" in msg
+    # eval of a mesh that holds an attenuation, not colors: refused, pointing to the folder
+    (tmp_path / "empty" / "transforms.json").write_text(json.dumps({
+        "camera_angle_x": 0.7, "frames": [{"file_path": f"{k}.png", "transform_matrix":
+                                           np.eye(4).tolist()} for k in "ab"]}))
+    from PIL import Image
+    for k in "ab":
+        Image.fromarray(np.zeros((4, 4, 4), np.uint8)).save(tmp_path / "empty" / f"{k}.png")
+    msg = fails(["eval", str(meshes / "attenuation.vtu"), str(tmp_path / "empty"),
+                 "--variant", VARIANT])
+    assert "no 'color' and no 'opacity' point array" in msg and "attenuation" in msg
+    assert "mi-tetvr eval FIT_DIR DATA" in msg
+    msg = fails(["eval", str(tmp_path), str(tmp_path / "empty"), "--variant", VARIANT])
+    assert "not a fit's output folder" in msg
+
+
+def test_folded_meshes_name_the_flag_each_command_has(tmp_path, meshes):
+    """make-dataset and fit --init on a mesh that folds over itself: one line naming
+    --repair, which both commands have; with it, make-dataset goes on."""
+    tf = str(ROOT / "scenes" / "tf_radial.json")
+    msg = fails(["make-dataset", str(meshes / "folded.vtu"), "--tf", tf, "-o",
+                 str(tmp_path / "d"), "--views", "1", "--test-views", "0", "--res", "4", "-q",
+                 "--variant", VARIANT])
+    assert "folds over itself" in msg and "--repair" in msg
+    cli.main(["make-dataset", str(meshes / "folded.vtu"), "--tf", tf, "-o",
+              str(tmp_path / "d"), "--views", "2", "--test-views", "1", "--res", "6x4", "-q",
+              "--repair", "--value-range", "0.5,1.5", "--variant", VARIANT])
+    info = json.loads((tmp_path / "d" / "volume_info.json").read_text())
+    assert info["value_range"] == [0.5, 1.5]
+    meta = json.loads((tmp_path / "d" / "transforms_train.json").read_text())
+    assert (meta["w"], meta["h"]) == (6, 4) and meta["pixel_sampling"] == "centers"
+    msg = fails(["fit", str(tmp_path / "d"), "-o", str(tmp_path / "f"), "--init",
+                 str(meshes / "folded.vtu"), "--iterations", "1", "-q", "--variant", VARIANT])
+    assert "folds over itself" in msg and "--repair" in msg
+
+
+def test_make_dataset_refuses_options_that_do_not_apply(tmp_path, meshes):
+    vol = tmp_path / "v.npy"
+    np.save(vol, np.ones((4, 4, 4), np.float32))
+    base = ["make-dataset", str(vol), "-o", str(tmp_path / "x"), "--variant", VARIANT]
+    for extra, said in [(["--xray", "--res", "32"], "--res does not apply to X-ray"),
+                        (["--xray", "--seed", "2"], "--seed does not apply to X-ray"),
+                        (["--xray", "--fov", "30"], "--fov does not apply to a parallel beam"),
+                        (["--xray", "--opacity-scale", "2"], "--opacity-scale does not apply"),
+                        (["--tf", "t.json", "--beam", "cone"], "--beam does not apply "
+                                                               "without --xray"),
+                        (["--tf", "t.json", "--scalar", "s"], "--scalar does not apply to a "
+                                                              "grid volume")]:
+        msg = fails(base + extra)
+        assert msg.startswith("mi-tetvr: " + said), (extra, msg)
+    msg = fails(["make-dataset", str(meshes / "folded.vtu"), "--tf", "t.json", "--radius", "3",
+                 "-o", str(tmp_path / "x")])
+    assert "--radius does not apply to a tet mesh" in msg
+
+
+def test_readme_lists_the_commands_as_the_parsers_have_them():
+    """The README's command list is the parsers' (regenerate it with
+    ``python -c "from mi_tetvr.cli import command_summary; print(command_summary())"``)."""
+    text = (ROOT / "README.md").read_text()
+    begin = text.index("<!-- commands:")
+    block = text[text.index("\n", begin) + 1:text.index("<!-- /commands -->")].strip()
+    assert block == cli.command_summary()
