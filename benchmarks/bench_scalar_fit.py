@@ -118,7 +118,7 @@ def main(a):
                                                              scalar_init="mesh"),
                     resume=False, progress=False, log=lambda *x: None)
             seconds = t_start + time.perf_counter() - t0
-            fitted = read_tetmesh(out / f"fit_{start}" / "mesh.vtu", color=None, opacity=None)
+            fitted = read_tetmesh(out / f"fit_{start}" / "scalar.vtu", color=None, opacity=None)
         e0, e0_shown = errors(s0)
         e1, e1_shown = errors(fitted.point_data["scalar"])
         row = dict(start=start, psnr_start=before["psnr"], psnr=m["mean"]["psnr"],

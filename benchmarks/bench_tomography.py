@@ -202,7 +202,7 @@ def main(a):
         m = run(data, out / "fit", cfg, resume=False, progress=not a.quick,
                 log=lambda *x: None)
         tets_time = time.perf_counter() - t0
-        mesh = read_tetmesh(out / "fit" / "mesh.vtu", opacity="attenuation")
+        mesh = read_tetmesh(out / "fit" / "attenuation.vtu", opacity="attenuation")
     nx, ny, nz = volume.shape
     z, y, x = np.meshgrid(*(np.arange(k) for k in (nz, ny, nx)), indexing="ij")
     samples = lo + np.stack([x, y, z], -1).reshape(-1, 3) * volume.spacing

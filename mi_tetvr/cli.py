@@ -253,7 +253,8 @@ def cmd_fit(a):
         sys.exit("mi-tetvr: interrupted; progress saved (run the same command to resume)")
     m = metrics["mean"]
     what = "transmittance" if cfg.model == "absorption" else "sRGB"
-    result = "transfer_function.json" if cfg.optimize == "tf" else "mesh.vtu"
+    from mi_tetvr.recon.pipeline import fitted_file
+    result = fitted_file(cfg)
     print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} ({what}) over "
           f"{len(metrics['views'])} view(s) [{metrics['split']}]; {metrics['tets']:,} tets, "
           f"{metrics['step']:,} steps, {metrics['wall_seconds']:.0f} s -> "

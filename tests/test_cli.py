@@ -166,10 +166,10 @@ def test_transfer_function_and_xray_commands(tmp_path):
     fitted = json.loads((fit / "metrics.json").read_text())["mean"]["psnr"]
     assert json.loads((tmp_path / "att.json").read_text())["mean"]["psnr"] == \
         pytest.approx(fitted, abs=1e-4)
-    r = run("eval", str(fit / "mesh.vtu"), str(xray))
+    r = run("eval", str(fit / "attenuation.vtu"), str(xray))
     assert r.returncode == 1 and "mi-tetvr eval FIT_DIR DATA" in r.stderr
     import meshio
-    assert "attenuation" in meshio.read(fit / "mesh.vtu").point_data
+    assert "attenuation" in meshio.read(fit / "attenuation.vtu").point_data
     r = run("make-dataset", str(tmp_path / "vol.npy"), "--out", str(tmp_path / "x"))
     assert r.returncode != 0 and "--tf" in r.stderr
 

@@ -76,6 +76,21 @@ def test_every_command_accepts_the_shared_flags(cmd, capsys):
         assert "WxH" in capsys.readouterr().err
 
 
+def test_one_default_per_quantity():
+    """The held-out views of every data set maker, the opacity scale of every command: one
+    default each; the Python name the mesh errors give for repairs resolves."""
+    import inspect
+
+    from mi_tetvr.mesh import repair_tets  # noqa: F401 (named by MeshError's advice)
+    from mi_tetvr.mesh.topology import REPAIR_HINT
+    from mi_tetvr.recon import synthetic
+    assert "mi_tetvr.mesh.repair_tets" in REPAIR_HINT and "--repair" in REPAIR_HINT
+    for maker in (synthetic.make_dataset, synthetic.make_mesh_dataset,
+                  synthetic.make_xray_dataset):
+        assert inspect.signature(maker).parameters["test_views"].default == cli.TEST_VIEWS
+    assert parse("make-dataset").test_views == cli.TEST_VIEWS
+
+
 def test_version_and_opacity_scale_default(capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["--version"])

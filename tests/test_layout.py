@@ -85,3 +85,12 @@ print("ok")
 """
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr
+
+
+def test_library_code_leaves_the_matplotlib_backend_alone():
+    """Plots are drawn on ``matplotlib.figure.Figure`` objects: no module of the package
+    picks a backend or imports pyplot (which would change a notebook's or an
+    application's backend)."""
+    said = [f"{p.relative_to(ROOT)}" for p in (ROOT / "mi_tetvr").rglob("*.py")
+            if "matplotlib.use(" in p.read_text() or "pyplot" in p.read_text()]
+    assert not said, said

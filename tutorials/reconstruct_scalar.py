@@ -81,7 +81,7 @@ def main(argv=None):
             warnings.simplefilter("ignore")
             m = run(data, out / name, cfg, resume=False, progress=not a.quiet,
                     log=lambda *x: None)
-        fitted = mi_tetvr.read_tetmesh(out / name / "mesh.vtu", color=None, opacity=None)
+        fitted = mi_tetvr.read_tetmesh(out / name / "scalar.vtu", color=None, opacity=None)
         error = float(np.sqrt(np.mean((fitted.point_data["scalar"] - truth) ** 2)) / (hi - lo))
         result[name] = {"psnr": m["mean"]["psnr"], "scalar_rms": error}
         if not a.quiet:

@@ -88,7 +88,7 @@ def main(argv=None):
         metrics = run(data, out / "fit", cfg, resume=False, progress=not a.quiet,
                       log=lambda *x: None)
     seconds = time.perf_counter() - t0
-    mesh = mi_tetvr.read_tetmesh(out / "fit" / "mesh.vtu", opacity="attenuation")
+    mesh = mi_tetvr.read_tetmesh(out / "fit" / "attenuation.vtu", opacity="attenuation")
     # 3. filtered back-projection of the same projections, slice by slice
     fbp = reconstruct_slices(volume, data.train, scale, "fbp")
     # 4. both against the truth at the voxels (values in [0, 1])
@@ -105,7 +105,8 @@ def main(argv=None):
     result = {"psnr_tets": psnr(tets), "psnr_fbp": psnr(fbp),
               "projection_psnr": metrics["mean"]["psnr"], "seconds": seconds,
               "vertices": len(mesh.vertices), "voxels": truth.size,
-              "files": {"mesh": str(out / "fit" / "mesh.vtu"), "slices": str(out / "slices.png")}}
+              "files": {"mesh": str(out / "fit" / "attenuation.vtu"),
+                        "slices": str(out / "slices.png")}}
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

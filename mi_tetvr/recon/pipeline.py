@@ -27,7 +27,8 @@ from mi_tetvr.recon.plots import plot_history, save_comparison
 from mi_tetvr.recon.trainer import RunState, Trainer
 
 __all__ = ["run", "next_stage", "for_capture", "capture_kind", "with_sparse_points",
-           "unbounded_stages", "SCORE_VIEWS", "write_outputs", "write_fitted", "evaluate_mesh",
+           "unbounded_stages", "SCORE_VIEWS", "write_outputs", "write_fitted", "fitted_file",
+           "evaluate_mesh",
            "evaluate_fit", "initial_mesh", "data_bounds", "scalar_from_colors", "calibrate",
            "resolution_for_budget", "budget_stages", "DEFAULT_RESOLUTION", "check_resume",
            "RESUMABLE",
@@ -604,29 +605,39 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
     return new
 
 
+def fitted_file(config: FitConfig) -> str:
+    """The file a fit with ``config`` writes what it fitted to, named after it:
+    ``mesh.vtu`` (colors and opacities), ``attenuation.vtu`` (``model`` absorption),
+    ``scalar.vtu`` (``optimize`` scalar) or ``transfer_function.json`` (``optimize`` tf)."""
+    if config.optimize == "tf":
+        return "transfer_function.json"
+    if config.optimize == "scalar":
+        return "scalar.vtu"
+    return "attenuation.vtu" if config.model == "absorption" else "mesh.vtu"
+
+
 def write_fitted(trainer: Trainer, out: Path):
-    """Write what was fitted: ``mesh.vtu`` with the field's point data
-    (``color`` and ``opacity``, ``attenuation`` or ``scalar``) and, for a
-    transfer function, ``transfer_function.json`` (project JSON, the
-    texels as control points; over the scalar range that ``config.json``
-    records as ``value_range``) and its plot ``transfer_function.png``
-    instead."""
+    """Write what was fitted to :func:`fitted_file`: a mesh with the field's point
+    data (``color`` and ``opacity``, ``attenuation`` or ``scalar``) or, for a transfer
+    function, project JSON (the texels as control points; over the scalar range that
+    ``config.json`` records as ``value_range``) and its plot ``transfer_function.png``."""
     from mi_tetvr.mesh.io import write_tetmesh
     from mi_tetvr.mesh.tetmesh import TetMesh
     from mi_tetvr.recon.fields import TransferFunctionField
     from mi_tetvr.transfer import write_json
     vertices, tets, values = trainer.arrays()
     field = trainer.field
+    path = out / fitted_file(trainer.config)
     if isinstance(field, TransferFunctionField):
         from mi_tetvr.recon.plots import plot_transfer_functions
         tf = field.transfer_function(values)
-        write_json(tf, out / "transfer_function.json")
+        write_json(tf, path)
         plot_transfer_functions(out / "transfer_function.png", {"fitted": tf}, field.value_range)
         return
     if "color" in field.point_arrays:
-        write_tetmesh(out / "mesh.vtu", TetMesh(vertices, tets, values["color"], values["opacity"]))
+        write_tetmesh(path, TetMesh(vertices, tets, values["color"], values["opacity"]))
     else:
-        write_tetmesh(out / "mesh.vtu", TetMesh(vertices, tets, point_data={
+        write_tetmesh(path, TetMesh(vertices, tets, point_data={
             k: values[k] for k in field.point_arrays}), color=None, opacity=None)
 
 

@@ -154,7 +154,7 @@ def test_attenuation_fit_recovers_the_volume(tmp_path):
                     stages=[{"iterations": 40, "grid": 4}, {"iterations": 80, "grid": 8}],
                     checkpoint_every=1000)
     m = run(data, tmp_path / "fit", cfg, progress=False, log=lambda *a: None)
-    mesh = mi_tetvr.read_tetmesh(tmp_path / "fit" / "mesh.vtu", opacity="attenuation")
+    mesh = mi_tetvr.read_tetmesh(tmp_path / "fit" / "attenuation.vtu", opacity="attenuation")
     pts = np.random.default_rng(0).uniform(lo, hi, (2000, 3))
     truth = made["info"]["attenuation_scale"] * vol.sample(pts)
     fitted = sample_field(mesh.vertices, mesh.tets, mesh.opacity, pts)

@@ -159,6 +159,6 @@ def test_scalar_fit_with_smoothing_from_the_command_line(scalar_data, tmp_path):
     saved = json.loads((tmp_path / "config.json").read_text())
     assert saved["value_range"] == pytest.approx([lo, hi]) and saved["scalar_init"] == "colors"
     assert saved["smoothing"] == 0.5
-    fitted = mi_tetvr.read_tetmesh(tmp_path / "mesh.vtu", color=None, opacity=None)
+    fitted = mi_tetvr.read_tetmesh(tmp_path / "scalar.vtu", color=None, opacity=None)
     s = fitted.point_data["scalar"]
     assert np.all((s >= lo - 1e-6) & (s <= hi + 1e-6)) and np.ptp(s) > 0
