@@ -21,6 +21,13 @@ LOG_SECONDS = 5.0
 class _LineBar(tqdm):
     """A tqdm bar that writes one line per update (for files)."""
 
+    def set_postfix(self, ordered_dict=None, refresh=True, **kwargs):
+        # shown with the next line, not as a line of its own
+        super().set_postfix(ordered_dict, refresh=False, **kwargs)
+
+    def set_description(self, desc=None, refresh=True):
+        super().set_description(desc, refresh=False)
+
     def display(self, msg=None, pos=None):
         # (tqdm calls it only for a bar that shows, and once more from close())
         text = (self.__str__() if msg is None else msg).strip()

@@ -26,6 +26,7 @@ def test_a_log_file_gets_a_line_every_few_seconds(monkeypatch):
         for i in range(100):             # 100 updates over 30 simulated seconds
             clock.t += 0.3
             bar.update(1)
+            bar.set_postfix(step=i)        # (as the fit does after every step)
     text = log.getvalue()
     assert "\r" not in text
     lines = [line for line in text.splitlines() if line.strip()]
