@@ -147,13 +147,18 @@ def test_run_sfm_recovers_the_model_cameras(maupertuis_sfm):
     ref = load_colmap(MAUPERTUIS, holdout=None, load_images=False)
     assert [v.name for v in est.views] == [v.name for v in ref.views]
     assert len(est.points) == s["points"]
-    a = sfm.align_cameras([v.camera for v in est.views], [v.camera for v in ref.views])
+    check_poses([v.camera for v in est.views], [v.camera for v in ref.views], 2.5, 2.0, 0.01)
+
+
+def check_poses(estimated, reference, rotation_deg, relative_deg, position):
+    """``align_cameras`` of the two, printed, within the given errors (max over cameras)."""
+    a = sfm.align_cameras(estimated, reference)
     print(f"poses: rotation max {a['rotation_error_deg_max']:.3f} deg, relative max "
           f"{a['relative_rotation_error_deg_max']:.3f} deg, position max "
           f"{a['position_error_max']:.4f} of {a['scene_size']:.3f}")
-    assert a["rotation_error_deg_max"] < 2.5
-    assert a["relative_rotation_error_deg_max"] < 2.0
-    assert a["position_error_max"] < 0.01
+    assert a["rotation_error_deg_max"] < rotation_deg
+    assert a["relative_rotation_error_deg_max"] < relative_deg
+    assert a["position_error_max"] < position
 
 
 @pytest.fixture(scope="module")
@@ -182,13 +187,8 @@ def test_run_sfm_recovers_the_rendered_cameras(room_photos, tmp_path):
     est = load_dataset(tmp_path / "sfm", holdout=None, load_images=False)
     names = {v.name: v.camera for v in ref.views}
     assert sorted(v.name for v in est.views) == sorted(names)
-    a = sfm.align_cameras([v.camera for v in est.views], [names[v.name] for v in est.views])
-    print(f"room poses: rotation max {a['rotation_error_deg_max']:.3f} deg, relative max "
-          f"{a['relative_rotation_error_deg_max']:.3f} deg, position max "
-          f"{a['position_error_max']:.4f} of {a['scene_size']:.3f}")
-    assert a["rotation_error_deg_max"] < 2.0
-    assert a["relative_rotation_error_deg_max"] < 1.5
-    assert a["position_error_max"] < 0.01
+    check_poses([v.camera for v in est.views], [names[v.name] for v in est.views], 2.0, 1.5,
+                0.01)
 
 
 # ---------------------------------------------------------------------------------------------
