@@ -302,9 +302,12 @@ def _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev, leng
             ids_e = tuple(c.i for c in carry[k][0])
             if geo is not None:
                 from_bnd, to_bnd, f_next = geo
-                act = inside[k] | from_bnd[k] | to_bnd[k]
-                te, we = crossing_of(ts, ids_e, act)
-                tx, wx = crossing_of(ts, st.exit, act)
+                # (each crossing only where its face exists: the cursor's entry face
+                # inside the mesh or where the piece starts on its boundary, its tet's
+                # exit face inside it; elsewhere the cursor's faces are stale and their
+                # vertex indices may lie outside the mesh)
+                te, we = crossing_of(ts, ids_e, inside[k] | from_bnd[k])
+                tx, wx = crossing_of(ts, st.exit, inside[k])
                 face = tuple(dr.gather(mi.UInt32, ts.buf.faces, f_next[k] * 3 + j,
                                        to_bnd[k]) for j in range(3))
                 tn, _ = crossing_of(ts, face, to_bnd[k])
@@ -339,7 +342,9 @@ def _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev, leng
             dr.backward_from(dr.dot(adj.dL, Lo) + adj.dalpha * Lo_alpha,
                              flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
             for ts, i, act, P in moved:
-                g = mi.Vector3f(dr.grad(P))
+                # (a corner that is not there has no gradient: zero, not the NaN that a
+                # degenerate crossing's derivative times a zero weight may give)
+                g = dr.select(act, mi.Vector3f(dr.grad(P)), 0.0)
                 # (not in place: the two may start as one array object)
                 adj.g_o = adj.g_o - g
                 adj.g_w = adj.g_w - dr.cross(dr.detach(P) - o, g)

@@ -250,3 +250,28 @@ def test_camera_gradients_where_meshes_overlap():
             mi.Vector3f(x, 0, 0)) @ base, 1e-3),
         "rotate about y (degrees)": (lambda x: base @ mi.AffineTransform4f().rotate(
             mi.Vector3f(0, 1, 0), x), 0.05)}, 78)
+
+
+def test_camera_gradients_of_overlapping_meshes_read_only_their_own_vertices(capfd):
+    """The merged walk's camera derivative gathers each crossing's corners only where that
+    face exists: under Dr.Jit's debug mode (which checks every gather's index) no read
+    falls outside a mesh's vertices. (Such reads returned whatever memory followed the
+    positions: a NaN rotation gradient in a few rays, now and then.)"""
+    from tests.render.test_gradients import camera_scene
+    V, T = grid_mesh(5, jitter=0.1, seed=2)
+    C = np.full((len(V), 3), 0.5)
+    S = 2.5 * np.exp(-3 * (V ** 2).sum(1)) * (np.abs(V).max(1) < 0.99)
+    V2 = V + [0.6, 0.1, 0.0]
+    with dr.scoped_set_flag(dr.JitFlag.Debug, True):
+        scene = camera_scene((V, T, C, S), 24, 50, mesh1=mi_tetvr.tetmesh_dict(V2, T, C, S))
+        params = mi.traverse(scene)
+        base = mi.AffineTransform4f(params["sensor.to_world"])
+        x = mi.Float(0.0)
+        dr.enable_grad(x)
+        params["sensor.to_world"] = base @ mi.AffineTransform4f().rotate(mi.Vector3f(0, 1, 0), x)
+        params.update()
+        dr.backward(dr.sum(mi.render(scene, params, spp=1), axis=None))
+        g = float(dr.grad(x)[0])
+    err = capfd.readouterr().err
+    assert "out-of-bounds" not in err, err[:500]
+    assert np.isfinite(g) and g != 0.0
