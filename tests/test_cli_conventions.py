@@ -258,3 +258,22 @@ def test_readme_lists_the_commands_as_the_parsers_have_them():
     begin = text.index("<!-- commands:")
     block = text[text.index("\n", begin) + 1:text.index("<!-- /commands -->")].strip()
     assert block == cli.command_summary()
+
+
+def test_cone_beam_takes_fov_and_radius(tmp_path):
+    """make-dataset --xray --beam cone puts its sources at --radius with --fov (they were
+    ignored before): the written cameras say so."""
+    vol = tmp_path / "v.npy"
+    np.save(vol, np.ones((6, 6, 6), np.float32))
+    cli.main(["make-dataset", str(vol), "--xray", "--beam", "cone", "--fov", "30",
+              "--radius", "5", "--views", "3", "--test-views", "0", "-q", "-o",
+              str(tmp_path / "x"), "--variant", VARIANT])
+    from mi_tetvr.recon.datasets import load_nerf
+    from mi_tetvr.grid.xray import rotation_axis
+    from mi_tetvr.grid import load_volume
+    views = load_nerf(tmp_path / "x", holdout=None, load_images=False).views
+    axis = rotation_axis(load_volume(vol))
+    for v in views:
+        c = v.camera
+        assert np.degrees(2 * np.arctan(c.width / (2 * c.fx))) == pytest.approx(30.0)
+        assert np.linalg.norm((c.center - axis)[:2]) == pytest.approx(5.0)
