@@ -61,7 +61,8 @@ def main():
                    "model)")
     p.add_argument("--downscale", type=int, default=2)
     p.add_argument("--time-budget", type=float, default=10.0, help="minutes per fit")
-    p.add_argument("--out", default="bench_captures_out", help="where the fits are written")
+    p.add_argument("--out", default="out/captures", help="where the fits are written "
+                   "(default out/captures)")
     p.add_argument("--code", help="another checkout whose default fit is run too")
     p.add_argument("--code-args", default="", help="extra fit options of --code's run")
     p.add_argument("--reuse", action="store_true", help="score the fits already in --out "
