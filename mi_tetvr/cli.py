@@ -557,8 +557,8 @@ def _mesh_flags(parser):
 
 
 def _res(parser, default, help="image size in pixels, WxH or N"):
-    parser.add_argument("--res", type=image_size, default=default,
-                        help=f"{help} (default {default})" if default else help)
+    parser.add_argument("--res", type=image_size, default=default, metavar="WxH",
+                        help=f"{help} (default {default[0]}x{default[1]})" if default else help)
 
 
 def _opacity_scale(parser, default=OPACITY_SCALE):

@@ -154,6 +154,9 @@ def test_config_file_print_config_and_overrides(tmp_path, capsys):
     (tmp_path / "bad.json").write_text('{"lr_colour": 1}')
     msg = fails(["fit", "d", "-o", "o", "--config", str(tmp_path / "bad.json")])
     assert msg.startswith("mi-tetvr: unknown fit settings ['lr_colour']")
+    (tmp_path / "photo.json").write_bytes(b"\xff\xd8\xff\xe0 not text")
+    msg = fails(["fit", "d", "-o", "o", "--config", str(tmp_path / "photo.json")])
+    assert msg.startswith(f"mi-tetvr: cannot read the config {tmp_path / 'photo.json'}")
     msg = fails(["fit", "d", "-o", "o", "--config", str(tmp_path / "none.json")])
     assert "not found" in msg and "none.json" in msg
     msg = fails(["fit", "d", "-o", "o", "--loss", "l1", "--lr-color", "-1"])

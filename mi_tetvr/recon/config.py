@@ -209,15 +209,16 @@ class FitConfig:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"config file not found: {path}")
-        text = path.read_text()
         try:
+            text = path.read_text()
             if path.suffix.lower() in (".yaml", ".yml"):
                 import yaml
                 data = yaml.safe_load(text)
             else:
                 data = json.loads(text)
         except Exception as e:
-            raise ValueError(f"cannot read the config {path}: {e}") from None
+            raise ValueError(f"cannot read the config {path} (JSON, or YAML for .yaml/.yml): "
+                             f"{e}") from None
         if not isinstance(data, dict):
             raise ValueError(f"the config {path} must be a mapping of setting names to values")
         return cls().updated(**data)

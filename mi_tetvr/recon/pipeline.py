@@ -367,10 +367,12 @@ RESUMABLE = ("time_budget", "iterations", "lr_position", "checkpoint_every", "lo
 
 
 def check_resume(config: FitConfig, ckpt_path):
-    """Raise ``ValueError`` naming the settings in which ``config`` differs from the run
-    checkpointed at ``ckpt_path`` (other than :data:`RESUMABLE` ones and those left to the
-    run): resuming would mix the saved state with other settings."""
-    saved = json.loads(str(np.load(ckpt_path)["config"]))
+    """The settings of the run checkpointed at ``ckpt_path`` (a dict, current names); raise
+    ``ValueError`` naming those in which ``config`` differs (other than :data:`RESUMABLE`
+    ones and those left to the run): resuming would mix the saved state with other
+    settings."""
+    saved = {RENAMED.get(k, k): v
+             for k, v in json.loads(str(np.load(ckpt_path)["config"])).items()}
     diff = config.differences(saved, ignore=RESUMABLE)
     if diff:
         said = "; ".join(f"{k}: {json.dumps(a)} there, {json.dumps(b)} now"
@@ -378,6 +380,7 @@ def check_resume(config: FitConfig, ckpt_path):
         raise ValueError(f"{ckpt_path.parent} holds a run with other settings ({said}); "
                          f"use the same settings to resume it, --restart to start it over, "
                          f"or another --out")
+    return saved
 
 
 def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=print,
@@ -407,8 +410,7 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     ckpt_path = out / "checkpoint.npz"
     budget = None if config.time_budget is None else 60.0 * config.time_budget
     config = for_capture(config, dataset)
-    if resume and ckpt_path.exists():
-        check_resume(config, ckpt_path)
+    saved = check_resume(config, ckpt_path) if resume and ckpt_path.exists() else None
     if config.init in ("unbounded", "delaunay"):
         dataset = with_sparse_points(dataset, out, progress, log)
         if config.stages is None and config.init == "unbounded":
@@ -417,11 +419,9 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
         # the region once (a visual hull is carved from every view): calibration,
         # limits, warnings, the mesh and each grid stage read it, config.json keeps it
         config = dataclasses.replace(config, bounds=data_bounds(config, dataset).tolist())
-    if resume and ckpt_path.exists():
+    if saved is not None:
         if config.grid_resolution is None and config.stages is None:
             # the mesh sizes and stages the run chose when it began
-            saved = json.loads(str(np.load(ckpt_path)["config"]))
-            saved = {RENAMED.get(k, k): v for k, v in saved.items()}
             config = dataclasses.replace(config, grid_resolution=saved["grid_resolution"],
                                          stages=saved["stages"])
         trainer = load_checkpoint(ckpt_path, dataset, config)

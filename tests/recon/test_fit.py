@@ -221,7 +221,7 @@ def test_time_budget_is_used_and_honoured(data, tmp_path):
     metrics = run(data, tmp_path, CFG.updated(time_budget=budget / 60), progress=False,
                   log=lambda *a: None, now=clock)
     # the outputs' estimate: 0.5 s + 1.5 x views x one render (two readings: one tick)
-    reserve = output_seconds(Trainer_of(data), TickClock(tick))
+    reserve = output_seconds(trainer_of(data), TickClock(tick))
     assert reserve == pytest.approx(0.5 + 1.5 * len(data.test) * tick)
     # steps until the stage's end (the budget less the reserve)
     assert metrics["wall_seconds"] <= budget
@@ -240,7 +240,7 @@ def test_time_budget_is_used_and_honoured(data, tmp_path):
     assert abs(half["step"] - expected) <= 2, (half["step"], expected)
 
 
-def Trainer_of(data):
+def trainer_of(data):
     from mi_tetvr.recon.trainer import Trainer
     V, T, values = initial_mesh(CFG, data)
     return Trainer(data, V, T, CFG.for_stage(0), values)
