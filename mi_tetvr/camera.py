@@ -126,7 +126,8 @@ def as_rigid(m, what: str = "camera", tol: float = 1e-3) -> np.ndarray:
     Returns
     -------
     (4, 4) float64
-        The nearest rotation (polar decomposition) and the same translation.
+        The nearest rotation (polar decomposition) and the same translation; a
+        matrix that is a rotation to float64 precision is returned unchanged.
 
     Raises
     ------
@@ -144,10 +145,13 @@ def as_rigid(m, what: str = "camera", tol: float = 1e-3) -> np.ndarray:
             or np.abs(m[3] - [0, 0, 0, 1]).max() > tol:
         raise ValueError(f"{what}: camera-to-world matrix is not a rotation + translation "
                          f"(scale, shear or reflection); Mitsuba sensors must be rigid")
-    u, _, vt = np.linalg.svd(r)
     out = np.eye(4)
-    out[:3, :3] = u @ vt
     out[:3, 3] = m[:3, 3]
+    if np.abs(r.T @ r - np.eye(3)).max() <= 8 * np.finfo(np.float64).eps:
+        out[:3, :3] = r              # a rotation to float64 precision: kept bit for bit
+    else:
+        u, _, vt = np.linalg.svd(r)
+        out[:3, :3] = u @ vt
     return out
 
 

@@ -91,6 +91,27 @@ class Volume:
         """Trilinear interpolation at world points ``p (..., 3)`` (numpy reference; clamps)."""
         return trilinear_numpy(self.values, self.world_to_index(p))
 
+    def resampled(self, spacing: float) -> "Volume":
+        """The trilinear field sampled on an isotropic grid of ``spacing`` (world
+        units) from the box's low corner, as many samples per axis as fit in the box."""
+        lo, hi = self.bounds()
+        spacing = float(spacing)
+        n = np.floor((hi - lo) / spacing * (1 + 1e-9)).astype(np.int64) + 1
+        if np.any(n < 2):
+            raise ValueError(f"spacing {spacing:g} leaves fewer than 2 samples on an axis of "
+                             f"the box {lo} .. {hi}")
+        x, y, z = (lo[a] + np.arange(n[a]) * spacing for a in range(3))
+        zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
+        values = self.sample(np.stack([xx, yy, zz], -1))
+        return Volume(values=np.ascontiguousarray(values, np.float32), spacing=np.full(3, spacing),
+                      origin=lo.copy(), data_range=self.data_range,
+                      source=f"{self.source} resampled to {n[0]}x{n[1]}x{n[2]}",
+                      source_spacing=self.source_spacing * spacing / self.spacing)
+
+    def isotropic(self, rtol: float = 1e-6) -> bool:
+        """Whether the samples are equally spaced along x, y and z."""
+        return bool(np.allclose(self.spacing, self.spacing[0], rtol=rtol, atol=0.0))
+
     def info(self) -> dict:
         lo, hi = self.bounds()
         return {"source": self.source, "shape_xyz": list(self.shape),

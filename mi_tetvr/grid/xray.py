@@ -22,11 +22,14 @@ from mi_tetvr.camera import Camera
 from mi_tetvr.grid.volume import Volume, trilinear_numpy
 
 __all__ = ["line_integrals", "xray_cameras", "rotation_axis", "project_volume",
-           "parallel_angles", "reconstruct_slices", "MAX_DEPTH"]
+           "parallel_angles", "reconstruct_slices", "fdk", "MAX_DEPTH", "FACE_TOLERANCE"]
 
 #: Default largest optical depth of a data set's rays (transmittance e^-2.5 = 8 %):
 #: the attenuation scale is chosen for it.
 MAX_DEPTH = 2.5
+#: A ray parallel to an axis this fraction of a sample spacing outside a face
+#: of the box runs along the face (:func:`line_integrals`).
+FACE_TOLERANCE = 1e-6
 _GL = 0.5 / np.sqrt(3.0)     # two-point Gauss-Legendre nodes at 1/2 -+ this
 
 
@@ -46,10 +49,18 @@ def line_integrals(volume: Volume, origins, directions, chunk: int = 4096) -> np
     -------
     (k,) float64
     """
-    o = np.asarray(origins, np.float64).reshape(-1, 3)
+    o = np.array(origins, np.float64).reshape(-1, 3)
     d = np.asarray(directions, np.float64).reshape(-1, 3)
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
     lo, hi = volume.bounds()
+    # A ray along a face integrates what lies on it: a ray parallel to an axis
+    # (to 1e-12) within FACE_TOLERANCE of a sample spacing outside the box is
+    # moved onto its face, so that rounding of a camera's pose never drops it.
+    along = np.abs(d) < 1e-12
+    d = np.where(along, 0.0, d)
+    tol = FACE_TOLERANCE * volume.spacing
+    o = np.where(along & (o < lo) & (o >= lo - tol), lo, o)
+    o = np.where(along & (o > hi) & (o <= hi + tol), hi, o)
     planes = [lo[a] + np.arange(volume.shape[a]) * volume.spacing[a] for a in range(3)]
     out = np.zeros(len(o))
     for s in range(0, len(o), chunk):
@@ -196,3 +207,64 @@ def reconstruct_slices(grid: Volume, views, scale: float, method: str = "fbp",
             raise ValueError(f"method must be fbp or sart, got {method!r}")
         out[nz - 1 - j] = img[np.ix_(rows, cols)]          # image row j is sample z nz-1-j
     return out
+
+
+def _ramp(width: int, spacing: float) -> np.ndarray:
+    """The band-limited ramp filter's kernel (Kak and Slaney, Eq. 3.61) on
+    ``2 width - 1`` taps of ``spacing``: 1/(4 s^2) at 0, -1/(n pi s)^2 at odd n."""
+    n = np.arange(-(width - 1), width)
+    h = np.zeros(len(n))
+    h[n == 0] = 1.0 / (4.0 * spacing ** 2)
+    odd = n % 2 == 1
+    h[odd] = -1.0 / (np.pi * n[odd] * spacing) ** 2
+    return h
+
+
+def fdk(grid: Volume, views, scale: float) -> np.ndarray:
+    """Feldkamp-Davis-Kress cone-beam reconstruction (FDK, 1984) on the
+    samples of ``grid`` from cone-beam views on a full circle around its z
+    axis (what :func:`xray_cameras` makes with ``beam="cone"``): each
+    projection weighted by the cosine of its rays' angle to the central ray,
+    ramp-filtered along the detector rows, and back-projected with the
+    inverse square of the depth along the central ray.
+
+    Parameters
+    ----------
+    grid : Volume
+        Where to reconstruct (shape, spacing, bounds; its values are not read).
+    views : list of View
+        Perspective X-ray views evenly over 360 degrees (alpha = 1 - transmittance).
+    scale : float
+        Attenuation per world unit of a value 1 (the result is in values).
+
+    Returns
+    -------
+    (nz, ny, nx) float64
+    """
+    from scipy.ndimage import map_coordinates
+    from scipy.signal import fftconvolve
+    if not views or any(v.camera.is_orthographic for v in views):
+        raise ValueError("fdk needs perspective (cone-beam) views")
+    axis = rotation_axis(grid)
+    lo, _ = grid.bounds()
+    nx, ny, nz = grid.shape
+    z, y, x = np.meshgrid(*(np.arange(k) for k in (nz, ny, nx)), indexing="ij")
+    samples = lo + np.stack([x, y, z], -1).reshape(-1, 3) * grid.spacing
+    out = np.zeros(len(samples))
+    for view in views:
+        cam = view.camera
+        source = cam.to_world[:3, 3]
+        radius = float(np.linalg.norm((source - axis)[:2]))
+        w, h = cam.width, cam.height
+        a = (np.arange(w) + 0.5 - cam.cx) / cam.fx          # tangents of the rays' angles
+        b = (np.arange(h) + 0.5 - cam.cy) / cam.fy
+        depth = -np.log(np.clip(1.0 - view.image[..., 3].astype(np.float64), 1e-12, None))
+        weighted = depth / scale / np.sqrt(1.0 + a[None, :] ** 2 + b[:, None] ** 2)
+        # rows filtered in units of the virtual detector through the axis
+        step = radius / cam.fx
+        q = step * fftconvolve(weighted, _ramp(w, step)[None, :], mode="same", axes=1)
+        uv, u_depth = cam.project(samples)
+        val = map_coordinates(q, [uv[:, 1] - 0.5, uv[:, 0] - 0.5], order=1, mode="constant",
+                              cval=0.0)
+        out += (radius / np.maximum(u_depth, 1e-12)) ** 2 * val
+    return (out * np.pi / len(views)).reshape(nz, ny, nx)

@@ -176,6 +176,22 @@ class FitConfig:
         "emission", "emission: colors and opacities from images; absorption: an X-ray "
         "attenuation (point data 'attenuation') from transmittance images",
         choices=("emission", "absorption"))
+    solver: str | None = setting(
+        None, "sart (ordered-subset SART on the tets, one view per update, attenuation >= 0), "
+        "sirt (all views per update), lsqr (CGLS/LSQR through scipy, then >= 0): model "
+        "absorption only; adam: the image-loss optimizer; default: sart for model absorption "
+        "(chosen by measurement, benchmarks/bench_tomography.py), else adam",
+        choices=("sart", "sirt", "lsqr", "adam"))
+    passes: int | None = setting(
+        None, "model absorption, linear solvers: passes over the views (lsqr: iterations); "
+        "default sart 15, sirt 200, lsqr 12, where the measured error stopped falling")
+    relaxation: float = setting(1.0, "model absorption, sart/sirt: the update's relaxation")
+    tv: float = setting(
+        0.0, "model absorption, sart/sirt: total-variation descent after each pass, in units "
+        "of the pass's change (ASD-POCS; 0: none)")
+    xray_flux: float | None = setting(
+        None, "model absorption: photons per pixel of the unattenuated beam: rays weighted by "
+        "their counts (Poisson noise); default: what the data set records (none: unweighted)")
     scalar: str | None = setting(None, "the init mesh's scalar point array (default: the only "
                                        "one)")
     value_range: list | None = setting(
@@ -223,6 +239,14 @@ class FitConfig:
             raise ValueError(f"the config {path} must be a mapping of setting names to values")
         return cls().updated(**data)
 
+    @property
+    def linear_solver(self):
+        """The linear solver of an absorption fit (``sart``, ``sirt``, ``lsqr``;
+        ``sart`` unless ``solver`` says), or ``None`` (an Adam fit)."""
+        if self.model != "absorption" or self.solver == "adam":
+            return None
+        return self.solver or "sart"
+
     def updated(self, **kw):
         """A validated copy with the given settings changed (``None`` values
         leave a setting as it is); unknown names are an error."""
@@ -261,7 +285,7 @@ class FitConfig:
                 raise ValueError(f"{f.name} must be {', '.join(map(str, choices))}; "
                                  f"got {value!r}")
         for name in ("iterations", "views_per_step", "grid_resolution", "n_sub", "spp",
-                     "downscale", "checkpoint_every", "log_every"):
+                     "downscale", "checkpoint_every", "log_every", "passes"):
             if getattr(self, name) is not None and int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1")
         if self.time_budget is not None and not self.time_budget > 0:
@@ -270,6 +294,13 @@ class FitConfig:
                      "lr_appearance", "appearance_prior"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0")
+        if not 0 < self.relaxation <= 2:
+            raise ValueError("relaxation must be in (0, 2]")
+        if self.tv < 0 or (self.xray_flux is not None and not self.xray_flux > 0):
+            raise ValueError("tv must be >= 0 and xray_flux > 0")
+        if self.solver not in (None, "adam") and self.model != "absorption":
+            raise ValueError(f"solver {self.solver} solves model absorption (X-ray "
+                             f"projections); fits of images use solver adam")
         if not 0 < self.decay <= 1:
             raise ValueError("decay must be in (0, 1]")
         if self.background is not None and self.background != "learn" and \

@@ -138,6 +138,9 @@ class Dataset:
         ``"centers"`` (rendered through pixel centres: point samples, as ``mi-tetvr
         make-dataset`` writes them) or ``"area"`` (averages over the pixel, as photos
         and path-traced renders are); ``""`` when it does not say.
+    xray_flux : float or None
+        X-ray projections with Poisson noise: photons per pixel of the unattenuated
+        beam (NeRF json key ``xray_flux``); ``None`` for noise-free projections.
     """
     train: List[View]
     test: List[View] = field(default_factory=list)
@@ -150,6 +153,7 @@ class Dataset:
     point_track_lengths: Optional[np.ndarray] = None
     protocol: str = ""
     pixel_sampling: str = ""
+    xray_flux: Optional[float] = None
 
     @property
     def views(self) -> List[View]:
@@ -315,8 +319,9 @@ def _orthographic_view(m, frame, path, image, w, h, downscale, what) -> View:
     if image is not None and image.shape[:2] != (int(round(h)), int(round(w))):
         raise ValueError(f"{where}: image of {image.shape[1]}x{image.shape[0]} pixels, the "
                          f"frame says {w:g}x{h:g}")
-    s = ow / w
-    if not s > 0 or abs(oh / h - s) > 1e-6 * s:
+    # pixel_size (written beside ortho_width) keeps the camera bit for bit
+    s = float(m.get("pixel_size", ow / w))
+    if not s > 0 or abs(ow / w - s) > 1e-6 * s or abs(oh / h - s) > 1e-6 * s:
         raise ValueError(f"{where}: orthographic pixels must be square and positive "
                          f"(ortho_width / w = {ow / w:g}, ortho_height / h = {oh / h:g})")
     c2w = as_rigid(frame["transform_matrix"], where)
@@ -389,12 +394,14 @@ def load_nerf(path, downscale: int = 1, holdout: Holdout = 8, *, load_images: bo
             raise FileNotFoundError(f"{root}: no transforms_train.json or transforms.json")
 
     out: Dict[str, List[View]] = {}
-    bbox, sampling = None, ""
+    bbox, sampling, flux = None, "", None
     for split, name in files.items():
         fpath = root / name
         with open(fpath) as f:
             meta = json.load(f)
         sampling = sampling or str(meta.get("pixel_sampling", ""))
+        if meta.get("xray_flux") is not None:
+            flux = float(meta["xray_flux"])
         if bbox is None and "aabb" in meta and np.size(meta["aabb"]) == 6:
             bbox = np.asarray(meta["aabb"], np.float64).reshape(2, 3)
         frames = meta.get("frames", [])
@@ -421,7 +428,7 @@ def load_nerf(path, downscale: int = 1, holdout: Holdout = 8, *, load_images: bo
         train, test = _holdout_split(train, holdout)
         protocol = holdout_protocol(holdout, "in file order")
     return Dataset(train=train, test=test, points=None, bbox=bbox, name=root.name, root=root,
-                   protocol=protocol, pixel_sampling=sampling)
+                   protocol=protocol, pixel_sampling=sampling, xray_flux=flux)
 
 
 def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train", "test"), *,
@@ -435,7 +442,7 @@ def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train",
     ``png``: 8-bit sRGB RGBA with straight alpha (the premultiplied color is divided by alpha);
     ``exr``: linear premultiplied float32 (exact); ``npy``: X-ray transmittance ``1 - alpha``
     (H, W) float32. Orthographic cameras are written with ``"camera_model": "orthographic"``,
-    ``ortho_width`` and ``ortho_height`` (world units).
+    ``ortho_width``, ``ortho_height`` (world units) and ``pixel_size``.
     A data set ``bbox`` is written as ``aabb``, its ``pixel_sampling`` as ``pixel_sampling``.
     Sparse points are not written.
 
@@ -457,12 +464,13 @@ def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train",
     fmt = image_format.lower().lstrip(".")
     if fmt not in ("png", "exr", "npy"):
         raise ValueError(f"image_format must be 'png', 'exr' or 'npy', got {image_format!r}")
-    bbox, sampling = None, ""
+    bbox, sampling, flux = None, "", None
     if isinstance(dataset_or_views, Dataset):
         groups = {split_names[0]: dataset_or_views.train}
         if dataset_or_views.test:
             groups[split_names[1]] = dataset_or_views.test
         bbox, sampling = dataset_or_views.bbox, dataset_or_views.pixel_sampling
+        flux = dataset_or_views.xray_flux
     elif isinstance(dataset_or_views, dict):
         groups = dict(dataset_or_views)
     else:
@@ -480,7 +488,8 @@ def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train",
             c = v.camera
             if c.is_orthographic:
                 return {"camera_model": "orthographic", "ortho_width": c.pixel_size * c.width,
-                        "ortho_height": c.pixel_size * c.height, "cx": c.cx, "cy": c.cy,
+                        "ortho_height": c.pixel_size * c.height, "pixel_size": c.pixel_size,
+                        "cx": c.cx, "cy": c.cy,
                         "w": c.width, "h": c.height}
             return {"camera_angle_x": 2.0 * math.atan(0.5 * c.width / c.fx),
                     "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy,
@@ -491,6 +500,8 @@ def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train",
             meta["aabb"] = np.asarray(bbox, np.float64).reshape(2, 3).tolist()
         if sampling:
             meta["pixel_sampling"] = sampling
+        if flux is not None:
+            meta["xray_flux"] = float(flux)
         frames, used = [], set()
         for i, v in enumerate(views):
             if v.image is None:

@@ -18,6 +18,10 @@ __all__ = ["read_image", "write_image", "downscale_image"]
 _SRGB_LUT8 = srgb_to_linear(np.arange(256) / 255.0).astype(np.float32)
 
 
+#: The largest transmittance an X-ray image may hold: above 1 only by photon
+#: noise (a count above the beam's mean), kept so that noise stays unbiased.
+MAX_TRANSMITTANCE = 2.0
+
 def downscale_image(image: np.ndarray, factor: int) -> np.ndarray:
     """Area-average an image by an integer factor.
 
@@ -75,11 +79,13 @@ def read_image(path, downscale: int = 1) -> np.ndarray:
         if t.ndim != 2 or not np.issubdtype(t.dtype, np.floating):
             raise ValueError(f"{path}: an X-ray image is an (H, W) float array of "
                              f"transmittance, got {t.dtype} {t.shape}")
-        if not np.all(np.isfinite(t)) or t.min() < 0 or t.max() > 1 + 1e-6:
-            raise ValueError(f"{path}: transmittance I/I0 must lie in [0, 1], got "
+        # counted photons (Poisson noise) may exceed the unattenuated beam's mean
+        if not np.all(np.isfinite(t)) or t.min() < 0 or t.max() > MAX_TRANSMITTANCE:
+            raise ValueError(f"{path}: transmittance I/I0 must lie in [0, 1] (up to "
+                             f"{MAX_TRANSMITTANCE:g} with photon noise), got "
                              f"[{np.nanmin(t):.4g}, {np.nanmax(t):.4g}]")
         img = np.zeros(t.shape + (4,), np.float32)
-        img[..., 3] = 1.0 - np.clip(t, 0.0, 1.0)
+        img[..., 3] = 1.0 - t
         return downscale_image(img, downscale)
     if path.suffix.lower() in (".exr", ".hdr", ".pfm", ".rgbe"):
         import mitsuba as mi

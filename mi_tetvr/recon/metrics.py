@@ -15,7 +15,8 @@ import numpy as np
 
 from mi_tetvr.color import linear_to_srgb
 
-__all__ = ["composite", "display_rgb", "psnr", "ssim", "image_metrics", "transmittance_metrics"]
+__all__ = ["composite", "display_rgb", "psnr", "ssim", "image_metrics", "transmittance_metrics",
+           "tomography_scores"]
 
 
 def composite(rgba, background=None):
@@ -114,3 +115,47 @@ def transmittance_metrics(pred_rgba, target_rgba):
             for x in (pred_rgba, target_rgba))
     mse = float(np.mean((a - b) ** 2))
     return {"psnr": psnr(mse), "ssim": ssim(a, b), "mse": mse, "psnr_linear": psnr(mse)}
+
+
+def tomography_scores(volume=None, truth=None, projections=None, targets=None) -> dict:
+    """The one yardstick of a tomographic reconstruction, whatever made it
+    (FBP, SART, FDK or a tet fit): every method's numbers come from here, on
+    the same arrays.
+
+    Parameters
+    ----------
+    volume, truth : (nz, ny, nx) float, optional
+        The reconstruction at the true volume's samples (a tet field sampled
+        there) and the true volume, normalised so that its values lie in [0, 1].
+        The reconstruction is clipped to [0, 1] (FBP goes negative).
+    projections, targets : list of (h, w) float, optional
+        Held-out transmittance images (``I / I0`` in [0, 1]): each reconstruction
+        projected, and the measured ones.
+
+    Returns
+    -------
+    dict
+        ``volume_psnr`` (dB, peak 1), ``slice_ssim`` (mean over the z slices of
+        scikit-image's SSIM, data range 1), ``projection_psnr_views`` (the mean
+        of each view's PSNR: what a fit's ``metrics.json`` reports as ``psnr``)
+        and ``projection_psnr_pixels`` (the PSNR of the mean squared error over
+        all pixels of all views), for what was given.
+    """
+    out = {}
+    if volume is not None:
+        v = np.clip(np.asarray(volume, np.float64), 0.0, 1.0)
+        t = np.asarray(truth, np.float64)
+        if v.shape != t.shape:
+            raise ValueError(f"reconstruction of shape {v.shape}, truth of shape {t.shape}")
+        out["volume_psnr"] = psnr(float(np.mean((v - t) ** 2)))
+        out["slice_ssim"] = float(np.mean([ssim(v[k][..., None], t[k][..., None])
+                                           for k in range(len(t))]))
+    if projections is not None:
+        if len(projections) != len(targets) or not len(targets):
+            raise ValueError(f"{len(projections)} projections for {len(targets)} targets")
+        sq = [(np.clip(np.asarray(p, np.float64), 0.0, 1.0)
+               - np.asarray(q, np.float64)) ** 2 for p, q in zip(projections, targets)]
+        out["projection_psnr_views"] = float(np.mean([psnr(float(np.mean(e))) for e in sq]))
+        out["projection_psnr_pixels"] = psnr(float(np.mean(np.concatenate(
+            [e.ravel() for e in sq]))))
+    return out

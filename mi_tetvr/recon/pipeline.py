@@ -363,7 +363,8 @@ class _Clock:
 
 #: Settings a resumed run may change: its time, its length, how often it logs and saves
 #: (a stage's steps and position rate are in its checkpointed settings).
-RESUMABLE = ("time_budget", "iterations", "lr_position", "checkpoint_every", "log_every")
+RESUMABLE = ("time_budget", "iterations", "lr_position", "checkpoint_every", "log_every",
+             "passes")
 
 
 def check_resume(config: FitConfig, ckpt_path):
@@ -409,6 +410,10 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.npz"
     budget = None if config.time_budget is None else 60.0 * config.time_budget
+    if config.linear_solver:
+        # X-ray projections: the linear problem, solved as such
+        from mi_tetvr.recon.tomography import fit_attenuation
+        return fit_attenuation(dataset, out, config, resume, progress, log, now)
     config = for_capture(config, dataset)
     saved = check_resume(config, ckpt_path) if resume and ckpt_path.exists() else None
     if config.init in ("unbounded", "delaunay"):

@@ -213,7 +213,7 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
 def make_xray_dataset(volume: Volume, out_dir, views: int = 64, test_views: int = 8,
                       beam: str = "parallel", scale: float | None = None,
                       max_depth: float = MAX_DEPTH, distance: float = 3.0, fov: float = 40.0,
-                      progress: bool = True) -> dict:
+                      flux: float | None = None, seed: int = 0, progress: bool = True) -> dict:
     """Write an X-ray data set of ``volume``: ``views`` training projections
     evenly over 180 degrees (parallel beam; 360 for a cone beam) and
     ``test_views`` held-out ones at angles between them.
@@ -229,47 +229,76 @@ def make_xray_dataset(volume: Volume, out_dir, views: int = 64, test_views: int 
     scale : float, optional
         Attenuation per world unit of a normalised value 1 (default: the one
         whose largest optical depth over the training views is ``max_depth``).
+    flux : float, optional
+        Photons per pixel of the unattenuated beam: the training projections
+        are Poisson counts ``N ~ Poisson(flux * T)`` stored as ``N / flux`` (the
+        data set records ``xray_flux``, which weights the fit's rays); the
+        held-out ones stay noise-free (what the true volume projects). Default:
+        noise-free projections.
+    seed : int
+        Seed of the noise.
+
+    A parallel beam needs isotropic samples (its rows lie on the z samples,
+    its pixels are square): a volume with other spacings is resampled
+    (trilinear) to its x spacing first (:meth:`Volume.resampled`). Rays
+    along the box's faces integrate what lies on them
+    (:func:`~mi_tetvr.grid.xray.line_integrals`).
 
     Returns
     -------
     dict
-        ``info`` (what ``xray_info.json`` holds) and the ``train`` / ``test``
-        views (:class:`~mi_tetvr.recon.datasets.View`).
+        ``info`` (what ``xray_info.json`` holds), the ``train`` / ``test``
+        views (:class:`~mi_tetvr.recon.datasets.View`) and the ``volume``
+        projected (``volume`` itself, or resampled).
     """
     from mi_tetvr.progress import progress_bar as tqdm
+    projected = volume
+    if beam == "parallel" and not volume.isotropic():
+        # the detector's rows lie on the z samples and its pixels are square
+        projected = volume.resampled(float(volume.spacing[0]))
     span = 180.0 if beam == "parallel" else 360.0
     # held-out angles halfway between training ones, spread over the scan
     angles = {"train": parallel_angles(views) * span / 180.0,
               "test": (np.arange(test_views) * (views / max(test_views, 1)) + 0.5) * span / views}
     depth = {}
     bar = tqdm(total=views + test_views, desc="project", disable=not progress)
-    cams = {k: xray_cameras(volume, a, beam, distance, fov) for k, a in angles.items()}
+    cams = {k: xray_cameras(projected, a, beam, distance, fov) for k, a in angles.items()}
     for split, cs in cams.items():
         depth[split] = []
         for cam in cs:
             o, d = cam.rays()
-            depth[split].append(line_integrals(volume, o, d).reshape(cam.height, cam.width))
+            depth[split].append(line_integrals(projected, o, d).reshape(cam.height, cam.width))
             bar.update(1)
     bar.close()
     if scale is None:
         scale = max_depth / max(max(float(x.max()) for x in depth["train"]), 1e-12)
     posed = {}
+    rng = np.random.default_rng(seed)
     for split, cs in cams.items():
         posed[split] = []
         for i, (cam, dep) in enumerate(zip(cs, depth[split])):
             img = np.zeros((cam.height, cam.width, 4), np.float32)
-            img[..., 3] = 1.0 - np.exp(-scale * dep)
+            t = np.exp(-scale * dep)
+            if flux is not None and split == "train":
+                t = rng.poisson(float(flux) * t) / float(flux)
+            img[..., 3] = 1.0 - t
             posed[split].append(View(f"p_{i:03d}", cam, img))
-    lo, hi = volume.bounds()
+    lo, hi = projected.bounds()
     write_nerf(Dataset(posed["train"], posed["test"], bbox=np.stack([lo, hi]),
-                       pixel_sampling="centers"), out_dir,
+                       pixel_sampling="centers", xray_flux=flux), out_dir,
                image_format="npy")
-    info = {"volume": volume.info(), "beam": beam, "attenuation_scale": float(scale),
+    info = {"volume": projected.info(), "beam": beam, "attenuation_scale": float(scale),
             "max_depth": float(max(float(x.max()) for x in depth["train"]) * scale),
             "angles_train_deg": angles["train"].tolist(),
             "angles_test_deg": angles["test"].tolist(),
+            "noise": "none" if flux is None else
+                     f"training projections: Poisson counts at {float(flux):g} photons per "
+                     f"unattenuated pixel (seed {seed}); held-out ones noise-free",
+            "xray_flux": None if flux is None else float(flux),
             "model": "absorption: transmittance exp(-integral of scale * trilinear value), "
                      "exact (two-point Gauss-Legendre between grid-plane crossings), through "
                      "pixel centres"}
+    if projected is not volume:
+        info["resampled_from"] = volume.info()
     (Path(out_dir) / "xray_info.json").write_text(json.dumps(info, indent=1) + "\n")
-    return {"info": info, "train": posed["train"], "test": posed["test"]}
+    return {"info": info, "train": posed["train"], "test": posed["test"], "volume": projected}

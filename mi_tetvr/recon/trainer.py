@@ -25,7 +25,8 @@ from mi_tetvr.color import linear_to_srgb
 from mi_tetvr.mesh.topology import bounding_radius, mean_edge_length
 from mi_tetvr.recon.config import FitConfig
 from mi_tetvr.recon.fields import MESH_ID, key, make_field
-from mi_tetvr.recon.metrics import composite, display_rgb, image_metrics, transmittance_metrics
+from mi_tetvr.recon.metrics import (composite, display_rgb, image_metrics, tomography_scores,
+                                    transmittance_metrics)
 from mi_tetvr.recon.optim import VertexAdam
 
 __all__ = ["Trainer", "RunState", "K_POSITION", "K_ENVIRONMENT", "ENVIRONMENT_SIZE",
@@ -415,10 +416,16 @@ class Trainer:
         """PSNR, SSIM and MSE per view (RGB over the config's background) and
         their mean: ``{"views": {name: metrics}, "mean": metrics}``."""
         bg = self.background
+        renders = [self.render_view(v) for v in views]
         if self.field.signal == "transmittance":
-            per = {v.name: transmittance_metrics(self.render_view(v), v.image) for v in views}
+            per = {v.name: transmittance_metrics(r, v.image) for v, r in zip(views, renders)}
         else:
-            per = {v.name: image_metrics(self.render_view(v), v.image, bg) for v in views}
+            per = {v.name: image_metrics(r, v.image, bg) for v, r in zip(views, renders)}
         mean = {k: float(np.mean([m[k] for m in per.values()]))
                 for k in ("psnr", "ssim", "mse", "psnr_linear")}
+        if self.field.signal == "transmittance":
+            # beside the mean of the views' PSNRs: the PSNR over all their pixels
+            mean["psnr_all_pixels"] = tomography_scores(
+                projections=[1.0 - r[..., 3] for r in renders],
+                targets=[1.0 - v.image[..., 3] for v in views])["projection_psnr_pixels"]
         return {"views": per, "mean": mean}
