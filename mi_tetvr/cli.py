@@ -324,7 +324,7 @@ def cmd_make_dataset(a):
         if (a.beam or "parallel") == "parallel":
             _refuse(a, ("fov", "radius"), "to a parallel beam (--beam cone has them)")
     else:
-        _refuse(a, ("beam", "attenuation", "max_depth"), "without --xray")
+        _refuse(a, ("beam", "attenuation", "max_depth", "flux"), "without --xray")
         if a.tf is None:
             sys.exit("mi-tetvr: make-dataset needs --tf (or --xray for X-ray projections)")
         if is_mesh:
@@ -344,13 +344,20 @@ def cmd_make_dataset(a):
         geometry = {} if beam == "parallel" else {
             "distance": 3.0 if a.radius is None else a.radius,
             "fov": 40.0 if a.fov is None else a.fov}
+        if a.flux is not None and not a.flux > 0:
+            sys.exit(f"mi-tetvr: --flux must be > 0 photons, got {a.flux:g}")
         info = make_xray_dataset(load_volume(path, value_range=vr), a.out, views=a.views,
                                  test_views=a.test_views, beam=beam, scale=a.attenuation,
                                  max_depth=MAX_DEPTH if a.max_depth is None else a.max_depth,
-                                 progress=not a.quiet, **geometry)["info"]
+                                 flux=a.flux, seed=seed, progress=not a.quiet,
+                                 **geometry)["info"]
+        if "resampled_from" in info:
+            print(f"the volume's spacings differ ({info['resampled_from']['spacing']}): "
+                  f"resampled to {info['volume']['shape_xyz']} samples of its x spacing for "
+                  f"the parallel beam's square pixels on the z samples")
         print(f"wrote {a.views} training and {a.test_views} test {beam}-beam projections "
               f"(attenuation {info['attenuation_scale']:.4g} per unit, largest optical depth "
-              f"{info['max_depth']:.2f}) to {a.out}")
+              f"{info['max_depth']:.2f}; noise: {info['noise']}) to {a.out}")
         return
     res = a.res or (256, 256)
     if is_mesh:
@@ -687,6 +694,9 @@ def build_parser():
                    "normalised value 1 (default: from --max-depth)")
     d.add_argument("--max-depth", type=float, help="X-ray: the largest optical depth of a "
                    "training ray (default 2.5)")
+    d.add_argument("--flux", type=float, help="X-ray: photons per pixel of the unattenuated "
+                   "beam: the training projections are Poisson counts (the fit weights its "
+                   "rays by them); default: noise-free")
     _mesh_flags(d)
     _quiet(d)
     _variant(d)

@@ -138,6 +138,8 @@ def test_every_fit_setting_is_an_option(field):
     extra = []
     if field == "optimize":          # tf needs the scalar mesh
         extra = ["--init", "m.vtu"]
+    if field == "solver":            # the linear solvers solve X-ray projections
+        extra = ["--model", "absorption"]
     a = parse("fit", *argv, *extra)
     assert cli.fit_config(a).to_dict()[field] == value
 
