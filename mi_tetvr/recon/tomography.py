@@ -35,7 +35,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["Projector", "depths", "statistical_weights", "sart", "least_squares",
-           "tv_gradient", "aligned_resolution", "detector_cell", "STALL", "fit_attenuation", "DEFAULT_PASSES"]
+           "tv_gradient", "aligned_resolution", "detector_cell", "fit_attenuation",
+           "DEFAULT_PASSES", "STALL"]
 
 #: Passes over the views when the config gives none: the solver's count where
 #: the measured volume PSNR stopped rising (``benchmarks/bench_tomography.py``).
