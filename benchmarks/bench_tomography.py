@@ -109,14 +109,6 @@ def load(a):
     return v, a.volume
 
 
-def samples_of(volume):
-    """(nz*ny*nx, 3) world positions of the volume's samples, z slowest."""
-    lo, _ = volume.bounds()
-    nx, ny, nz = volume.shape
-    z, y, x = np.meshgrid(*(np.arange(k) for k in (nz, ny, nx)), indexing="ij")
-    return lo + np.stack([x, y, z], -1).reshape(-1, 3) * volume.spacing
-
-
 def grid_projections(values, volume, views, scale):
     """Held-out transmittance images of a reconstruction on the volume's samples
     (its trilinear field's exact line integrals)."""
@@ -191,7 +183,7 @@ def main(a):
     tets_time = time.perf_counter() - t0
     mesh = read_tetmesh(out / "fit" / "attenuation.vtu", opacity="attenuation")
     field = sample_field(mesh.vertices, mesh.tets, mesh.opacity / scale,
-                         samples_of(volume)).reshape(truth.shape)
+                         volume.sample_points()).reshape(truth.shape)
     solver = m.get("solver", {}).get("method", "adam")
     score(f"tets ({solver})", field, tet_projections(mesh, data.test), len(mesh.vertices),
           tets_time, tets=len(mesh.tets), passes=m["step"],

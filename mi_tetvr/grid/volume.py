@@ -91,6 +91,13 @@ class Volume:
         """Trilinear interpolation at world points ``p (..., 3)`` (numpy reference; clamps)."""
         return trilinear_numpy(self.values, self.world_to_index(p))
 
+    def sample_points(self) -> np.ndarray:
+        """(nz * ny * nx, 3) world positions of the samples, in ``values``' order."""
+        lo, _ = self.bounds()
+        nx, ny, nz = self.shape
+        z, y, x = np.meshgrid(*(np.arange(k) for k in (nz, ny, nx)), indexing="ij")
+        return lo + np.stack([x, y, z], -1).reshape(-1, 3) * self.spacing
+
     def resampled(self, spacing: float) -> "Volume":
         """The trilinear field sampled on an isotropic grid of ``spacing`` (world
         units) from the box's low corner, as many samples per axis as fit in the box."""

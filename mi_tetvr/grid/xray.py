@@ -246,10 +246,8 @@ def fdk(grid: Volume, views, scale: float) -> np.ndarray:
     if not views or any(v.camera.is_orthographic for v in views):
         raise ValueError("fdk needs perspective (cone-beam) views")
     axis = rotation_axis(grid)
-    lo, _ = grid.bounds()
     nx, ny, nz = grid.shape
-    z, y, x = np.meshgrid(*(np.arange(k) for k in (nz, ny, nx)), indexing="ij")
-    samples = lo + np.stack([x, y, z], -1).reshape(-1, 3) * grid.spacing
+    samples = grid.sample_points()
     out = np.zeros(len(samples))
     for view in views:
         cam = view.camera

@@ -303,10 +303,8 @@ def test_one_yardstick_through_every_path(blob_data):
     from mi_tetvr.recon.trainer import Trainer
     vol, made, data = blob_data
     scale = made["info"]["attenuation_scale"]
-    lo, hi = vol.bounds()
     nx, ny, nz = vol.shape
-    z, y, x = np.meshgrid(*(np.arange(k) for k in (nz, ny, nx)), indexing="ij")
-    pts = lo + np.stack([x, y, z], -1).reshape(-1, 3) * vol.spacing
+    pts = vol.sample_points()
     linear = lambda p: 0.5 + 0.1 * p[..., 0] - 0.05 * p[..., 1] + 0.08 * p[..., 2]  # noqa: E731
     recon = linear(pts).reshape(nz, ny, nx)
     truth = vol.values.astype(np.float64)
@@ -342,10 +340,8 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
     from mi_tetvr.recon.metrics import tomography_scores
     vol, made, data = blob_data
     scale = made["info"]["attenuation_scale"]
-    lo, hi = vol.bounds()
     nx, ny, nz = vol.shape
-    z, y, x = np.meshgrid(*(np.arange(k) for k in (nz, ny, nx)), indexing="ij")
-    pts = lo + np.stack([x, y, z], -1).reshape(-1, 3) * vol.spacing
+    pts = vol.sample_points()
     truth = vol.values.astype(np.float64)
     got = {}
     for name, kw in (("sart", {}), ("sirt", {"solver": "sirt", "passes": 60}),
@@ -404,11 +400,7 @@ def test_anisotropic_volume_is_resampled_for_a_parallel_beam(tmp_path):
     assert got.isotropic() and got.spacing[0] == vol.spacing[0]
     info = json.loads((tmp_path / "xray_info.json").read_text())
     assert info["resampled_from"]["spacing"] == [float(s) for s in vol.spacing]
-    lo, _ = got.bounds()
-    gx, gy, gz = got.shape
-    zz, yy, xx = np.meshgrid(*(np.arange(k) for k in (gz, gy, gx)), indexing="ij")
-    p = lo + np.stack([xx, yy, zz], -1) * got.spacing
-    np.testing.assert_allclose(got.values, vol.sample(p), atol=1e-6)
+    np.testing.assert_allclose(got.values.ravel(), vol.sample(got.sample_points()), atol=1e-6)
 
 
 def test_poisson_counts_and_their_weights(tmp_path):
