@@ -324,7 +324,7 @@ def cmd_make_dataset(a):
         if (a.beam or "parallel") == "parallel":
             _refuse(a, ("fov", "radius"), "to a parallel beam (--beam cone has them)")
     else:
-        _refuse(a, ("beam", "attenuation", "max_depth", "flux"), "without --xray")
+        _refuse(a, ("beam", "attenuation", "max_depth", "flux", "detail"), "without --xray")
         if a.tf is None:
             sys.exit("mi-tetvr: make-dataset needs --tf (or --xray for X-ray projections)")
         if is_mesh:
@@ -346,10 +346,13 @@ def cmd_make_dataset(a):
             "fov": 40.0 if a.fov is None else a.fov}
         if a.flux is not None and not a.flux > 0:
             sys.exit(f"mi-tetvr: --flux must be > 0 photons, got {a.flux:g}")
+        if a.detail is not None and a.detail < 1:
+            sys.exit(f"mi-tetvr: --detail must be a positive integer, got {a.detail}")
         info = make_xray_dataset(load_volume(path, value_range=vr), a.out, views=a.views,
                                  test_views=a.test_views, beam=beam, scale=a.attenuation,
                                  max_depth=MAX_DEPTH if a.max_depth is None else a.max_depth,
-                                 flux=a.flux, seed=seed, progress=not a.quiet,
+                                 flux=a.flux, seed=seed, detail=a.detail or 1,
+                                 progress=not a.quiet,
                                  **geometry)["info"]
         if "resampled_from" in info:
             print(f"the volume's spacings differ ({info['resampled_from']['spacing']}): "
@@ -697,6 +700,9 @@ def build_parser():
     d.add_argument("--flux", type=float, help="X-ray: photons per pixel of the unattenuated "
                    "beam: the training projections are Poisson counts (the fit weights its "
                    "rays by them); default: noise-free")
+    d.add_argument("--detail", type=int, help="X-ray: integrate the volume's cubic B-spline "
+                   "K times finer than its samples, a field no reconstruction on them models "
+                   "exactly (default 1: its trilinear field)")
     _mesh_flags(d)
     _quiet(d)
     _variant(d)

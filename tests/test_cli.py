@@ -154,6 +154,19 @@ def test_transfer_function_and_xray_commands(tmp_path):
             "--test-views", "2", "--out", str(xray))
     assert r.returncode == 0, r.stderr
     assert len(list((xray / "train").glob("*.npy"))) == 6
+    # Poisson counts of a finer field: recorded, and the counts are multiples of 1 / flux
+    noisy = tmp_path / "noisy"
+    r = run("make-dataset", str(tmp_path / "vol.npy"), "--xray", "--views", "6",
+            "--test-views", "2", "--flux", "500", "--detail", "2", "--out", str(noisy))
+    assert r.returncode == 0, r.stderr
+    assert "500 photons" in r.stdout
+    info = json.loads((noisy / "xray_info.json").read_text())
+    assert info["xray_flux"] == 500 and info["detail"] == 2
+    counts = 500 * np.load(noisy / "train" / "p_000.npy")           # transmittance
+    assert np.allclose(counts, np.round(counts), atol=1e-3) and counts.max() > 100
+    r = run("make-dataset", str(tmp_path / "vol.npy"), "--xray", "--detail", "0",
+            "--out", str(noisy))
+    assert r.returncode == 1 and "--detail must be a positive integer" in r.stderr
     r = run("fit", str(xray), "--model", "absorption", "--grid-resolution", "4", "--iterations",
             "3", "--out", str(fit))
     assert r.returncode == 0, r.stderr

@@ -394,13 +394,39 @@ def test_anisotropic_volume_is_resampled_for_a_parallel_beam(tmp_path):
     records both."""
     nz, ny, nx = 6, 7, 8
     z, y, x = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
-    vol = make_volume(0.2 + 0.1 * x + 0.05 * y + 0.08 * z, spacing=(1.0, 1.003, 0.997))
+    vol = make_volume(0.2 + 0.05 * x + 0.03 * y + 0.04 * z, spacing=(1.0, 1.003, 0.997),
+                      value_range=(0.0, 1.0))
     made = make_xray_dataset(vol, tmp_path, views=4, test_views=0, progress=False)
     got = made["volume"]
     assert got.isotropic() and got.spacing[0] == vol.spacing[0]
     info = json.loads((tmp_path / "xray_info.json").read_text())
     assert info["resampled_from"]["spacing"] == [float(s) for s in vol.spacing]
-    np.testing.assert_allclose(got.values.ravel(), vol.sample(got.sample_points()), atol=1e-6)
+    # the linear field in closed form at the new samples' world positions
+    i, j, k = ((got.sample_points() - vol.origin) / vol.spacing).T
+    np.testing.assert_allclose(got.values.ravel(), 0.2 + 0.05 * i + 0.03 * j + 0.04 * k,
+                               atol=1e-6)
+
+
+def test_refined_volume_interpolates_a_smooth_field():
+    """Volume.refined (the data sets' finer field): every k-th sample is the
+    volume's own; between samples the cubic spline is far closer to a smooth
+    field (closed form) than the trilinear one, and a constant stays exact."""
+    n = 16
+    z, y, x = np.meshgrid(*(np.arange(n) / (n - 1),) * 3, indexing="ij")
+    f = lambda x, y, z: 1.0 + np.sin(2 * x) * np.cos(1.5 * y) * np.sin(z + 0.5)   # noqa: E731
+    vol = make_volume(f(x, y, z), spacing=(1.0, 1.0, 1.0), value_range=(0.0, 2.0))
+    fine = vol.refined(2)
+    assert fine.values.shape == (2 * n - 1,) * 3
+    np.testing.assert_allclose(fine.spacing, vol.spacing / 2)
+    np.testing.assert_allclose(fine.values[::2, ::2, ::2], vol.values, atol=1e-7)
+    inner = slice(8, -8)            # 4 samples from the mirrored faces, whose effect decays
+    p = fine.sample_points().reshape(*fine.values.shape, 3)[inner, inner, inner]
+    exact = f(*np.moveaxis((p - vol.origin) / vol.spacing / (n - 1), -1, 0)) / 2.0
+    spline = np.abs(fine.values[inner, inner, inner] - exact).max()
+    trilinear = np.abs(vol.sample(p) - exact).max()
+    assert spline < trilinear / 10, (spline, trilinear)
+    flat = make_volume(np.full((5, 6, 7), 0.3), value_range=(0.0, 1.0)).refined(3)
+    np.testing.assert_allclose(flat.values, 0.3, atol=1e-6)
 
 
 def test_poisson_counts_and_their_weights(tmp_path):
