@@ -14,19 +14,37 @@ render timings.
 Writes a table, and with ``--plot PATH`` a PNG of both sweeps (log-log),
 with ``--json PATH`` the numbers.
 
+``--load`` measures big meshes instead, each size in a fresh process (the
+``--load-cells`` grids: 100k to 35M tets): the time of ``mi.load_dict`` and
+of its ``build_topology``, the peak resident memory during the load (the
+process's high-water mark, reset before it) and over the memory held before
+it, the memory the loaded scene keeps per tet, the walk's own index buffers
+per tet, and the first (compiling) and a warm render at 256^2 and 512^2.
+``--baseline REV`` measures the project at git revision REV the same way,
+in the same run (up to ``--baseline-max`` tets), and prints the ratios.
+
 Usage::
 
     python benchmarks/bench_scaling.py --plot out/scaling.png --json out/scaling.json
+    python benchmarks/bench_scaling.py --load --baseline 982827a --plot out/load.png
     python benchmarks/bench_scaling.py --quick
+    python benchmarks/bench_scaling.py --load --quick
 """
 from __future__ import annotations
 
+import argparse
+import gc
+import json
+import os
+import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
-from common import grid_scene, header, make_parser, render_steps, timed, write_json
+from common import grid_scene, header, make_parser, render_steps, sensor_dict, timed, write_json
 
 
 def parse_args(argv=None):
@@ -41,19 +59,35 @@ def parse_args(argv=None):
     p.add_argument("--image-cells", type=int, default=32,
                    help="grid of the image sweep (default 32: 197k tets)")
     p.add_argument("--plot", metavar="PATH", help="write the plot (PNG) to PATH")
+    p.add_argument("--load", action="store_true",
+                   help="the big-mesh sweep: load time, memory and renders per size")
+    p.add_argument("--load-cells", default="26,40,64,96,128,180",
+                   help="--load: grid cells per axis (default 26,...,180: 105k to 35M tets)")
+    p.add_argument("--baseline", metavar="REV",
+                   help="--load: also measure the project at this git revision")
+    p.add_argument("--baseline-max", type=float, default=13e6,
+                   help="--load: largest mesh (tets) the baseline is given (default 13e6)")
+    p.add_argument("--child", type=int, help=argparse.SUPPRESS)
+    p.add_argument("--child-root", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.quick:
         a.cells, a.res, a.resolutions, a.image_cells = "8,12", 64, "32,64", 8
+        a.load_cells = "8,12"
     return a
 
 
 ARGS = parse_args()
+if ARGS.child_root:          # the project at another revision: its package and plugins
+    sys.path.insert(0, ARGS.child_root)
+    import mi_tetvr  # noqa: E402  (before a variant is set: registers nothing yet)
+    mi_tetvr.__path__.append(ARGS.child_root)
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 mi.set_variant(ARGS.variant)
-import mi_tetvr  # noqa: E402,F401
+import mi_tetvr  # noqa: E402,F811
+mi_tetvr.register()
 
 KEYS = ("volume.vertex_color", "volume.vertex_opacity", "volume.vertex_positions")
 
@@ -119,7 +153,172 @@ def plot(path, mesh_rows, image_rows):
     print(f"# plot written to {path}")
 
 
+def _rss(field="VmRSS"):
+    """Bytes of this process's resident memory (``VmHWM``: its high-water mark)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) * 1024
+    return 0
+
+
+def load_child(cells, repeat):
+    """One size of the load sweep, in this (fresh) process: a JSON line."""
+    import mi_tetvr.mesh.tetmesh as tetmesh_module
+    from mi_tetvr.mesh.generate import blob_field, grid_mesh
+    v, t = grid_mesh(cells, jitter=0.15)
+    color, opacity = blob_field(v)
+    scene_dict = {"type": "scene", "integrator": {"type": "tetvr"},
+                  "volume": mi_tetvr.tetmesh_dict(v, t, color, opacity)}
+    n_tets, n_vertices = len(t), len(v)
+    del v, t, color, opacity
+    gc.collect()
+    spent = {"topology_s": 0.0}
+    build = tetmesh_module.build_topology
+
+    def timed_build(*args, **kwargs):
+        t0 = time.perf_counter()
+        out = build(*args, **kwargs)
+        spent["topology_s"] += time.perf_counter() - t0
+        return out
+
+    tetmesh_module.build_topology = timed_build
+    before = _rss()
+    Path("/proc/self/clear_refs").write_text("5")      # resets the high-water mark
+    t0 = time.perf_counter()
+    scene = mi.load_dict(scene_dict)
+    load = time.perf_counter() - t0
+    peak = _rss("VmHWM")
+    del scene_dict
+    gc.collect()
+    shape = [s for s in scene.shapes() if hasattr(s, "tet_buffers")][0]
+    buffers = getattr(shape, "tet_buffers", {})
+    index_bytes = sum(np.asarray(b).nbytes for b in buffers.values()) if isinstance(
+        buffers, dict) else 0
+    row = dict(cells=cells, tets=n_tets, vertices=n_vertices, load_s=load,
+               rss_before=before, peak_rss=peak, peak_over_before=peak - before,
+               index_bytes_per_tet=index_bytes / n_tets, **spent)
+    for res in (256, 512):
+        sensor = mi.load_dict(sensor_dict(res))
+        t0 = time.perf_counter()
+        dr.eval(mi.render(scene, sensor=sensor, spp=1))
+        dr.sync_thread()
+        row[f"first_render_{res}_s"] = time.perf_counter() - t0
+        runs = []
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            dr.eval(mi.render(scene, sensor=sensor, spp=1))
+            dr.sync_thread()
+            runs.append(time.perf_counter() - t0)
+        row[f"render_{res}_s"] = float(np.median(runs))
+    gc.collect()
+    row["kept_bytes_per_tet"] = (_rss() - before) / n_tets
+    print("RESULT " + json.dumps(row), flush=True)
+
+
+def run_child(a, cells, root=None):
+    """:func:`load_child` in a fresh process (``root``: the project at another
+    revision); None when it fails (out of memory)."""
+    cmd = [sys.executable, __file__, "--child", str(cells), "--variant", a.variant,
+           "--repeat", str(a.repeat)] + (["--child-root", str(root)] if root else [])
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    for line in proc.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[7:])
+    print(f"# {cells}^3 cells{' (baseline)' if root else ''} failed (exit {proc.returncode}): "
+          f"{proc.stderr.strip().splitlines()[-1:] if proc.stderr.strip() else ''}", flush=True)
+    return None
+
+
+def baseline_tree(rev):
+    """A git worktree of the project at ``rev`` (a temporary folder)."""
+    root = Path(__file__).resolve().parents[1]
+    path = Path(tempfile.mkdtemp()) / "baseline"
+    subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", str(path), rev],
+                   check=True, capture_output=True)
+    return path
+
+
+def print_load_row(r, label=""):
+    gb = 1024 ** 3
+    print(f"{r['tets']:>11,} {label:>9} {r['load_s']:>8.2f} {r['topology_s']:>9.2f} "
+          f"{r['peak_rss'] / gb:>8.2f} {r['peak_over_before'] / r['tets']:>10.0f} "
+          f"{r['kept_bytes_per_tet']:>9.0f} {r['index_bytes_per_tet']:>7.0f} "
+          f"{r['first_render_256_s']:>8.2f} {r['render_256_s']:>8.3f} "
+          f"{r['render_512_s']:>8.3f}", flush=True)
+
+
+def load_sweep(a, info):
+    print(f"load sweep: jittered grids with the blob field, each size in a fresh process "
+          f"(renders: median of {a.repeat} warm runs)")
+    print(f"{'tets':>11} {'':>9} {'load [s]':>8} {'topo [s]':>9} {'peak GB':>8} "
+          f"{'peak B/tet':>10} {'kept B/t':>9} {'index':>7} {'1st 256':>8} {'256 [s]':>8} "
+          f"{'512 [s]':>8}")
+    tree = baseline_tree(a.baseline) if a.baseline else None
+    rows, base = [], []
+    try:
+        for c in (int(x) for x in a.load_cells.split(",")):
+            r = run_child(a, c)
+            if r is None:
+                break
+            rows.append(r)
+            print_load_row(r, "")
+            if tree and r["tets"] <= a.baseline_max:
+                b = run_child(a, c, tree)
+                if b is not None:
+                    base.append(b)
+                    print_load_row(b, a.baseline[:9])
+                    print(f"{'':>11} {'ratio':>9} {b['load_s'] / r['load_s']:>7.1f}x "
+                          f"{b['topology_s'] / r['topology_s']:>8.1f}x "
+                          f"{b['peak_over_before'] / r['peak_over_before']:>7.1f}x "
+                          f"(load time, topology time, peak memory over the input: "
+                          f"baseline / now)", flush=True)
+    finally:
+        if tree:
+            subprocess.run(["git", "worktree", "remove", "--force", str(tree)],
+                           cwd=Path(__file__).resolve().parents[1], capture_output=True)
+    if a.plot and rows:
+        plot_load(a.plot, rows, base, a.baseline)
+    write_json(a, info, {"load_sweep": rows, "baseline": base, "baseline_rev": a.baseline})
+    return 0
+
+
+def plot_load(path, rows, base, rev):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for series, style, label in ((rows, "-", "now"), (base, "--", f"at {rev}")):
+        if not series:
+            continue
+        x = np.array([r["tets"] for r in series], float)
+        axes[0].loglog(x, [r["load_s"] for r in series], "o" + style, label=f"load ({label})")
+        axes[0].loglog(x, [r["topology_s"] for r in series], "s" + style,
+                       label=f"build_topology ({label})")
+        axes[1].loglog(x, [r["peak_over_before"] / 1024 ** 3 for r in series], "o" + style,
+                       label=f"peak over the input ({label})")
+    x = np.array([r["tets"] for r in rows], float)
+    axes[0].loglog(x, [r["render_512_s"] for r in rows], "^-", label="render 512² (now)")
+    axes[0].loglog(x, x / x[-1] * rows[-1]["load_s"], ":", color="gray", label="∝ tets")
+    axes[1].loglog(x, x / x[-1] * rows[-1]["peak_over_before"] / 1024 ** 3, ":", color="gray",
+                   label="∝ tets")
+    axes[0].set_ylabel("seconds")
+    axes[1].set_ylabel("GB")
+    for ax, title in zip(axes, ("time", "memory")):
+        ax.set_xlabel("tets")
+        ax.set_title(f"loading a tet mesh: {title}")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    print(f"# plot written to {path}")
+
+
 def main(a):
+    if a.child:
+        load_child(a.child, a.repeat)
+        return 0
+    if a.load:
+        return load_sweep(a, header("big-mesh load benchmark"))
     info = header("scaling benchmark")
     head = (f"{'tets':>10} {'res':>6} {'load [s]':>8} {'render [s]':>10} "
             f"{'+backward [s]':>12} {'ratio':>9} {'tets/ray':>8} {'Msteps/s':>9}")

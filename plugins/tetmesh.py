@@ -73,6 +73,10 @@ Missing color defaults to white (1, 1, 1), missing opacity to 1 per unit length.
 without a ``transfer_function``, or one of ``value_min``/``value_max``
 without the other, are errors.
 
+The shape keeps its topology only as the walk's 32-bit index buffers (32
+bytes per tet); ``shape.oriented_tets()`` reads its tets back, positively
+oriented (e.g. for the quality regularizer).
+
 Differentiable parameters (``mi.traverse``): ``vertex_positions`` (3n),
 ``vertex_color`` (3n) and ``vertex_opacity`` (n); post-classified:
 ``vertex_positions``, ``vertex_scalar`` (n), ``tf_color`` (3R, linear RGB)
@@ -94,7 +98,8 @@ import numpy as np
 from mi_tetvr import take_topology
 from mi_tetvr.mesh import TetMesh, read_tetmesh
 from mi_tetvr.mesh.io import choose_scalar
-from mi_tetvr.render.buffers import shape_index_arrays
+from mi_tetvr.mesh.topology import longest_edges
+from mi_tetvr.render.buffers import drjit_index_arrays, shape_index_arrays
 from mi_tetvr.render.optical import Absorption, EmissionAbsorption, PostClassified, PreIntegrated
 from mi_tetvr.transfer import TransferFunction, read_transfer_function
 
@@ -237,8 +242,6 @@ class TetMeshShape(mi.Mesh):
             raise ValueError("tetmesh: a tet volume cannot be an area emitter; it emits through "
                              "its colors (color, or a transfer function): remove its 'area' "
                              "emitter")
-        self.mesh = mesh
-        self.topology = topo
         self.optical_model = MODELS[model]
         params = mi.traverse(self)
         params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
@@ -248,7 +251,7 @@ class TetMeshShape(mi.Mesh):
         else:
             self.optical_model, scalar, self.value_range, color, opacity = post
             #: The longest chord of any tet (the pre-integrated table's range).
-            self.longest_edge = float(mesh.edge_lengths.max()) if len(mesh.tets) else 1.0
+            self.longest_edge = float(longest_edges(mesh.vertices, mesh.tets).max())
             self.tf_resolution = len(opacity)
             self.tf_color = mi.Float(np.asarray(color, np.float32).ravel())
             self.tf_opacity = mi.Float(np.asarray(opacity, np.float32))
@@ -257,8 +260,16 @@ class TetMeshShape(mi.Mesh):
             self.add_attribute(name, channels,
                                mi.Float(np.asarray(values[name], np.float32).ravel()))
         params.update()
-        #: Index arrays of the walk (local indices; see mi_tetvr.render.buffers)
-        self.tet_buffers = shape_index_arrays(topo, mesh.vertices)
+        #: Index buffers of the walk (Dr.Jit, local indices; see
+        #: mi_tetvr.render.buffers): all the shape keeps of its topology
+        self.tet_buffers = drjit_index_arrays(shape_index_arrays(topo, mesh.vertices))
+        self.tet_count = topo.n_tets
+
+    def oriented_tets(self) -> np.ndarray:
+        """(m, 4) int64: the shape's tets, positively oriented, in the walk's
+        order (read from its index buffer), e.g. for
+        :class:`~mi_tetvr.recon.regularizer.QualityRegularizer`."""
+        return np.asarray(self.tet_buffers["tets"], np.int64).reshape(-1, 4)
 
     def traverse(self, callback):
         super().traverse(callback)
@@ -273,8 +284,8 @@ class TetMeshShape(mi.Mesh):
                 if issubclass(self.optical_model, PostClassified) else [])
 
     def to_string(self):
-        return (f"TetMeshShape[vertices={len(self.mesh.vertices)}, "
-                f"tets={self.topology.n_tets}, boundary_faces={len(self.topology.boundary_faces)}]")
+        return (f"TetMeshShape[vertices={self.vertex_count()}, tets={self.tet_count}, "
+                f"boundary_faces={self.face_count()}]")
 
 
 mi.register_shape("tetmesh", lambda props: TetMeshShape(props))

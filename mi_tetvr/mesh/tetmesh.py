@@ -135,7 +135,7 @@ class TetMesh:
     @_cached
     def topology(self) -> Topology:
         """:class:`~mi_tetvr.mesh.Topology` (:func:`~mi_tetvr.mesh.build_topology`)."""
-        return build_topology(self._vertices, self._tets)
+        return build_topology(self._vertices, self._tets, check=False)  # validated at init
 
     @_cached
     def volumes(self) -> np.ndarray:

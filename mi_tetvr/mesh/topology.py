@@ -53,6 +53,16 @@ EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int6
 FLAT_TOLERANCE = 1e-9
 
 
+#: Tets per chunk of the per-tet geometry (volumes, edge lengths) over big
+#: meshes: bounds its float64 temporaries to about 150 MB.
+CHUNK = 1 << 20
+
+
+def chunk_slices(m, size=CHUNK):
+    """Slices covering ``range(m)`` in pieces of ``size``."""
+    return [slice(k, min(k + size, m)) for k in range(0, m, size)]
+
+
 #: Tets of lower quality (:func:`quality`) that are not flat count as slivers
 #: in :func:`geometry_summary`: nearly flat, they render but make positions
 #: hard to optimize.
@@ -99,9 +109,13 @@ def signed_volumes(vertices, tets):
     -------
     (m,) float64, positive for positively oriented tets.
     """
-    p = np.asarray(vertices, dtype=np.float64)[np.asarray(tets)]
-    a, b, c = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
-    return np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
+    vertices, tets = np.asarray(vertices, dtype=np.float64), np.asarray(tets)
+    out = np.empty(len(tets))
+    for s in chunk_slices(len(tets)):           # (chunk, 4, 3) float64 at a time
+        p = vertices[tets[s]]
+        a, b, c = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
+        out[s] = np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
+    return out
 
 
 def bbox_diagonal(vertices) -> float:
@@ -187,10 +201,21 @@ def orient_tets(vertices, tets, flat_tol=FLAT_TOLERANCE) -> Orientation:
     vertices = np.asarray(vertices, dtype=np.float64)
     tets = np.asarray(tets)
     vol = signed_volumes(vertices, tets)
-    longest = edge_lengths(vertices, tets).max(axis=1) if len(tets) else np.zeros(0)
+    longest = longest_edges(vertices, tets)
     flat = ~(np.abs(vol) > flat_tol * longest ** 3)  # NaN volumes count as flat
     flipped = (vol < 0) & ~flat
     return Orientation(flip_tets(tets, flipped), vol, flipped, flat)
+
+
+def _sorted3(x, y, z):
+    """Elementwise ``(min, middle, max)`` of three index arrays."""
+    a = np.minimum(np.minimum(x, y), z)
+    c = np.maximum(np.maximum(x, y), z)
+    return a, x + y + z - a - c, c
+
+
+#: Vertex indices below this pack a sorted triangle into one int64 exactly.
+PACK_LIMIT = 1 << 21
 
 
 def face_keys(faces):
@@ -209,12 +234,48 @@ def face_keys(faces):
         sorted triple packed into 63 bits when every index is below 2**21,
         else the rank of the sorted triple among the distinct ones.
     """
-    s = np.sort(np.asarray(faces, dtype=np.int64).reshape(-1, 3), axis=1)
-    if len(s) == 0:
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(f) == 0:
         return np.zeros(0, np.int64)
-    if s.max() < 2 ** 21:  # pack the triple into one int64: much faster unique
-        return (s[:, 0] << 42) | (s[:, 1] << 21) | s[:, 2]
-    return np.unique(s, axis=0, return_inverse=True)[1].ravel().astype(np.int64)
+    a, b, c = _sorted3(f[:, 0], f[:, 1], f[:, 2])
+    if c.max() < PACK_LIMIT:  # pack the triple into one int64: much faster unique
+        return (a << 42) | (b << 21) | c
+    return np.unique(np.stack([a, b, c], 1), axis=0, return_inverse=True)[1].ravel().astype(
+        np.int64)
+
+
+def _mix64(h):
+    """SplitMix64's finalizer on uint64 (wrapping): a well-spread 64-bit hash."""
+    h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return h ^ (h >> np.uint64(31))
+
+
+def _tet_face_keys(tets, n_vertices):
+    """``(keys (4m,) int64, exact)``: a key per tet face ``4 t + i`` (face
+    ``i`` of tet ``t``), equal for faces with the same vertices. ``exact``:
+    the sorted triple packed (indices below :data:`PACK_LIMIT`); otherwise a
+    64-bit hash of it, equal keys to be confirmed (:func:`_match_faces`).
+    Computed column by column: no (4m, 3) array."""
+    m = len(tets)
+    exact = n_vertices <= PACK_LIMIT
+    keys = np.empty((m, 4), np.int64)
+    with np.errstate(over="ignore"):
+        for i, (p, q, r) in enumerate(FACES):
+            a, b, c = _sorted3(*(tets[:, k].astype(np.int64) for k in (p, q, r)))
+            if exact:
+                keys[:, i] = (a << 42) | (b << 21) | c
+            else:
+                h = _mix64(a.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+                           ^ b.astype(np.uint64))
+                keys[:, i] = _mix64(h ^ c.astype(np.uint64)).view(np.int64)
+    return keys.ravel(), exact
+
+
+def _face_vertices(tets, f):
+    """(k, 3) vertices of the tet faces ``f`` (flat indices ``4 t + i``), as
+    wound by :data:`FACES`."""
+    return np.take_along_axis(tets[f // 4], FACES[f % 4], axis=1)
 
 
 def unique_edges(tets):
@@ -244,6 +305,14 @@ def edge_lengths(vertices, tets):
         An edge shared by several tets appears once per tet.
     """
     return np.linalg.norm(_edge_vectors(vertices, tets), axis=-1)
+
+
+def longest_edges(vertices, tets):
+    """(m,) float64: the longest edge of each tet (in chunks: no (m, 6, 3) array)."""
+    out = np.empty(len(tets))
+    for s in chunk_slices(len(tets)):
+        out[s] = edge_lengths(vertices, tets[s]).max(axis=1)
+    return out
 
 
 def bounding_radius(points) -> float:
@@ -292,7 +361,7 @@ def quality(vertices, tets):
     return q
 
 
-def validate_arrays(vertices, tets, *, strict=True, allow_empty=False):
+def validate_arrays(vertices, tets, *, strict=True, allow_empty=False, duplicates=True):
     """Check the arrays of a tet mesh; returns float64 vertices and int64 tets.
 
     Parameters
@@ -307,6 +376,9 @@ def validate_arrays(vertices, tets, *, strict=True, allow_empty=False):
         a mesh as it comes (refinement, the regularizer).
     allow_empty : bool
         Accept a mesh without tets.
+    duplicates : bool
+        With ``strict``, look for duplicate tets (False: the caller's face
+        matching finds them, :func:`build_topology`).
 
     Returns
     -------
@@ -350,14 +422,30 @@ def validate_arrays(vertices, tets, *, strict=True, allow_empty=False):
         bad = np.flatnonzero(np.any(s[:, 1:] == s[:, :-1], axis=1))
         if len(bad):
             raise MeshError(f"tets with a repeated vertex index: {_preview(bad)}; {REPAIR_HINT}")
-        _, counts = np.unique(s, axis=0, return_counts=True)
-        if np.any(counts > 1):
-            dup_keys = np.flatnonzero(counts > 1)
-            inv = np.unique(s, axis=0, return_inverse=True)[1].ravel()
-            bad = np.flatnonzero(np.isin(inv, dup_keys))
-            raise MeshError(f"duplicate tets (same four vertices): {_preview(bad)}; "
-                            f"{REPAIR_HINT}")
+        if duplicates:
+            _duplicate_tets(s)
     return vertices, tets
+
+
+def _duplicate_tets(s):
+    """Raise :class:`MeshError` naming the tets that repeat another's four
+    vertices; ``s`` (m, 4) the tets with sorted rows. One sort of a 64-bit
+    hash of each row finds the candidates; the exact rows confirm them."""
+    if len(s) < 2:
+        return
+    with np.errstate(over="ignore"):
+        h = np.zeros(len(s), np.uint64)
+        for k in range(4):
+            h = _mix64(h ^ s[:, k].astype(np.uint64))
+    hs = np.sort(h)
+    if not np.any(hs[1:] == hs[:-1]):
+        return
+    candidates = np.flatnonzero(np.isin(h, hs[1:][hs[1:] == hs[:-1]]))
+    _, inv, counts = np.unique(s[candidates], axis=0, return_inverse=True, return_counts=True)
+    bad = candidates[counts[inv.ravel()] > 1]
+    if len(bad):
+        raise MeshError(f"duplicate tets (same four vertices): {_preview(bad)}; "
+                        f"{REPAIR_HINT}")
 
 
 def validate_attributes(n_vertices, color=None, opacity=None):
@@ -388,11 +476,18 @@ def validate_attributes(n_vertices, color=None, opacity=None):
 
 def _face_parity(tri):
     """Orientation class of each oriented triangle (k, 3): True when the cyclic
-    rotation starting at its smallest index is increasing."""
-    r = np.argmin(tri, axis=1)
-    idx = (r[:, None] + np.arange(3)) % 3
-    rot = np.take_along_axis(tri, idx, axis=1)
-    return rot[:, 1] < rot[:, 2]
+    rotation starting at its smallest index is increasing (an even permutation
+    of the sorted triple)."""
+    x, y, z = tri[:, 0], tri[:, 1], tri[:, 2]
+    return ((x > y).astype(np.int8) + (x > z) + (y > z)) % 2 == 0
+
+
+def _faces_parity(tets, f):
+    """:func:`_face_parity` of the tet faces ``f`` (flat indices), in chunks."""
+    out = np.empty(len(f), bool)
+    for s in chunk_slices(len(f)):
+        out[s] = _face_parity(_face_vertices(tets, f[s]))
+    return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -443,7 +538,7 @@ class Topology:
 def _face_pairs(faces):
     """Group equal triangles (any vertex order): ``(inv, counts, fa, fb)``
     with ``inv`` each face's group, ``counts`` each group's size and
-    ``fa, fb`` the two faces of each group of two."""
+    ``fa, fb`` the two faces of each group of two (``fa < fb``)."""
     _, inv, counts = np.unique(face_keys(faces), return_inverse=True, return_counts=True)
     inv = inv.ravel()
     order = np.argsort(inv, kind="stable")
@@ -453,25 +548,54 @@ def _face_pairs(faces):
     return inv, counts, order[paired], order[paired + 1]
 
 
-def _match_faces(tets):
-    """Pair up the faces of oriented tets.
-
-    Returns (faces (m*4, 3), neighbors (m*4,), neighbor_faces (m*4,), fa, fb)
-    where fa, fb are the flat face indices of each interior face pair."""
-    m = len(tets)
-    faces = tets[:, FACES].reshape(-1, 3)
-    inv, counts, fa, fb = _face_pairs(faces)
+def _shared_faces(tets):
+    """Raise :class:`MeshError` for faces shared by more than two tets."""
+    inv, counts, _, _ = _face_pairs(tets[:, FACES].reshape(-1, 3))
     if np.any(counts > 2):
         bad_keys = np.flatnonzero(counts > 2)
         bad = np.flatnonzero(np.isin(inv, bad_keys)) // 4
         raise MeshError(
             f"{len(bad_keys)} face(s) shared by more than two tets (non-manifold mesh); "
             f"tets involved: {_preview(np.unique(bad))}; {REPAIR_HINT}")
-    neighbors = np.full(m * 4, -1, dtype=np.int64)
-    neighbor_faces = np.full(m * 4, -1, dtype=np.int64)
+
+
+def _match_faces(tets, n_vertices):
+    """Pair up the faces of oriented tets by one sort of their keys.
+
+    Returns ``(neighbors (4m,), neighbor_faces (4m,), fa, fb)``: the tet and
+    local face across each flat face index ``4 t + i`` (-1 on the boundary),
+    and the flat face indices of each interior pair (``fa < fb``, pairs in
+    the order of their keys). A face shared by more than two tets raises
+    :class:`MeshError` (duplicate tets first, :func:`_duplicate_tets`)."""
+    m = len(tets)
+    keys, exact = _tet_face_keys(tets, n_vertices)
+    order = np.argsort(keys)
+    sk = keys[order]
+    del keys
+    eq = sk[1:] == sk[:-1]
+    del sk
+    collided = False
+    if np.any(eq[1:] & eq[:-1]):           # three equal keys
+        _duplicate_tets(np.sort(tets, axis=1))
+        _shared_faces(tets)                # raises, unless hashes collided
+        collided = True
+    first = np.flatnonzero(eq)
+    fa, fb = order[first], order[first + 1]
+    del order, eq, first
+    if not exact and not collided:  # equal hashes: the same triangle, unless they collide
+        for s in chunk_slices(len(fa)):
+            if not np.array_equal(np.sort(_face_vertices(tets, fa[s]), 1),
+                                  np.sort(_face_vertices(tets, fb[s]), 1)):
+                collided = True
+                break
+    if collided:                           # the exact (slower) grouping
+        _, _, fa, fb = _face_pairs(tets[:, FACES].reshape(-1, 3))
+    fa, fb = np.minimum(fa, fb), np.maximum(fa, fb)
+    neighbors = np.full(m * 4, -1, dtype=np.int32)
+    neighbor_faces = np.full(m * 4, -1, dtype=np.int8)
     neighbors[fa], neighbors[fb] = fb // 4, fa // 4
     neighbor_faces[fa], neighbor_faces[fb] = fb % 4, fa % 4
-    return faces, neighbors, neighbor_faces, fa, fb
+    return neighbors, neighbor_faces, fa, fb
 
 
 def _edge_adjacency(tris):
@@ -481,7 +605,7 @@ def _edge_adjacency(tris):
     if b == 0:
         return adj.astype(np.int32)
     e = np.stack([tris[:, [1, 2]], tris[:, [2, 0]], tris[:, [0, 1]]], 1).reshape(-1, 2)
-    e = np.sort(e, axis=1)
+    e = np.sort(e, axis=1).astype(np.int64)
     key = e[:, 0] * (int(tris.max()) + 1) + e[:, 1]
     order = np.argsort(key, kind="stable")
     k = key[order]
@@ -492,8 +616,11 @@ def _edge_adjacency(tris):
     return adj.astype(np.int32)
 
 
-def build_topology(vertices, tets, *, warn=True) -> Topology:
+def build_topology(vertices, tets, *, warn=True, check=True) -> Topology:
     """Orient tets, match faces, find the boundary.
+
+    Time and memory linear in the mesh but for one sort of a 64-bit key per
+    face (about 80 bytes per tet at the peak besides the result).
 
     Parameters
     ----------
@@ -501,6 +628,9 @@ def build_topology(vertices, tets, *, warn=True) -> Topology:
     tets : (m, 4) int
     warn : bool
         Emit warnings for repaired input (inverted or flat tets).
+    check : bool
+        Validate the arrays first (:func:`validate_arrays`); False for
+        arrays validated already (a :class:`~mi_tetvr.mesh.TetMesh`'s).
 
     Returns
     -------
@@ -512,18 +642,21 @@ def build_topology(vertices, tets, *, warn=True) -> Topology:
         Bad indices, non-finite positions, duplicate tets or faces shared by
         more than two tets.
     """
-    vertices, tets = validate_arrays(vertices, tets)
+    if check:   # duplicates show in the face matching: looked for only then
+        vertices, tets = validate_arrays(vertices, tets, duplicates=False)
+    vertices = np.asarray(vertices, np.float64)
     m = len(tets)
+    tets = np.asarray(tets).astype(np.int32 if len(vertices) < 2 ** 31 else np.int64)
     tets, vol, flip, flat = orient_tets(vertices, tets)
-    faces, neighbors, neighbor_faces, fa, fb = _match_faces(tets)
+    neighbors, neighbor_faces, fa, fb = _match_faces(tets, len(vertices))
+    pa, pb = _faces_parity(tets, fa), _faces_parity(tets, fb)
 
     # Flat tets have no geometric orientation: orient them so that the faces
     # they share with oriented neighbours appear with opposite winding.
     oriented = ~flat
-    while True:
-        par = _face_parity(faces)
+    while flat.any():
         ta, tb = fa // 4, fb // 4
-        bad = par[fa] == par[fb]
+        bad = pa == pb
         to_flip = np.zeros(m, bool)
         to_flip[ta[bad & ~oriented[ta] & oriented[tb]]] = True
         to_flip[tb[bad & ~oriented[tb] & oriented[ta]]] = True
@@ -535,15 +668,17 @@ def build_topology(vertices, tets, *, warn=True) -> Topology:
         oriented |= to_flip | newly
         if to_flip.any():
             tets = flip_tets(tets, to_flip)
-            faces, neighbors, neighbor_faces, fa, fb = _match_faces(tets)
+            neighbors, neighbor_faces, fa, fb = _match_faces(tets, len(vertices))
+            pa, pb = _faces_parity(tets, fa), _faces_parity(tets, fb)
 
-    par = _face_parity(faces)
-    n_inconsistent = int(np.count_nonzero(par[fa] == par[fb]))
-    if n_inconsistent:
+    inconsistent = pa == pb
+    if inconsistent.any():
+        _duplicate_tets(np.sort(tets, axis=1))
         raise MeshError(
-            f"{n_inconsistent} interior face(s) are not shared with opposite orientation "
-            f"even after orienting every tet: the mesh folds over itself "
-            f"(tets {_preview(np.unique(fa[par[fa] == par[fb]] // 4))}); {REPAIR_HINT}")
+            f"{int(np.count_nonzero(inconsistent))} interior face(s) are not shared with "
+            f"opposite orientation even after orienting every tet: the mesh folds over itself "
+            f"(tets {_preview(np.unique(fa[inconsistent] // 4))}); {REPAIR_HINT}")
+    del pa, pb, fa, fb, inconsistent
     n_flipped = int(np.count_nonzero(flip))
     n_flat = int(np.count_nonzero(flat))
     if warn and n_flipped:
@@ -553,11 +688,11 @@ def build_topology(vertices, tets, *, warn=True) -> Topology:
             f"{n_flat} zero-volume tet(s) kept (they contribute nothing; rays step "
             f"over them): {_preview(np.flatnonzero(flat))}", stacklevel=2)
     bnd = np.flatnonzero(neighbors < 0)
-    bfaces = faces[bnd]
+    bfaces = _face_vertices(tets, bnd)
     return Topology(
-        tets=tets.astype(np.int32),
-        neighbors=neighbors.reshape(m, 4).astype(np.int32),
-        neighbor_faces=neighbor_faces.reshape(m, 4).astype(np.int8),
+        tets=tets.astype(np.int32, copy=False),
+        neighbors=neighbors.reshape(m, 4),
+        neighbor_faces=neighbor_faces.reshape(m, 4),
         boundary_faces=bfaces.astype(np.int32),
         boundary_adjacency=_edge_adjacency(bfaces),
         boundary_tets=(bnd // 4).astype(np.int32),

@@ -17,6 +17,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_tetvr.mesh.topology import chunk_slices
 from mi_tetvr.render.surfaces import split_shapes
 
 
@@ -77,15 +78,29 @@ def morton_order(points):
 def far_links(neighbors):
     """Fraction of the interior neighbour links ``(m, 4)`` between tets more
     than :data:`FAR_RECORDS` records apart."""
-    t, f = np.nonzero(neighbors >= 0)
-    if not len(t):
-        return 0.0
-    return float(np.mean(np.abs(neighbors[t, f].astype(np.int64) - t) > FAR_RECORDS))
+    far = interior = 0
+    for s in chunk_slices(len(neighbors)):
+        nbr = neighbors[s].astype(np.int64)
+        inside = nbr >= 0
+        interior += np.count_nonzero(inside)
+        far += np.count_nonzero(inside & (np.abs(nbr - np.arange(s.start, s.stop)[:, None])
+                                          > FAR_RECORDS))
+    return far / interior if interior else 0.0
+
+
+def centroids(vertices, tets):
+    """(m, 3) float64 centroids of the tets (in chunks: no (m, 4, 3) array)."""
+    vertices = np.asarray(vertices, np.float64)
+    out = np.empty((len(tets), 3))
+    for s in chunk_slices(len(tets)):
+        out[s] = vertices[tets[s]].mean(1)
+    return out
 
 
 def shape_index_arrays(topology, vertices, reorder=None):
     """The index arrays a ``tetmesh`` shape hands the integrator (numpy,
-    indices local to the shape); see :class:`MeshBuffers` for their meaning.
+    32-bit, indices local to the shape); see :class:`MeshBuffers` for their
+    meaning: 32 bytes per tet (corners and links), 24 per boundary face.
 
     A mesh whose tets are listed in scattered order (more than
     :data:`FAR_FRACTION` of the neighbour links jump far in memory, see
@@ -97,22 +112,41 @@ def shape_index_arrays(topology, vertices, reorder=None):
     them. ``reorder`` forces the choice.
     """
     m = topology.n_tets
+    if 4 * m >= 2 ** 31 or len(vertices) >= 2 ** 32:
+        raise ValueError(f"a tet mesh of {m:,} tets and {len(vertices):,} vertices is too "
+                         f"large for 32-bit links and indices")
     if reorder is None:
         reorder = far_links(topology.neighbors) > FAR_FRACTION
-    order = (morton_order(np.asarray(vertices)[topology.tets].mean(1)) if reorder and m
-             else np.arange(m))
-    rank = np.empty(m, np.int64)
-    rank[order] = np.arange(m)
-    nbr = topology.neighbors[order]
-    nbr = np.where(nbr >= 0, rank[np.maximum(nbr, 0)], -1)
+    tets, nbr, nface = topology.tets, topology.neighbors, topology.neighbor_faces
+    btets = topology.boundary_tets
+    if reorder and m:
+        order = morton_order(centroids(vertices, tets))
+        rank = np.empty(m, np.int32)
+        rank[order] = np.arange(m, dtype=np.int32)
+        tets, nbr, nface, btets = tets[order], nbr[order], nface[order], rank[btets]
+        nbr = np.where(nbr >= 0, rank[np.maximum(nbr, 0)], -1)
+        del order, rank
+    links = np.where(nbr >= 0, nbr.astype(np.int32) * 4 + nface, -1).astype(np.int32)
     return dict(
-        tets=topology.tets[order].astype(np.uint32).ravel(),
-        nbr=pack_links(nbr, topology.neighbor_faces[order]).astype(np.int32).ravel(),
-        boundary=pack_links(rank[topology.boundary_tets],
-                            topology.boundary_local_faces).astype(np.uint32),
+        tets=tets.astype(np.uint32).ravel(),
+        nbr=links.ravel(),
+        boundary=pack_links(btets, topology.boundary_local_faces).astype(np.uint32),
         faces=topology.boundary_faces.astype(np.uint32).ravel(),
         face_adj=topology.boundary_adjacency.astype(np.int32).ravel(),
     )
+
+
+#: The Dr.Jit and numpy types of the walk's index buffers (:class:`MeshBuffers`).
+INDEX_TYPES = {"tets": (mi.UInt32, np.uint32), "nbr": (mi.Int32, np.int32),
+               "boundary": (mi.UInt32, np.uint32), "faces": (mi.UInt32, np.uint32),
+               "face_adj": (mi.Int32, np.int32)}
+
+
+def drjit_index_arrays(arrays):
+    """:func:`shape_index_arrays`' arrays as the Dr.Jit buffers the walk reads
+    (what a ``tetmesh`` shape keeps: the numpy arrays can go)."""
+    return {k: INDEX_TYPES[k][0](np.ascontiguousarray(arrays[k], INDEX_TYPES[k][1]))
+            for k in INDEX_TYPES}
 
 
 class MeshBuffers:
@@ -146,18 +180,21 @@ def scene_tetmeshes(scene):
 
 
 def index_buffers(shapes):
-    """The shapes' index arrays concatenated, offsets applied in numpy.
+    """The shapes' index buffers (:func:`drjit_index_arrays`) concatenated
+    with their offsets applied: one shape's own buffers as they are (no copy).
 
     Returns
     -------
     (dict of MeshBuffers index fields, list of int)
         The buffers and each shape's first global boundary face.
     """
+    if len(shapes) == 1:
+        return dict(shapes[0].tet_buffers), [0]
     vo = to = fo = 0
-    idx = {k: [] for k in ("tets", "nbr", "boundary", "faces", "face_adj")}
+    idx = {k: [] for k in INDEX_TYPES}
     face_offsets = []
     for s in shapes:
-        b = s.tet_buffers
+        b = {k: np.asarray(v) for k, v in s.tet_buffers.items()}
         idx["tets"].append(b["tets"].astype(np.int64) + vo)
         idx["nbr"].append(offset_links(b["nbr"], to))
         idx["boundary"].append(offset_links(b["boundary"], to))
@@ -170,10 +207,7 @@ def index_buffers(shapes):
         fo += s.face_count()
     if vo >= 2 ** 32 or 4 * to >= 2 ** 31:
         raise ValueError("tet meshes too large for 32-bit indices")
-    types = {"tets": (mi.UInt32, np.uint32), "nbr": (mi.Int32, np.int32),
-             "boundary": (mi.UInt32, np.uint32), "faces": (mi.UInt32, np.uint32),
-             "face_adj": (mi.Int32, np.int32)}
-    return ({k: t(np.concatenate(idx[k]).astype(nt)) for k, (t, nt) in types.items()},
+    return ({k: t(np.concatenate(idx[k]).astype(nt)) for k, (t, nt) in INDEX_TYPES.items()},
             face_offsets)
 
 

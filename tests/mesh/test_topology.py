@@ -1,5 +1,7 @@
 """Topology, validation and file I/O of tet meshes (numpy only)."""
+import dataclasses
 import warnings
+from pathlib import Path
 
 import meshio
 import numpy as np
@@ -11,6 +13,8 @@ from mi_tetvr.mesh.tetmesh import TetMesh
 from mi_tetvr.mesh.topology import (EDGES, FACES, MeshError, bbox_diagonal, build_topology,
                                     edge_lengths, face_keys, flip_tets, mean_edge_length,
                                     orient_tets, quality, signed_volumes, validate_arrays)
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def reverse_some(t, fraction, seed):
@@ -348,3 +352,106 @@ def test_mesh_package_imports_without_variant():
             "assert 'mi_tetvr.render' not in sys.modules; "
             "assert 'mi_tetvr.render.walk' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# -- the linear-time topology against the implementation it replaced ---------------------
+def _same_topology(got, ref):
+    for f in dataclasses.fields(ref):
+        a, b = getattr(got, f.name), getattr(ref, f.name)
+        if isinstance(b, np.ndarray):
+            assert a.dtype == b.dtype and a.shape == b.shape, f.name
+            np.testing.assert_array_equal(a, b, err_msg=f.name)
+        else:
+            assert a == b, f.name
+
+
+def _outcome(build, v, t):
+    """The topology, or the error's message (the same input must give both)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            return build(v, t)
+        except MeshError as e:
+            return str(e)
+
+
+def _test_meshes():
+    """Meshes with boundaries and holes, shuffled, inverted, flat, folded,
+    non-manifold and duplicate tets."""
+    rng = np.random.default_rng(3)
+    v, t = grid_mesh((5, 4, 3), jitter=0.15)
+    perm = rng.permutation(len(v))
+    rank = np.empty_like(perm)
+    rank[perm] = np.arange(len(v))
+    shuffled = (v[perm], rank[t][rng.permutation(len(t))])
+    inverted = (v, flip_tets(t, rng.random(len(t)) < 0.3))
+    holes = (v, t[rng.random(len(t)) > 0.2])
+    moved = v.copy()
+    moved[len(v) // 2] = moved[t[0, :3]].mean(0)      # a vertex dragged across its tets
+    folded_v = v.copy()
+    folded_v[t[40, 0]] += 2.0 * (v[t[40, 1]] - v[t[40, 0]])
+    # a flat tet on a face of the z = -1 side (its 4th vertex the face's centroid)
+    faces = t[:, FACES].reshape(-1, 3)
+    low = faces[np.all(np.isclose(v[faces][..., 2], -1.0), axis=1)][0]
+    flat = (np.r_[v, [v[low].mean(0)]], np.r_[t, [[*low, len(v)]]])
+    # an interior face given a third tet
+    inner = faces[~np.any(np.isclose(np.abs(v[faces]), 1.0).all(1), axis=1)][0]
+    shared = (np.r_[v, [[5.0, 5.0, 5.0]]], np.r_[t, [[*inner, len(v)]]])
+    return {"grid": (v, t), "shuffled": shuffled, "inverted": inverted, "holes": holes,
+            "flat tet": flat, "moved vertex": (moved, t), "folded": (folded_v, t),
+            "duplicate": (v, np.r_[t, t[[7, 9]][:, [1, 0, 2, 3]]]), "non-manifold": shared}
+
+
+@pytest.mark.parametrize("hashed", [False, True])
+def test_topology_matches_the_reference_implementation(monkeypatch, hashed):
+    """build_topology (one sort of 64-bit face keys) gives exactly what the
+    earlier implementation (np.unique over face rows, kept in
+    tests/mesh/topology_reference.py) gives: every array and every error
+    message; ``hashed``: with the face keys hashed as for meshes of more than
+    2**21 vertices."""
+    from mi_tetvr.mesh import topology as topo
+    from tests.mesh import topology_reference as reference
+    if hashed:
+        monkeypatch.setattr(topo, "PACK_LIMIT", 4)
+    seen_errors = 0
+    for name, (v, t) in _test_meshes().items():
+        ref = _outcome(reference.build_topology, v, t)
+        got = _outcome(topo.build_topology, v, t)
+        if isinstance(ref, str):
+            seen_errors += 1
+            assert got == ref, name
+        else:
+            _same_topology(got, ref)
+    assert seen_errors == 4         # moved vertex, folded, duplicate, non-manifold
+
+
+def test_topology_survives_colliding_face_hashes(monkeypatch):
+    """Hashed face keys that collide (forced here: every key modulo 7) are
+    caught by comparing the faces, and the exact grouping takes over."""
+    from mi_tetvr.mesh import topology as topo
+    from tests.mesh import topology_reference as reference
+    real = topo._tet_face_keys
+    monkeypatch.setattr(topo, "_tet_face_keys", lambda t, n: (real(t, n)[0] % 7, False))
+    v, t = _test_meshes()["holes"]
+    _same_topology(topo.build_topology(v, t), reference.build_topology(v, t))
+
+
+@pytest.mark.parametrize("path", ["spx/spx.vtk", "bluntfin/bluntfin_tets.vtu", "post/post.vtk",
+                                  "a-grid/a_grid.vtk", "sfepy/cube_cylinder.mesh",
+                                  "sfepy/wheelset.vtk"])
+def test_topology_matches_the_reference_on_real_meshes(path):
+    """The same on the real meshes of ../shared/data/tets (skipped when absent)."""
+    from mi_tetvr.mesh import topology as topo
+    from tests.mesh import topology_reference as reference
+    full = ROOT.parent / "shared" / "data" / "tets" / path
+    if not full.exists():
+        pytest.skip(f"{full} not present")
+    m = meshio.read(full)
+    t = np.concatenate([c.data for c in m.cells if c.type == "tetra"])
+    v = np.asarray(m.points, np.float64)
+    ref = _outcome(reference.build_topology, v, t)
+    got = _outcome(topo.build_topology, v, t)
+    if isinstance(ref, str):
+        assert got == ref
+    else:
+        _same_topology(got, ref)

@@ -197,7 +197,7 @@ def test_scene_parameter_workflow():
     scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetvr"},
                           "volume": mi_tetvr.tetmesh_dict(v, t)})
     params = mi.traverse(scene)
-    tets = scene.shapes()[0].topology.tets
+    tets = scene.shapes()[0].oriented_tets()
     reg = QualityRegularizer(tets, beta=10.0, weight=1.0)
     pos = params["volume.vertex_positions"]
     dr.enable_grad(pos)
