@@ -54,8 +54,8 @@ FLAT_TOLERANCE = 1e-9
 
 
 #: Tets per chunk of the per-tet geometry (volumes, edge lengths) over big
-#: meshes: bounds its float64 temporaries to about 150 MB.
-CHUNK = 1 << 20
+#: meshes: bounds its float64 temporaries to about 100 MB.
+CHUNK = 1 << 18
 
 
 def chunk_slices(m, size=CHUNK):
@@ -109,13 +109,28 @@ def signed_volumes(vertices, tets):
     -------
     (m,) float64, positive for positively oriented tets.
     """
+    return _tet_geometry(vertices, tets)[0]
+
+
+def _tet_geometry(vertices, tets, longest=False):
+    """``(signed volumes, longest edges or None)`` (m,) float64, in chunks of
+    :data:`CHUNK` tets from one gather of their corners (no (m, 4, 3) or
+    (m, 6, 3) arrays)."""
     vertices, tets = np.asarray(vertices, dtype=np.float64), np.asarray(tets)
-    out = np.empty(len(tets))
-    for s in chunk_slices(len(tets)):           # (chunk, 4, 3) float64 at a time
-        p = vertices[tets[s]]
-        a, b, c = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
-        out[s] = np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
-    return out
+    vol = np.empty(len(tets))
+    edge = np.empty(len(tets)) if longest else None
+    for s in chunk_slices(len(tets)):
+        p0, p1, p2, p3 = (vertices[tets[s, k]] for k in range(4))
+        a, b, c = p1 - p0, p2 - p0, p3 - p0
+        vol[s] = (a[:, 0] * (b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1])
+                  + a[:, 1] * (b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2])
+                  + a[:, 2] * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])) / 6.0
+        if longest:
+            l2 = np.zeros(s.stop - s.start)
+            for d in (a, b, c, p2 - p1, p3 - p1, p3 - p2):
+                np.maximum(l2, d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2], out=l2)
+            edge[s] = np.sqrt(l2)
+    return vol, edge
 
 
 def bbox_diagonal(vertices) -> float:
@@ -200,8 +215,7 @@ def orient_tets(vertices, tets, flat_tol=FLAT_TOLERANCE) -> Orientation:
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     tets = np.asarray(tets)
-    vol = signed_volumes(vertices, tets)
-    longest = longest_edges(vertices, tets)
+    vol, longest = _tet_geometry(vertices, tets, longest=True)
     flat = ~(np.abs(vol) > flat_tol * longest ** 3)  # NaN volumes count as flat
     flipped = (vol < 0) & ~flat
     return Orientation(flip_tets(tets, flipped), vol, flipped, flat)
@@ -309,10 +323,7 @@ def edge_lengths(vertices, tets):
 
 def longest_edges(vertices, tets):
     """(m,) float64: the longest edge of each tet (in chunks: no (m, 6, 3) array)."""
-    out = np.empty(len(tets))
-    for s in chunk_slices(len(tets)):
-        out[s] = edge_lengths(vertices, tets[s]).max(axis=1)
-    return out
+    return _tet_geometry(vertices, tets, longest=True)[1]
 
 
 def bounding_radius(points) -> float:
@@ -569,7 +580,7 @@ def _match_faces(tets, n_vertices):
     :class:`MeshError` (duplicate tets first, :func:`_duplicate_tets`)."""
     m = len(tets)
     keys, exact = _tet_face_keys(tets, n_vertices)
-    order = np.argsort(keys)
+    order = np.argsort(keys).astype(np.int32 if 4 * m < 2 ** 31 else np.int64)
     sk = keys[order]
     del keys
     eq = sk[1:] == sk[:-1]
