@@ -188,15 +188,16 @@ def load_child(cells, repeat):
     scene = mi.load_dict(scene_dict)
     load = time.perf_counter() - t0
     peak = _rss("VmHWM")
-    del scene_dict
     gc.collect()
+    kept = (_rss() - before) / n_tets        # what the scene holds besides its input arrays
+    del scene_dict
     shape = [s for s in scene.shapes() if hasattr(s, "tet_buffers")][0]
     buffers = getattr(shape, "tet_buffers", {})
     index_bytes = sum(np.asarray(b).nbytes for b in buffers.values()) if isinstance(
         buffers, dict) else 0
     row = dict(cells=cells, tets=n_tets, vertices=n_vertices, load_s=load,
                rss_before=before, peak_rss=peak, peak_over_before=peak - before,
-               index_bytes_per_tet=index_bytes / n_tets, **spent)
+               index_bytes_per_tet=index_bytes / n_tets, kept_bytes_per_tet=kept, **spent)
     for res in (256, 512):
         sensor = mi.load_dict(sensor_dict(res))
         t0 = time.perf_counter()
@@ -210,8 +211,7 @@ def load_child(cells, repeat):
             dr.sync_thread()
             runs.append(time.perf_counter() - t0)
         row[f"render_{res}_s"] = float(np.median(runs))
-    gc.collect()
-    row["kept_bytes_per_tet"] = (_rss() - before) / n_tets
+    row["kept_bytes_per_tet"] = kept
     print("RESULT " + json.dumps(row), flush=True)
 
 

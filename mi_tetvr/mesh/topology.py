@@ -266,24 +266,42 @@ def _mix64(h):
 
 
 def _tet_face_keys(tets, n_vertices):
-    """``(keys (4m,) int64, exact)``: a key per tet face ``4 t + i`` (face
-    ``i`` of tet ``t``), equal for faces with the same vertices. ``exact``:
-    the sorted triple packed (indices below :data:`PACK_LIMIT`); otherwise a
-    64-bit hash of it, equal keys to be confirmed (:func:`_match_faces`).
-    Computed column by column: no (4m, 3) array."""
+    """``(keys (4m,) int64, pairs)``: a key per tet face ``4 t + i`` (face
+    ``i`` of tet ``t``), equal for faces with the same vertices ``a < b < c``.
+    Below :data:`PACK_LIMIT` vertices the key is the triple packed, exact,
+    and ``pairs`` None. Otherwise it is ``mix(mix(b, c) + a)`` (SplitMix64's
+    finalizer, a bijection of 64-bit words) and ``pairs`` the exact ``(b, c)``
+    packed: two faces with equal keys and equal ``pairs`` have equal ``a``
+    too, so that equal keys are confirmed by ``pairs`` alone
+    (:func:`_match_faces`). Computed column by column: no (4m, 3) array."""
     m = len(tets)
     exact = n_vertices <= PACK_LIMIT
     keys = np.empty((m, 4), np.int64)
+    pairs = None if exact else np.empty((m, 4), np.int64)
     with np.errstate(over="ignore"):
         for i, (p, q, r) in enumerate(FACES):
             a, b, c = _sorted3(*(tets[:, k].astype(np.int64) for k in (p, q, r)))
             if exact:
                 keys[:, i] = (a << 42) | (b << 21) | c
             else:
-                h = _mix64(a.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
-                           ^ b.astype(np.uint64))
-                keys[:, i] = _mix64(h ^ c.astype(np.uint64)).view(np.int64)
-    return keys.ravel(), exact
+                pairs[:, i] = (b << 32) | c
+                keys[:, i] = _mix64(_mix64(pairs[:, i].view(np.uint64)) + a.astype(np.uint64)
+                                    ).view(np.int64)
+    return keys.ravel(), None if exact else pairs.ravel()
+
+
+def _tet_face_parity(tets):
+    """(4m,) bool: :func:`_face_parity` of every tet face ``4 t + i`` without
+    gathering it. Face ``i`` preceded by vertex ``i`` is an even permutation of
+    the tet (:data:`FACES`), so its parity is the tet's plus the rank of
+    vertex ``i`` among the four."""
+    cols = [tets[:, k] for k in range(4)]
+    inversions = sum((cols[j] > cols[k]).astype(np.int8) for j in range(4) for k in range(j + 1, 4))
+    out = np.empty((len(tets), 4), bool)
+    for i in range(4):
+        rank = sum((cols[k] < cols[i]).astype(np.int8) for k in range(4) if k != i)
+        out[:, i] = (inversions + rank) % 2 == 0
+    return out.ravel()
 
 
 def _face_vertices(tets, f):
@@ -493,14 +511,6 @@ def _face_parity(tri):
     return ((x > y).astype(np.int8) + (x > z) + (y > z)) % 2 == 0
 
 
-def _faces_parity(tets, f):
-    """:func:`_face_parity` of the tet faces ``f`` (flat indices), in chunks."""
-    out = np.empty(len(f), bool)
-    for s in chunk_slices(len(f)):
-        out[s] = _face_parity(_face_vertices(tets, f[s]))
-    return out
-
-
 @dataclasses.dataclass(frozen=True)
 class Topology:
     """Topology of a tetrahedral mesh.
@@ -579,7 +589,7 @@ def _match_faces(tets, n_vertices):
     the order of their keys). A face shared by more than two tets raises
     :class:`MeshError` (duplicate tets first, :func:`_duplicate_tets`)."""
     m = len(tets)
-    keys, exact = _tet_face_keys(tets, n_vertices)
+    keys, pairs = _tet_face_keys(tets, n_vertices)
     order = np.argsort(keys).astype(np.int32 if 4 * m < 2 ** 31 else np.int64)
     sk = keys[order]
     del keys
@@ -593,12 +603,9 @@ def _match_faces(tets, n_vertices):
     first = np.flatnonzero(eq)
     fa, fb = order[first], order[first + 1]
     del order, eq, first
-    if not exact and not collided:  # equal hashes: the same triangle, unless they collide
-        for s in chunk_slices(len(fa)):
-            if not np.array_equal(np.sort(_face_vertices(tets, fa[s]), 1),
-                                  np.sort(_face_vertices(tets, fb[s]), 1)):
-                collided = True
-                break
+    if pairs is not None and not collided:  # equal hashes: the same triangle, unless they collide
+        collided = not np.array_equal(pairs[fa], pairs[fb])
+    del pairs
     if collided:                           # the exact (slower) grouping
         _, _, fa, fb = _face_pairs(tets[:, FACES].reshape(-1, 3))
     fa, fb = np.minimum(fa, fb), np.maximum(fa, fb)
@@ -660,7 +667,8 @@ def build_topology(vertices, tets, *, warn=True, check=True) -> Topology:
     tets = np.asarray(tets).astype(np.int32 if len(vertices) < 2 ** 31 else np.int64)
     tets, vol, flip, flat = orient_tets(vertices, tets)
     neighbors, neighbor_faces, fa, fb = _match_faces(tets, len(vertices))
-    pa, pb = _faces_parity(tets, fa), _faces_parity(tets, fb)
+    parity = _tet_face_parity(tets)
+    pa, pb = parity[fa], parity[fb]
 
     # Flat tets have no geometric orientation: orient them so that the faces
     # they share with oriented neighbours appear with opposite winding.
@@ -680,7 +688,8 @@ def build_topology(vertices, tets, *, warn=True, check=True) -> Topology:
         if to_flip.any():
             tets = flip_tets(tets, to_flip)
             neighbors, neighbor_faces, fa, fb = _match_faces(tets, len(vertices))
-            pa, pb = _faces_parity(tets, fa), _faces_parity(tets, fb)
+            parity = _tet_face_parity(tets)
+            pa, pb = parity[fa], parity[fb]
 
     inconsistent = pa == pb
     if inconsistent.any():
@@ -689,7 +698,7 @@ def build_topology(vertices, tets, *, warn=True, check=True) -> Topology:
             f"{int(np.count_nonzero(inconsistent))} interior face(s) are not shared with "
             f"opposite orientation even after orienting every tet: the mesh folds over itself "
             f"(tets {_preview(np.unique(fa[inconsistent] // 4))}); {REPAIR_HINT}")
-    del pa, pb, fa, fb, inconsistent
+    del pa, pb, fa, fb, inconsistent, parity
     n_flipped = int(np.count_nonzero(flip))
     n_flat = int(np.count_nonzero(flat))
     if warn and n_flipped:

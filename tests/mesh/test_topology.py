@@ -432,14 +432,26 @@ def test_topology_matches_the_reference_implementation(monkeypatch, hashed):
 
 
 def test_topology_survives_colliding_face_hashes(monkeypatch):
-    """Hashed face keys that collide (forced here: every key modulo 7) are
-    caught by comparing the faces, and the exact grouping takes over."""
+    """Hashed face keys that collide are caught and the exact grouping takes
+    over: two boundary faces given one key (confirmed by their vertex pairs),
+    and keys modulo 7 (groups of many)."""
     from mi_tetvr.mesh import topology as topo
     from tests.mesh import topology_reference as reference
+    monkeypatch.setattr(topo, "PACK_LIMIT", 4)
     real = topo._tet_face_keys
-    monkeypatch.setattr(topo, "_tet_face_keys", lambda t, n: (real(t, n)[0] % 7, False))
     v, t = _test_meshes()["holes"]
-    _same_topology(topo.build_topology(v, t), reference.build_topology(v, t), v)
+    ref = reference.build_topology(v, t)
+    boundary = np.flatnonzero(ref.neighbors.ravel() < 0)
+
+    def two_collide(tets, n):
+        keys, pairs = real(tets, n)
+        keys = keys.copy()
+        keys[boundary[0]] = keys[boundary[-1]]
+        return keys, pairs
+
+    for fake in (two_collide, lambda tets, n: (real(tets, n)[0] % 7, real(tets, n)[1])):
+        monkeypatch.setattr(topo, "_tet_face_keys", fake)
+        _same_topology(topo.build_topology(v, t), ref, v)
 
 
 @pytest.mark.parametrize("path", ["spx/spx.vtk", "bluntfin/bluntfin_tets.vtu", "post/post.vtk",
