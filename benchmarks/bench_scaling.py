@@ -211,7 +211,6 @@ def load_child(cells, repeat):
             dr.sync_thread()
             runs.append(time.perf_counter() - t0)
         row[f"render_{res}_s"] = float(np.median(runs))
-    row["kept_bytes_per_tet"] = kept
     print("RESULT " + json.dumps(row), flush=True)
 
 

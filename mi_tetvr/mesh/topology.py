@@ -222,10 +222,10 @@ def orient_tets(vertices, tets, flat_tol=FLAT_TOLERANCE) -> Orientation:
 
 
 def _sorted3(x, y, z):
-    """Elementwise ``(min, middle, max)`` of three index arrays."""
-    a = np.minimum(np.minimum(x, y), z)
-    c = np.maximum(np.maximum(x, y), z)
-    return a, x + y + z - a - c, c
+    """Elementwise ``(min, middle, max)`` of three index arrays (any integer
+    type: no sums that could overflow)."""
+    lo, hi = np.minimum(x, y), np.maximum(x, y)
+    return np.minimum(lo, z), np.maximum(lo, np.minimum(hi, z)), np.maximum(hi, z)
 
 
 #: Vertex indices below this pack a sorted triangle into one int64 exactly.
@@ -265,24 +265,37 @@ def _mix64(h):
     return h ^ (h >> np.uint64(31))
 
 
+#: Bits of an exact face key (:func:`_tet_face_keys`).
+KEY_BITS = 63
+
+
 def _tet_face_keys(tets, n_vertices):
     """``(keys (4m,) int64, pairs)``: a key per tet face ``4 t + i`` (face
     ``i`` of tet ``t``), equal for faces with the same vertices ``a < b < c``.
-    Below :data:`PACK_LIMIT` vertices the key is the triple packed, exact,
-    and ``pairs`` None. Otherwise it is ``mix(mix(b, c) + a)`` (SplitMix64's
-    finalizer, a bijection of 64-bit words) and ``pairs`` the exact ``(b, c)``
-    packed: two faces with equal keys and equal ``pairs`` have equal ``a``
-    too, so that equal keys are confirmed by ``pairs`` alone
-    (:func:`_match_faces`). Computed column by column: no (4m, 3) array."""
+
+    Exact where it fits in :data:`KEY_BITS`: ``a``, ``b - a`` and ``c - a``
+    packed (the spans ``c - a`` are small in meshes whose vertices are
+    numbered with any locality: 16 bits for a 180^3 grid), ordered as the
+    triples are, and ``pairs`` None. Otherwise the key is ``mix(mix(b, c) +
+    a)`` (SplitMix64's finalizer, a bijection of 64-bit words) and ``pairs``
+    the exact ``(b, c)`` packed: two faces with equal keys and equal
+    ``pairs`` have equal ``a`` too, so that equal keys are confirmed by
+    ``pairs`` alone (:func:`_match_faces`). Computed column by column: no
+    (4m, 3) array."""
     m = len(tets)
-    exact = n_vertices <= PACK_LIMIT
+    cols = [np.ascontiguousarray(tets[:, k]) for k in range(4)]     # 32-bit where tets are
+    faces = [[cols[k] for k in f] for f in FACES]
+    span = max((int((np.maximum(np.maximum(x, y), z) - np.minimum(np.minimum(x, y), z)).max())
+                for x, y, z in faces), default=0) if m else 0
+    wa, ws = max(int(n_vertices - 1).bit_length(), 1), max(span.bit_length(), 1)
+    exact = wa + 2 * ws <= KEY_BITS
     keys = np.empty((m, 4), np.int64)
     pairs = None if exact else np.empty((m, 4), np.int64)
     with np.errstate(over="ignore"):
-        for i, (p, q, r) in enumerate(FACES):
-            a, b, c = _sorted3(*(tets[:, k].astype(np.int64) for k in (p, q, r)))
+        for i, f in enumerate(faces):
+            a, b, c = (x.astype(np.int64) for x in _sorted3(*f))
             if exact:
-                keys[:, i] = (a << 42) | (b << 21) | c
+                keys[:, i] = (a << (2 * ws)) | ((b - a) << ws) | (c - a)
             else:
                 pairs[:, i] = (b << 32) | c
                 keys[:, i] = _mix64(_mix64(pairs[:, i].view(np.uint64)) + a.astype(np.uint64)
@@ -462,10 +475,12 @@ def _duplicate_tets(s):
     hash of each row finds the candidates; the exact rows confirm them."""
     if len(s) < 2:
         return
-    with np.errstate(over="ignore"):
-        h = np.zeros(len(s), np.uint64)
-        for k in range(4):
-            h = _mix64(h ^ s[:, k].astype(np.uint64))
+    with np.errstate(over="ignore"):      # a wrapping linear form of the row, then one mix
+        h = s[:, 3].astype(np.uint64)
+        for k, factor in zip(range(3), (0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F,
+                                        0x165667B19E3779F9)):
+            h += s[:, k].astype(np.uint64) * np.uint64(factor)
+        h = _mix64(h)
     hs = np.sort(h)
     if not np.any(hs[1:] == hs[:-1]):
         return

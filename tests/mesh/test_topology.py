@@ -413,12 +413,12 @@ def test_topology_matches_the_reference_implementation(monkeypatch, hashed):
     """build_topology (one sort of 64-bit face keys) gives exactly what the
     earlier implementation (np.unique over face rows, kept in
     tests/mesh/topology_reference.py) gives: every array and every error
-    message; ``hashed``: with the face keys hashed as for meshes of more than
-    2**21 vertices."""
+    message; ``hashed``: with the face keys hashed as for meshes whose
+    vertex numbers are too far apart to pack."""
     from mi_tetvr.mesh import topology as topo
     from tests.mesh import topology_reference as reference
     if hashed:
-        monkeypatch.setattr(topo, "PACK_LIMIT", 4)
+        monkeypatch.setattr(topo, "KEY_BITS", 0)
     seen_errors = 0
     for name, (v, t) in _test_meshes().items():
         ref = _outcome(reference.build_topology, v, t)
@@ -431,13 +431,32 @@ def test_topology_matches_the_reference_implementation(monkeypatch, hashed):
     assert seen_errors == 4         # moved vertex, folded, duplicate, non-manifold
 
 
+def test_topology_with_vertex_numbers_past_2_21():
+    """Meshes of more than 2**21 vertices: face keys packed exactly when the
+    numbers of a face's vertices lie close (an offset mesh), hashed when they
+    do not (spread at random over 2**22): both as the reference has them."""
+    from mi_tetvr.mesh import topology as topo
+    from tests.mesh import topology_reference as reference
+    v, t = _test_meshes()["holes"]
+    n = 1 << 22
+    rng = np.random.default_rng(5)
+    for label, idx in (("offset", np.arange(len(v)) + n - len(v)),
+                       ("spread", rng.choice(n, len(v), replace=False))):
+        big = np.zeros((n, 3))
+        big[idx] = v
+        keys, pairs = topo._tet_face_keys(idx[t], n)
+        assert (pairs is None) == (label == "offset"), label
+        _same_topology(topo.build_topology(big, idx[t]), reference.build_topology(big, idx[t]),
+                       big)
+
+
 def test_topology_survives_colliding_face_hashes(monkeypatch):
     """Hashed face keys that collide are caught and the exact grouping takes
     over: two boundary faces given one key (confirmed by their vertex pairs),
     and keys modulo 7 (groups of many)."""
     from mi_tetvr.mesh import topology as topo
     from tests.mesh import topology_reference as reference
-    monkeypatch.setattr(topo, "PACK_LIMIT", 4)
+    monkeypatch.setattr(topo, "KEY_BITS", 0)
     real = topo._tet_face_keys
     v, t = _test_meshes()["holes"]
     ref = reference.build_topology(v, t)
