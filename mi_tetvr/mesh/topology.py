@@ -649,7 +649,11 @@ def _edge_adjacency(tris):
     return adj.astype(np.int32)
 
 
-def build_topology(vertices, tets, *, warn=True, check=True) -> Topology:
+#: Meshes of at least this many tets show the topology's progress (a few seconds).
+PROGRESS_TETS = 4_000_000
+
+
+def build_topology(vertices, tets, *, warn=True, check=True, progress=None) -> Topology:
     """Orient tets, match faces, find the boundary.
 
     Time and memory linear in the mesh but for one sort of a 64-bit key per
@@ -664,6 +668,9 @@ def build_topology(vertices, tets, *, warn=True, check=True) -> Topology:
     check : bool
         Validate the arrays first (:func:`validate_arrays`); False for
         arrays validated already (a :class:`~mi_tetvr.mesh.TetMesh`'s).
+    progress : bool, optional
+        A progress bar of its steps on stderr (default: for meshes of
+        :data:`PROGRESS_TETS` tets or more).
 
     Returns
     -------
@@ -675,13 +682,25 @@ def build_topology(vertices, tets, *, warn=True, check=True) -> Topology:
         Bad indices, non-finite positions, duplicate tets or faces shared by
         more than two tets.
     """
+    from mi_tetvr.progress import progress_bar
+    m = len(tets)
+    with progress_bar(total=4, desc=f"topology of {m:,} tets", unit="step",
+                      disable=not (m >= PROGRESS_TETS if progress is None else progress)) as bar:
+        return _build_topology(vertices, tets, warn, check, bar)
+
+
+def _build_topology(vertices, tets, warn, check, bar) -> Topology:
+    """:func:`build_topology`, its steps counted on ``bar``."""
+    m = len(tets)
     if check:   # duplicates show in the face matching: looked for only then
         vertices, tets = validate_arrays(vertices, tets, duplicates=False)
+    bar.update()
     vertices = np.asarray(vertices, np.float64)
-    m = len(tets)
     tets = np.asarray(tets).astype(np.int32 if len(vertices) < 2 ** 31 else np.int64)
     tets, vol, flip, flat = orient_tets(vertices, tets)
+    bar.update()
     neighbors, neighbor_faces, fa, fb = _match_faces(tets, len(vertices))
+    bar.update()
     parity = _tet_face_parity(tets)
     pa, pb = parity[fa], parity[fb]
 
@@ -707,6 +726,7 @@ def build_topology(vertices, tets, *, warn=True, check=True) -> Topology:
             pa, pb = parity[fa], parity[fb]
 
     inconsistent = pa == pb
+    bar.update()
     if inconsistent.any():
         _duplicate_tets(np.sort(tets, axis=1))
         raise MeshError(
@@ -717,11 +737,11 @@ def build_topology(vertices, tets, *, warn=True, check=True) -> Topology:
     n_flipped = int(np.count_nonzero(flip))
     n_flat = int(np.count_nonzero(flat))
     if warn and n_flipped:
-        warnings.warn(f"{n_flipped} inverted tet(s) re-oriented", stacklevel=2)
+        warnings.warn(f"{n_flipped} inverted tet(s) re-oriented", stacklevel=3)
     if warn and n_flat:
         warnings.warn(
             f"{n_flat} zero-volume tet(s) kept (they contribute nothing; rays step "
-            f"over them): {_preview(np.flatnonzero(flat))}", stacklevel=2)
+            f"over them): {_preview(np.flatnonzero(flat))}", stacklevel=3)
     bnd = np.flatnonzero(neighbors < 0)
     bfaces = _face_vertices(tets, bnd)
     return Topology(
