@@ -69,8 +69,8 @@ import mitsuba as mi  # noqa: E402
 mi.set_variant(ARGS.variant)
 
 import mi_tetvr  # noqa: E402,F401
-from mi_tetvr.render.buffers import (MeshBuffers, TetScene, scene_tetmeshes,  # noqa: E402
-                                     shape_index_arrays)
+from mi_tetvr.mesh.topology import build_topology  # noqa: E402
+from mi_tetvr.render.buffers import MeshBuffers, TetScene, shape_index_arrays  # noqa: E402
 from mi_tetvr.render.walk import WalkSettings, trace  # noqa: E402
 from plain_walk import plain_trace  # noqa: E402
 
@@ -104,8 +104,7 @@ def main(a):
     extra = {} if a.n_sub is None else {"n_sub": a.n_sub}
     scene, v, tets, color, opacity = grid_scene(a.cells, res, a.jitter, a.scale, a.shuffle,
                                                 min_transmittance=0.0, alpha=False, **extra)
-    shape = scene_tetmeshes(scene)[0]
-    topo = shape.topology
+    topo = build_topology(v, tets)          # the shape keeps only the walk's buffers
     integrator = scene.integrator()
     n_sub = integrator.n_sub
     print(f"mesh: {a.cells}^3 cells, jitter {a.jitter}: {len(v):,} vertices, "
