@@ -228,8 +228,8 @@ def _sorted3(x, y, z):
     return np.minimum(lo, z), np.maximum(lo, np.minimum(hi, z)), np.maximum(hi, z)
 
 
-#: Vertex indices below this pack a sorted triangle into one int64 exactly.
-PACK_LIMIT = 1 << 21
+#: Bits of an exact face key (:func:`face_keys`, :func:`_tet_face_keys`).
+KEY_BITS = 63
 
 
 def face_keys(faces):
@@ -245,17 +245,33 @@ def face_keys(faces):
     (k,) int64
         Equal exactly for triangles with the same three vertices, and
         ordered as the sorted vertex triples are (lexicographically): the
-        sorted triple packed into 63 bits when every index is below 2**21,
-        else the rank of the sorted triple among the distinct ones.
+        sorted triple ``a < b < c`` packed as ``a``, ``b - a``, ``c - a``
+        into 63 bits when they fit (:func:`_pack_triples`), else the rank of
+        the sorted triple among the distinct ones.
     """
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    f = np.asarray(faces).reshape(-1, 3)
     if len(f) == 0:
         return np.zeros(0, np.int64)
-    a, b, c = _sorted3(f[:, 0], f[:, 1], f[:, 2])
-    if c.max() < PACK_LIMIT:  # pack the triple into one int64: much faster unique
-        return (a << 42) | (b << 21) | c
+    a, b, c = (x.astype(np.int64) for x in _sorted3(f[:, 0], f[:, 1], f[:, 2]))
+    widths = _key_widths(int(c.max()) + 1, int((c - a).max()))
+    if widths is not None:
+        return _pack_triples(a, b, c, *widths)
     return np.unique(np.stack([a, b, c], 1), axis=0, return_inverse=True)[1].ravel().astype(
         np.int64)
+
+
+def _key_widths(n_vertices, span):
+    """``(bits of a, bits of a span)`` of exact face keys for vertex numbers
+    below ``n_vertices`` and ``c - a`` up to ``span``; None if they do not fit
+    in :data:`KEY_BITS`."""
+    wa, ws = max(int(n_vertices - 1).bit_length(), 1), max(int(span).bit_length(), 1)
+    return (wa, ws) if wa + 2 * ws <= KEY_BITS else None
+
+
+def _pack_triples(a, b, c, wa, ws):
+    """Sorted triples (int64 arrays ``a < b < c``) packed exactly, ordered as
+    the triples: ``a``, ``b - a`` and ``c - a`` in ``wa + 2 ws`` bits."""
+    return (a << (2 * ws)) | ((b - a) << ws) | (c - a)
 
 
 def _mix64(h):
@@ -263,10 +279,6 @@ def _mix64(h):
     h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
     h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
     return h ^ (h >> np.uint64(31))
-
-
-#: Bits of an exact face key (:func:`_tet_face_keys`).
-KEY_BITS = 63
 
 
 def _tet_face_keys(tets, n_vertices):
@@ -287,15 +299,15 @@ def _tet_face_keys(tets, n_vertices):
     faces = [[cols[k] for k in f] for f in FACES]
     span = max((int((np.maximum(np.maximum(x, y), z) - np.minimum(np.minimum(x, y), z)).max())
                 for x, y, z in faces), default=0) if m else 0
-    wa, ws = max(int(n_vertices - 1).bit_length(), 1), max(span.bit_length(), 1)
-    exact = wa + 2 * ws <= KEY_BITS
+    widths = _key_widths(n_vertices, span)
+    exact = widths is not None
     keys = np.empty((m, 4), np.int64)
     pairs = None if exact else np.empty((m, 4), np.int64)
     with np.errstate(over="ignore"):
         for i, f in enumerate(faces):
             a, b, c = (x.astype(np.int64) for x in _sorted3(*f))
             if exact:
-                keys[:, i] = (a << (2 * ws)) | ((b - a) << ws) | (c - a)
+                keys[:, i] = _pack_triples(a, b, c, *widths)
             else:
                 pairs[:, i] = (b << 32) | c
                 keys[:, i] = _mix64(_mix64(pairs[:, i].view(np.uint64)) + a.astype(np.uint64)
@@ -657,7 +669,8 @@ def build_topology(vertices, tets, *, warn=True, check=True, progress=None) -> T
     """Orient tets, match faces, find the boundary.
 
     Time and memory linear in the mesh but for one sort of a 64-bit key per
-    face (about 80 bytes per tet at the peak besides the result).
+    face: about 135 bytes per tet at the peak (the result, 47 of them,
+    included) beside the input.
 
     Parameters
     ----------

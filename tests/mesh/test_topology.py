@@ -269,9 +269,9 @@ def test_face_keys():
     s = np.sort(tri, axis=1)
     same = (s[:, None] == s[None]).all(-1)
     np.testing.assert_array_equal(keys[:, None] == keys[None], same)
-    # keys sort as the sorted triples do, also above 2**21 vertices (other encoding)
-    big = s + 2 ** 21
-    for k in (keys, face_keys(big)):
+    # keys sort as the sorted triples do, also above 2**21 vertices: packed with
+    # the spans c - a (offset numbers) or ranked (numbers spread over 2**25)
+    for k in (keys, face_keys(s + 2 ** 21), face_keys(s * 2 ** 20)):
         np.testing.assert_array_equal(np.argsort(k, kind="stable"),
                                       np.lexsort((s[:, 2], s[:, 1], s[:, 0])))
     assert face_keys(np.zeros((0, 3), int)).shape == (0,)
