@@ -483,7 +483,8 @@ def cmd_viewpoint(a):
     shape = {"type": "tetmesh", "filename": str(path.resolve()), "repair": a.repair,
              "cell_to_point": a.cell_to_point}
     if a.tf:
-        shape["transfer_function"] = str(Path(a.tf).resolve())
+        # a file, or a matplotlib colormap's name
+        shape["transfer_function"] = str(Path(a.tf).resolve()) if Path(a.tf).exists() else a.tf
         if a.scalar:
             shape["scalar_attribute"] = a.scalar
         shape["opacity_scale"] = a.opacity_scale / radius
@@ -673,7 +674,8 @@ def build_parser():
     d.add_argument("volume", help="scalar grid (.npy, .cvol, .mhd, .vti, raw .gz) or scalar "
                    "tet mesh (.vtu, .vtk, .msh, .mesh)")
     _out(d, "data set folder")
-    d.add_argument("--tf", help="transfer function (.json or DiffTetVR .xml)")
+    d.add_argument("--tf", help="transfer function (.json: the project's or a ParaView colormap; "
+                   "DiffTetVR .xml; or a matplotlib colormap's name)")
     d.add_argument("--scalar", help="the tet mesh's scalar point array (default: the only one)")
     d.add_argument("--views", type=int, default=64, help="training views (default 64)")
     d.add_argument("--test-views", type=int, default=TEST_VIEWS,
@@ -792,7 +794,8 @@ def build_parser():
     v.add_argument("mesh", help="tet mesh file")
     _out(v, "folder for viewpoint.json, view.png and viewpoint.png (the entropy over the "
             "sphere, the ascent paths)")
-    v.add_argument("--tf", help="transfer function (post-classifies the scalar)")
+    v.add_argument("--tf", help="transfer function (post-classifies the scalar): a file, or a "
+                   "matplotlib colormap's name")
     v.add_argument("--scalar", help="the scalar point array (default: the only one)")
     _opacity_scale(v)
     _res(v, (128, 128))

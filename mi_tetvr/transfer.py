@@ -52,6 +52,25 @@ to the ``r, g, b`` values (sRGB values are converted with
 :func:`srgb_to_linear` on load).  :func:`write_json` always writes
 ``"linear"``.
 
+ParaView colormap JSON (``.json``, what *Save as preset* / *Export* writes:
+a list of presets, or one)::
+
+    [{"Name": "Cool to Warm", "ColorSpace": "Diverging",
+      "RGBPoints": [x, r, g, b, ...], "Points": [x, opacity, midpoint, sharpness, ...]}]
+
+The first preset is read. Its colors (sRGB, as ParaView shows them) are
+interpolated in its ``ColorSpace`` (RGB, HSV, Lab, Diverging, ...) by VTK's own
+``vtkColorTransferFunction`` and its opacity points (with their midpoints and
+sharpness) by ``vtkPiecewiseFunction``, both sampled at
+:data:`COLORMAP_SAMPLES` positions over the points' range, which becomes the
+normalised axis ``[0, 1]`` (ParaView too stretches a preset over the data
+range). Without ``Points`` the opacity ramps from 0 to 1 (ParaView's default
+for volumes).
+
+A matplotlib colormap by name (``"viridis"``, ``"coolwarm"``, ...) where no
+file of that name exists: its colors sampled at :data:`COLORMAP_SAMPLES`
+positions, the opacity a ramp from 0 to 1.
+
 DiffDVR's JSON settings files (the ``tfEditor`` block) are deliberately *not*
 supported: their colors are CIELAB, interpolated in CIELAB, with a separate
 ``opacityScaling`` and a Gaussian-mixture mode, so they are not representable
@@ -74,7 +93,10 @@ import numpy as np
 from mi_tetvr.color import srgb_to_linear
 
 __all__ = ["TransferFunction", "read_transfer_function", "read_difftetvr_xml", "read_json",
-           "write_json", "json_dict"]
+           "read_paraview_json", "colormap", "write_json", "json_dict", "COLORMAP_SAMPLES"]
+
+#: Control points a ParaView preset or a matplotlib colormap is sampled at.
+COLORMAP_SAMPLES = 256
 
 PathType = Union[str, "PathLike[str]"]
 
@@ -323,14 +345,17 @@ class TransferFunction:
 
 # ------------------------------------------------------------------------ files
 def read_transfer_function(path: PathType) -> TransferFunction:
-    """Read a transfer function file, dispatching on its suffix.
+    """Read a transfer function file, dispatching on its suffix and content,
+    or a matplotlib colormap by name.
 
     Parameters
     ----------
     path : str or os.PathLike
-        ``.xml`` (DiffTetVR / sgl format, :func:`read_difftetvr_xml`) or
-        ``.json`` (project format, :func:`read_json`); the suffix is matched
-        case-insensitively.
+        ``.xml`` (DiffTetVR / sgl format, :func:`read_difftetvr_xml`),
+        ``.json`` (the project's format, :func:`read_json`, or a ParaView
+        colormap preset, :func:`read_paraview_json`); the suffix is matched
+        case-insensitively. A name that is no file but a matplotlib
+        colormap's (``viridis``) gives :func:`colormap`.
 
     Returns
     -------
@@ -339,18 +364,98 @@ def read_transfer_function(path: PathType) -> TransferFunction:
     Raises
     ------
     ValueError
-        If the suffix is neither ``.xml`` nor ``.json``, or the file is
-        malformed.
+        If the suffix is neither ``.xml`` nor ``.json`` (and the name no
+        colormap's), or the file is malformed.
     """
     suffix = Path(path).suffix.lower()
+    if not Path(path).exists() and suffix not in (".xml", ".json"):
+        return colormap(str(path))
     if suffix == ".xml":
         return read_difftetvr_xml(path)
     if suffix == ".json":
         return read_json(path)
     raise ValueError(
         f"unknown transfer function file suffix {Path(path).suffix!r} for "
-        f"{str(path)!r}; expected '.xml' (DiffTetVR) or '.json'"
+        f"{str(path)!r}; expected '.xml' (DiffTetVR) or '.json' (the project's or a "
+        f"ParaView colormap), or a matplotlib colormap's name"
     )
+
+
+def _ramp(n: int) -> np.ndarray:
+    return np.linspace(0.0, 1.0, n)
+
+
+def colormap(name: str, samples: int = COLORMAP_SAMPLES) -> TransferFunction:
+    """A matplotlib colormap by name: its sRGB colors sampled at ``samples``
+    positions over ``[0, 1]`` (stored linear), the opacity a ramp from 0 to 1."""
+    import matplotlib
+    try:
+        cmap = matplotlib.colormaps[name]
+    except KeyError:
+        raise ValueError(f"{name!r} is no transfer function file and no matplotlib colormap "
+                         f"(e.g. viridis, plasma, coolwarm, gray)") from None
+    x = _ramp(samples)
+    return TransferFunction(x, srgb_to_linear(np.asarray(cmap(x))[:, :3]), x, x.copy())
+
+
+def read_paraview_json(path: PathType, samples: int = COLORMAP_SAMPLES) -> TransferFunction:
+    """A ParaView colormap preset (see the module docstring), interpolated as
+    ParaView does by VTK's ``vtkColorTransferFunction`` (in the preset's
+    ``ColorSpace``) and ``vtkPiecewiseFunction``, sampled at ``samples``
+    positions over the range of its ``RGBPoints``."""
+    try:
+        with open(path, "r", encoding="utf-8") as f:
+            data = json.load(f)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{str(path)!r}: malformed JSON: {exc}") from None
+    return _paraview_preset(data[0] if isinstance(data, list) and data else data, str(path),
+                            samples)
+
+
+def _paraview_preset(preset, where: str, samples: int) -> TransferFunction:
+    from vtkmodules.vtkRenderingCore import vtkColorTransferFunction
+    from vtkmodules.vtkCommonDataModel import vtkPiecewiseFunction
+    if not isinstance(preset, dict):
+        raise ValueError(f"{where!r}: the JSON value must be an object (the project's format) "
+                         f"or a list of ParaView presets (objects with 'RGBPoints')")
+    rgb = np.asarray(preset.get("RGBPoints", []), float)
+    if rgb.size < 8 or rgb.size % 4:
+        raise ValueError(f"{where!r}: a ParaView preset needs 'RGBPoints' [x, r, g, b, ...] "
+                         f"with two points or more")
+    rgb = rgb.reshape(-1, 4)
+    lo, hi = float(rgb[:, 0].min()), float(rgb[:, 0].max())
+    if not hi > lo:
+        raise ValueError(f"{where!r}: the 'RGBPoints' span no range ({lo:g} .. {hi:g})")
+    ctf = vtkColorTransferFunction()
+    space = str(preset.get("ColorSpace", "RGB")).lower()
+    setters = {"rgb": ctf.SetColorSpaceToRGB, "hsv": ctf.SetColorSpaceToHSV,
+               "lab": ctf.SetColorSpaceToLab, "cielab": ctf.SetColorSpaceToLab,
+               "diverging": ctf.SetColorSpaceToDiverging,
+               "lab/ciede2000": ctf.SetColorSpaceToLabCIEDE2000,
+               "step": ctf.SetColorSpaceToStep}
+    if space not in setters:
+        raise ValueError(f"{where!r}: unknown ColorSpace {preset.get('ColorSpace')!r} "
+                         f"(one of {sorted(setters)})")
+    setters[space]()
+    if preset.get("HSVWrap") is not None and space == "hsv":
+        ctf.SetHSVWrap(bool(preset["HSVWrap"]))
+    for x, r, g, b in rgb:
+        ctf.AddRGBPoint(float(x), float(r), float(g), float(b))
+    x = lo + _ramp(samples) * (hi - lo)
+    colors = np.array([ctf.GetColor(float(v)) for v in x])
+    points = np.asarray(preset.get("Points", []), float)
+    if points.size:
+        if points.size % 4:
+            raise ValueError(f"{where!r}: 'Points' must be [x, opacity, midpoint, sharpness, "
+                             f"...]")
+        pwf = vtkPiecewiseFunction()
+        for px, py, mid, sharp in points.reshape(-1, 4):
+            pwf.AddPoint(float(px), float(py), float(mid), float(sharp))
+        opacity = np.array([pwf.GetValue(float(v)) for v in x])
+    else:
+        opacity = _ramp(samples)
+    t = _ramp(samples)
+    return TransferFunction(t, srgb_to_linear(np.clip(colors, 0.0, 1.0)), t, opacity)
 
 
 def read_difftetvr_xml(path: PathType) -> TransferFunction:
@@ -464,6 +569,9 @@ def read_json(path: PathType) -> TransferFunction:
             data = json.load(f)
     except json.JSONDecodeError as exc:
         raise ValueError(f"{str(path)!r}: malformed JSON: {exc}") from None
+    if isinstance(data, list) or (isinstance(data, dict) and "RGBPoints" in data):
+        return _paraview_preset(data[0] if isinstance(data, list) and data else data, str(path),
+                                COLORMAP_SAMPLES)
     if not isinstance(data, dict):
         raise ValueError(f"{str(path)!r}: top-level JSON value must be an object")
     if "tfEditor" in data:

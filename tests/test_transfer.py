@@ -352,3 +352,66 @@ def test_texels_sample_the_function_at_texel_centres():
     assert opacity[:49].max() == 0 and opacity[51:].max() == 0
     with pytest.raises(ValueError, match="at least 2 texels"):
         tf.texels(1)
+
+
+# -- colormaps as ParaView and matplotlib users have them ------------------------------
+def _preset(tmp_path, **preset):
+    path = tmp_path / "preset.json"
+    path.write_text(json.dumps([{"Name": "test", **preset}]))
+    return path
+
+
+def test_paraview_rgb_preset_is_linear_in_srgb(tmp_path):
+    """A ParaView preset in the RGB color space interpolates its (sRGB) points
+    linearly, as ParaView shows them: at every sample the closed-form lerp; the
+    points' range becomes [0, 1]; no 'Points': the opacity ramps 0 -> 1."""
+    from mi_tetvr.color import linear_to_srgb
+    from mi_tetvr.transfer import read_transfer_function
+    tf = read_transfer_function(_preset(tmp_path, ColorSpace="RGB", RGBPoints=[
+        10, 0.0, 0.2, 1.0, 20, 1.0, 0.6, 0.0, 30, 0.5, 0.5, 0.5]))
+    t = np.arange(256) / 255
+    c, o = tf(t)
+    x = 10 + 20 * t
+    expected = np.stack([np.interp(x, [10, 20, 30], k) for k in
+                         ([0.0, 1.0, 0.5], [0.2, 0.6, 0.5], [1.0, 0.0, 0.5])], 1)
+    np.testing.assert_allclose(linear_to_srgb(c), expected, atol=1e-6)
+    np.testing.assert_allclose(o, t, atol=1e-12)
+
+
+def test_paraview_diverging_preset_and_opacity_points(tmp_path):
+    """ParaView's Cool to Warm (Moreland's diverging map, interpolated in Msh
+    by VTK) passes through a neutral grey of about 0.865 at its middle;
+    opacity points with midpoint 0.5 and sharpness 0 are piecewise linear."""
+    from mi_tetvr.color import linear_to_srgb
+    from mi_tetvr.transfer import read_paraview_json
+    path = _preset(tmp_path, ColorSpace="Diverging",
+                   RGBPoints=[-1, 0.23, 0.299, 0.754, 1, 0.706, 0.016, 0.15],
+                   Points=[-1, 0.0, 0.5, 0.0, 0, 0.8, 0.5, 0.0, 1, 0.2, 0.5, 0.0])
+    tf = read_paraview_json(path, samples=257)
+    c, o = tf(np.array([0.0, 0.25, 0.5, 0.75, 1.0]))
+    mid = linear_to_srgb(c[2])
+    assert np.ptp(mid) < 2e-3 and abs(mid.mean() - 0.865) < 3e-3, mid
+    np.testing.assert_allclose(linear_to_srgb(c[[0, 4]]), [[0.23, 0.299, 0.754],
+                                                           [0.706, 0.016, 0.15]], atol=2e-3)
+    np.testing.assert_allclose(o, [0.0, 0.4, 0.8, 0.5, 0.2], atol=1e-9)
+    with pytest.raises(ValueError, match="RGBPoints"):
+        read_paraview_json(_preset(tmp_path, RGBPoints=[0, 1, 1]))
+    with pytest.raises(ValueError, match="ColorSpace"):
+        read_paraview_json(_preset(tmp_path, ColorSpace="XYZ", RGBPoints=[0, 0, 0, 0, 1, 1, 1, 1]))
+
+
+def test_matplotlib_colormap_by_name():
+    """A matplotlib colormap's name: its colors at its own sample positions
+    (sRGB, as matplotlib gives them), the opacity a ramp; an unknown name
+    says what it accepts."""
+    import matplotlib
+    from mi_tetvr.color import linear_to_srgb
+    from mi_tetvr.transfer import read_transfer_function
+    t = np.arange(256) / 255
+    for name in ("viridis", "coolwarm", "gray"):
+        c, o = read_transfer_function(name)(t)
+        np.testing.assert_allclose(linear_to_srgb(c), matplotlib.colormaps[name](t)[:, :3],
+                                   atol=1e-6)
+        np.testing.assert_allclose(o, t)
+    with pytest.raises(ValueError, match="matplotlib colormap"):
+        read_transfer_function("no_such_map")

@@ -138,7 +138,8 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
     mesh_path : path
         A tet mesh with a scalar point array.
     tf_path : path
-        Transfer function (project JSON or DiffTetVR XML), over the scalar's range.
+        Transfer function over the scalar's range: a file (project or ParaView JSON,
+        DiffTetVR XML) or a matplotlib colormap's name.
     out_dir : path
     views, test_views : int
     res : int or (int, int)
@@ -169,7 +170,9 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
     from mi_tetvr.mesh.io import choose_scalar, read_tetmesh
     from mi_tetvr.mesh.topology import bounding_radius
     from mi_tetvr.recon.datasets import Dataset, View, write_nerf
-    mesh_path, tf_path = Path(mesh_path).resolve(), Path(tf_path).resolve()
+    mesh_path = Path(mesh_path).resolve()
+    # a file, or a matplotlib colormap's name
+    tf_path = Path(tf_path).resolve() if Path(tf_path).exists() else tf_path
     mesh = read_tetmesh(mesh_path, color=None, opacity=None, repair=repair,
                         cell_to_point=cell_to_point)
     name = choose_scalar(mesh.point_data, scalar, str(mesh_path), mesh.cell_data)
