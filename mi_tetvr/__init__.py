@@ -39,7 +39,7 @@ _registered_variant = None
 #: Modules that bind Mitsuba/Dr.Jit types at import, in dependency order.
 _VARIANT_MODULES = ("render.segment", "render.buffers", "render.geometry", "render.optical",
                     "render.adjoint", "render.walk", "render", "grid.marcher", "recon.regularizer",
-                    "plugins.tetmesh", "plugins.tetvr")
+                    "plugins.tetmesh", "plugins.tetvr", "plugins.tetproj")
 
 
 def register():

@@ -274,6 +274,40 @@ def reference_render_classified(vertices, tets, scalar, tf_color, tf_opacity, va
                    origins, directions, background, t_max, n_quad)
 
 
+def reference_projection(vertices, tets, scalar, origins, directions, mode="max"):
+    """Intensity projections of a per-vertex scalar along rays, in float64:
+    every ray clipped against every tet (the union of the covered intervals,
+    :func:`_pieces`), the scalar at each piece's ends by its barycentrics;
+    ``max`` / ``min`` of those ends (a linear function's extremes on a
+    segment), ``mean`` the length-weighted trapezoid sum over the total
+    length. Returns ``(value (k,), met (k,) bool)``, value NaN where a ray
+    meets no tet."""
+    sca = np.asarray(scalar, dtype=np.float64).reshape(-1)
+
+    def pieces(ray, tet, t0, t1, l0, l1, vid):
+        return (ray, t1 - t0, np.einsum("si,si->s", l0, sca[vid]),
+                np.einsum("si,si->s", l1, sca[vid]))
+
+    k = np.asarray(origins).reshape(-1, 3).shape[0]
+    value = np.full(k, np.nan)
+    out = _pieces(vertices, tets, (len(sca), pieces), origins, directions, np.inf)
+    if out is None:
+        return value, np.zeros(k, bool)
+    ray, length, s0, s1 = out
+    met = np.bincount(ray, minlength=k) > 0
+    if mode == "max":
+        np.fmax.at(value, ray, np.maximum(s0, s1))
+    elif mode == "min":
+        np.fmin.at(value, ray, np.minimum(s0, s1))
+    elif mode == "mean":
+        total = np.bincount(ray, length, minlength=k)
+        value = np.where(met, np.bincount(ray, length * 0.5 * (s0 + s1), minlength=k)
+                         / np.where(met, total, 1.0), np.nan)
+    else:
+        raise ValueError(f"mode must be max, min or mean, got {mode!r}")
+    return value, met
+
+
 def reference_render_meshes(meshes, origins, directions, background=(0, 0, 0), t_max=np.inf,
                             n_quad=16):
     """The reference for several meshes in one scene, as one medium.

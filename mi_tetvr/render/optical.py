@@ -29,7 +29,9 @@ linear color and extinction).
 
 Models here: :class:`EmissionAbsorption` (what ``tetmesh`` shapes use),
 :class:`Absorption` (extinction only), :class:`PostClassified` (a scalar and
-a transfer function) and :class:`PreIntegrated` (the same by a table). To add a model (a scalar classified by
+a transfer function), :class:`PreIntegrated` (the same by a table) and
+:class:`Projection` (the maximum, minimum or mean of the scalar along the
+ray, accumulated by its own :meth:`~OpticalModel.accumulate`). To add a model (a scalar classified by
 a transfer function, ...), subclass :class:`OpticalModel`, and let the
 ``tetmesh`` shape name it (``shape.optical_model``) and carry its
 ``vertex_attributes``; the walk and the adjoint stay as they are.
@@ -66,6 +68,8 @@ class OpticalModel:
     #: Whether the model takes settings from its shape (then each shape is
     #: walked apart; else the shapes of one model share a walk).
     per_shape = False
+    #: The accumulated value before the first segment (every channel).
+    initial = 0.0
 
     def __init__(self, n_sub: int = 4):
         self.n_sub = int(n_sub)
@@ -89,6 +93,11 @@ class OpticalModel:
     def interpolate(self, params, ids, w, active=True, reduce=dr.ReduceMode.Auto):
         """``Attributes`` at barycentric weights ``w`` of the vertices ``ids``."""
         return weighted_sum(w, [self.gather(params, i, active, reduce) for i in ids])
+
+    def accumulate(self, L, T, C, T_seg):
+        """``(L, T)`` after a segment ``(C, T_seg)`` behind what was
+        accumulated: front-to-back compositing."""
+        return L + T * C, T * T_seg
 
     def segment(self, params, length, a0, a1):
         """``(C : Color3f, T : Float, tau : Float)`` of a segment of
@@ -299,6 +308,64 @@ class PostClassified(OpticalModel):
     def linear(self, params, a0, a1):
         (c0, s0), (c1, s1) = self.classify(params, a0.u, a1.u)
         return c0, c1, s0, s1
+
+
+#: Stands for no value yet in a maximum (its negative in a minimum).
+NO_VALUE = 1e30
+
+
+class Projection(PostClassified):
+    """Intensity projections of a post-classified shape's scalar along each
+    ray, exact per segment (the scalar is linear in a tet): the maximum
+    (``max``, MIP) and minimum (``min``) are at a segment's ends, the mean
+    over the length inside the meshes (``mean``, average intensity) is the
+    trapezoid's. The accumulated ``L`` holds the texel coordinate (max, min:
+    ``L.x``; mean: ``L.x`` the integral, ``L.y`` the length); the
+    transmittance stays 1, so every tet on the ray is visited.
+    :meth:`finish` gives the pixel: the transfer function's color at the
+    projected value, and whether the ray met the mesh."""
+    MODES = ("max", "min", "mean")
+    cuts = False
+
+    def __init__(self, mode: str = "max", **kwargs):
+        super().__init__(**kwargs)
+        if mode not in self.MODES:
+            raise ValueError(f"projection mode must be one of {self.MODES}, got {mode!r}")
+        self.mode = mode
+        self.initial = {"max": -NO_VALUE, "min": NO_VALUE, "mean": 0.0}[mode]
+
+    def segment(self, params, length, a0, a1):
+        inside = length > 0.0
+        if self.mode == "mean":
+            return (mi.Color3f(length * 0.5 * (a0.u + a1.u), length, 0.0), mi.Float(1.0),
+                    mi.Float(0.0))
+        pick = dr.maximum if self.mode == "max" else dr.minimum
+        v = dr.select(inside, pick(a0.u, a1.u), self.initial)
+        return mi.Color3f(v, 0.0, 0.0), mi.Float(1.0), mi.Float(0.0)
+
+    def accumulate(self, L, T, C, T_seg):
+        if self.mode == "mean":
+            return L + C, T
+        pick = dr.maximum if self.mode == "max" else dr.minimum
+        return mi.Color3f(pick(L.x, C.x), 0.0, 0.0), T
+
+    def value(self, L):
+        """``(texel coordinate, met)`` of the accumulated ``L`` of a ray."""
+        if self.mode == "mean":
+            met = L.y > 0.0
+            return L.x / dr.select(met, L.y, 1.0), met
+        return L.x, dr.abs(L.x) < 0.5 * NO_VALUE
+
+    def scalar(self, u):
+        """The scalar (data units) at texel coordinate ``u``."""
+        lo, hi = self.value_range
+        return lo + (u + 0.5) * ((hi - lo) / self.resolution)
+
+    def finish(self, params, L):
+        """``(color, met, scalar)`` of a ray's accumulated ``L``."""
+        u, met = self.value(L)
+        (color, _), _ = self.classify(params, u, u)
+        return dr.select(met, color, 0.0), met, self.scalar(u)
 
 
 #: Samples of the pre-integrated table along the front and back scalar (at

@@ -137,8 +137,7 @@ def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
             C_seg, T_seg, adj, pending = adjoint.segment(
                 mode, ts, ts_ad, st, carry, (t, a), (t_out, a_out), L, T, t_begin, t_stop,
                 adj, pending, o, u, v, d, active, settings.reduce, *((stay, f) if cuts else ()))
-        L += T * C_seg
-        T *= T_seg
+        L, T = model.accumulate(L, T, C_seg, T_seg)
         t = t_out
         a = a_out
         if dr.hint(cuts, mode="scalar"):
@@ -199,7 +198,7 @@ def trace(mode, scene, ts, ray, settings: WalkSettings, active,
     d = mi.Vector3f(ray.d)
     t_max = mi.Float(ray.maxt)
     u, v = ray_frame(d)
-    L = mi.Color3f(0.0)
+    L = mi.Color3f(groups[0].model.initial)
     T = mi.Float(1.0)
     steps = mi.UInt32(0)
     start = mi.Float(0.0)
