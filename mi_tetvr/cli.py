@@ -1,6 +1,7 @@
 """The ``mi-tetvr`` command line.
 
-    mi-tetvr render SCENE.xml -o OUT.exr|.png [-o ...] [--res WxH] [--spp N]
+    mi-tetvr render SCENE.xml|MESH -o OUT.exr|.png [-o ...] [--res WxH] [--spp N]
+                    [--tf TF|COLORMAP] [--mode dvr|max|min|mean] [--view AZ,EL]
     mi-tetvr info MESH [--json]
     mi-tetvr make-scenes [-o DIR]
     mi-tetvr make-dataset VOLUME|MESH (--tf TF | --xray) -o DIR [--views N] [--res WxH]
@@ -119,6 +120,91 @@ def _plugin_error(e):
     return f"{name.rsplit('.', 1)[-1]}: {message}" if message else last
 
 
+#: ``render MESH``'s image size (pixels) and horizontal field of view (degrees).
+MESH_RES = (512, 512)
+MESH_FOV = 40.0
+
+
+def mesh_scene(a, path):
+    """The scene ``render MESH`` renders: the mesh (its color and opacity, or
+    its scalar through ``--tf``), ``tetvr`` or ``tetproj`` (``--mode``), and a
+    camera at ``--view`` (azimuth, elevation in degrees about ``--up``) whose
+    field of view holds the mesh's bounding sphere."""
+    import warnings
+
+    import mi_tetvr
+    from mi_tetvr.camera import orbit_to_world
+    from mi_tetvr.mesh.topology import bounding_radius
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            mesh = mi_tetvr.read_tetmesh(path, color=None, opacity=None, repair=a.repair,
+                                         cell_to_point=a.cell_to_point)
+        except (ValueError, FileNotFoundError, KeyError) as e:
+            sys.exit(f"mi-tetvr: {e}")
+    lo, hi = mesh.bounds
+    radius = bounding_radius(mesh.vertices)
+    shape = {"type": "tetmesh", "filename": str(path.resolve()), "repair": a.repair,
+             "cell_to_point": a.cell_to_point}
+    tf = a.tf or ("gray" if a.mode != "dvr" else None)
+    if tf:
+        # a file, or a matplotlib colormap's name
+        shape["transfer_function"] = str(Path(tf).resolve()) if Path(tf).exists() else tf
+        if a.scalar:
+            shape["scalar_attribute"] = a.scalar
+        shape["opacity_scale"] = a.opacity_scale / radius
+    elif a.scalar:
+        sys.exit("mi-tetvr: --scalar needs --tf")
+    width, height = a.res or MESH_RES
+    distance = 1.05 * radius / np.sin(np.radians(min(MESH_FOV, MESH_FOV * height / width) / 2))
+    azimuth, elevation = a.view
+    to_world = orbit_to_world(azimuth, elevation, distance, (lo + hi) / 2, a.up)
+    return {"type": "scene",
+            "integrator": ({"type": "tetvr"} if a.mode == "dvr" else
+                           {"type": "tetproj", "mode": a.mode}),
+            "sensor": {"type": "perspective", "fov": MESH_FOV,
+                       "to_world": mi_scalar_transform(to_world),
+                       "sampler": {"type": "stratified", "sample_count": a.spp or 1,
+                                   "jitter": False},
+                       "film": {"type": "hdrfilm", "width": width, "height": height,
+                                "pixel_format": "rgba", "rfilter": {"type": "box"}}},
+            "volume": shape}
+
+
+def mi_scalar_transform(transform):
+    """A Mitsuba (vectorized) transform of one camera as a ``ScalarTransform4f``."""
+    import mitsuba as mi
+    return mi.ScalarTransform4f(np.array(transform.matrix, np.float64).reshape(4, 4))
+
+
+def _pair(text):
+    try:
+        x = tuple(float(v) for v in str(text).split(","))
+    except ValueError:
+        x = ()
+    if len(x) != 2:
+        raise argparse.ArgumentTypeError(f"expected two numbers A,B, got {text!r}")
+    return x
+
+
+def _triple(text):
+    try:
+        x = tuple(float(v) for v in str(text).split(","))
+    except ValueError:
+        x = ()
+    if len(x) != 3 or not any(x):
+        raise argparse.ArgumentTypeError(f"expected a non-zero vector X,Y,Z, got {text!r}")
+    return x
+
+
+def _render_defaults(a):
+    """``render`` with the mesh flags' defaults filled in (and whether they were given)."""
+    a.view_given, a.up_given = a.view is not None, a.up is not None
+    a.view = a.view or (45.0, 30.0)
+    a.up = a.up or (0.0, 0.0, 1.0)
+    return cmd_render(a)
+
+
 def cmd_render(a):
     mi = _set_variant(a.variant)
     scene_path = Path(a.scene)
@@ -129,12 +215,32 @@ def cmd_render(a):
         if Path(out).suffix.lower() not in IMAGE_SUFFIXES:
             sys.exit(f"mi-tetvr: unsupported image format '{Path(out).suffix}' for {out} (use "
                      f"{', '.join(IMAGE_SUFFIXES)})")
+    is_mesh = (scene_path.suffix.lower() in MESH_SUFFIXES and not _is_image_data(scene_path))
+    if is_mesh:
+        _refuse(a, ("classification",), "to a mesh (its scalar is post-classified)")
+    else:
+        given = [f for f, on in (("--view", a.view_given), ("--up", a.up_given)) if on]
+        if given:
+            sys.exit(f"mi-tetvr: {', '.join(given)} {'frames' if len(given) == 1 else 'frame'}"
+                     f" a mesh file; an XML scene's sensor says where it looks")
+        _refuse(a, ("tf", "scalar"), "to an XML scene (its shapes name their transfer "
+                "functions)")
+        if a.opacity_scale != OPACITY_SCALE:
+            sys.exit("mi-tetvr: --opacity-scale applies to a mesh file rendered with --tf")
+        if a.mode != "dvr":
+            sys.exit("mi-tetvr: --mode applies to a mesh file (an XML scene names its "
+                     "integrator: 'tetproj' with its mode)")
     t0 = time.time()
     try:
-        props = {k: True for k in ("repair", "cell_to_point") if getattr(a, k)}
-        text = scene_xml(scene_path, res, props, a.classification)
-        mi.file_resolver().prepend(str(scene_path.resolve().parent))
-        scene = mi.load_string(text)
+        if is_mesh:
+            scene = mi.load_dict(mesh_scene(a, scene_path))
+        else:
+            props = {k: True for k in ("repair", "cell_to_point") if getattr(a, k)}
+            text = scene_xml(scene_path, res, props, a.classification)
+            mi.file_resolver().prepend(str(scene_path.resolve().parent))
+            scene = mi.load_string(text)
+    except SystemExit:
+        raise
     except Exception as e:
         sys.exit(f"mi-tetvr: cannot load {scene_path}: {_plugin_error(e)}")
     t1 = time.time()
@@ -644,8 +750,22 @@ def build_parser():
     p.add_argument("--version", action="version", version=f"mi-tetvr {ver}")
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
 
-    r = sub.add_parser("render", help="render a Mitsuba XML scene with tetmesh shapes")
-    r.add_argument("scene", help="Mitsuba XML scene")
+    r = sub.add_parser("render", help="render a Mitsuba XML scene with tetmesh shapes, or a "
+                       "mesh file framed by a camera")
+    r.add_argument("scene", help="Mitsuba XML scene, or a tet mesh file (.vtu, .vtk, .msh, "
+                   ".mesh)")
+    r.add_argument("--tf", help="mesh file: transfer function of its scalar (a file, or a "
+                   "matplotlib colormap's name; default for --mode max|min|mean: gray)")
+    r.add_argument("--scalar", help="mesh file: the scalar point array (default: the only one)")
+    r.add_argument("--mode", choices=("dvr", "max", "min", "mean"), default="dvr",
+                   help="mesh file: volume rendering (dvr, default) or the maximum, minimum or "
+                   "mean intensity projection of its scalar")
+    r.add_argument("--view", type=_pair, default=None, metavar="AZ,EL",
+                   help="mesh file: camera azimuth and elevation in degrees about --up "
+                   "(default 45,30)")
+    r.add_argument("--up", type=_triple, default=None, metavar="X,Y,Z",
+                   help="mesh file: the up axis (default 0,0,1)")
+    _opacity_scale(r)
     _out(r, "output image (.exr: linear RGBA; .png/.jpg: sRGB); repeatable", append=True)
     r.add_argument("--spp", type=int, default=0, help="samples per pixel (default: the scene's)")
     _res(r, None, "film size of every sensor, WxH or N (default: the scene's)")
@@ -654,7 +774,7 @@ def build_parser():
                         "post (along each ray, the default) or pre (vertices shaded at load)")
     _mesh_flags(r)
     _variant(r)
-    r.set_defaults(func=cmd_render)
+    r.set_defaults(func=_render_defaults)
 
     i = sub.add_parser("info", help="counts, bounds, boundary, quality and arrays of a mesh")
     i.add_argument("mesh", help="tet mesh file (.vtu, .vtk, .msh, .mesh, ...)")

@@ -242,3 +242,37 @@ def test_render_res_on_a_fixed_film_and_repair(tmp_path):
             "1", "--repair")
     assert r.returncode == 0, r.stderr
     assert np.array(mi.Bitmap(str(out))).shape == (16, 24, 4)
+
+
+def test_render_a_mesh_file(tmp_path):
+    """render MESH frames a mesh file without XML: volume rendering or the
+    intensity projections of its scalar (through gray, a monotone map: per
+    pixel min <= mean <= max, and the mesh's coverage the same in all three);
+    the mesh-only flags are refused for an XML scene, --mode too."""
+    from mi_tetvr.recon.images import read_image
+    make_scene_meshes()
+    mesh = str(ROOT / "scenes" / "meshes" / "radial_scalar.vtu")
+    images = {}
+    for mode in ("max", "mean", "min", "dvr"):
+        out = tmp_path / f"{mode}.exr"
+        extra = ["--tf", "scenes/tf_radial.json"] if mode == "dvr" else []
+        r = run("render", mesh, "--mode", mode, "--res", "24x16", "--view", "30,20",
+                "-o", str(out), *extra)
+        assert r.returncode == 0, r.stderr
+        images[mode] = read_image(out)
+    assert images["max"].shape == (16, 24, 4)
+    met = images["max"][..., 3] > 0
+    assert 0 < met.sum() < met.size
+    for mode in ("mean", "min"):
+        np.testing.assert_array_equal(images[mode][..., 3] > 0, met)
+    lo, mid, hi = (images[m][..., 0][met] for m in ("min", "mean", "max"))
+    assert np.all(lo <= mid + 1e-6) and np.all(mid <= hi + 1e-6) and np.any(lo < hi - 1e-3)
+    assert images["dvr"][..., 3].max() > 0
+    scene = str(ROOT / "scenes" / "default.xml")
+    for flags, said in ((["--mode", "max"], "--mode applies to a mesh file"),
+                        (["--view", "10,10"], "--view frames a mesh file"),
+                        (["--tf", "viridis"], "--tf does not apply to an XML scene")):
+        r = run("render", scene, "-o", str(tmp_path / "x.png"), *flags)
+        assert r.returncode != 0 and said in r.stderr, r.stderr
+    r = run("render", mesh, "--view", "10", "-o", str(tmp_path / "x.png"))
+    assert r.returncode == 2 and "two numbers" in r.stderr
