@@ -159,9 +159,13 @@ def mesh_scene(a, path):
     distance = 1.05 * radius / np.sin(np.radians(min(MESH_FOV, MESH_FOV * height / width) / 2))
     azimuth, elevation = a.view
     to_world = orbit_to_world(azimuth, elevation, distance, (lo + hi) / 2, a.up)
-    return {"type": "scene",
-            "integrator": ({"type": "tetvr"} if a.mode == "dvr" else
-                           {"type": "tetproj", "mode": a.mode}),
+    integrator = {"type": "tetvr"} if a.mode == "dvr" else {"type": "tetproj", "mode": a.mode}
+    if a.mode == "slice":
+        plane = a.plane or (*((lo + hi) / 2), *a.up)
+        integrator.update(origin=list(plane[:3]), normal=list(plane[3:]))
+    elif a.plane:
+        sys.exit("mi-tetvr: --plane is the plane of --mode slice")
+    return {"type": "scene", "integrator": integrator,
             "sensor": {"type": "perspective", "fov": MESH_FOV,
                        "to_world": mi_scalar_transform(to_world),
                        "sampler": {"type": "stratified", "sample_count": a.spp or 1,
@@ -185,6 +189,19 @@ def _pair(text):
     if len(x) != 2:
         raise argparse.ArgumentTypeError(f"expected two numbers A,B, got {text!r}")
     return x
+
+
+def _numbers_of(k):
+    """An argparse type: ``k`` comma-separated numbers."""
+    def parse(text):
+        try:
+            x = tuple(float(v) for v in str(text).split(","))
+        except ValueError:
+            x = ()
+        if len(x) != k:
+            raise argparse.ArgumentTypeError(f"expected {k} numbers, got {text!r}")
+        return x
+    return parse
 
 
 def _triple(text):
@@ -223,8 +240,8 @@ def cmd_render(a):
         if given:
             sys.exit(f"mi-tetvr: {', '.join(given)} {'frames' if len(given) == 1 else 'frame'}"
                      f" a mesh file; an XML scene's sensor says where it looks")
-        _refuse(a, ("tf", "scalar"), "to an XML scene (its shapes name their transfer "
-                "functions)")
+        _refuse(a, ("tf", "scalar", "plane"), "to an XML scene (its shapes name their "
+                "transfer functions, its integrator its mode)")
         if a.opacity_scale != OPACITY_SCALE:
             sys.exit("mi-tetvr: --opacity-scale applies to a mesh file rendered with --tf")
         if a.mode != "dvr":
@@ -757,9 +774,12 @@ def build_parser():
     r.add_argument("--tf", help="mesh file: transfer function of its scalar (a file, or a "
                    "matplotlib colormap's name; default for --mode max|min|mean: gray)")
     r.add_argument("--scalar", help="mesh file: the scalar point array (default: the only one)")
-    r.add_argument("--mode", choices=("dvr", "max", "min", "mean"), default="dvr",
-                   help="mesh file: volume rendering (dvr, default) or the maximum, minimum or "
-                   "mean intensity projection of its scalar")
+    r.add_argument("--mode", choices=("dvr", "max", "min", "mean", "slice"), default="dvr",
+                   help="mesh file: volume rendering (dvr, default), the maximum, minimum or "
+                   "mean intensity projection of its scalar, or its scalar on a plane (slice)")
+    r.add_argument("--plane", type=_numbers_of(6), metavar="X,Y,Z,NX,NY,NZ",
+                   help="--mode slice: a point of the plane and its normal (default: the "
+                   "mesh's centre, normal --up)")
     r.add_argument("--view", type=_pair, default=None, metavar="AZ,EL",
                    help="mesh file: camera azimuth and elevation in degrees about --up "
                    "(default 45,30)")

@@ -1,13 +1,16 @@
 """The ``tetproj`` integrator: intensity projections of a ``tetmesh``'s scalar
 (the maximum, minimum or mean along each ray), as ParaView's *Maximum /
-Minimum / Average Intensity* blend modes show a volume.
+Minimum / Average Intensity* blend modes show a volume, and slices (the
+scalar on a plane through the mesh).
 
 The scene holds one post-classified ``tetmesh`` (a scalar and a transfer
 function) and nothing else. Each ray walks every tet it crosses
 (:mod:`mi_tetvr.render.walk`, with the :class:`~mi_tetvr.render.optical.Projection`
 model): the scalar is linear in each tet, so the maximum and the minimum of
 a segment are at its ends and its mean is the trapezoid's; the projection is
-exact. The pixel is the transfer function's color at the projected value
+exact. A slice (:class:`~mi_tetvr.render.optical.Slice`) stops each ray
+where it first crosses the plane inside the mesh, the scalar there exact too
+(the plane's signed distance is linear along the ray in a tet). The pixel is the transfer function's color at the projected value
 (its opacity is not used), alpha 1 where the ray meets the mesh; the film's
 ``rgba`` format keeps it.
 
@@ -15,8 +18,12 @@ exact. The pixel is the transfer function's color at the projected value
 
  * - mode
    - |string|
-   - ``max`` (maximum intensity projection, the default), ``min`` or ``mean``
-     (average over the length inside the mesh).
+   - ``max`` (maximum intensity projection, the default), ``min``, ``mean``
+     (average over the length inside the mesh) or ``slice``.
+ * - origin, normal
+   - |point|, |vector|
+   - ``slice``: a point of the plane (default: the centre of the scene's
+     bounding box) and its normal (default: +z).
  * - max_steps
    - |int|
    - Safety bound on tets crossed per walk. (Default: 100000)
@@ -37,7 +44,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.render.buffers import MeshBuffers, TetScene, index_buffers, scene_tetmeshes
-from mi_tetvr.render.optical import PostClassified, Projection
+from mi_tetvr.render.optical import PostClassified, Projection, Slice
 from mi_tetvr.render.walk import WalkSettings, trace
 
 
@@ -47,9 +54,13 @@ class TetProjIntegrator(mi.SamplingIntegrator):
     def __init__(self, props):
         super().__init__(props)
         self.mode = str(props.get("mode", "max")).lower()
-        if self.mode not in Projection.MODES:
-            raise ValueError(f"tetproj: mode must be one of {Projection.MODES}, got "
-                             f"{self.mode!r}")
+        modes = Projection.MODES + ("slice",)
+        if self.mode not in modes:
+            raise ValueError(f"tetproj: mode must be one of {modes}, got {self.mode!r}")
+        self.origin = list(props["origin"]) if "origin" in props else None
+        self.normal = list(props.get("normal", [0.0, 0.0, 1.0]))
+        if not any(self.normal):
+            raise ValueError("tetproj: the slice's normal must not be zero")
         self.max_steps = int(props.get("max_steps", 100_000))
         self.retrace_epsilon = float(props.get("retrace_epsilon", 1e-5))
 
@@ -64,7 +75,12 @@ class TetProjIntegrator(mi.SamplingIntegrator):
         if not issubclass(shapes[0].optical_model, PostClassified):
             raise ValueError("tetproj: projects a scalar: give the tetmesh a scalar and a "
                              "transfer_function (classification 'post' or 'preintegrated')")
-        model = Projection(self.mode)
+        if self.mode == "slice":
+            box = scene.bbox()
+            origin = self.origin if self.origin is not None else list(box.center())
+            model = Slice(origin, self.normal)
+        else:
+            model = Projection(self.mode)
         index, offsets = index_buffers(shapes)
         buf = MeshBuffers(**index, positions=shapes[0].vertex_positions_buffer())
         return TetScene(shapes, offsets, buf, model, model.read_params(shapes))
@@ -92,7 +108,9 @@ class TetProjIntegrator(mi.SamplingIntegrator):
         raise NotImplementedError("tetproj: intensity projections are not differentiable yet")
 
     def to_string(self):
-        return f"TetProjIntegrator[mode={self.mode}, max_steps={self.max_steps}]"
+        plane = (f", origin={self.origin}, normal={self.normal}" if self.mode == "slice"
+                 else "")
+        return f"TetProjIntegrator[mode={self.mode}{plane}, max_steps={self.max_steps}]"
 
 
 mi.register_integrator("tetproj", lambda props: TetProjIntegrator(props))

@@ -308,6 +308,32 @@ def reference_projection(vertices, tets, scalar, origins, directions, mode="max"
     return value, met
 
 
+def reference_slice(vertices, tets, scalar, origins, directions, origin, normal, tol=1e-9):
+    """The scalar where each ray meets the plane through ``origin`` with
+    ``normal``, in float64: the meeting point (ahead of the ray), the tets
+    whose barycentric coordinates there are all >= -tol, the scalar
+    interpolated in the first of them. Returns ``(value (k,), met (k,))``,
+    value NaN where the point lies in no tet (or the ray misses the plane)."""
+    V = np.asarray(vertices, np.float64).reshape(-1, 3)
+    sca = np.asarray(scalar, np.float64).reshape(-1)
+    O = np.asarray(origins, np.float64).reshape(-1, 3)
+    D = np.asarray(directions, np.float64).reshape(-1, 3)
+    n = np.asarray(normal, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = ((np.asarray(origin, np.float64) - O) @ n) / (D @ n)
+    ahead = np.isfinite(t) & (t > 0)
+    P = O + np.where(ahead, t, 0.0)[:, None] * D
+    Tt, v0, G = _prepare_tets(V, np.asarray(tets, np.int64).reshape(-1, 4))
+    lam = np.einsum("mij,kmj->kmi", G, P[:, None, :] - v0[None])        # (k, m, 3)
+    lam = np.concatenate([1.0 - lam.sum(-1, keepdims=True), lam], -1)   # (k, m, 4)
+    inside = np.all(lam >= -tol, axis=-1) & ahead[:, None]
+    met = inside.any(1)
+    first = np.argmax(inside, axis=1)
+    rows = np.arange(len(O))
+    value = np.einsum("ki,ki->k", lam[rows, first], sca[Tt[first]])
+    return np.where(met, value, np.nan), met
+
+
 def reference_render_meshes(meshes, origins, directions, background=(0, 0, 0), t_max=np.inf,
                             n_quad=16):
     """The reference for several meshes in one scene, as one medium.

@@ -268,10 +268,17 @@ def test_render_a_mesh_file(tmp_path):
     lo, mid, hi = (images[m][..., 0][met] for m in ("min", "mean", "max"))
     assert np.all(lo <= mid + 1e-6) and np.all(mid <= hi + 1e-6) and np.any(lo < hi - 1e-3)
     assert images["dvr"][..., 3].max() > 0
+    # a slice through the centre shows inside the projection's coverage, not all of it
+    r = run("render", mesh, "--mode", "slice", "--res", "24x16", "--view", "30,20",
+            "-o", str(tmp_path / "slice.exr"))
+    assert r.returncode == 0, r.stderr
+    cut = read_image(tmp_path / "slice.exr")[..., 3] > 0
+    assert cut.any() and not np.any(cut & ~met)
     scene = str(ROOT / "scenes" / "default.xml")
     for flags, said in ((["--mode", "max"], "--mode applies to a mesh file"),
                         (["--view", "10,10"], "--view frames a mesh file"),
-                        (["--tf", "viridis"], "--tf does not apply to an XML scene")):
+                        (["--tf", "viridis"], "--tf does not apply to an XML scene"),
+                        (["--plane", "0,0,0,0,0,1"], "--plane does not apply")):
         r = run("render", scene, "-o", str(tmp_path / "x.png"), *flags)
         assert r.returncode != 0 and said in r.stderr, r.stderr
     r = run("render", mesh, "--view", "10", "-o", str(tmp_path / "x.png"))

@@ -31,7 +31,8 @@ Models here: :class:`EmissionAbsorption` (what ``tetmesh`` shapes use),
 :class:`Absorption` (extinction only), :class:`PostClassified` (a scalar and
 a transfer function), :class:`PreIntegrated` (the same by a table) and
 :class:`Projection` (the maximum, minimum or mean of the scalar along the
-ray, accumulated by its own :meth:`~OpticalModel.accumulate`). To add a model (a scalar classified by
+ray, accumulated by its own :meth:`~OpticalModel.accumulate`) and
+:class:`Slice` (the scalar where the ray crosses a plane). To add a model (a scalar classified by
 a transfer function, ...), subclass :class:`OpticalModel`, and let the
 ``tetmesh`` shape name it (``shape.optical_model``) and carry its
 ``vertex_attributes``; the walk and the adjoint stay as they are.
@@ -314,44 +315,18 @@ class PostClassified(OpticalModel):
 NO_VALUE = 1e30
 
 
-class Projection(PostClassified):
-    """Intensity projections of a post-classified shape's scalar along each
-    ray, exact per segment (the scalar is linear in a tet): the maximum
-    (``max``, MIP) and minimum (``min``) are at a segment's ends, the mean
-    over the length inside the meshes (``mean``, average intensity) is the
-    trapezoid's. The accumulated ``L`` holds the texel coordinate (max, min:
-    ``L.x``; mean: ``L.x`` the integral, ``L.y`` the length); the
-    transmittance stays 1, so every tet on the ray is visited.
-    :meth:`finish` gives the pixel: the transfer function's color at the
-    projected value, and whether the ray met the mesh."""
-    MODES = ("max", "min", "mean")
+class RayValue(PostClassified):
+    """Base of the models that give each ray one value of a post-classified
+    shape's scalar (:class:`Projection`, :class:`Slice`) instead of an
+    integral: the accumulated ``L.x`` is a texel coordinate (``L.y`` a
+    length where :attr:`mean`), :meth:`finish` makes it a pixel."""
     cuts = False
-
-    def __init__(self, mode: str = "max", **kwargs):
-        super().__init__(**kwargs)
-        if mode not in self.MODES:
-            raise ValueError(f"projection mode must be one of {self.MODES}, got {mode!r}")
-        self.mode = mode
-        self.initial = {"max": -NO_VALUE, "min": NO_VALUE, "mean": 0.0}[mode]
-
-    def segment(self, params, length, a0, a1):
-        inside = length > 0.0
-        if self.mode == "mean":
-            return (mi.Color3f(length * 0.5 * (a0.u + a1.u), length, 0.0), mi.Float(1.0),
-                    mi.Float(0.0))
-        pick = dr.maximum if self.mode == "max" else dr.minimum
-        v = dr.select(inside, pick(a0.u, a1.u), self.initial)
-        return mi.Color3f(v, 0.0, 0.0), mi.Float(1.0), mi.Float(0.0)
-
-    def accumulate(self, L, T, C, T_seg):
-        if self.mode == "mean":
-            return L + C, T
-        pick = dr.maximum if self.mode == "max" else dr.minimum
-        return mi.Color3f(pick(L.x, C.x), 0.0, 0.0), T
+    #: ``L`` holds an integral (``L.x``) over a length (``L.y``).
+    mean = False
 
     def value(self, L):
         """``(texel coordinate, met)`` of the accumulated ``L`` of a ray."""
-        if self.mode == "mean":
+        if self.mean:
             met = L.y > 0.0
             return L.x / dr.select(met, L.y, 1.0), met
         return L.x, dr.abs(L.x) < 0.5 * NO_VALUE
@@ -362,10 +337,98 @@ class Projection(PostClassified):
         return lo + (u + 0.5) * ((hi - lo) / self.resolution)
 
     def finish(self, params, L):
-        """``(color, met, scalar)`` of a ray's accumulated ``L``."""
+        """``(color, met, scalar)`` of a ray's accumulated ``L``: the transfer
+        function's color at the value (black where the ray met nothing)."""
         u, met = self.value(L)
         (color, _), _ = self.classify(params, u, u)
         return dr.select(met, color, 0.0), met, self.scalar(u)
+
+
+class Projection(RayValue):
+    """Intensity projections of a post-classified shape's scalar along each
+    ray, exact per segment (the scalar is linear in a tet): the maximum
+    (``max``, MIP) and minimum (``min``) are at a segment's ends, the mean
+    over the length inside the meshes (``mean``, average intensity) is the
+    trapezoid's. The transmittance stays 1, so every tet on the ray is
+    visited."""
+    MODES = ("max", "min", "mean")
+
+    def __init__(self, mode: str = "max", **kwargs):
+        super().__init__(**kwargs)
+        if mode not in self.MODES:
+            raise ValueError(f"projection mode must be one of {self.MODES}, got {mode!r}")
+        self.mode = mode
+        self.mean = mode == "mean"
+        self.initial = {"max": -NO_VALUE, "min": NO_VALUE, "mean": 0.0}[mode]
+
+    def segment(self, params, length, a0, a1):
+        if self.mean:
+            return (mi.Color3f(length * 0.5 * (a0.u + a1.u), length, 0.0), mi.Float(1.0),
+                    mi.Float(0.0))
+        pick = dr.maximum if self.mode == "max" else dr.minimum
+        v = dr.select(length > 0.0, pick(a0.u, a1.u), self.initial)
+        return mi.Color3f(v, 0.0, 0.0), mi.Float(1.0), mi.Float(0.0)
+
+    def accumulate(self, L, T, C, T_seg):
+        if self.mean:
+            return L + C, T
+        pick = dr.maximum if self.mode == "max" else dr.minimum
+        return mi.Color3f(pick(L.x, C.x), 0.0, 0.0), T
+
+
+class Slice(RayValue):
+    """A plane through the mesh showing its scalar: each ray stops where it
+    first crosses the plane inside the mesh, and the scalar there is exact.
+    A crossing carries the scalar's texel coordinate ``u`` and the signed
+    distance ``s`` of its point to the plane, both linear along the ray in a
+    tet (``s`` from the vertices' positions), so a segment meets the plane at
+    the fraction ``s0 / (s0 - s1)`` where the scalar is ``lerp(u0, u1, f)``.
+    ``T`` turns 0 there (the walk stops)."""
+
+    class Attributes:
+        DRJIT_STRUCT = {"u": mi.Float, "s": mi.Float}
+
+        def __init__(self, u=None, s=None):
+            self.u, self.s = u, s
+
+    class Params:
+        DRJIT_STRUCT = {"scalar": mi.Float, "tf_color": mi.Float, "tf_opacity": mi.Float,
+                        "positions": mi.Float}
+
+        def __init__(self, scalar=None, tf_color=None, tf_opacity=None, positions=None):
+            self.scalar, self.tf_color, self.tf_opacity = scalar, tf_color, tf_opacity
+            self.positions = positions
+
+    def __init__(self, origin, normal, **kwargs):
+        super().__init__(**kwargs)
+        n = np.asarray(normal, np.float64).reshape(-1)
+        if n.shape != (3,) or not np.linalg.norm(n) > 0:
+            raise ValueError(f"a slice's normal must be a non-zero 3-vector, got {normal!r}")
+        self.origin = np.asarray(origin, np.float64).reshape(3)
+        self.normal = n / np.linalg.norm(n)
+        self.initial = -NO_VALUE
+
+    def read_params(self, shapes):
+        s = self.the_shape(shapes)
+        return self.Params(s.attribute_buffer("vertex_scalar"), s.tf_color, s.tf_opacity,
+                           s.vertex_positions_buffer())
+
+    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+        u = super().gather(params, i, active, reduce).u
+        p = dr.gather(mi.Point3f, params.positions, i, active)
+        s = dr.dot(p - mi.Point3f(*self.origin.tolist()), mi.Vector3f(*self.normal.tolist()))
+        return self.Attributes(u, s)
+
+    def segment(self, params, length, a0, a1):
+        s0, s1 = a0.s, a1.s
+        meets = ((length > 0.0) & (s0 != s1) & (dr.minimum(s0, s1) <= 0.0)
+                 & (dr.maximum(s0, s1) >= 0.0))
+        f = dr.clip(s0 / dr.select(s0 != s1, s0 - s1, 1.0), 0.0, 1.0)
+        u = dr.select(meets, dr.lerp(a0.u, a1.u, f), self.initial)
+        return mi.Color3f(u, 0.0, 0.0), dr.select(meets, 0.0, 1.0), mi.Float(0.0)
+
+    def accumulate(self, L, T, C, T_seg):
+        return dr.select(T_seg < 1.0, C, L), T * T_seg
 
 
 #: Samples of the pre-integrated table along the front and back scalar (at

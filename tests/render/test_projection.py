@@ -1,6 +1,8 @@
-"""Intensity projections (the ``tetproj`` integrator) against the float64
-reference (``tests.reference.reference_projection``: every ray clipped
-against every tet, the scalar's maximum, minimum and mean along it)."""
+"""Intensity projections and slices (the ``tetproj`` integrator) against the
+float64 references (``tests.reference.reference_projection``: every ray
+clipped against every tet, the scalar's maximum, minimum and mean along it;
+``reference_slice``: the point where the ray meets the plane located in
+every tet)."""
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -9,7 +11,7 @@ import pytest
 import mi_tetvr
 from mi_tetvr.mesh.generate import grid_mesh
 from tests.helpers import make_rays, rays_at
-from tests.reference import reference_projection
+from tests.reference import reference_projection, reference_slice
 
 RANGE = (-1.0, 1.0)
 RESOLUTION = 64
@@ -24,9 +26,10 @@ def field():
     return V, T, scalar
 
 
-def scene_of(field, mode, **props):
+def scene_of(field, mode, integrator=None, **props):
     V, T, scalar = field
-    return mi.load_dict({"type": "scene", "integrator": {"type": "tetproj", "mode": mode},
+    return mi.load_dict({"type": "scene",
+                         "integrator": {"type": "tetproj", "mode": mode, **(integrator or {})},
                          "mesh0": mi_tetvr.tetmesh_dict(
                              V, T, scalar=scalar, transfer_function="gray",
                              value_min=RANGE[0], value_max=RANGE[1],
@@ -59,6 +62,33 @@ def test_projection_against_the_reference(field, mode):
     t = np.clip(t, 0.5 / RESOLUTION, 1 - 0.5 / RESOLUTION)
     np.testing.assert_allclose(rgb[met], np.repeat(t[:, None], 3, 1), atol=2e-3)
     assert np.all(np.array(color, np.float64).reshape(3, -1)[:, ~met] == 0)
+
+
+@pytest.mark.parametrize("plane", [((0.1, -0.2, 0.05), (0.3, 0.5, 1.0)),
+                                   ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0))])
+def test_slice_against_the_reference(field, plane):
+    """A slice: the scalar where each ray meets the plane inside the mesh,
+    equal to the float64 reference (the point's barycentric coordinates in
+    every tet) to float32's rounding of the meeting point, which grows as
+    the ray grazes the plane: 2e-6 / |d . n|; the same rays met, away from
+    the mesh's boundary (where float32 and float64 may disagree on a point
+    on it)."""
+    V, T, scalar = field
+    origin, normal = plane
+    o, d = rays_at(np.random.default_rng(5), 256, target_extent=1.3)
+    ref, ref_met = reference_slice(V, T, scalar, o, d, origin, normal)
+    scene = scene_of(field, "slice", {"origin": list(origin), "normal": list(normal)})
+    with dr.suspend_grad():
+        _, met, value = scene.integrator().project(scene, make_rays(o, d))
+    met, value = np.array(met, bool), np.array(value, np.float64)
+    t = ((np.asarray(origin) - o) @ np.asarray(normal)) / (d @ np.asarray(normal))
+    p = o + t[:, None] * d
+    clear = np.all(np.abs(np.abs(p) - 1.0) > 1e-4, axis=1)      # not on the box's faces
+    assert 0 < np.count_nonzero(ref_met & clear) < np.count_nonzero(clear)
+    np.testing.assert_array_equal(met[clear], ref_met[clear])
+    both = met & ref_met
+    graze = np.abs(d @ (np.asarray(normal) / np.linalg.norm(normal)))
+    assert np.all(np.abs(value[both] - ref[both]) <= 2e-6 / graze[both])
 
 
 def test_projection_renders_and_refuses(field, tmp_path):
