@@ -1,7 +1,8 @@
 """The ``mi-tetvr`` command line.
 
     mi-tetvr render SCENE.xml|MESH -o OUT.exr|.png [-o ...] [--res WxH] [--spp N]
-                    [--tf TF|COLORMAP] [--mode dvr|max|min|mean] [--view AZ,EL]
+                    [--tf TF|COLORMAP] [--mode dvr|max|min|mean|slice] [--view AZ,EL]
+                    [--clip X,Y,Z,NX,NY,NZ] [--clip-box X0,Y0,Z0,X1,Y1,Z1]
     mi-tetvr info MESH [--json]
     mi-tetvr make-scenes [-o DIR]
     mi-tetvr make-dataset VOLUME|MESH (--tf TF | --xray) -o DIR [--views N] [--res WxH]
@@ -165,6 +166,10 @@ def mesh_scene(a, path):
         integrator.update(origin=list(plane[:3]), normal=list(plane[3:]))
     elif a.plane:
         sys.exit("mi-tetvr: --plane is the plane of --mode slice")
+    if a.clip:
+        integrator.update(clip_origin=list(a.clip[:3]), clip_normal=list(a.clip[3:]))
+    if a.clip_box:
+        integrator.update(clip_min=list(a.clip_box[:3]), clip_max=list(a.clip_box[3:]))
     return {"type": "scene", "integrator": integrator,
             "sensor": {"type": "perspective", "fov": MESH_FOV,
                        "to_world": mi_scalar_transform(to_world),
@@ -240,8 +245,8 @@ def cmd_render(a):
         if given:
             sys.exit(f"mi-tetvr: {', '.join(given)} {'frames' if len(given) == 1 else 'frame'}"
                      f" a mesh file; an XML scene's sensor says where it looks")
-        _refuse(a, ("tf", "scalar", "plane"), "to an XML scene (its shapes name their "
-                "transfer functions, its integrator its mode)")
+        _refuse(a, ("tf", "scalar", "plane", "clip", "clip_box"), "to an XML scene (its "
+                "shapes name their transfer functions, its integrator its mode and clip)")
         if a.opacity_scale != OPACITY_SCALE:
             sys.exit("mi-tetvr: --opacity-scale applies to a mesh file rendered with --tf")
         if a.mode != "dvr":
@@ -780,6 +785,11 @@ def build_parser():
     r.add_argument("--plane", type=_numbers_of(6), metavar="X,Y,Z,NX,NY,NZ",
                    help="--mode slice: a point of the plane and its normal (default: the "
                    "mesh's centre, normal --up)")
+    r.add_argument("--clip", type=_numbers_of(6), metavar="X,Y,Z,NX,NY,NZ",
+                   help="mesh file: cut away what lies beyond the plane through X,Y,Z on the "
+                   "side its normal points to")
+    r.add_argument("--clip-box", type=_numbers_of(6), metavar="X0,Y0,Z0,X1,Y1,Z1",
+                   help="mesh file: cut away what lies outside the box")
     r.add_argument("--view", type=_pair, default=None, metavar="AZ,EL",
                    help="mesh file: camera azimuth and elevation in degrees about --up "
                    "(default 45,30)")

@@ -24,6 +24,9 @@ where it first crosses the plane inside the mesh, the scalar there exact too
    - |point|, |vector|
    - ``slice``: a point of the plane (default: the centre of the scene's
      bounding box) and its normal (default: +z).
+ * - clip_origin, clip_normal, clip_min, clip_max
+   - |point|, |vector|
+   - A plane and a box that cut the mesh, as ``tetvr``'s.
  * - max_steps
    - |int|
    - Safety bound on tets crossed per walk. (Default: 100000)
@@ -44,6 +47,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.render.buffers import MeshBuffers, TetScene, index_buffers, scene_tetmeshes
+from mi_tetvr.render.clipping import Clip
 from mi_tetvr.render.optical import PostClassified, Projection, Slice
 from mi_tetvr.render.walk import WalkSettings, trace
 
@@ -61,6 +65,7 @@ class TetProjIntegrator(mi.SamplingIntegrator):
         self.normal = list(props.get("normal", [0.0, 0.0, 1.0]))
         if not any(self.normal):
             raise ValueError("tetproj: the slice's normal must not be zero")
+        self.clip = Clip.from_props(props)
         self.max_steps = int(props.get("max_steps", 100_000))
         self.retrace_epsilon = float(props.get("retrace_epsilon", 1e-5))
 
@@ -91,7 +96,13 @@ class TetProjIntegrator(mi.SamplingIntegrator):
         ts = self.tet_scene(scene)
         settings = WalkSettings(0.0, self.max_steps,
                                 self.retrace_epsilon * float(dr.norm(scene.bbox().extents())))
-        L, _, _, _ = trace(dr.ADMode.Primal, scene, ts, ray, settings, active)
+        t_start = 0.0
+        if self.clip is not None:
+            ray = mi.Ray3f(ray)
+            t_start, t_end = self.clip.interval(ray.o, ray.d, ray.maxt)
+            ray.maxt = dr.minimum(ray.maxt, t_end)
+            active = active & (t_end > t_start)
+        L, _, _, _ = trace(dr.ADMode.Primal, scene, ts, ray, settings, active, t_start=t_start)
         return ts.model.finish(ts.params, L)
 
     def sample(self, scene, sampler, ray, medium=None, active=True):

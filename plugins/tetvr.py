@@ -38,6 +38,13 @@ shapes by walking the tet adjacency.
      rendered before one ``dr.backward``); past it the oldest are dropped and their
      derivative pass renders the primal again, with a warning. See
      :mod:`mi_tetvr.render.replay`. (Default: 16)
+ * - clip_origin, clip_normal
+   - |point|, |vector|
+   - A plane that cuts the volume: what lies on the side the normal points to
+     is cut away (:mod:`mi_tetvr.render.clipping`; surfaces are not cut).
+ * - clip_min, clip_max
+   - |point|
+   - A box that cuts the volume: what lies outside it is cut away.
  * - surfaces
    - |integrator|
    - Child integrator (named ``surfaces``) that renders the scene's other
@@ -84,6 +91,7 @@ import mitsuba as mi
 
 from mi_tetvr.render.adjoint import Adjoint
 from mi_tetvr.render.buffers import index_buffers, model_groups, scene_tetmeshes, tet_scene
+from mi_tetvr.render.clipping import Clip
 from mi_tetvr.render.merged import merged_trace, overlapping
 from mi_tetvr.render.replay import CAPACITY, PrimalStates, derivative_seed
 from mi_tetvr.render.surfaces import DEFAULT_SURFACES, NestedIntegrator, SceneParts
@@ -115,6 +123,7 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         self.n_sub = n_sub
         self.settings = WalkSettings(t_min, max_steps, reduce=modes[reduce])
         self.alpha = bool(props.get("alpha", True))
+        self.clip = Clip.from_props(props)
         nested = None
         for name, obj in props.objects():
             if name != "surfaces":
@@ -257,12 +266,18 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
             si = surfaces.ray_intersect_preliminary(ray, active=active)
             hit = active & si.is_valid()
             ray.maxt = dr.select(hit, si.t, ray.maxt)
+        # The volume's part of the ray (surfaces are not clipped).
+        t_start, walking = 0.0, active
+        if self.clip is not None:
+            t_start, t_end = self.clip.interval(ray.o, ray.d, ray.maxt)
+            ray.maxt = dr.minimum(ray.maxt, t_end)
+            walking = active & (t_end > t_start)
         if primal:
             if self._replay is not None and dr.width(self._replay[1]) == dr.width(ray):
                 L, T = self._replay
                 state = (L, T)
             else:
-                C, T = self.volume(walk_scene, tets, ts, ray, settings, active)
+                C, T = self.volume(walk_scene, tets, ts, ray, settings, walking, t_start)
                 if surfaces is None:
                     L = C + T * self.background(scene, ray.d, active)
                     state = (L, T)
@@ -319,7 +334,7 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
             for g in ts:
                 g.camera, g.ray_tangent = camera, tangent
             _, _, _, adj = self.walk(mode, walk_scene, tets, [g.detached() for g in ts], ray,
-                                     settings, active, adj, ts)
+                                     settings, walking, adj, ts, t_start)
         if mode == dr.ADMode.Backward:
             if camera:
                 # The ray's gradient into the sensor: the origin's as is, the
@@ -333,22 +348,24 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         dalpha = dr.select(hit, 0.0, adj.dalpha)
         return dL, mi.Bool(True), [dalpha] if self.alpha else [], None
 
-    def walk(self, mode, walk_scene, tets, ts, ray, settings, active, adj=None, ts_ad=None):
+    def walk(self, mode, walk_scene, tets, ts, ray, settings, active, adj=None, ts_ad=None,
+             t_start=0.0):
         """The walk of :func:`~mi_tetvr.render.walk.trace` through the tet
         meshes ``tets`` (their walks ``ts``, ``ts_ad``) along ``ray`` up to
-        ``ray.maxt``; meshes that overlap in space take the merged walk
+        ``ray.maxt`` from ``t_start``; meshes that overlap in space take the merged walk
         (:func:`~mi_tetvr.render.merged.merged_trace`), as one medium."""
         if overlapping(tets):
             return merged_trace(mode, self.parts.apart(tets), ts, ray, settings, active, adj,
-                                ts_ad, n_sub=self.n_sub)
-        return trace(mode, walk_scene, ts, ray, settings, active, adj, ts_ad)
+                                ts_ad, n_sub=self.n_sub, t_start=t_start)
+        return trace(mode, walk_scene, ts, ray, settings, active, adj, ts_ad, t_start)
 
-    def volume(self, walk_scene, tets, ts, ray, settings, active):
+    def volume(self, walk_scene, tets, ts, ray, settings, active, t_start=0.0):
         """``(C, T)``: emission and transmittance of the tet meshes along
-        ``ray`` (none without tet meshes)."""
+        ``ray`` from ``t_start`` (none without tet meshes)."""
         if ts is None:
             return mi.Color3f(0.0), dr.full(mi.Float, 1.0, dr.width(ray.o))
-        C, T, _, _ = self.walk(dr.ADMode.Primal, walk_scene, tets, ts, ray, settings, active)
+        C, T, _, _ = self.walk(dr.ADMode.Primal, walk_scene, tets, ts, ray, settings, active,
+                               t_start=t_start)
         return C, T
 
     def to_string(self):

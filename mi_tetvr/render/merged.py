@@ -81,14 +81,15 @@ def _gather(ts):
 
 @dr.syntax
 def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
-                 adj: adjoint.Adjoint = None, tss_ad=None, n_sub: int = 4):
+                 adj: adjoint.Adjoint = None, tss_ad=None, n_sub: int = 4, t_start=0.0):
     """Emission and transmittance along rays through tet meshes that may
     overlap: per mesh a scene of it alone (``scenes``, whose boundary faces
     are traced) and its :class:`~mi_tetvr.render.buffers.TetScene` (``tss``;
     ``tss_ad`` the same attached to the AD graph in the derivative modes).
     Same results as :func:`~mi_tetvr.render.walk.trace`; pieces are
     integrated with ``2 n_sub`` sub-intervals (the merged integral's error at
-    ``2 n`` is about the single medium's at ``n``)."""
+    ``2 n`` is about the single medium's at ``n``); the integral starts at
+    ``t_start`` (a clip)."""
     _check(tss)
     primal = mode == dr.ADMode.Primal
     K = len(tss)
@@ -103,7 +104,7 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
     carry = [_carry_like(ts, o, u, v, d) for ts in tss]
     # Outside a mesh: where to trace its boundary from, and its next face.
     need = [mi.Bool(active) for _ in range(K)]
-    t_trace = [mi.Float(0.0) for _ in range(K)]
+    t_trace = [mi.Float(t_start) for _ in range(K)]
     t_next = [mi.Float(dr.inf) for _ in range(K)]
     f_next = [mi.UInt32(0) for _ in range(K)]
     # A cursor whose last event was a knot of its own keeps the attributes
@@ -117,7 +118,7 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
     geo = tss_ad is not None and any(adjoint.geometric(g) for g in tss_ad)
     L = mi.Color3f(0.0)
     T = mi.Float(1.0)
-    t = mi.Float(0.0)
+    t = mi.Float(t_start)
     steps = mi.UInt32(0)
     inf = mi.Float(dr.inf)
     while dr.hint(active, label="tetvr_merged"):

@@ -167,7 +167,7 @@ def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
 
 @dr.syntax
 def trace(mode, scene, ts, ray, settings: WalkSettings, active,
-          adj: adjoint.Adjoint = None, ts_ad=None):
+          adj: adjoint.Adjoint = None, ts_ad=None, t_start=0.0):
     """Emission and transmittance along rays through the tet meshes.
 
     Parameters
@@ -183,6 +183,8 @@ def trace(mode, scene, ts, ray, settings: WalkSettings, active,
         Each boundary hit is walked in its own group's mesh.
     ray : mi.Ray3f
         Normalized direction; ``ray.maxt`` bounds the integral.
+    t_start : float or mi.Float
+        Where the integral starts along the ray (a clip, :mod:`mi_tetvr.render.clipping`).
 
     Returns
     -------
@@ -201,7 +203,7 @@ def trace(mode, scene, ts, ray, settings: WalkSettings, active,
     L = mi.Color3f(groups[0].model.initial)
     T = mi.Float(1.0)
     steps = mi.UInt32(0)
-    start = mi.Float(0.0)
+    start = mi.Float(t_start)
     active = mi.Bool(active)
     while dr.hint(active, label="tetvr_trace"):
         si = scene.ray_intersect_preliminary(mi.Ray3f(o + d * start, d, t_max - start),
