@@ -1,7 +1,7 @@
 """The ``mi-tetvr`` command line.
 
     mi-tetvr render SCENE.xml|MESH -o OUT.exr|.png [-o ...] [--res WxH] [--spp N]
-                    [--tf TF|COLORMAP] [--mode dvr|max|min|mean|slice] [--view AZ,EL]
+                    [--tf TF|COLORMAP] [--mode dvr|max|min|mean|slice|iso] [--view AZ,EL]
                     [--clip X,Y,Z,NX,NY,NZ] [--clip-box X0,Y0,Z0,X1,Y1,Z1]
     mi-tetvr info MESH [--json]
     mi-tetvr make-scenes [-o DIR]
@@ -161,6 +161,16 @@ def mesh_scene(a, path):
     azimuth, elevation = a.view
     to_world = orbit_to_world(azimuth, elevation, distance, (lo + hi) / 2, a.up)
     integrator = {"type": "tetvr"} if a.mode == "dvr" else {"type": "tetproj", "mode": a.mode}
+    if a.mode == "iso":
+        if a.iso is None:
+            name = a.scalar or next(iter(mesh.point_data), None)
+            values = np.asarray(mesh.point_data[name]) if name in mesh.point_data else None
+            if values is None:
+                sys.exit(f"mi-tetvr: {path} has no scalar point array for --mode iso")
+            a.iso = str(float(values.min() + values.max()) / 2)
+        integrator["iso"] = a.iso
+    elif a.iso is not None:
+        sys.exit("mi-tetvr: --iso gives the isovalues of --mode iso")
     if a.mode == "slice":
         plane = a.plane or (*((lo + hi) / 2), *a.up)
         integrator.update(origin=list(plane[:3]), normal=list(plane[3:]))
@@ -245,7 +255,7 @@ def cmd_render(a):
         if given:
             sys.exit(f"mi-tetvr: {', '.join(given)} {'frames' if len(given) == 1 else 'frame'}"
                      f" a mesh file; an XML scene's sensor says where it looks")
-        _refuse(a, ("tf", "scalar", "plane", "clip", "clip_box"), "to an XML scene (its "
+        _refuse(a, ("tf", "scalar", "plane", "clip", "clip_box", "iso"), "to an XML scene (its "
                 "shapes name their transfer functions, its integrator its mode and clip)")
         if a.opacity_scale != OPACITY_SCALE:
             sys.exit("mi-tetvr: --opacity-scale applies to a mesh file rendered with --tf")
@@ -779,9 +789,12 @@ def build_parser():
     r.add_argument("--tf", help="mesh file: transfer function of its scalar (a file, or a "
                    "matplotlib colormap's name; default for --mode max|min|mean: gray)")
     r.add_argument("--scalar", help="mesh file: the scalar point array (default: the only one)")
-    r.add_argument("--mode", choices=("dvr", "max", "min", "mean", "slice"), default="dvr",
-                   help="mesh file: volume rendering (dvr, default), the maximum, minimum or "
-                   "mean intensity projection of its scalar, or its scalar on a plane (slice)")
+    r.add_argument("--mode", choices=("dvr", "max", "min", "mean", "slice", "iso"),
+                   default="dvr", help="mesh file: volume rendering (dvr, default), the maximum, "
+                   "minimum or mean intensity projection of its scalar, its scalar on a plane "
+                   "(slice) or its isosurfaces (iso)")
+    r.add_argument("--iso", metavar="V[,V...]", help="--mode iso: the isovalue(s), in the "
+                   "scalar's units (default: the middle of its range)")
     r.add_argument("--plane", type=_numbers_of(6), metavar="X,Y,Z,NX,NY,NZ",
                    help="--mode slice: a point of the plane and its normal (default: the "
                    "mesh's centre, normal --up)")

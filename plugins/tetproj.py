@@ -19,7 +19,12 @@ where it first crosses the plane inside the mesh, the scalar there exact too
  * - mode
    - |string|
    - ``max`` (maximum intensity projection, the default), ``min``, ``mean``
-     (average over the length inside the mesh) or ``slice``.
+     (average over the length inside the mesh), ``slice`` or ``iso``.
+ * - iso
+   - |string|
+   - ``iso``: the isovalue(s) of the scalar, comma-separated (data units); the
+     first one a ray meets is shown, shaded by a headlight (Lambert on the
+     normal interpolated from the vertices' gradients).
  * - origin, normal
    - |point|, |vector|
    - ``slice``: a point of the plane (default: the centre of the scene's
@@ -48,7 +53,7 @@ import mitsuba as mi
 
 from mi_tetvr.render.buffers import MeshBuffers, TetScene, index_buffers, scene_tetmeshes
 from mi_tetvr.render.clipping import Clip
-from mi_tetvr.render.optical import PostClassified, Projection, Slice
+from mi_tetvr.render.optical import Isosurface, PostClassified, Projection, Slice
 from mi_tetvr.render.walk import WalkSettings, trace
 
 
@@ -58,9 +63,12 @@ class TetProjIntegrator(mi.SamplingIntegrator):
     def __init__(self, props):
         super().__init__(props)
         self.mode = str(props.get("mode", "max")).lower()
-        modes = Projection.MODES + ("slice",)
+        modes = Projection.MODES + ("slice", "iso")
         if self.mode not in modes:
             raise ValueError(f"tetproj: mode must be one of {modes}, got {self.mode!r}")
+        self.iso = [float(v) for v in str(props.get("iso", "")).split(",") if v.strip()]
+        if self.mode == "iso" and not self.iso:
+            raise ValueError("tetproj: mode 'iso' needs 'iso', the isovalue(s)")
         self.origin = list(props["origin"]) if "origin" in props else None
         self.normal = list(props.get("normal", [0.0, 0.0, 1.0]))
         if not any(self.normal):
@@ -84,6 +92,8 @@ class TetProjIntegrator(mi.SamplingIntegrator):
             box = scene.bbox()
             origin = self.origin if self.origin is not None else list(box.center())
             model = Slice(origin, self.normal)
+        elif self.mode == "iso":
+            model = Isosurface(self.iso)
         else:
             model = Projection(self.mode)
         index, offsets = index_buffers(shapes)
@@ -92,7 +102,7 @@ class TetProjIntegrator(mi.SamplingIntegrator):
 
     def project(self, scene, ray, active=True):
         """``(color, met, scalar)`` of the projection along rays (normalised
-        directions)."""
+        directions); for ``iso``, ``(color, met, hit point)``."""
         ts = self.tet_scene(scene)
         settings = WalkSettings(0.0, self.max_steps,
                                 self.retrace_epsilon * float(dr.norm(scene.bbox().extents())))
@@ -103,6 +113,8 @@ class TetProjIntegrator(mi.SamplingIntegrator):
             ray.maxt = dr.minimum(ray.maxt, t_end)
             active = active & (t_end > t_start)
         L, _, _, _ = trace(dr.ADMode.Primal, scene, ts, ray, settings, active, t_start=t_start)
+        if isinstance(ts.model, Isosurface):
+            return ts.model.shade(ts.params, L, ray.d)
         return ts.model.finish(ts.params, L)
 
     def sample(self, scene, sampler, ray, medium=None, active=True):

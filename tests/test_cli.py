@@ -274,6 +274,12 @@ def test_render_a_mesh_file(tmp_path):
     assert r.returncode == 0, r.stderr
     cut = read_image(tmp_path / "slice.exr")[..., 3] > 0
     assert cut.any() and not np.any(cut & ~met)
+    # an isosurface at the middle of the range: inside the projection's coverage
+    r = run("render", mesh, "--mode", "iso", "--res", "24x16", "--view", "30,20",
+            "-o", str(tmp_path / "iso.exr"))
+    assert r.returncode == 0, r.stderr
+    iso = read_image(tmp_path / "iso.exr")[..., 3] > 0
+    assert iso.any() and not np.any(iso & ~met)
     # clipped away on one side of a plane: less of the mesh, nothing new
     r = run("render", mesh, "--mode", "max", "--res", "24x16", "--view", "30,20",
             "--clip", "0,0,0,1,0,0", "-o", str(tmp_path / "clip.exr"))
@@ -285,7 +291,8 @@ def test_render_a_mesh_file(tmp_path):
                         (["--view", "10,10"], "--view frames a mesh file"),
                         (["--tf", "viridis"], "--tf does not apply to an XML scene"),
                         (["--plane", "0,0,0,0,0,1"], "--plane does not apply"),
-                        (["--clip", "0,0,0,0,0,1"], "--clip does not apply")):
+                        (["--clip", "0,0,0,0,0,1"], "--clip does not apply"),
+                        (["--iso", "0.5"], "--iso does not apply")):
         r = run("render", scene, "-o", str(tmp_path / "x.png"), *flags)
         assert r.returncode != 0 and said in r.stderr, r.stderr
     r = run("render", mesh, "--view", "10", "-o", str(tmp_path / "x.png"))

@@ -44,7 +44,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_tetvr.render.buffers import concat
-from mi_tetvr.render.pytree import weighted_sum
+from mi_tetvr.render.pytree import tree_select, weighted_sum
 from mi_tetvr.render.segment import segment_integral
 
 
@@ -94,6 +94,11 @@ class OpticalModel:
     def interpolate(self, params, ids, w, active=True, reduce=dr.ReduceMode.Auto):
         """``Attributes`` at barycentric weights ``w`` of the vertices ``ids``."""
         return weighted_sum(w, [self.gather(params, i, active, reduce) for i in ids])
+
+    def start(self):
+        """The accumulator ``L`` before the first segment (a ``Color3f`` of
+        :attr:`initial`; a model with its own accumulator returns that)."""
+        return mi.Color3f(self.initial)
 
     def accumulate(self, L, T, C, T_seg):
         """``(L, T)`` after a segment ``(C, T_seg)`` behind what was
@@ -429,6 +434,117 @@ class Slice(RayValue):
 
     def accumulate(self, L, T, C, T_seg):
         return dr.select(T_seg < 1.0, C, L), T * T_seg
+
+
+class Isosurface(RayValue):
+    """The first isosurface a ray meets, of one or more ``values`` of a
+    post-classified shape's scalar, exact: the scalar is linear along the ray
+    in a tet, so a segment crosses value ``v`` at ``f = (v - u0) / (u1 -
+    u0)``. A crossing carries the scalar's texel coordinate, the position and
+    the vertex gradient (the tets' gradients around the vertex averaged by
+    volume, :func:`vertex_gradients`), all linear inside a tet: the hit point
+    and its smooth normal are exact lerps. The accumulator is a :class:`Hit`;
+    ``T`` turns 0 at the hit (the walk stops)."""
+
+    class Attributes:
+        DRJIT_STRUCT = {"u": mi.Float, "p": mi.Point3f, "g": mi.Vector3f}
+
+        def __init__(self, u=None, p=None, g=None):
+            self.u, self.p, self.g = u, p, g
+
+    class Params:
+        DRJIT_STRUCT = {"scalar": mi.Float, "tf_color": mi.Float, "tf_opacity": mi.Float,
+                        "positions": mi.Float, "gradients": mi.Float}
+
+        def __init__(self, scalar=None, tf_color=None, tf_opacity=None, positions=None,
+                     gradients=None):
+            self.scalar, self.tf_color, self.tf_opacity = scalar, tf_color, tf_opacity
+            self.positions, self.gradients = positions, gradients
+
+    class Hit:
+        """Where a ray met the isosurface: point, (unnormalised) normal, the
+        texel coordinate of its value; ``u`` stays ``-NO_VALUE`` without a hit."""
+        DRJIT_STRUCT = {"p": mi.Point3f, "n": mi.Vector3f, "u": mi.Float}
+
+        def __init__(self, p=None, n=None, u=None):
+            self.p, self.n, self.u = p, n, u
+
+    def __init__(self, values, **kwargs):
+        super().__init__(**kwargs)
+        self.values = [float(v) for v in np.atleast_1d(values)]
+        if not self.values:
+            raise ValueError("an isosurface needs at least one value")
+
+    def start(self):
+        return self.Hit(mi.Point3f(0.0), mi.Vector3f(0.0), mi.Float(-NO_VALUE))
+
+    def read_params(self, shapes):
+        s = self.the_shape(shapes)
+        scalar, positions = s.attribute_buffer("vertex_scalar"), s.vertex_positions_buffer()
+        tets = np.asarray(s.tet_buffers["tets"], np.int64).reshape(-1, 4)
+        g = vertex_gradients(np.asarray(positions, np.float64).reshape(-1, 3), tets,
+                             np.asarray(scalar, np.float64))
+        return self.Params(scalar, s.tf_color, s.tf_opacity, positions,
+                           mi.Float(g.astype(np.float32).ravel()))
+
+    def texel(self, v):
+        """The texel coordinate of scalar value ``v``."""
+        lo, hi = self.value_range
+        return (v - lo) * (self.resolution / (hi - lo)) - 0.5
+
+    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+        u = PostClassified.gather(self, params, i, active, reduce).u
+        return self.Attributes(u, dr.gather(mi.Point3f, params.positions, i, active),
+                               dr.gather(mi.Vector3f, params.gradients, i, active))
+
+    def segment(self, params, length, a0, a1):
+        best = mi.Float(2.0)
+        value = mi.Float(0.0)
+        du = a1.u - a0.u
+        for v in self.values:
+            w = self.texel(v)
+            f = (w - a0.u) / dr.select(du != 0.0, du, 1.0)
+            ok = (du != 0.0) & (f >= 0.0) & (f <= 1.0) & (f < best)
+            best = dr.select(ok, f, best)
+            value = dr.select(ok, w, value)
+        meets = (length > 0.0) & (best <= 1.0)
+        hit = self.Hit(dr.lerp(a0.p, a1.p, best), dr.lerp(a0.g, a1.g, best),
+                       dr.select(meets, value, -NO_VALUE))
+        return hit, dr.select(meets, 0.0, 1.0), mi.Float(0.0)
+
+    def accumulate(self, L, T, C, T_seg):
+        return tree_select(T_seg < 1.0, C, L), T * T_seg
+
+    def value(self, L):
+        return L.u, dr.abs(L.u) < 0.5 * NO_VALUE
+
+    def shade(self, params, L, d):
+        """``(color, met, point)``: the transfer function's color at the hit's
+        value lit by a headlight (Lambert, two-sided: ``|n . d|``)."""
+        color, met, _ = self.finish(params, L)
+        n = L.n
+        lit = dr.abs(dr.dot(n, d)) / dr.select(dr.norm(n) > 0.0, dr.norm(n), 1.0)
+        return color * dr.select(dr.norm(n) > 0.0, lit, 1.0), met, L.p
+
+
+def vertex_gradients(vertices, tets, scalar):
+    """(n, 3) float64: each vertex's gradient of a per-vertex scalar, the
+    gradients of the tets around it (constant in each) averaged by volume."""
+    v = np.asarray(vertices, np.float64)
+    t = np.asarray(tets, np.int64)
+    s = np.asarray(scalar, np.float64)
+    E = np.stack([v[t[:, k]] - v[t[:, 0]] for k in (1, 2, 3)], 1)           # rows: edges
+    ds = np.stack([s[t[:, k]] - s[t[:, 0]] for k in (1, 2, 3)], 1)
+    vol = np.abs(np.linalg.det(E))
+    ok = vol > 0
+    g = np.zeros((len(t), 3))
+    g[ok] = np.linalg.solve(E[ok], ds[ok][..., None])[..., 0]
+    out = np.zeros((len(v), 3))
+    weight = np.zeros(len(v))
+    for k in range(4):
+        np.add.at(out, t[:, k], g * vol[:, None])
+        np.add.at(weight, t[:, k], vol)
+    return out / np.maximum(weight, 1e-300)[:, None]
 
 
 #: Samples of the pre-integrated table along the front and back scalar (at

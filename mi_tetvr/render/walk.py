@@ -33,7 +33,7 @@ import mitsuba as mi
 from mi_tetvr.render import adjoint
 from mi_tetvr.render.buffers import unpack_link
 from mi_tetvr.render.geometry import crossing_at, entry_carry, face_entry, ray_frame, walk_step
-from mi_tetvr.render.pytree import tree_lerp, tree_select, weighted_sum
+from mi_tetvr.render.pytree import tree_copy, tree_lerp, tree_select, weighted_sum
 from mi_tetvr.render.segment import clip_segment
 
 
@@ -100,7 +100,7 @@ def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
     buf, model, params = ts.buf, ts.model, ts.params
     tet = mi.UInt32(tet)
     f_in = mi.UInt32(f_in)
-    L = mi.Color3f(L)
+    L = tree_copy(L)           # (Color3f, or a model's own accumulator)
     T = mi.Float(T)
     active = mi.Bool(active)
 
@@ -200,7 +200,7 @@ def trace(mode, scene, ts, ray, settings: WalkSettings, active,
     d = mi.Vector3f(ray.d)
     t_max = mi.Float(ray.maxt)
     u, v = ray_frame(d)
-    L = mi.Color3f(groups[0].model.initial)
+    L = groups[0].model.start()
     T = mi.Float(1.0)
     steps = mi.UInt32(0)
     start = mi.Float(t_start)
