@@ -478,14 +478,20 @@ class Isosurface(RayValue):
     def start(self):
         return self.Hit(mi.Point3f(0.0), mi.Vector3f(0.0), mi.Float(-NO_VALUE))
 
+    #: The last vertex gradients computed: ``(key, buffer)``, the key the
+    #: positions' and scalars' Dr.Jit variables (unchanged between frames).
+    _gradients = (None, None)
+
     def read_params(self, shapes):
         s = self.the_shape(shapes)
         scalar, positions = s.attribute_buffer("vertex_scalar"), s.vertex_positions_buffer()
-        tets = np.asarray(s.tet_buffers["tets"], np.int64).reshape(-1, 4)
-        g = vertex_gradients(np.asarray(positions, np.float64).reshape(-1, 3), tets,
-                             np.asarray(scalar, np.float64))
-        return self.Params(scalar, s.tf_color, s.tf_opacity, positions,
-                           mi.Float(g.astype(np.float32).ravel()))
+        key = (dr.detach(positions).index, dr.detach(scalar).index, id(s.tet_buffers["tets"]))
+        if Isosurface._gradients[0] != key:
+            tets = np.asarray(s.tet_buffers["tets"], np.int64).reshape(-1, 4)
+            g = vertex_gradients(np.asarray(positions, np.float64).reshape(-1, 3), tets,
+                                 np.asarray(scalar, np.float64))
+            Isosurface._gradients = (key, mi.Float(g.astype(np.float32).ravel()))
+        return self.Params(scalar, s.tf_color, s.tf_opacity, positions, Isosurface._gradients[1])
 
     def texel(self, v):
         """The texel coordinate of scalar value ``v``."""
