@@ -2,7 +2,7 @@
 
     mi-tetvr render SCENE.xml|MESH -o OUT.exr|.png [-o ...] [--res WxH] [--spp N]
                     [--tf TF|COLORMAP] [--mode dvr|max|min|mean|slice|iso] [--view AZ,EL]
-                    [--clip X,Y,Z,NX,NY,NZ] [--clip-box X0,Y0,Z0,X1,Y1,Z1]
+                    [--clip X,Y,Z,NX,NY,NZ] [--clip-box X0,Y0,Z0,X1,Y1,Z1] [--orbit N]
     mi-tetvr info MESH [--json]
     mi-tetvr make-scenes [-o DIR]
     mi-tetvr make-dataset VOLUME|MESH (--tf TF | --xray) -o DIR [--views N] [--res WxH]
@@ -51,6 +51,14 @@ def _set_variant(name):
 IMAGE_SUFFIXES = (".exr", ".png", ".jpg", ".jpeg")
 
 
+def _srgb8(rgb):
+    """Linear RGB (h, w, 3) as 8-bit sRGB, by Mitsuba's conversion."""
+    import mitsuba as mi
+    bmp = mi.Bitmap(np.ascontiguousarray(rgb, dtype=np.float32), mi.Bitmap.PixelFormat.RGB)
+    return np.array(bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8,
+                                srgb_gamma=True), copy=True)
+
+
 def _write_render(path, rgb, alpha=None):
     """Write a render: linear RGB (h, w, 3) [+ alpha (h, w)] as EXR (linear,
     R G B [A], premultiplied) or PNG/JPG (RGB over black, 8-bit sRGB through
@@ -70,9 +78,7 @@ def _write_render(path, rgb, alpha=None):
                         mi.Bitmap.PixelFormat.RGB if alpha is None else mi.Bitmap.PixelFormat.RGBA)
         bmp.write(str(path))
     elif suffix in (".png", ".jpg", ".jpeg"):
-        bmp = mi.Bitmap(np.ascontiguousarray(rgb, dtype=np.float32), mi.Bitmap.PixelFormat.RGB)
-        bmp = bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True)
-        bmp.write(str(path))
+        mi.Bitmap(_srgb8(rgb), mi.Bitmap.PixelFormat.RGB).write(str(path))
     else:
         raise SystemExit(f"mi-tetvr: unsupported image format '{suffix}' (use .exr or .png)")
 
@@ -237,17 +243,64 @@ def _render_defaults(a):
     return cmd_render(a)
 
 
+def _render_orbit(a, mi, path):
+    """``render MESH --orbit N``: N frames once around ``--up`` from ``--view``,
+    written as an MP4 (the ``.mp4`` outputs) and a contact sheet (the image
+    outputs)."""
+    from mi_tetvr.apps.orbit import FPS, contact_sheet, orbit_azimuths, write_video
+    from mi_tetvr.progress import progress_bar
+    t0 = time.time()
+    azimuth, elevation = a.view
+    frames = []
+    scene = None
+    try:
+        for az in progress_bar(orbit_azimuths(azimuth, a.orbit), desc="orbit", unit="frame"):
+            a.view = (float(az), elevation)
+            d = mesh_scene(a, path)
+            if scene is None:
+                scene = mi.load_dict(d)
+            sensor = mi.load_dict(d["sensor"])
+            frames.append(np.array(mi.render(scene, sensor=sensor, spp=a.spp or 0)))
+    except SystemExit:
+        raise
+    except Exception as e:
+        while (e.__cause__ or e.__context__) is not None:
+            e = e.__cause__ or e.__context__
+        sys.exit(f"mi-tetvr: cannot render {path}: {_plugin_error(e)}")
+    frames = np.stack(frames)
+    sheet = contact_sheet(frames)
+    for out in a.out:
+        if Path(out).suffix.lower() == ".mp4":
+            write_video(out, np.stack([_srgb8(f[..., :3]) for f in frames]), FPS)
+        else:
+            _write_render(out, sheet[..., :3], sheet[..., 3] if sheet.shape[-1] > 3 else None)
+    print(f"rendered {a.orbit} frames of {path} around {tuple(a.up)} at "
+          f"{frames.shape[2]}x{frames.shape[1]} ({time.time() - t0:.1f} s) -> "
+          f"{', '.join(a.out)}")
+
+
 def cmd_render(a):
     mi = _set_variant(a.variant)
     scene_path = Path(a.scene)
     if not scene_path.exists():
         sys.exit(f"mi-tetvr: scene file not found: {scene_path}")
     res = a.res
-    for out in a.out:
-        if Path(out).suffix.lower() not in IMAGE_SUFFIXES:
-            sys.exit(f"mi-tetvr: unsupported image format '{Path(out).suffix}' for {out} (use "
-                     f"{', '.join(IMAGE_SUFFIXES)})")
     is_mesh = (scene_path.suffix.lower() in MESH_SUFFIXES and not _is_image_data(scene_path))
+    if a.orbit is not None and not is_mesh:
+        sys.exit("mi-tetvr: --orbit circles a mesh file (an XML scene's sensors stay)")
+    if a.orbit is not None and a.orbit < 1:
+        sys.exit(f"mi-tetvr: --orbit needs at least 1 frame, got {a.orbit}")
+    for out in a.out:
+        suffix = Path(out).suffix.lower()
+        if suffix == ".mp4" and a.orbit is None:
+            sys.exit(f"mi-tetvr: {out}: a video is written by --orbit N")
+        if suffix not in IMAGE_SUFFIXES + ((".mp4",) if a.orbit else ()):
+            sys.exit(f"mi-tetvr: unsupported image format '{Path(out).suffix}' for {out} (use "
+                     f"{', '.join(IMAGE_SUFFIXES)}" + (", .mp4 for the video)" if a.orbit
+                                                       else ")"))
+    if a.orbit and not any(Path(o).suffix.lower() == ".mp4" for o in a.out):
+        sys.exit("mi-tetvr: --orbit writes a video: give an -o FILE.mp4 (and images for the "
+                 "contact sheet)")
     if is_mesh:
         _refuse(a, ("classification",), "to a mesh (its scalar is post-classified)")
     else:
@@ -262,6 +315,8 @@ def cmd_render(a):
         if a.mode != "dvr":
             sys.exit("mi-tetvr: --mode applies to a mesh file (an XML scene names its "
                      "integrator: 'tetproj' with its mode)")
+    if a.orbit:
+        return _render_orbit(a, mi, scene_path)
     t0 = time.time()
     try:
         if is_mesh:
@@ -808,6 +863,9 @@ def build_parser():
                    "(default 45,30)")
     r.add_argument("--up", type=_triple, default=None, metavar="X,Y,Z",
                    help="mesh file: the up axis (default 0,0,1)")
+    r.add_argument("--orbit", type=int, metavar="N",
+                   help="mesh file: N frames once around --up from --view, written as the "
+                   "-o FILE.mp4 video and a contact sheet to the -o images")
     _opacity_scale(r)
     _out(r, "output image (.exr: linear RGBA; .png/.jpg: sRGB); repeatable", append=True)
     r.add_argument("--spp", type=int, default=0, help="samples per pixel (default: the scene's)")

@@ -297,3 +297,27 @@ def test_render_a_mesh_file(tmp_path):
         assert r.returncode != 0 and said in r.stderr, r.stderr
     r = run("render", mesh, "--view", "10", "-o", str(tmp_path / "x.png"))
     assert r.returncode == 2 and "two numbers" in r.stderr
+
+
+def test_render_an_orbit(tmp_path):
+    """render MESH --orbit N: N frames once around --up, as an MP4 (read back:
+    N frames of the film's size) and a contact sheet of the frames; the first
+    frame is what render MESH writes at that view."""
+    import imageio_ffmpeg
+    from mi_tetvr.recon.images import read_image
+    make_scene_meshes()
+    mesh = str(ROOT / "scenes" / "meshes" / "radial_scalar.vtu")
+    video, sheet = tmp_path / "orbit.mp4", tmp_path / "orbit.png"
+    r = run("render", mesh, "--mode", "max", "--res", "16x12", "--orbit", "4", "-o", str(video),
+            "-o", str(sheet))
+    assert r.returncode == 0, r.stderr
+    reader = imageio_ffmpeg.read_frames(str(video))
+    meta = next(reader)
+    assert tuple(meta["size"]) == (16, 12) and len(list(reader)) == 4
+    assert read_image(sheet).shape[:2] == (2 * 12 + 2, 2 * 16 + 2)
+    r = run("render", mesh, "--mode", "max", "--res", "16x12", "-o", str(tmp_path / "one.png"))
+    assert r.returncode == 0, r.stderr
+    first = read_image(tmp_path / "one.png")[..., :3]
+    np.testing.assert_allclose(read_image(sheet)[:12, :16, :3], first, atol=1e-6)
+    r = run("render", mesh, "--orbit", "4", "-o", str(tmp_path / "x.exr"))
+    assert r.returncode != 0 and ".mp4" in r.stderr
