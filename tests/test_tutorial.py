@@ -194,3 +194,24 @@ def test_volume_and_surface_tutorial(tmp_path):
     assert c1 < 0.8 * c0, r["color_error"]
     for f in r["files"].values():
         assert Path(f).is_file() and Path(f).stat().st_size > 0, f
+
+
+def test_visualize_modes_tutorial(data_dir, tmp_path):
+    """``tutorials/visualize_modes.py`` shrunk to 48x36: six finite views and
+    the figure; what each mode covers nests as it must: the slice and the
+    isosurfaces lie inside what the maximum projection covers (the mesh),
+    the clipped volume is less opaque than the whole one, nowhere more."""
+    r = _tutorial("visualize_modes").main(["--res", "48", "--quiet", "--out", str(tmp_path),
+                                           "--variant", VARIANT])
+    assert Path(r["files"]["modes"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len(r["images"]) == 6
+    for img in r["images"].values():
+        assert img.shape == (36, 48, 3) and np.all(np.isfinite(img))
+    cover = {k.split(" (")[0].split(" ")[0]: v for k, v in r["coverage"].items()}
+    mesh = cover["maximum"] > 0
+    for name in ("slice", "isosurfaces"):
+        seen = cover[name] > 0
+        assert seen.any() and not np.any(seen & ~mesh), name
+    volume = [v for k, v in r["coverage"].items() if k.startswith("volume")]
+    whole, clipped = volume
+    assert np.all(clipped <= whole + 1e-5) and clipped.sum() < 0.9 * whole.sum()
