@@ -1,7 +1,7 @@
 """The ``tetproj`` integrator: intensity projections of a ``tetmesh``'s scalar
 (the maximum, minimum or mean along each ray), as ParaView's *Maximum /
-Minimum / Average Intensity* blend modes show a volume, and slices (the
-scalar on a plane through the mesh).
+Minimum / Average Intensity* blend modes show a volume, slices (the scalar on
+a plane through the mesh) and isosurfaces.
 
 The scene holds one post-classified ``tetmesh`` (a scalar and a transfer
 function) and nothing else. Each ray walks every tet it crosses
@@ -10,7 +10,9 @@ model): the scalar is linear in each tet, so the maximum and the minimum of
 a segment are at its ends and its mean is the trapezoid's; the projection is
 exact. A slice (:class:`~mi_tetvr.render.optical.Slice`) stops each ray
 where it first crosses the plane inside the mesh, the scalar there exact too
-(the plane's signed distance is linear along the ray in a tet). The pixel is the transfer function's color at the projected value
+(the plane's signed distance is linear along the ray in a tet); an
+isosurface (:class:`~mi_tetvr.render.optical.Isosurface`) where the scalar
+first crosses one of the isovalues. The pixel is the transfer function's color at the projected value
 (its opacity is not used), alpha 1 where the ray meets the mesh; the film's
 ``rgba`` format keeps it.
 
@@ -79,7 +81,8 @@ class TetProjIntegrator(mi.SamplingIntegrator):
 
     def tet_scene(self, scene):
         """The :class:`TetScene` of the scene's one post-classified mesh, walked
-        by the :class:`Projection` model."""
+        by the mode's model (:class:`Projection`, :class:`Slice` or
+        :class:`Isosurface`)."""
         shapes = scene_tetmeshes(scene)
         others = len(scene.shapes()) - len(shapes)
         if len(shapes) != 1 or others:
