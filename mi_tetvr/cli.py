@@ -1,6 +1,7 @@
 """The ``mi-tetvr`` command line.
 
-    mi-tetvr render SCENE.xml|MESH -o OUT.exr|.png [-o ...] [--res WxH] [--spp N]
+    mi-tetvr render SCENE.xml|MESH [MESH ...|SERIES.pvd] -o OUT.exr|.png|.mp4 [-o ...]
+                    [--res WxH] [--spp N]
                     [--tf TF|COLORMAP] [--mode dvr|max|min|mean|slice|iso] [--view AZ,EL]
                     [--clip X,Y,Z,NX,NY,NZ] [--clip-box X0,Y0,Z0,X1,Y1,Z1] [--orbit N]
     mi-tetvr info MESH [--json]
@@ -132,33 +133,58 @@ MESH_RES = (512, 512)
 MESH_FOV = 40.0
 
 
-def mesh_scene(a, path):
-    """The scene ``render MESH`` renders: the mesh (its color and opacity, or
-    its scalar through ``--tf``), ``tetvr`` or ``tetproj`` (``--mode``), and a
-    camera at ``--view`` (azimuth, elevation in degrees about ``--up``) whose
-    field of view holds the mesh's bounding sphere."""
+def mesh_framing(a, paths):
+    """What ``render MESH`` keeps fixed over the meshes ``paths`` (one, or a
+    time series): the union of their boxes and bounding spheres (the camera)
+    and, with ``--tf``, the range of their scalar (the transfer function's)."""
     import warnings
 
     import mi_tetvr
-    from mi_tetvr.camera import orbit_to_world
+    from mi_tetvr.mesh.io import choose_scalar
     from mi_tetvr.mesh.topology import bounding_radius
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        try:
-            mesh = mi_tetvr.read_tetmesh(path, color=None, opacity=None, repair=a.repair,
-                                         cell_to_point=a.cell_to_point)
-        except (ValueError, FileNotFoundError, KeyError) as e:
-            sys.exit(f"mi-tetvr: {e}")
-    lo, hi = mesh.bounds
-    radius = bounding_radius(mesh.vertices)
-    shape = {"type": "tetmesh", "filename": str(path.resolve()), "repair": a.repair,
+    los, his, ranges, name = [], [], [], None
+    classified = bool(a.tf) or a.mode != "dvr"
+    for path in paths:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                mesh = mi_tetvr.read_tetmesh(path, color=None, opacity=None, repair=a.repair,
+                                             cell_to_point=a.cell_to_point)
+                if classified:
+                    name = choose_scalar(mesh.point_data, a.scalar, str(path), mesh.cell_data)
+            except (ValueError, FileNotFoundError, KeyError) as e:
+                sys.exit(f"mi-tetvr: {e}")
+        los.append(mesh.bounds[0])
+        his.append(mesh.bounds[1])
+        if classified:
+            values = np.asarray(mesh.point_data[name], np.float64)
+            ranges.append((float(values.min()), float(values.max())))
+    lo, hi = np.min(los, 0), np.max(his, 0)
+    value_range = None
+    if ranges:
+        value_range = (min(r[0] for r in ranges), max(r[1] for r in ranges))
+        if not value_range[1] > value_range[0]:
+            sys.exit(f"mi-tetvr: the scalar '{name}' is constant ({value_range[0]:g})")
+    return {"lo": lo, "hi": hi, "radius": bounding_radius(np.stack([lo, hi])),
+            "scalar": name, "value_range": value_range}
+
+
+def mesh_scene(a, path, framing):
+    """The scene ``render MESH`` renders: the mesh (its color and opacity, or
+    its scalar through ``--tf`` over the framing's range), ``tetvr`` or
+    ``tetproj`` (``--mode``), and a camera at ``--view`` (azimuth, elevation in
+    degrees about ``--up``) whose field of view holds the framing's bounding
+    sphere (:func:`mesh_framing`)."""
+    from mi_tetvr.camera import orbit_to_world
+    lo, hi, radius = framing["lo"], framing["hi"], framing["radius"]
+    shape = {"type": "tetmesh", "filename": str(Path(path).resolve()), "repair": a.repair,
              "cell_to_point": a.cell_to_point}
     tf = a.tf or ("gray" if a.mode != "dvr" else None)
     if tf:
         # a file, or a matplotlib colormap's name
         shape["transfer_function"] = str(Path(tf).resolve()) if Path(tf).exists() else tf
-        if a.scalar:
-            shape["scalar_attribute"] = a.scalar
+        shape["scalar_attribute"] = framing["scalar"]
+        shape["value_min"], shape["value_max"] = framing["value_range"]
         shape["opacity_scale"] = a.opacity_scale / radius
     elif a.scalar:
         sys.exit("mi-tetvr: --scalar needs --tf")
@@ -168,13 +194,7 @@ def mesh_scene(a, path):
     to_world = orbit_to_world(azimuth, elevation, distance, (lo + hi) / 2, a.up)
     integrator = {"type": "tetvr"} if a.mode == "dvr" else {"type": "tetproj", "mode": a.mode}
     if a.mode == "iso":
-        if a.iso is None:
-            name = a.scalar or next(iter(mesh.point_data), None)
-            values = np.asarray(mesh.point_data[name]) if name in mesh.point_data else None
-            if values is None:
-                sys.exit(f"mi-tetvr: {path} has no scalar point array for --mode iso")
-            a.iso = str(float(values.min() + values.max()) / 2)
-        integrator["iso"] = a.iso
+        integrator["iso"] = a.iso or str(sum(framing["value_range"]) / 2)
     elif a.iso is not None:
         sys.exit("mi-tetvr: --iso gives the isovalues of --mode iso")
     if a.mode == "slice":
@@ -251,12 +271,13 @@ def _render_orbit(a, mi, path):
     from mi_tetvr.progress import progress_bar
     t0 = time.time()
     azimuth, elevation = a.view
+    framing = mesh_framing(a, [path])
     frames = []
     scene = None
     try:
         for az in progress_bar(orbit_azimuths(azimuth, a.orbit), desc="orbit", unit="frame"):
             a.view = (float(az), elevation)
-            d = mesh_scene(a, path)
+            d = mesh_scene(a, path, framing)
             if scene is None:
                 scene = mi.load_dict(d)
             sensor = mi.load_dict(d["sensor"])
@@ -279,24 +300,89 @@ def _render_orbit(a, mi, path):
           f"{', '.join(a.out)}")
 
 
+def series_paths(names):
+    """The files ``render`` is given: a ``.pvd`` collection expands to its
+    data sets in time order (paths relative to it)."""
+    import xml.etree.ElementTree as ET
+    paths = []
+    for name in names:
+        path = Path(name)
+        if not path.exists():
+            sys.exit(f"mi-tetvr: scene file not found: {path}")
+        if path.suffix.lower() == ".pvd":
+            try:
+                sets = ET.parse(path).getroot().iter("DataSet")
+                entries = sorted(((float(d.get("timestep", k)), d.get("file"))
+                                  for k, d in enumerate(sets)), key=lambda e: e[0])
+            except (ET.ParseError, TypeError, ValueError) as e:
+                sys.exit(f"mi-tetvr: cannot read the collection {path}: {e}")
+            if not entries:
+                sys.exit(f"mi-tetvr: the collection {path} names no DataSet files")
+            paths += [path.parent / f for _, f in entries]
+        else:
+            paths.append(path)
+    return paths
+
+
+def _render_series(a, mi, paths):
+    """``render MESH MESH ...`` (or a ``.pvd``): every mesh with one transfer
+    function range and one camera (:func:`mesh_framing` over all), as an MP4
+    (the ``.mp4`` outputs) and numbered images (``stem_0000.png``, ...)."""
+    from mi_tetvr.apps.orbit import FPS, write_video
+    from mi_tetvr.progress import progress_bar
+    t0 = time.time()
+    framing = mesh_framing(a, paths)
+    frames = []
+    for path in progress_bar(paths, desc="series", unit="mesh"):
+        try:
+            frames.append(np.array(mi.render(mi.load_dict(mesh_scene(a, path, framing)),
+                                             spp=a.spp or 0)))
+        except SystemExit:
+            raise
+        except Exception as e:
+            while (e.__cause__ or e.__context__) is not None:
+                e = e.__cause__ or e.__context__
+            sys.exit(f"mi-tetvr: cannot render {path}: {_plugin_error(e)}")
+    frames = np.stack(frames)
+    written = []
+    for out in a.out:
+        out = Path(out)
+        if out.suffix.lower() == ".mp4":
+            write_video(out, np.stack([_srgb8(f[..., :3]) for f in frames]), FPS)
+            written.append(str(out))
+            continue
+        for k, f in enumerate(frames):
+            name = out.with_name(f"{out.stem}_{k:04d}{out.suffix}")
+            _write_render(name, f[..., :3], f[..., 3])
+        written.append(str(out.with_name(f"{out.stem}_####{out.suffix}")))
+    rng = framing["value_range"]
+    print(f"rendered {len(paths)} meshes at {frames.shape[2]}x{frames.shape[1]}"
+          + (f", '{framing['scalar']}' over [{rng[0]:.4g}, {rng[1]:.4g}]" if rng else "")
+          + f" ({time.time() - t0:.1f} s) -> {', '.join(written)}")
+
+
 def cmd_render(a):
     mi = _set_variant(a.variant)
-    scene_path = Path(a.scene)
-    if not scene_path.exists():
-        sys.exit(f"mi-tetvr: scene file not found: {scene_path}")
+    paths = series_paths(a.scene)
+    scene_path = paths[0]
     res = a.res
-    is_mesh = (scene_path.suffix.lower() in MESH_SUFFIXES and not _is_image_data(scene_path))
-    if a.orbit is not None and not is_mesh:
-        sys.exit("mi-tetvr: --orbit circles a mesh file (an XML scene's sensors stay)")
+    is_mesh = all(p.suffix.lower() in MESH_SUFFIXES and not _is_image_data(p) for p in paths)
+    series = len(paths) > 1
+    if series and not is_mesh:
+        sys.exit("mi-tetvr: a series renders mesh files (or a .pvd of them), one scene at a "
+                 "time otherwise")
+    if a.orbit is not None and (not is_mesh or series):
+        sys.exit("mi-tetvr: --orbit circles one mesh file (an XML scene's sensors stay)")
     if a.orbit is not None and a.orbit < 1:
         sys.exit(f"mi-tetvr: --orbit needs at least 1 frame, got {a.orbit}")
+    video = bool(a.orbit) or series
     for out in a.out:
         suffix = Path(out).suffix.lower()
-        if suffix == ".mp4" and a.orbit is None:
-            sys.exit(f"mi-tetvr: {out}: a video is written by --orbit N")
-        if suffix not in IMAGE_SUFFIXES + ((".mp4",) if a.orbit else ()):
+        if suffix == ".mp4" and not video:
+            sys.exit(f"mi-tetvr: {out}: a video is written by --orbit N or of a series")
+        if suffix not in IMAGE_SUFFIXES + ((".mp4",) if video else ()):
             sys.exit(f"mi-tetvr: unsupported image format '{Path(out).suffix}' for {out} (use "
-                     f"{', '.join(IMAGE_SUFFIXES)}" + (", .mp4 for the video)" if a.orbit
+                     f"{', '.join(IMAGE_SUFFIXES)}" + (", .mp4 for the video)" if video
                                                        else ")"))
     if a.orbit and not any(Path(o).suffix.lower() == ".mp4" for o in a.out):
         sys.exit("mi-tetvr: --orbit writes a video: give an -o FILE.mp4 (and images for the "
@@ -317,10 +403,12 @@ def cmd_render(a):
                      "integrator: 'tetproj' with its mode)")
     if a.orbit:
         return _render_orbit(a, mi, scene_path)
+    if series:
+        return _render_series(a, mi, paths)
     t0 = time.time()
     try:
         if is_mesh:
-            scene = mi.load_dict(mesh_scene(a, scene_path))
+            scene = mi.load_dict(mesh_scene(a, scene_path, mesh_framing(a, [scene_path])))
         else:
             props = {k: True for k in ("repair", "cell_to_point") if getattr(a, k)}
             text = scene_xml(scene_path, res, props, a.classification)
@@ -839,8 +927,9 @@ def build_parser():
 
     r = sub.add_parser("render", help="render a Mitsuba XML scene with tetmesh shapes, or a "
                        "mesh file framed by a camera")
-    r.add_argument("scene", help="Mitsuba XML scene, or a tet mesh file (.vtu, .vtk, .msh, "
-                   ".mesh)")
+    r.add_argument("scene", nargs="+", help="Mitsuba XML scene, or a tet mesh file (.vtu, "
+                   ".vtk, .msh, .mesh), or several (a time series; or a .pvd of them): one "
+                   "camera and transfer function range for all")
     r.add_argument("--tf", help="mesh file: transfer function of its scalar (a file, or a "
                    "matplotlib colormap's name; default for --mode max|min|mean: gray)")
     r.add_argument("--scalar", help="mesh file: the scalar point array (default: the only one)")

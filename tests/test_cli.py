@@ -321,3 +321,42 @@ def test_render_an_orbit(tmp_path):
     np.testing.assert_allclose(read_image(sheet)[:12, :16, :3], first, atol=1e-6)
     r = run("render", mesh, "--orbit", "4", "-o", str(tmp_path / "x.exr"))
     assert r.returncode != 0 and ".mp4" in r.stderr
+
+
+def test_render_a_time_series(tmp_path):
+    """Several mesh files (or a .pvd of them) render with one camera and one
+    transfer function range: a field that grows from file to file grows from
+    frame to frame (each file's own range would make the frames alike); the
+    .pvd's time steps, not its listing order, order the frames."""
+    import imageio_ffmpeg
+    from mi_tetvr.recon.images import read_image
+    v, t = grid_mesh(3, jitter=0.1)
+    base = 0.2 + 0.8 * np.exp(-np.sum(v ** 2, 1))
+    names = []
+    for k in range(3):
+        name = tmp_path / f"step{k}.vtu"
+        write_tetmesh(name, TetMesh(v, t, point_data={"s": base * (k + 1)}))
+        names.append(str(name))
+    r = run("render", *names, "--scalar", "s", "--mode", "max", "--res", "12",
+            "-o", str(tmp_path / "s.mp4"),
+            "-o", str(tmp_path / "f.exr"))
+    assert r.returncode == 0, r.stderr
+    reader = imageio_ffmpeg.read_frames(str(tmp_path / "s.mp4"))
+    next(reader)
+    assert len(list(reader)) == 3
+    levels = [read_image(tmp_path / f"f_{k:04d}.exr")[..., :3].max() for k in range(3)]
+    assert levels[0] < levels[1] < levels[2], levels
+    (tmp_path / "series.pvd").write_text(
+        '<VTKFile type="Collection"><Collection>'
+        + "".join(f'<DataSet timestep="{k}" file="step{k}.vtu"/>' for k in (2, 0, 1))
+        + "</Collection></VTKFile>")
+    r = run("render", str(tmp_path / "series.pvd"), "--scalar", "s", "--mode", "max", "--res",
+            "12",
+            "-o", str(tmp_path / "p.exr"))
+    assert r.returncode == 0, r.stderr
+    for k in range(3):
+        np.testing.assert_array_equal(read_image(tmp_path / f"p_{k:04d}.exr"),
+                                      read_image(tmp_path / f"f_{k:04d}.exr"))
+    r = run("render", names[0], str(ROOT / "scenes" / "default.xml"), "-o",
+            str(tmp_path / "x.png"))
+    assert r.returncode == 1 and "a series renders mesh files" in r.stderr
