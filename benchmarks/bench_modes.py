@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from common import header, make_parser, timed, write_json
+from common import (header, make_parser, timed, vtk_offscreen, vtk_ray_cast_volume,
+                    write_json)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tets"
 MESHES = {"bluntfin": ("bluntfin/bluntfin_tets.vtu", "Density"),
@@ -72,25 +73,9 @@ def ours(path, scalar, integrator, eye, target, fov, res, repeat):
     return med, runs
 
 
-def vtk_window(res, eye, target, fov):
-    import vtk
-    ren = vtk.vtkRenderer()
-    ren.SetBackground(0, 0, 0)
-    win = vtk.vtkRenderWindow()
-    win.SetOffScreenRendering(1)
-    win.AddRenderer(ren)
-    win.SetSize(res, res)
-    cam = ren.GetActiveCamera()
-    cam.SetPosition(*eye)
-    cam.SetFocalPoint(*target)
-    cam.SetViewUp(0, 0, 1)
-    cam.SetViewAngle(fov)
-    return vtk, ren, win
-
-
 def vtk_surface(grid, make_filter, res, eye, target, fov, repeat):
     """(filter seconds, warm render seconds, runs) of a filter's polygons."""
-    vtk, ren, win = vtk_window(res, eye, target, fov)
+    vtk, ren, win = vtk_offscreen(res, eye, target, fov)
     t0 = time.perf_counter()
     f = make_filter(vtk)
     f.SetInputData(grid)
@@ -107,14 +92,11 @@ def vtk_surface(grid, make_filter, res, eye, target, fov, repeat):
 
 
 def vtk_clipped_volume(grid, origin, normal, res, eye, target, fov, repeat):
-    vtk, ren, win = vtk_window(res, eye, target, fov)
+    vtk, ren, win = vtk_offscreen(res, eye, target, fov)
     t0 = time.perf_counter()
-    plane = vtk.vtkPlane()
-    plane.SetOrigin(*origin)
-    plane.SetNormal(*normal)
     clip = vtk.vtkClipDataSet()
     clip.SetInputData(grid)
-    clip.SetClipFunction(plane)
+    clip.SetClipFunction(_plane(vtk, origin, normal))
     clip.InsideOutOn()
     tri = vtk.vtkDataSetTriangleFilter()
     tri.SetInputConnection(clip.GetOutputPort())
@@ -127,20 +109,7 @@ def vtk_clipped_volume(grid, origin, normal, res, eye, target, fov, repeat):
     otf = vtk.vtkPiecewiseFunction()
     otf.AddPoint(lo, 0.0)
     otf.AddPoint(hi, 1.0)
-    prop = vtk.vtkVolumeProperty()
-    prop.SetColor(ctf)
-    prop.SetScalarOpacity(otf)
-    prop.SetInterpolationTypeToLinear()
-    mapper = vtk.vtkUnstructuredGridVolumeRayCastMapper()
-    mapper.SetInputConnection(tri.GetOutputPort())
-    mapper.SetRayIntegrator(vtk.vtkUnstructuredGridLinearRayIntegrator())
-    mapper.SetImageSampleDistance(1.0)
-    mapper.AutoAdjustSampleDistancesOff()
-    volume = vtk.vtkVolume()
-    volume.SetMapper(mapper)
-    volume.SetProperty(prop)
-    ren.AddVolume(volume)
-    ren.ResetCameraClippingRange()
+    vtk_ray_cast_volume(vtk, ren, tri.GetOutputPort(), ctf, otf)
     _, med, runs, _ = timed(win.Render, repeat)
     return filtered, med, runs
 
@@ -206,12 +175,16 @@ def _contour(vtk, scalar, value):
     return f
 
 
-def _cutter(vtk, origin, normal):
+def _plane(vtk, origin, normal):
     plane = vtk.vtkPlane()
     plane.SetOrigin(*origin)
     plane.SetNormal(*normal)
+    return plane
+
+
+def _cutter(vtk, origin, normal):
     f = vtk.vtkCutter()
-    f.SetCutFunction(plane)
+    f.SetCutFunction(_plane(vtk, origin, normal))
     return f
 
 

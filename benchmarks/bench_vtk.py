@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import header, make_parser, timed, write_json
+from common import header, make_parser, timed, vtk_offscreen, vtk_ray_cast_volume, write_json
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tets"
 MESHES = {"bluntfin": ("bluntfin/bluntfin_tets.vtu", "Density"),
@@ -97,33 +97,8 @@ def render_vtk(path, scalar, vrange, eye, target, fov, res, scale, repeat):
     otf = vtk.vtkPiecewiseFunction()
     for p, o in OPACITY:
         otf.AddPoint(lo + p * (hi - lo), o * scale)
-    prop = vtk.vtkVolumeProperty()
-    prop.SetColor(ctf)
-    prop.SetScalarOpacity(otf)
-    prop.SetScalarOpacityUnitDistance(1.0)
-    prop.SetInterpolationTypeToLinear()
-    prop.ShadeOff()
-    mapper = vtk.vtkUnstructuredGridVolumeRayCastMapper()
-    mapper.SetInputData(grid)
-    mapper.SetRayIntegrator(vtk.vtkUnstructuredGridLinearRayIntegrator())
-    mapper.SetImageSampleDistance(1.0)
-    mapper.AutoAdjustSampleDistancesOff()
-    volume = vtk.vtkVolume()
-    volume.SetMapper(mapper)
-    volume.SetProperty(prop)
-    ren = vtk.vtkRenderer()
-    ren.AddVolume(volume)
-    ren.SetBackground(0, 0, 0)
-    win = vtk.vtkRenderWindow()
-    win.SetOffScreenRendering(1)
-    win.AddRenderer(ren)
-    win.SetSize(res, res)
-    cam = ren.GetActiveCamera()
-    cam.SetPosition(*eye)
-    cam.SetFocalPoint(*target)
-    cam.SetViewUp(0, 0, 1)
-    cam.SetViewAngle(fov)
-    ren.ResetCameraClippingRange()
+    vtk, ren, win = vtk_offscreen(res, eye, target, fov)
+    vtk_ray_cast_volume(vtk, ren, grid, ctf, otf)
 
     def run():
         win.Render()

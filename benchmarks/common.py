@@ -280,3 +280,50 @@ def render_steps(scene, keys, spp=1):
             dr.disable_grad(params[k])
         return grads
     return primal, backward
+
+
+def vtk_offscreen(res, eye, target, fov):
+    """``(vtk, renderer, window)``: an offscreen VTK window of ``res`` x ``res``
+    pixels, black, its camera at ``eye`` looking at ``target`` (z up) with a
+    vertical field of view of ``fov`` degrees."""
+    import vtk
+    ren = vtk.vtkRenderer()
+    ren.SetBackground(0, 0, 0)
+    win = vtk.vtkRenderWindow()
+    win.SetOffScreenRendering(1)
+    win.AddRenderer(ren)
+    win.SetSize(res, res)
+    cam = ren.GetActiveCamera()
+    cam.SetPosition(*eye)
+    cam.SetFocalPoint(*target)
+    cam.SetViewUp(0, 0, 1)
+    cam.SetViewAngle(fov)
+    return vtk, ren, win
+
+
+def vtk_ray_cast_volume(vtk, ren, source, color, opacity):
+    """Add to ``ren`` the tet mesh ``source`` (a data set, or an algorithm's
+    output port) volume-rendered by VTK's ``vtkUnstructuredGridVolumeRayCastMapper``
+    with the ``vtkUnstructuredGridLinearRayIntegrator`` (exact for a transfer
+    function linear between its points), one ray per pixel, unshaded:
+    ``color`` a ``vtkColorTransferFunction``, ``opacity`` a
+    ``vtkPiecewiseFunction`` (per unit length)."""
+    prop = vtk.vtkVolumeProperty()
+    prop.SetColor(color)
+    prop.SetScalarOpacity(opacity)
+    prop.SetScalarOpacityUnitDistance(1.0)
+    prop.SetInterpolationTypeToLinear()
+    prop.ShadeOff()
+    mapper = vtk.vtkUnstructuredGridVolumeRayCastMapper()
+    if isinstance(source, vtk.vtkAlgorithmOutput):
+        mapper.SetInputConnection(source)
+    else:
+        mapper.SetInputData(source)
+    mapper.SetRayIntegrator(vtk.vtkUnstructuredGridLinearRayIntegrator())
+    mapper.SetImageSampleDistance(1.0)
+    mapper.AutoAdjustSampleDistancesOff()
+    volume = vtk.vtkVolume()
+    volume.SetMapper(mapper)
+    volume.SetProperty(prop)
+    ren.AddVolume(volume)
+    ren.ResetCameraClippingRange()

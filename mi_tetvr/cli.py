@@ -133,61 +133,72 @@ MESH_RES = (512, 512)
 MESH_FOV = 40.0
 
 
-def mesh_framing(a, paths):
-    """What ``render MESH`` keeps fixed over the meshes ``paths`` (one, or a
-    time series): the union of their boxes and bounding spheres (the camera)
-    and, with ``--tf``, the range of their scalar (the transfer function's)."""
+def _read_mesh(a, path):
+    """A mesh file for ``render``: its color and opacity (defaults where
+    absent) and point arrays, ``--repair`` and ``--cell-to-point`` applied."""
     import warnings
 
     import mi_tetvr
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            return mi_tetvr.read_tetmesh(path, repair=a.repair, cell_to_point=a.cell_to_point)
+        except (ValueError, FileNotFoundError, KeyError) as e:
+            sys.exit(f"mi-tetvr: {e}")
+
+
+def _mesh_extent(a, mesh, path):
+    """``(lo, hi, scalar name, (min, max))`` of a mesh for :func:`mesh_framing`
+    (the scalar only where it is classified: ``--tf`` or a projection)."""
     from mi_tetvr.mesh.io import choose_scalar
+    if not (a.tf or a.mode != "dvr"):
+        return mesh.bounds[0], mesh.bounds[1], None, None
+    try:
+        name = choose_scalar(mesh.point_data, a.scalar, str(path), mesh.cell_data)
+    except ValueError as e:
+        sys.exit(f"mi-tetvr: {e}")
+    values = np.asarray(mesh.point_data[name], np.float64)
+    return mesh.bounds[0], mesh.bounds[1], name, (float(values.min()), float(values.max()))
+
+
+def mesh_framing(extents):
+    """What ``render MESH`` keeps fixed over one mesh or a time series, from
+    their :func:`_mesh_extent`: the union of their boxes and its bounding
+    sphere (the camera) and the range of their scalar (the transfer
+    function's)."""
     from mi_tetvr.mesh.topology import bounding_radius
-    los, his, ranges, name = [], [], [], None
-    classified = bool(a.tf) or a.mode != "dvr"
-    for path in paths:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            try:
-                mesh = mi_tetvr.read_tetmesh(path, color=None, opacity=None, repair=a.repair,
-                                             cell_to_point=a.cell_to_point)
-                if classified:
-                    name = choose_scalar(mesh.point_data, a.scalar, str(path), mesh.cell_data)
-            except (ValueError, FileNotFoundError, KeyError) as e:
-                sys.exit(f"mi-tetvr: {e}")
-        los.append(mesh.bounds[0])
-        his.append(mesh.bounds[1])
-        if classified:
-            values = np.asarray(mesh.point_data[name], np.float64)
-            ranges.append((float(values.min()), float(values.max())))
-    lo, hi = np.min(los, 0), np.max(his, 0)
-    value_range = None
-    if ranges:
-        value_range = (min(r[0] for r in ranges), max(r[1] for r in ranges))
+    lo = np.min([e[0] for e in extents], 0)
+    hi = np.max([e[1] for e in extents], 0)
+    name, value_range = extents[0][2], None
+    if name is not None:
+        value_range = (min(e[3][0] for e in extents), max(e[3][1] for e in extents))
         if not value_range[1] > value_range[0]:
             sys.exit(f"mi-tetvr: the scalar '{name}' is constant ({value_range[0]:g})")
     return {"lo": lo, "hi": hi, "radius": bounding_radius(np.stack([lo, hi])),
             "scalar": name, "value_range": value_range}
 
 
-def mesh_scene(a, path, framing):
-    """The scene ``render MESH`` renders: the mesh (its color and opacity, or
-    its scalar through ``--tf`` over the framing's range), ``tetvr`` or
-    ``tetproj`` (``--mode``), and a camera at ``--view`` (azimuth, elevation in
-    degrees about ``--up``) whose field of view holds the framing's bounding
-    sphere (:func:`mesh_framing`)."""
+def mesh_scene(a, mesh, framing):
+    """The scene ``render MESH`` renders: the mesh (a :func:`_read_mesh`; its
+    color and opacity, or its scalar through ``--tf`` over the framing's
+    range), ``tetvr`` or ``tetproj`` (``--mode``), and a camera at ``--view``
+    (azimuth, elevation in degrees about ``--up``) whose field of view holds
+    the framing's bounding sphere (:func:`mesh_framing`)."""
+    import mi_tetvr
     from mi_tetvr.camera import orbit_to_world
     lo, hi, radius = framing["lo"], framing["hi"], framing["radius"]
-    shape = {"type": "tetmesh", "filename": str(Path(path).resolve()), "repair": a.repair,
-             "cell_to_point": a.cell_to_point}
     tf = a.tf or ("gray" if a.mode != "dvr" else None)
     if tf:
         # a file, or a matplotlib colormap's name
-        shape["transfer_function"] = str(Path(tf).resolve()) if Path(tf).exists() else tf
-        shape["scalar_attribute"] = framing["scalar"]
-        shape["value_min"], shape["value_max"] = framing["value_range"]
-        shape["opacity_scale"] = a.opacity_scale / radius
+        lo_v, hi_v = framing["value_range"]
+        shape = mi_tetvr.tetmesh_dict(
+            mesh.vertices, mesh.tets, scalar=mesh.point_data[framing["scalar"]],
+            transfer_function=str(Path(tf).resolve()) if Path(tf).exists() else tf,
+            value_min=lo_v, value_max=hi_v, opacity_scale=a.opacity_scale / radius)
     elif a.scalar:
         sys.exit("mi-tetvr: --scalar needs --tf")
+    else:
+        shape = mi_tetvr.tetmesh_dict(mesh.vertices, mesh.tets, mesh.color, mesh.opacity)
     width, height = a.res or MESH_RES
     distance = 1.05 * radius / np.sin(np.radians(min(MESH_FOV, MESH_FOV * height / width) / 2))
     azimuth, elevation = a.view
@@ -222,37 +233,21 @@ def mi_scalar_transform(transform):
     return mi.ScalarTransform4f(np.array(transform.matrix, np.float64).reshape(4, 4))
 
 
-def _pair(text):
-    try:
-        x = tuple(float(v) for v in str(text).split(","))
-    except ValueError:
-        x = ()
-    if len(x) != 2:
-        raise argparse.ArgumentTypeError(f"expected two numbers A,B, got {text!r}")
-    return x
+def _numbers_of(k, nonzero=False):
+    """An argparse type: ``k`` comma-separated numbers (the fit settings' parser),
+    not all zero where ``nonzero``."""
+    from mi_tetvr.recon.config import _numbers
+    parse = _numbers(k)
 
-
-def _numbers_of(k):
-    """An argparse type: ``k`` comma-separated numbers."""
-    def parse(text):
+    def arg(text):
         try:
-            x = tuple(float(v) for v in str(text).split(","))
-        except ValueError:
-            x = ()
-        if len(x) != k:
-            raise argparse.ArgumentTypeError(f"expected {k} numbers, got {text!r}")
+            x = tuple(parse(text))
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+        if nonzero and not any(x):
+            raise argparse.ArgumentTypeError(f"expected a non-zero vector, got {text!r}")
         return x
-    return parse
-
-
-def _triple(text):
-    try:
-        x = tuple(float(v) for v in str(text).split(","))
-    except ValueError:
-        x = ()
-    if len(x) != 3 or not any(x):
-        raise argparse.ArgumentTypeError(f"expected a non-zero vector X,Y,Z, got {text!r}")
-    return x
+    return arg
 
 
 def _render_defaults(a):
@@ -263,6 +258,25 @@ def _render_defaults(a):
     return cmd_render(a)
 
 
+def _load_or_exit(mi, scene_dict, path):
+    """``mi.load_dict``, or a one-line exit naming the plugin's error."""
+    try:
+        return mi.load_dict(scene_dict)
+    except Exception as e:
+        sys.exit(f"mi-tetvr: cannot load {path}: {_plugin_error(e)}")
+
+
+def _render_or_exit(mi, scene, path, **kwargs):
+    """``mi.render`` as an array, or a one-line exit naming the innermost
+    error (Dr.Jit wraps the integrator's)."""
+    try:
+        return np.array(mi.render(scene, **kwargs))
+    except Exception as e:
+        while (e.__cause__ or e.__context__) is not None:
+            e = e.__cause__ or e.__context__
+        sys.exit(f"mi-tetvr: cannot render {path}: {_plugin_error(e)}")
+
+
 def _render_orbit(a, mi, path):
     """``render MESH --orbit N``: N frames once around ``--up`` from ``--view``,
     written as an MP4 (the ``.mp4`` outputs) and a contact sheet (the image
@@ -271,23 +285,17 @@ def _render_orbit(a, mi, path):
     from mi_tetvr.progress import progress_bar
     t0 = time.time()
     azimuth, elevation = a.view
-    framing = mesh_framing(a, [path])
+    mesh = _read_mesh(a, path)
+    framing = mesh_framing([_mesh_extent(a, mesh, path)])
     frames = []
     scene = None
-    try:
-        for az in progress_bar(orbit_azimuths(azimuth, a.orbit), desc="orbit", unit="frame"):
-            a.view = (float(az), elevation)
-            d = mesh_scene(a, path, framing)
-            if scene is None:
-                scene = mi.load_dict(d)
-            sensor = mi.load_dict(d["sensor"])
-            frames.append(np.array(mi.render(scene, sensor=sensor, spp=a.spp or 0)))
-    except SystemExit:
-        raise
-    except Exception as e:
-        while (e.__cause__ or e.__context__) is not None:
-            e = e.__cause__ or e.__context__
-        sys.exit(f"mi-tetvr: cannot render {path}: {_plugin_error(e)}")
+    for az in progress_bar(orbit_azimuths(azimuth, a.orbit), desc="orbit", unit="frame"):
+        a.view = (float(az), elevation)
+        d = mesh_scene(a, mesh, framing)
+        if scene is None:
+            scene = _load_or_exit(mi, d, path)
+        frames.append(_render_or_exit(mi, scene, path, sensor=mi.load_dict(d["sensor"]),
+                                      spp=a.spp or 0))
     frames = np.stack(frames)
     sheet = contact_sheet(frames)
     for out in a.out:
@@ -331,18 +339,13 @@ def _render_series(a, mi, paths):
     from mi_tetvr.apps.orbit import FPS, write_video
     from mi_tetvr.progress import progress_bar
     t0 = time.time()
-    framing = mesh_framing(a, paths)
+    # the range and the box of all the meshes first (each read again to render: a
+    # series need not fit in memory at once)
+    framing = mesh_framing([_mesh_extent(a, _read_mesh(a, p), p) for p in paths])
     frames = []
     for path in progress_bar(paths, desc="series", unit="mesh"):
-        try:
-            frames.append(np.array(mi.render(mi.load_dict(mesh_scene(a, path, framing)),
-                                             spp=a.spp or 0)))
-        except SystemExit:
-            raise
-        except Exception as e:
-            while (e.__cause__ or e.__context__) is not None:
-                e = e.__cause__ or e.__context__
-            sys.exit(f"mi-tetvr: cannot render {path}: {_plugin_error(e)}")
+        scene = _load_or_exit(mi, mesh_scene(a, _read_mesh(a, path), framing), path)
+        frames.append(_render_or_exit(mi, scene, path, spp=a.spp or 0))
     frames = np.stack(frames)
     written = []
     for out in a.out:
@@ -368,9 +371,13 @@ def cmd_render(a):
     res = a.res
     is_mesh = all(p.suffix.lower() in MESH_SUFFIXES and not _is_image_data(p) for p in paths)
     series = len(paths) > 1
-    if series and not is_mesh:
-        sys.exit("mi-tetvr: a series renders mesh files (or a .pvd of them), one scene at a "
-                 "time otherwise")
+    if not is_mesh and (series or scene_path.suffix.lower() != ".xml"):
+        sys.exit(f"mi-tetvr: render takes a Mitsuba XML scene, or tet mesh files "
+                 f"({', '.join(MESH_SUFFIXES)}; several, or a .pvd of them, as a series), got "
+                 f"{', '.join(str(p) for p in paths)}")
+    if is_mesh and a.tf and Path(a.tf).suffix.lower() in (".json", ".xml") \
+            and not Path(a.tf).exists():
+        sys.exit(f"mi-tetvr: transfer function file not found: {a.tf}")
     if a.orbit is not None and (not is_mesh or series):
         sys.exit("mi-tetvr: --orbit circles one mesh file (an XML scene's sensors stay)")
     if a.orbit is not None and a.orbit < 1:
@@ -406,26 +413,20 @@ def cmd_render(a):
     if series:
         return _render_series(a, mi, paths)
     t0 = time.time()
-    try:
-        if is_mesh:
-            scene = mi.load_dict(mesh_scene(a, scene_path, mesh_framing(a, [scene_path])))
-        else:
+    if is_mesh:
+        mesh = _read_mesh(a, scene_path)
+        scene = _load_or_exit(mi, mesh_scene(a, mesh, mesh_framing(
+            [_mesh_extent(a, mesh, scene_path)])), scene_path)
+    else:
+        try:
             props = {k: True for k in ("repair", "cell_to_point") if getattr(a, k)}
             text = scene_xml(scene_path, res, props, a.classification)
             mi.file_resolver().prepend(str(scene_path.resolve().parent))
             scene = mi.load_string(text)
-    except SystemExit:
-        raise
-    except Exception as e:
-        sys.exit(f"mi-tetvr: cannot load {scene_path}: {_plugin_error(e)}")
+        except Exception as e:
+            sys.exit(f"mi-tetvr: cannot load {scene_path}: {_plugin_error(e)}")
     t1 = time.time()
-    try:
-        img = np.array(mi.render(scene, spp=a.spp or 0))
-    except Exception as e:
-        # (Dr.Jit wraps the integrator's error: report the innermost one)
-        while (e.__cause__ or e.__context__) is not None:
-            e = e.__cause__ or e.__context__
-        sys.exit(f"mi-tetvr: cannot render {scene_path}: {_plugin_error(e)}")
+    img = _render_or_exit(mi, scene, scene_path, spp=a.spp or 0)
     t2 = time.time()
     rgb = img[..., :3]
     alpha = img[..., 3] if img.shape[-1] > 3 else None
@@ -947,10 +948,11 @@ def build_parser():
                    "side its normal points to")
     r.add_argument("--clip-box", type=_numbers_of(6), metavar="X0,Y0,Z0,X1,Y1,Z1",
                    help="mesh file: cut away what lies outside the box")
-    r.add_argument("--view", type=_pair, default=None, metavar="AZ,EL",
+    r.add_argument("--view", type=_numbers_of(2), default=None, metavar="AZ,EL",
                    help="mesh file: camera azimuth and elevation in degrees about --up "
                    "(default 45,30)")
-    r.add_argument("--up", type=_triple, default=None, metavar="X,Y,Z",
+    r.add_argument("--up", type=_numbers_of(3, nonzero=True), default=None,
+                   metavar="X,Y,Z",
                    help="mesh file: the up axis (default 0,0,1)")
     r.add_argument("--orbit", type=int, metavar="N",
                    help="mesh file: N frames once around --up from --view, written as the "

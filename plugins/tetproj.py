@@ -54,7 +54,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.render.buffers import MeshBuffers, TetScene, index_buffers, scene_tetmeshes
-from mi_tetvr.render.clipping import Clip
+from mi_tetvr.render.clipping import Clip, unit_vector
 from mi_tetvr.render.optical import Isosurface, PostClassified, Projection, Slice
 from mi_tetvr.render.walk import WalkSettings, trace
 
@@ -72,9 +72,8 @@ class TetProjIntegrator(mi.SamplingIntegrator):
         if self.mode == "iso" and not self.iso:
             raise ValueError("tetproj: mode 'iso' needs 'iso', the isovalue(s)")
         self.origin = list(props["origin"]) if "origin" in props else None
-        self.normal = list(props.get("normal", [0.0, 0.0, 1.0]))
-        if not any(self.normal):
-            raise ValueError("tetproj: the slice's normal must not be zero")
+        self.normal = unit_vector(list(props.get("normal", [0.0, 0.0, 1.0])),
+                                  "tetproj: the slice's normal").tolist()
         self.clip = Clip.from_props(props)
         self.max_steps = int(props.get("max_steps", 100_000))
         self.retrace_epsilon = float(props.get("retrace_epsilon", 1e-5))

@@ -296,7 +296,7 @@ def test_render_a_mesh_file(tmp_path):
         r = run("render", scene, "-o", str(tmp_path / "x.png"), *flags)
         assert r.returncode != 0 and said in r.stderr, r.stderr
     r = run("render", mesh, "--view", "10", "-o", str(tmp_path / "x.png"))
-    assert r.returncode == 2 and "two numbers" in r.stderr
+    assert r.returncode == 2 and "expected 2 comma-separated numbers" in r.stderr
 
 
 def test_render_an_orbit(tmp_path):
@@ -359,4 +359,4 @@ def test_render_a_time_series(tmp_path):
                                       read_image(tmp_path / f"f_{k:04d}.exr"))
     r = run("render", names[0], str(ROOT / "scenes" / "default.xml"), "-o",
             str(tmp_path / "x.png"))
-    assert r.returncode == 1 and "a series renders mesh files" in r.stderr
+    assert r.returncode == 1 and "render takes a Mitsuba XML scene, or tet mesh files" in r.stderr

@@ -16,6 +16,15 @@ import mitsuba as mi
 import numpy as np
 
 
+def unit_vector(v, what: str) -> np.ndarray:
+    """``v`` (3,) scaled to length 1; ``ValueError`` naming ``what`` unless it
+    is a non-zero 3-vector (a plane's normal)."""
+    n = np.asarray(v, np.float64).reshape(-1)
+    if n.shape != (3,) or not np.linalg.norm(n) > 0:
+        raise ValueError(f"{what} must be a non-zero 3-vector, got {np.ravel(v).tolist()}")
+    return n / np.linalg.norm(n)
+
+
 class Clip:
     """A plane (``origin``, ``normal``: the side the normal points to is cut
     away) and/or a box (``box_min``, ``box_max``: what lies outside is cut
@@ -26,11 +35,8 @@ class Clip:
         if (origin is None) != (normal is None):
             raise ValueError("clipping: give both clip_origin and clip_normal (a plane)")
         if normal is not None:
-            n = np.asarray(normal, np.float64).reshape(-1)
-            if n.shape != (3,) or not np.linalg.norm(n) > 0:
-                raise ValueError(f"clipping: clip_normal must be a non-zero 3-vector, got "
-                                 f"{list(normal)}")
-            self.plane = (np.asarray(origin, np.float64).reshape(3), n / np.linalg.norm(n))
+            self.plane = (np.asarray(origin, np.float64).reshape(3),
+                          unit_vector(normal, "clipping: clip_normal"))
         self.box = None
         if (box_min is None) != (box_max is None):
             raise ValueError("clipping: give both clip_min and clip_max (a box)")

@@ -44,6 +44,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_tetvr.render.buffers import concat
+from mi_tetvr.render.clipping import unit_vector
 from mi_tetvr.render.pytree import tree_select, weighted_sum
 from mi_tetvr.render.segment import segment_integral
 
@@ -406,11 +407,8 @@ class Slice(RayValue):
 
     def __init__(self, origin, normal, **kwargs):
         super().__init__(**kwargs)
-        n = np.asarray(normal, np.float64).reshape(-1)
-        if n.shape != (3,) or not np.linalg.norm(n) > 0:
-            raise ValueError(f"a slice's normal must be a non-zero 3-vector, got {normal!r}")
         self.origin = np.asarray(origin, np.float64).reshape(3)
-        self.normal = n / np.linalg.norm(n)
+        self.normal = unit_vector(normal, "a slice's normal")
         self.initial = -NO_VALUE
 
     def read_params(self, shapes):
