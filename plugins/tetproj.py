@@ -42,7 +42,13 @@ first crosses one of the isovalues. The pixel is the transfer function's color a
    - Offset, relative to the scene's bounding-box diagonal, past a boundary
      face before tracing for re-entry. (Default: 1e-5)
 
-Not differentiable yet: ``mi.render`` with parameters raises.
+Derivatives (``mi.render`` with parameters, ``dr.backward``, ``dr.forward``)
+w.r.t. the tetmesh's ``vertex_scalar``, ``tf_color`` and ``vertex_positions``
+and the integrator's ``iso`` (the isovalues, a parameter of
+``mi.traverse(integrator)``), in every mode but ``mean``: the point a ray
+shows is recomputed in closed form in the tet the primal walk found it in
+(:meth:`~mi_tetvr.render.optical.RayValue.replay`), so they are exact where
+that point moves smoothly (not across silhouettes or the slice's rim).
 
 .. code-block:: python
 
@@ -59,7 +65,7 @@ from mi_tetvr.render.optical import Isosurface, PostClassified, Projection, Slic
 from mi_tetvr.render.walk import WalkSettings, trace
 
 
-class TetProjIntegrator(mi.SamplingIntegrator):
+class TetProjIntegrator(mi.ad.integrators.common.RBIntegrator):
     __doc__ = __doc__
 
     def __init__(self, props):
@@ -68,9 +74,10 @@ class TetProjIntegrator(mi.SamplingIntegrator):
         modes = Projection.MODES + ("slice", "iso")
         if self.mode not in modes:
             raise ValueError(f"tetproj: mode must be one of {modes}, got {self.mode!r}")
-        self.iso = [float(v) for v in str(props.get("iso", "")).split(",") if v.strip()]
-        if self.mode == "iso" and not self.iso:
+        iso = [float(v) for v in str(props.get("iso", "")).split(",") if v.strip()]
+        if self.mode == "iso" and not iso:
             raise ValueError("tetproj: mode 'iso' needs 'iso', the isovalue(s)")
+        self.iso = mi.Float(iso)
         self.origin = list(props["origin"]) if "origin" in props else None
         self.normal = unit_vector(list(props.get("normal", [0.0, 0.0, 1.0])),
                                   "tetproj: the slice's normal").tolist()
@@ -78,10 +85,14 @@ class TetProjIntegrator(mi.SamplingIntegrator):
         self.max_steps = int(props.get("max_steps", 100_000))
         self.retrace_epsilon = float(props.get("retrace_epsilon", 1e-5))
 
-    def tet_scene(self, scene):
+    def traverse(self, callback):
+        if self.mode == "iso":
+            callback.put("iso", self.iso, mi.ParamFlags.Differentiable)
+
+    def tet_scene(self, scene, differentiable=False):
         """The :class:`TetScene` of the scene's one post-classified mesh, walked
         by the mode's model (:class:`Projection`, :class:`Slice` or
-        :class:`Isosurface`)."""
+        :class:`Isosurface`); ``differentiable``: for the derivative passes."""
         shapes = scene_tetmeshes(scene)
         others = len(scene.shapes()) - len(shapes)
         if len(shapes) != 1 or others:
@@ -95,16 +106,18 @@ class TetProjIntegrator(mi.SamplingIntegrator):
             origin = self.origin if self.origin is not None else list(box.center())
             model = Slice(origin, self.normal)
         elif self.mode == "iso":
-            model = Isosurface(self.iso)
+            model = Isosurface(self.iso if differentiable else dr.detach(self.iso))
         else:
             model = Projection(self.mode)
         index, offsets = index_buffers(shapes)
         buf = MeshBuffers(**index, positions=shapes[0].vertex_positions_buffer())
         return TetScene(shapes, offsets, buf, model, model.read_params(shapes))
 
-    def project(self, scene, ray, active=True):
+    def project(self, scene, ray, active=True, picks=False):
         """``(color, met, scalar)`` of the projection along rays (normalised
-        directions); for ``iso``, ``(color, met, hit point)``."""
+        directions); for ``iso``, ``(color, met, hit point)``; with
+        ``picks``, also the walk's :class:`~mi_tetvr.render.optical.Pick`
+        (for the derivative passes)."""
         ts = self.tet_scene(scene)
         settings = WalkSettings(0.0, self.max_steps,
                                 self.retrace_epsilon * float(dr.norm(scene.bbox().extents())))
@@ -116,21 +129,27 @@ class TetProjIntegrator(mi.SamplingIntegrator):
             active = active & (t_end > t_start)
         L, _, _, _ = trace(dr.ADMode.Primal, scene, ts, ray, settings, active, t_start=t_start)
         if isinstance(ts.model, Isosurface):
-            return ts.model.shade(ts.params, L, ray.d)
-        return ts.model.finish(ts.params, L)
+            out = ts.model.shade(ts.params, L, ray.d)
+        else:
+            out = ts.model.finish(ts.params, L)
+        return (*out, L) if picks else out
 
-    def sample(self, scene, sampler, ray, medium=None, active=True):
+    def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
         ray = mi.Ray3f(dr.detach(ray))
         ray.d = dr.normalize(ray.d)
-        with dr.suspend_grad():
-            color, met, _ = self.project(scene, ray, active)
-        return mi.Spectrum(color), met, []
-
-    def render_forward(self, *args, **kwargs):
-        raise NotImplementedError("tetproj: intensity projections are not differentiable yet")
-
-    def render_backward(self, *args, **kwargs):
-        raise NotImplementedError("tetproj: intensity projections are not differentiable yet")
+        if mode == dr.ADMode.Primal:
+            with dr.suspend_grad():
+                color, met, _, picks = self.project(scene, ray, active, picks=True)
+            return mi.Spectrum(color), met, [], (picks, met)
+        # The derivative passes: each ray's pick again, with the AD graph.
+        picks, met = state_in
+        with dr.resume_grad():
+            ts = self.tet_scene(scene, differentiable=True)
+            color = ts.model.replay(ts.params, ts.buf, picks, ray.o, ray.d)
+            if mode == dr.ADMode.Backward:
+                dr.backward_from(δL * color)
+                return mi.Spectrum(0.0), met, [], None
+            return mi.Spectrum(dr.forward_to(color)), met, [], None
 
     def to_string(self):
         plane = (f", origin={self.origin}, normal={self.normal}" if self.mode == "slice"

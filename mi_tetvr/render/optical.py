@@ -43,8 +43,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_tetvr.render.buffers import concat
+from mi_tetvr.render.buffers import MeshBuffers, concat
 from mi_tetvr.render.clipping import unit_vector
+from mi_tetvr.render.linear import TetFrame, vertex_gradients
 from mi_tetvr.render.pytree import tree_select, weighted_sum
 from mi_tetvr.render.segment import segment_integral
 
@@ -72,6 +73,9 @@ class OpticalModel:
     per_shape = False
     #: The accumulated value before the first segment (every channel).
     initial = 0.0
+    #: Whether :meth:`segment` takes the index of the segment's tet as a
+    #: fifth argument (primal walks only).
+    per_tet = False
 
     def __init__(self, n_sub: int = 4):
         self.n_sub = int(n_sub)
@@ -321,33 +325,114 @@ class PostClassified(OpticalModel):
 NO_VALUE = 1e30
 
 
+class Pick:
+    """The one point a ray shows (:class:`RayValue`): the scalar's texel
+    coordinate ``u`` there (``initial`` while there is none), the point
+    ``p``, the tet ``tet`` that holds it and, on an isosurface, the smooth
+    normal ``n`` (unnormalised) and the index ``k`` of its isovalue."""
+    DRJIT_STRUCT = {"u": mi.Float, "p": mi.Point3f, "n": mi.Vector3f, "tet": mi.UInt32,
+                    "k": mi.UInt32}
+
+    def __init__(self, u=None, p=None, n=None, tet=None, k=None):
+        self.u, self.p, self.n, self.tet, self.k = u, p, n, tet, k
+
+
 class RayValue(PostClassified):
     """Base of the models that give each ray one value of a post-classified
-    shape's scalar (:class:`Projection`, :class:`Slice`) instead of an
-    integral: the accumulated ``L.x`` is a texel coordinate (``L.y`` a
-    length where :attr:`mean`), :meth:`finish` makes it a pixel."""
+    shape's scalar instead of an integral (:class:`Projection`,
+    :class:`Slice`, :class:`Isosurface`). The accumulator is a :class:`Pick`
+    (the ``mean`` projection: a ``Color3f``, ``L.x`` the scalar's integral
+    over the length ``L.y``); :meth:`finish` makes it a pixel.
+
+    Derivatives: the point a ray shows lies in one tet (the walk hands each
+    segment its tet, :attr:`per_tet`), where the scalar is linear; its
+    value there is a closed form of the tet's corners
+    (:class:`~mi_tetvr.render.linear.TetFrame`), which :meth:`replay`
+    recomputes with the parameters' AD graph from the primal :class:`Pick`:
+    the derivatives w.r.t. the scalars, the transfer function's texels, the
+    vertex positions and (isosurfaces) the isovalues are exact wherever the
+    pick does not jump to another tet or surface (silhouettes, edges of the
+    slice, ties of the maximum)."""
     cuts = False
+    per_tet = True
     #: ``L`` holds an integral (``L.x``) over a length (``L.y``).
     mean = False
+
+    class Attributes:
+        DRJIT_STRUCT = {"u": mi.Float, "p": mi.Point3f}
+
+        def __init__(self, u=None, p=None):
+            self.u, self.p = u, p
+
+    class Params:
+        DRJIT_STRUCT = {"scalar": mi.Float, "tf_color": mi.Float, "tf_opacity": mi.Float,
+                        "positions": mi.Float}
+
+        def __init__(self, scalar=None, tf_color=None, tf_opacity=None, positions=None):
+            self.scalar, self.tf_color, self.tf_opacity = scalar, tf_color, tf_opacity
+            self.positions = positions
+
+    def read_params(self, shapes):
+        s = self.the_shape(shapes)
+        return self.Params(s.attribute_buffer("vertex_scalar"), s.tf_color, s.tf_opacity,
+                           s.vertex_positions_buffer())
+
+    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+        u = PostClassified.gather(self, params, i, active, reduce).u
+        return self.Attributes(u, dr.gather(mi.Point3f, params.positions, i, active))
+
+    def start(self):
+        if self.mean:
+            return mi.Color3f(self.initial)
+        return Pick(mi.Float(self.initial), mi.Point3f(0.0), mi.Vector3f(0.0), mi.UInt32(0),
+                    mi.UInt32(0))
 
     def value(self, L):
         """``(texel coordinate, met)`` of the accumulated ``L`` of a ray."""
         if self.mean:
             met = L.y > 0.0
             return L.x / dr.select(met, L.y, 1.0), met
-        return L.x, dr.abs(L.x) < 0.5 * NO_VALUE
+        return L.u, dr.abs(L.u) < 0.5 * NO_VALUE
 
     def scalar(self, u):
         """The scalar (data units) at texel coordinate ``u``."""
         lo, hi = self.value_range
         return lo + (u + 0.5) * ((hi - lo) / self.resolution)
 
+    def texel(self, v):
+        """The texel coordinate of scalar value ``v``."""
+        lo, hi = self.value_range
+        return (v - lo) * (self.resolution / (hi - lo)) - 0.5
+
+    def color(self, params, u):
+        """The transfer function's color at texel coordinate ``u``."""
+        (color, _), _ = self.classify(params, u, u)
+        return color
+
     def finish(self, params, L):
         """``(color, met, scalar)`` of a ray's accumulated ``L``: the transfer
         function's color at the value (black where the ray met nothing)."""
         u, met = self.value(L)
-        (color, _), _ = self.classify(params, u, u)
-        return dr.select(met, color, 0.0), met, self.scalar(u)
+        return dr.select(met, self.color(params, u), 0.0), met, self.scalar(u)
+
+    def replay(self, params, buf, L, o, d):
+        """The pixel color of a ray ``(o, d)`` (detached) whose primal walk
+        picked ``L`` (detached), recomputed in ``L.tet`` from ``params`` and
+        ``buf`` (attached to the AD graph)."""
+        if self.mean:
+            raise NotImplementedError("tetproj: the mean intensity projection is not "
+                                      "differentiable (it integrates every tet of a ray); "
+                                      "max, min, slice and iso are")
+        u, met = self.value(L)
+        frame = TetFrame(buf, L.tet, met)
+        values = [PostClassified.gather(self, params, i, met).u for i in frame.ids]
+        return dr.select(met, self.color(params, self.replay_value(frame, values, L, o, d)),
+                         0.0)
+
+    def replay_value(self, frame, values, L, o, d):
+        """The texel coordinate at the picked point, from the tet's corner
+        ``values`` (:meth:`replay`)."""
+        raise NotImplementedError
 
 
 class Projection(RayValue):
@@ -367,43 +452,54 @@ class Projection(RayValue):
         self.mean = mode == "mean"
         self.initial = {"max": -NO_VALUE, "min": NO_VALUE, "mean": 0.0}[mode]
 
-    def segment(self, params, length, a0, a1):
+    def better(self, a, b):
+        """Whether value ``a`` beats ``b`` (greater for ``max``)."""
+        return a > b if self.mode == "max" else a < b
+
+    def segment(self, params, length, a0, a1, tet):
         if self.mean:
             return (mi.Color3f(length * 0.5 * (a0.u + a1.u), length, 0.0), mi.Float(1.0),
                     mi.Float(0.0))
-        pick = dr.maximum if self.mode == "max" else dr.minimum
-        v = dr.select(length > 0.0, pick(a0.u, a1.u), self.initial)
-        return mi.Color3f(v, 0.0, 0.0), mi.Float(1.0), mi.Float(0.0)
+        end = self.better(a1.u, a0.u)
+        u = dr.select(length > 0.0, dr.select(end, a1.u, a0.u), self.initial)
+        pick = Pick(u, dr.select(end, a1.p, a0.p), mi.Vector3f(0.0), tet, mi.UInt32(0))
+        return pick, mi.Float(1.0), mi.Float(0.0)
 
     def accumulate(self, L, T, C, T_seg):
         if self.mean:
             return L + C, T
-        pick = dr.maximum if self.mode == "max" else dr.minimum
-        return mi.Color3f(pick(L.x, C.x), 0.0, 0.0), T
+        return tree_select(self.better(C.u, L.u), C, L), T
+
+    def replay_value(self, frame, values, L, o, d):
+        # The extreme lies on the face of the tet where the ray crosses it
+        # (the one of the smallest barycentric coordinate at the primal
+        # point), or on a clip plane or the camera's origin (kept where it is).
+        lam = frame.weights(L.p)
+        grads = frame.weight_gradients()
+        k = mi.UInt32(0)
+        smallest = dr.abs(lam[0])
+        for j in (1, 2, 3):
+            less = dr.abs(lam[j]) < smallest
+            k = dr.select(less, j, k)
+            smallest = dr.select(less, dr.abs(lam[j]), smallest)
+        at_o = frame.weights(o)
+        lam_o = dr.select(k == 0, at_o[0], dr.select(k == 1, at_o[1],
+                          dr.select(k == 2, at_o[2], at_o[3])))
+        g = dr.select(k == 0, grads[0], dr.select(k == 1, grads[1],
+                      dr.select(k == 2, grads[2], grads[3])))
+        slope = dr.dot(g, d)
+        on_face = (smallest < 1e-3) & (dr.abs(slope) > 0.0)
+        x = dr.select(on_face, o + d * (-lam_o / dr.select(on_face, slope, 1.0)), L.p)
+        return frame.at(values, x)
 
 
 class Slice(RayValue):
     """A plane through the mesh showing its scalar: each ray stops where it
     first crosses the plane inside the mesh, and the scalar there is exact.
-    A crossing carries the scalar's texel coordinate ``u`` and the signed
-    distance ``s`` of its point to the plane, both linear along the ray in a
-    tet (``s`` from the vertices' positions), so a segment meets the plane at
-    the fraction ``s0 / (s0 - s1)`` where the scalar is ``lerp(u0, u1, f)``.
-    ``T`` turns 0 there (the walk stops)."""
-
-    class Attributes:
-        DRJIT_STRUCT = {"u": mi.Float, "s": mi.Float}
-
-        def __init__(self, u=None, s=None):
-            self.u, self.s = u, s
-
-    class Params:
-        DRJIT_STRUCT = {"scalar": mi.Float, "tf_color": mi.Float, "tf_opacity": mi.Float,
-                        "positions": mi.Float}
-
-        def __init__(self, scalar=None, tf_color=None, tf_opacity=None, positions=None):
-            self.scalar, self.tf_color, self.tf_opacity = scalar, tf_color, tf_opacity
-            self.positions = positions
+    The signed distance ``s`` of a crossing's point to the plane is linear
+    along the ray in a tet, so a segment meets the plane at the fraction
+    ``s0 / (s0 - s1)`` where the scalar is ``lerp(u0, u1, f)``. ``T`` turns
+    0 there (the walk stops)."""
 
     def __init__(self, origin, normal, **kwargs):
         super().__init__(**kwargs)
@@ -411,27 +507,27 @@ class Slice(RayValue):
         self.normal = unit_vector(normal, "a slice's normal")
         self.initial = -NO_VALUE
 
-    def read_params(self, shapes):
-        s = self.the_shape(shapes)
-        return self.Params(s.attribute_buffer("vertex_scalar"), s.tf_color, s.tf_opacity,
-                           s.vertex_positions_buffer())
+    def plane(self):
+        return mi.Point3f(*self.origin.tolist()), mi.Vector3f(*self.normal.tolist())
 
-    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
-        u = super().gather(params, i, active, reduce).u
-        p = dr.gather(mi.Point3f, params.positions, i, active)
-        s = dr.dot(p - mi.Point3f(*self.origin.tolist()), mi.Vector3f(*self.normal.tolist()))
-        return self.Attributes(u, s)
-
-    def segment(self, params, length, a0, a1):
-        s0, s1 = a0.s, a1.s
+    def segment(self, params, length, a0, a1, tet):
+        origin, normal = self.plane()
+        s0, s1 = dr.dot(a0.p - origin, normal), dr.dot(a1.p - origin, normal)
         meets = ((length > 0.0) & (s0 != s1) & (dr.minimum(s0, s1) <= 0.0)
                  & (dr.maximum(s0, s1) >= 0.0))
         f = dr.clip(s0 / dr.select(s0 != s1, s0 - s1, 1.0), 0.0, 1.0)
         u = dr.select(meets, dr.lerp(a0.u, a1.u, f), self.initial)
-        return mi.Color3f(u, 0.0, 0.0), dr.select(meets, 0.0, 1.0), mi.Float(0.0)
+        pick = Pick(u, dr.lerp(a0.p, a1.p, f), mi.Vector3f(0.0), tet, mi.UInt32(0))
+        return pick, dr.select(meets, 0.0, 1.0), mi.Float(0.0)
 
     def accumulate(self, L, T, C, T_seg):
-        return dr.select(T_seg < 1.0, C, L), T * T_seg
+        return tree_select(T_seg < 1.0, C, L), T * T_seg
+
+    def replay_value(self, frame, values, L, o, d):
+        origin, normal = self.plane()
+        slope = dr.dot(d, normal)
+        t = dr.dot(origin - o, normal) / dr.select(slope != 0.0, slope, 1.0)
+        return frame.at(values, o + d * t)
 
 
 class Isosurface(RayValue):
@@ -440,9 +536,13 @@ class Isosurface(RayValue):
     in a tet, so a segment crosses value ``v`` at ``f = (v - u0) / (u1 -
     u0)``. A crossing carries the scalar's texel coordinate, the position and
     the vertex gradient (the tets' gradients around the vertex averaged by
-    volume, :func:`vertex_gradients`), all linear inside a tet: the hit point
-    and its smooth normal are exact lerps. The accumulator is a :class:`Hit`;
-    ``T`` turns 0 at the hit (the walk stops)."""
+    volume, :func:`~mi_tetvr.render.linear.vertex_gradients`), all linear
+    inside a tet: the hit point and its smooth normal are exact lerps. The
+    pixel is the transfer function's color at the isovalue lit by a headlight
+    (Lambert, two-sided). ``T`` turns 0 at the hit (the walk stops).
+
+    ``values`` : Float (the isovalues, data units; differentiable in
+    :meth:`replay`)."""
 
     class Attributes:
         DRJIT_STRUCT = {"u": mi.Float, "p": mi.Point3f, "g": mi.Vector3f}
@@ -452,103 +552,90 @@ class Isosurface(RayValue):
 
     class Params:
         DRJIT_STRUCT = {"scalar": mi.Float, "tf_color": mi.Float, "tf_opacity": mi.Float,
-                        "positions": mi.Float, "gradients": mi.Float}
+                        "positions": mi.Float, "gradients": mi.Float, "values": mi.Float}
 
         def __init__(self, scalar=None, tf_color=None, tf_opacity=None, positions=None,
-                     gradients=None):
+                     gradients=None, values=None):
             self.scalar, self.tf_color, self.tf_opacity = scalar, tf_color, tf_opacity
-            self.positions, self.gradients = positions, gradients
-
-    class Hit:
-        """Where a ray met the isosurface: point, (unnormalised) normal, the
-        texel coordinate of its value; ``u`` stays ``-NO_VALUE`` without a hit."""
-        DRJIT_STRUCT = {"p": mi.Point3f, "n": mi.Vector3f, "u": mi.Float}
-
-        def __init__(self, p=None, n=None, u=None):
-            self.p, self.n, self.u = p, n, u
+            self.positions, self.gradients, self.values = positions, gradients, values
 
     def __init__(self, values, **kwargs):
         super().__init__(**kwargs)
-        self.values = [float(v) for v in np.atleast_1d(values)]
-        if not self.values:
+        self.values = mi.Float(values)
+        self.count = dr.width(self.values)
+        if not self.count:
             raise ValueError("an isosurface needs at least one value")
+        self.initial = -NO_VALUE
 
-    def start(self):
-        return self.Hit(mi.Point3f(0.0), mi.Vector3f(0.0), mi.Float(-NO_VALUE))
-
-    #: The last vertex gradients computed: ``(key, buffer)``, the key the
-    #: positions' and scalars' Dr.Jit variables (unchanged between frames).
-    _gradients = (None, None)
+    #: The last vertex gradients computed (primal): ``(inputs, buffer)``,
+    #: the inputs the arrays they were computed from (held, so that their
+    #: Dr.Jit variables stay theirs).
+    _gradients = ((), None)
 
     def read_params(self, shapes):
         s = self.the_shape(shapes)
         scalar, positions = s.attribute_buffer("vertex_scalar"), s.vertex_positions_buffer()
-        key = (dr.detach(positions).index, dr.detach(scalar).index, id(s.tet_buffers["tets"]))
-        if Isosurface._gradients[0] != key:
-            tets = np.asarray(s.tet_buffers["tets"], np.int64).reshape(-1, 4)
-            g = vertex_gradients(np.asarray(positions, np.float64).reshape(-1, 3), tets,
-                                 np.asarray(scalar, np.float64))
-            Isosurface._gradients = (key, mi.Float(g.astype(np.float32).ravel()))
-        return self.Params(scalar, s.tf_color, s.tf_opacity, positions, Isosurface._gradients[1])
-
-    def texel(self, v):
-        """The texel coordinate of scalar value ``v``."""
-        lo, hi = self.value_range
-        return (v - lo) * (self.resolution / (hi - lo)) - 0.5
+        buf = MeshBuffers(tets=s.tet_buffers["tets"], positions=positions)
+        if dr.grad_enabled(scalar) or dr.grad_enabled(positions):
+            gradients = vertex_gradients(buf, scalar)
+        else:
+            inputs = (positions, scalar, buf.tets)
+            kept, gradients = Isosurface._gradients
+            if len(kept) != 3 or any(a.index != b.index for a, b in zip(kept, inputs)):
+                gradients = vertex_gradients(buf, scalar)
+                dr.eval(gradients)
+                Isosurface._gradients = (inputs, gradients)
+        return self.Params(scalar, s.tf_color, s.tf_opacity, positions, gradients, self.values)
 
     def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
-        u = PostClassified.gather(self, params, i, active, reduce).u
-        return self.Attributes(u, dr.gather(mi.Point3f, params.positions, i, active),
-                               dr.gather(mi.Vector3f, params.gradients, i, active))
+        a = RayValue.gather(self, params, i, active, reduce)
+        return self.Attributes(a.u, a.p, dr.gather(mi.Vector3f, params.gradients, i, active))
 
-    def segment(self, params, length, a0, a1):
+    def segment(self, params, length, a0, a1, tet):
         best = mi.Float(2.0)
         value = mi.Float(0.0)
+        k = mi.UInt32(0)
         du = a1.u - a0.u
-        for v in self.values:
-            w = self.texel(v)
+        for j in range(self.count):
+            w = self.texel(dr.gather(mi.Float, params.values, mi.UInt32(j)))
             f = (w - a0.u) / dr.select(du != 0.0, du, 1.0)
             ok = (du != 0.0) & (f >= 0.0) & (f <= 1.0) & (f < best)
             best = dr.select(ok, f, best)
             value = dr.select(ok, w, value)
+            k = dr.select(ok, j, k)
         meets = (length > 0.0) & (best <= 1.0)
-        hit = self.Hit(dr.lerp(a0.p, a1.p, best), dr.lerp(a0.g, a1.g, best),
-                       dr.select(meets, value, -NO_VALUE))
+        hit = Pick(dr.select(meets, value, self.initial), dr.lerp(a0.p, a1.p, best),
+                   dr.lerp(a0.g, a1.g, best), tet, k)
         return hit, dr.select(meets, 0.0, 1.0), mi.Float(0.0)
 
     def accumulate(self, L, T, C, T_seg):
         return tree_select(T_seg < 1.0, C, L), T * T_seg
 
-    def value(self, L):
-        return L.u, dr.abs(L.u) < 0.5 * NO_VALUE
+    @staticmethod
+    def lambert(n, d):
+        """The headlight's factor ``|n . d| / |n|`` (1 where ``n`` is 0)."""
+        norm = dr.norm(n)
+        return dr.select(norm > 0.0, dr.abs(dr.dot(n, d)) / dr.select(norm > 0.0, norm, 1.0),
+                         1.0)
 
     def shade(self, params, L, d):
         """``(color, met, point)``: the transfer function's color at the hit's
-        value lit by a headlight (Lambert, two-sided: ``|n . d|``)."""
+        value lit by the headlight."""
         color, met, _ = self.finish(params, L)
-        n = L.n
-        lit = dr.abs(dr.dot(n, d)) / dr.select(dr.norm(n) > 0.0, dr.norm(n), 1.0)
-        return color * dr.select(dr.norm(n) > 0.0, lit, 1.0), met, L.p
+        return color * self.lambert(L.n, d), met, L.p
 
-
-def vertex_gradients(vertices, tets, scalar):
-    """(n, 3) float64: each vertex's gradient of a per-vertex scalar, the
-    gradients of the tets around it (constant in each) averaged by volume."""
-    v = np.asarray(vertices, np.float64)
-    t = np.asarray(tets, np.int64)
-    s = np.asarray(scalar, np.float64)
-    E = np.stack([v[t[:, k]] - v[t[:, 0]] for k in (1, 2, 3)], 1)           # rows: edges
-    ds = np.stack([s[t[:, k]] - s[t[:, 0]] for k in (1, 2, 3)], 1)
-    vol = np.abs(np.linalg.det(E))
-    ok = vol > 0
-    g = np.zeros((len(t), 3))
-    g[ok] = np.linalg.solve(E[ok], ds[ok][..., None])[..., 0]
-    out = np.zeros((len(v), 3))
-    weight = np.zeros(len(v))
-    for k in range(4):
-        np.add.at(out, t[:, k], g * vol[:, None])
-        np.add.at(weight, t[:, k], vol)
-    return out / np.maximum(weight, 1e-300)[:, None]
+    def replay(self, params, buf, L, o, d):
+        _, met = self.value(L)
+        frame = TetFrame(buf, L.tet, met)
+        values = [PostClassified.gather(self, params, i, met).u for i in frame.ids]
+        w = self.texel(dr.gather(mi.Float, params.values, L.k, met))
+        g = frame.gradient(values)
+        slope = dr.dot(g, d)
+        t = (w - frame.at(values, o)) / dr.select(slope != 0.0, slope, 1.0)
+        x = o + d * t
+        n = sum((lam * dr.gather(mi.Vector3f, params.gradients, i, met)
+                 for lam, i in zip(frame.weights(x), frame.ids)), mi.Vector3f(0.0))
+        return dr.select(met, self.color(params, w) * self.lambert(n, d), 0.0)
 
 
 #: Samples of the pre-integrated table along the front and back scalar (at

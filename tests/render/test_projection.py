@@ -94,7 +94,7 @@ def test_slice_against_the_reference(field, plane):
 def test_projection_renders_and_refuses(field, tmp_path):
     """mi.render writes rgba (alpha where the mesh is met); a scene without a
     scalar, a second shape or a bad mode are refused with what to do; the
-    derivative passes say they do not exist yet."""
+    mean's derivative passes say they do not exist."""
     V, T, scalar = field
     scene = scene_of(field, "max")
     sensor = mi.load_dict({"type": "orthographic", "to_world": mi.ScalarTransform4f().look_at(
@@ -110,10 +110,11 @@ def test_projection_renders_and_refuses(field, tmp_path):
     assert "transfer_function" in _raised(lambda: mi.render(plain, sensor=sensor))
     with pytest.raises(Exception, match="mode must be one of"):
         mi.load_dict({"type": "tetproj", "mode": "sum"})
-    params = mi.traverse(scene)
+    mean = scene_of(field, "mean")
+    params = mi.traverse(mean)
     dr.enable_grad(params["mesh0.vertex_scalar"])
-    assert "not differentiable yet" in _raised(
-        lambda: dr.backward(mi.render(scene, params, sensor=sensor)))
+    assert "mean intensity projection is not differentiable" in _raised(
+        lambda: dr.backward(mi.render(mean, params, sensor=sensor)))
 
 
 def _raised(fn):
