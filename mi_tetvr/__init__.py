@@ -89,7 +89,8 @@ def take_topology(token):
     return _HANDED.pop(token, None) if token else None
 
 
-def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, **props):
+def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, cell_scalar=None,
+                 **props):
     """A ``mi.load_dict`` entry for a ``tetmesh`` built from arrays.
 
     Parameters
@@ -100,6 +101,8 @@ def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, **props)
     opacity : (n,) float, optional
     scalar : (n,) float, optional
         A scalar field for a ``transfer_function`` property.
+    cell_scalar : (m,) float, optional
+        Or a scalar per tet (cell data, constant in each tet).
     **props
         Other plugin properties (e.g. ``to_world``, ``transfer_function``).
     """
@@ -114,6 +117,8 @@ def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, **props)
         d["opacity"] = mi.TensorXf(np.asarray(opacity, dtype=np.float32))
     if scalar is not None:
         d["scalar"] = mi.TensorXf(np.asarray(scalar, dtype=np.float32))
+    if cell_scalar is not None:
+        d["cell_scalar"] = mi.TensorXf(np.asarray(cell_scalar, dtype=np.float32))
     d.update(props)
     return d
 

@@ -154,10 +154,12 @@ def _mesh_extent(a, mesh, path):
     if not (a.tf or a.mode != "dvr"):
         return mesh.bounds[0], mesh.bounds[1], None, None
     try:
-        name = choose_scalar(mesh.point_data, a.scalar, str(path), mesh.cell_data)
+        name = choose_scalar(mesh.point_data, a.scalar, str(path), mesh.cell_data,
+                             cells=a.mode == "dvr")
     except ValueError as e:
-        sys.exit(f"mi-tetvr: {e}")
-    values = np.asarray(mesh.point_data[name], np.float64)
+        sys.exit(f"mi-tetvr: {e}" + ("" if a.mode == "dvr" else
+                                     f" (--mode {a.mode} shows point data)"))
+    values = np.asarray(mesh.point_data.get(name, mesh.cell_data.get(name)), np.float64)
     return mesh.bounds[0], mesh.bounds[1], name, (float(values.min()), float(values.max()))
 
 
@@ -191,8 +193,12 @@ def mesh_scene(a, mesh, framing):
     if tf:
         # a file, or a matplotlib colormap's name
         lo_v, hi_v = framing["value_range"]
+        name = framing["scalar"]
+        # a point array, or a cell array (dvr: constant in each tet)
+        values = ({"scalar": mesh.point_data[name]} if name in mesh.point_data
+                  else {"cell_scalar": mesh.cell_data[name]})
         shape = mi_tetvr.tetmesh_dict(
-            mesh.vertices, mesh.tets, scalar=mesh.point_data[framing["scalar"]],
+            mesh.vertices, mesh.tets, **values,
             transfer_function=str(Path(tf).resolve()) if Path(tf).exists() else tf,
             value_min=lo_v, value_max=hi_v, opacity_scale=a.opacity_scale / radius)
     elif a.scalar:
@@ -933,7 +939,8 @@ def build_parser():
                    "camera and transfer function range for all")
     r.add_argument("--tf", help="mesh file: transfer function of its scalar (a file, or a "
                    "matplotlib colormap's name; default for --mode max|min|mean: gray)")
-    r.add_argument("--scalar", help="mesh file: the scalar point array (default: the only one)")
+    r.add_argument("--scalar", help="mesh file: the scalar array: point data, or cell data (volume "
+                   "rendering, constant in each tet) (default: the only one)")
     r.add_argument("--mode", choices=("dvr", "max", "min", "mean", "slice", "iso"),
                    default="dvr", help="mesh file: volume rendering (dvr, default), the maximum, "
                    "minimum or mean intensity projection of its scalar, its scalar on a plane "

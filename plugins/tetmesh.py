@@ -6,11 +6,12 @@
    - |string|
    - Mesh file in any volume format meshio reads (.vtu, .vtk, .msh, .mesh, ...);
      VTK reads the VTK formats meshio cannot.
- * - vertices, tets, color, opacity, scalar
+ * - vertices, tets, color, opacity, scalar, cell_scalar
    - |tensor|
    - Alternatively the arrays themselves: (n, 3) positions, (m, 4) indices,
-     (n, 3) linear RGB and (n,) extinction, or an (n,) scalar for a
-     ``transfer_function`` (see :func:`mi_tetvr.tetmesh_dict`).
+     (n, 3) linear RGB and (n,) extinction, or an (n,) scalar or an (m,)
+     cell scalar (one value per tet) for a ``transfer_function`` (see
+     :func:`mi_tetvr.tetmesh_dict`).
  * - color_attribute
    - |string|
    - Point-data array holding the color. (Default: ``color``)
@@ -19,8 +20,10 @@
    - Point-data array holding the opacity. (Default: ``opacity``)
  * - scalar_attribute
    - |string|
-   - Scalar point-data array to pre-shade with ``transfer_function``
-     (Default: the only scalar array).
+   - Scalar array to classify with ``transfer_function``: point data, or
+     (``post`` classification) cell data, rendered as it is, constant in
+     each tet. (Default: the only scalar point array, else the only scalar
+     cell array).
  * - transfer_function
    - |string|
    - DiffTetVR XML or project JSON transfer function; when given, color and
@@ -80,7 +83,9 @@ oriented (e.g. for the quality regularizer).
 Differentiable parameters (``mi.traverse``): ``vertex_positions`` (3n),
 ``vertex_color`` (3n) and ``vertex_opacity`` (n); post-classified:
 ``vertex_positions``, ``vertex_scalar`` (n), ``tf_color`` (3R, linear RGB)
-and ``tf_opacity`` (R, extinction per unit length). After changing them,
+and ``tf_opacity`` (R, extinction per unit length); with cell data,
+``cell_scalar`` (m, in the mesh's tet order) instead of ``vertex_scalar``.
+After changing them,
 ``params.update()`` rebuilds the boundary's BVH; the topology stays.
 
 .. code-block:: python
@@ -100,7 +105,8 @@ from mi_tetvr.mesh import TetMesh, read_tetmesh
 from mi_tetvr.mesh.io import choose_scalar
 from mi_tetvr.mesh.topology import longest_edges
 from mi_tetvr.render.buffers import drjit_index_arrays, shape_index_arrays
-from mi_tetvr.render.optical import Absorption, EmissionAbsorption, PostClassified, PreIntegrated
+from mi_tetvr.render.optical import (Absorption, CellClassified, EmissionAbsorption,
+                                     PostClassified, PreIntegrated)
 from mi_tetvr.transfer import TransferFunction, read_transfer_function
 
 CLASSIFICATIONS = ("post", "pre", "preintegrated")
@@ -121,33 +127,41 @@ def mesh_from_properties(props) -> TetMesh:
         if (vmin is None) != (vmax is None):
             raise ValueError("tetmesh: give both value_min and value_max (or neither: the "
                              "scalar field's range)")
-        mesh = read_tetmesh(
-            path,
-            color=props.get("color_attribute", "color"),
-            opacity=props.get("opacity_attribute", "opacity"),
-            scalar=props.get("scalar_attribute", None),
-            transfer_function=(str(fs.resolve(props["transfer_function"]))
-                               if "transfer_function" in props else None),
-            value_range=None if vmin is None or vmax is None else (float(vmin), float(vmax)),
-            opacity_scale=float(props.get("opacity_scale", 1.0)),
-            cell_to_point=bool(props.get("cell_to_point", False)),
-            repair=bool(props.get("repair", False)),
-        )
+        repairs = dict(cell_to_point=bool(props.get("cell_to_point", False)),
+                       repair=bool(props.get("repair", False)))
+        if _classification(props) in ("post", "preintegrated"):
+            # (the scalar is read by post_classification)
+            mesh = read_tetmesh(path, color=None, opacity=None, **repairs)
+        else:
+            mesh = read_tetmesh(
+                path,
+                color=props.get("color_attribute", "color"),
+                opacity=props.get("opacity_attribute", "opacity"),
+                scalar=props.get("scalar_attribute", None),
+                transfer_function=(str(fs.resolve(props["transfer_function"]))
+                                   if "transfer_function" in props else None),
+                value_range=None if vmin is None or vmax is None else (float(vmin), float(vmax)),
+                opacity_scale=float(props.get("opacity_scale", 1.0)), **repairs)
     elif "vertices" in props and "tets" in props:
         opacity = _tensor(props, "opacity")
-        scalar = _tensor(props, "scalar")
-        if scalar is not None and _transfer_function(props) is None:
-            raise ValueError("tetmesh: a 'scalar' needs a transfer_function (or the tensors "
-                             "tf_color and tf_opacity) to map it")
+        scalar, cells = _tensor(props, "scalar"), _tensor(props, "cell_scalar")
+        if scalar is not None and cells is not None:
+            raise ValueError("tetmesh: give a 'scalar' (per vertex) or a 'cell_scalar' (per "
+                             "tet), not both")
+        if (scalar is not None or cells is not None) and _transfer_function(props) is None:
+            raise ValueError("tetmesh: a 'scalar' or 'cell_scalar' needs a transfer_function "
+                             "(or the tensors tf_color and tf_opacity) to map it")
         mesh = TetMesh(_tensor(props, "vertices"), _tensor(props, "tets"),
                        _tensor(props, "color"),
                        None if opacity is None else opacity.reshape(-1),
                        None if scalar is None else {"scalar": scalar.reshape(-1)},
+                       None if cells is None else {"scalar": cells.reshape(-1)},
                        topology=take_topology(props.get("topology_id", None)))
         tf = _transfer_function(props)
-        if tf is not None:
+        if tf is not None and _classification(props) == "pre":
             if scalar is None:
-                raise ValueError("tetmesh: a transfer_function needs the tensor 'scalar'")
+                raise ValueError("tetmesh: classification 'pre' shades the vertices: it needs "
+                                 "the tensor 'scalar' (per vertex)")
             vmin, vmax = props.get("value_min", None), props.get("value_max", None)
             mesh.color, mesh.opacity = tf.shade(
                 scalar.reshape(-1), None if vmin is None else (float(vmin), float(vmax)),
@@ -181,19 +195,26 @@ def _transfer_function(props):
     return TransferFunction.from_texels(color.reshape(-1, 3), opacity)
 
 
-def post_classification(props, mesh):
-    """``(optical model, scalar (n,), value_range, tf_color (R, 3), tf_opacity
-    (R,))`` of a post-classified ``tetmesh``, or None when it is not one."""
-    tf = _transfer_function(props)
-    if tf is None:
-        for key in ("classification", "tf_resolution"):
-            if key in props:
-                raise ValueError(f"tetmesh: '{key}' needs a transfer_function")
+def _classification(props):
+    """``pre``, ``post`` or ``preintegrated`` with a transfer function, else None."""
+    if _transfer_function(props) is None:
         return None
     mode = str(props.get("classification", "post")).lower()
     if mode not in CLASSIFICATIONS:
         raise ValueError(f"tetmesh: classification must be one of {CLASSIFICATIONS}, got "
                          f"{mode!r}")
+    return mode
+
+
+def post_classification(props, mesh):
+    """``(optical model, scalar (n,), value_range, tf_color (R, 3), tf_opacity
+    (R,))`` of a post-classified ``tetmesh``, or None when it is not one."""
+    tf, mode = _transfer_function(props), _classification(props)
+    if tf is None:
+        for key in ("classification", "tf_resolution"):
+            if key in props:
+                raise ValueError(f"tetmesh: '{key}' needs a transfer_function")
+        return None
     resolution = int(props.get("tf_resolution", 256 if "transfer_function" in props
                                          else len(tf.opacities)))
     if resolution < 2:
@@ -203,8 +224,15 @@ def post_classification(props, mesh):
     fs = mi.file_resolver()
     path = str(fs.resolve(props["filename"])) if "filename" in props else "tetmesh"
     name = choose_scalar(mesh.point_data, props.get("scalar_attribute", None), path,
-                         mesh.cell_data)
-    scalar = np.asarray(mesh.point_data[name], np.float64).reshape(len(mesh.vertices))
+                         mesh.cell_data, cells=True)
+    per_tet = name not in mesh.point_data
+    if per_tet and mode == "preintegrated":
+        raise ValueError(f"tetmesh: '{name}' is cell data, constant in each tet: its "
+                         f"segments are integrated exactly, with no table: use "
+                         f"classification 'post'")
+    data, count = (mesh.cell_data, len(mesh.tets)) if per_tet else (mesh.point_data,
+                                                                    len(mesh.vertices))
+    scalar = np.asarray(data[name], np.float64).reshape(count)
     if not np.all(np.isfinite(scalar)):
         raise ValueError(f"tetmesh: scalar array '{name}' has non-finite values")
     if "value_min" in props:
@@ -216,7 +244,8 @@ def post_classification(props, mesh):
                          f"[{lo}, {hi}]" + ("" if "value_min" in props else
                                              f" (array '{name}' is constant: give a range)"))
     color, opacity = tf.texels(resolution)
-    model = PreIntegrated if mode == "preintegrated" else PostClassified
+    model = (CellClassified if per_tet else
+             PreIntegrated if mode == "preintegrated" else PostClassified)
     return model, scalar, (lo, hi), color, opacity * float(props.get("opacity_scale", 1.0))
 
 
@@ -256,13 +285,21 @@ class TetMeshShape(mi.Mesh):
             self.tf_color = mi.Float(np.asarray(color, np.float32).ravel())
             self.tf_opacity = mi.Float(np.asarray(opacity, np.float32))
             values = {"vertex_scalar": scalar}
+            if self.optical_model is CellClassified:
+                #: The scalar per tet, in the mesh's order (cell data).
+                self.cell_scalar = mi.Float(np.asarray(scalar, np.float32))
         for name, channels in self.optical_model.vertex_attributes:
             self.add_attribute(name, channels,
                                mi.Float(np.asarray(values[name], np.float32).ravel()))
         params.update()
+        arrays = shape_index_arrays(topo, mesh.vertices)
         #: Index buffers of the walk (Dr.Jit, local indices; see
         #: mi_tetvr.render.buffers): all the shape keeps of its topology
-        self.tet_buffers = drjit_index_arrays(shape_index_arrays(topo, mesh.vertices))
+        self.tet_buffers = drjit_index_arrays(arrays)
+        #: The mesh's index of each tet the walk stores, where it reorders
+        #: them (cell data is read through it), else None.
+        self.cell_order = mi.UInt32(arrays["order"]) if (
+            "order" in arrays and self.optical_model is CellClassified) else None
         self.tet_count = topo.n_tets
 
     def oriented_tets(self) -> np.ndarray:
@@ -276,12 +313,15 @@ class TetMeshShape(mi.Mesh):
         if issubclass(self.optical_model, PostClassified):
             callback.put("tf_color", self.tf_color, mi.ParamFlags.Differentiable)
             callback.put("tf_opacity", self.tf_opacity, mi.ParamFlags.Differentiable)
+        if self.optical_model is CellClassified:
+            callback.put("cell_scalar", self.cell_scalar, mi.ParamFlags.Differentiable)
 
     def model_buffers(self):
         """The differentiable buffers of the optical model besides the
-        vertex attributes (the transfer function's texels)."""
-        return ([self.tf_color, self.tf_opacity]
-                if issubclass(self.optical_model, PostClassified) else [])
+        vertex attributes (the transfer function's texels, the cell scalar)."""
+        out = ([self.tf_color, self.tf_opacity]
+               if issubclass(self.optical_model, PostClassified) else [])
+        return out + ([self.cell_scalar] if self.optical_model is CellClassified else [])
 
     def to_string(self):
         return (f"TetMeshShape[vertices={self.vertex_count()}, tets={self.tet_count}, "

@@ -61,7 +61,8 @@ import mitsuba as mi
 
 from mi_tetvr.render.buffers import MeshBuffers, TetScene, index_buffers, scene_tetmeshes
 from mi_tetvr.render.clipping import Clip, unit_vector
-from mi_tetvr.render.optical import Isosurface, PostClassified, Projection, Slice
+from mi_tetvr.render.optical import (CellClassified, Isosurface, PostClassified, Projection,
+                                     Slice)
 from mi_tetvr.render.walk import WalkSettings, trace
 
 
@@ -101,6 +102,10 @@ class TetProjIntegrator(mi.ad.integrators.common.RBIntegrator):
         if not issubclass(shapes[0].optical_model, PostClassified):
             raise ValueError("tetproj: projects a scalar: give the tetmesh a scalar and a "
                              "transfer_function (classification 'post' or 'preintegrated')")
+        if shapes[0].optical_model is CellClassified:
+            raise ValueError("tetproj: shows a scalar per vertex, linear in each tet; this "
+                             "tetmesh's scalar is cell data: average it onto the vertices "
+                             "(cell_to_point) or render it with tetvr")
         if self.mode == "slice":
             box = scene.bbox()
             origin = self.origin if self.origin is not None else list(box.center())

@@ -178,21 +178,29 @@ def _cell_hint(cell_data):
             if cell_data else "")
 
 
-def choose_scalar(point_data, scalar, path, cell_data=None) -> str:
-    """The name of the scalar point array to classify: ``scalar``, or the
-    only scalar array there is (a :class:`MeshError` names the candidates
-    otherwise)."""
+def choose_scalar(point_data, scalar, path, cell_data=None, cells=False) -> str:
+    """The name of the scalar array to classify: ``scalar``, or the only
+    scalar array there is (a :class:`MeshError` names the candidates
+    otherwise). Point arrays only, unless ``cells``: then a cell array (one
+    value per tet) is one too (a point array of the same name wins; with no
+    name, point arrays are looked at first)."""
     cd = cell_data or {}
+
+    def scalars(data):
+        return [k for k, v in data.items() if v.ndim == 1 or v.shape[1:] == (1,)]
     if scalar is None:
-        cands = [k for k, v in point_data.items() if v.ndim == 1 or v.shape[1:] == (1,)]
+        cands = scalars(point_data) or (scalars(cd) if cells else [])
         if len(cands) != 1:
-            raise MeshError(f"{path}: choose the scalar field to shade "
-                            f"(scalar point arrays: {cands}{_cell_hint(cd)})")
-        scalar = cands[0]
-    if scalar not in point_data:
-        raise MeshError(f"{path}: no point-data array '{scalar}' "
-                        f"(point arrays: {sorted(point_data)}{_cell_hint(cd)})")
-    return scalar
+            listed = scalars(point_data) + (scalars(cd) if cells else [])
+            raise MeshError(f"{path}: choose the scalar field to shade (scalar "
+                            f"{'point or cell' if cells else 'point'} arrays: {listed}"
+                            f"{'' if cells else _cell_hint(cd)})")
+        return cands[0]
+    if scalar in point_data or (cells and scalar in cd):
+        return scalar
+    raise MeshError(f"{path}: no {'point- or cell-data' if cells else 'point-data'} array "
+                    f"'{scalar}' (point arrays: {sorted(point_data)}"
+                    f"{f'; cell arrays: {sorted(cd)}' if cells else _cell_hint(cd)})")
 
 
 def read_tetmesh(path, *, color: str | None = "color", opacity: str | None = "opacity",

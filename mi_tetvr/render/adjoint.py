@@ -183,7 +183,7 @@ def _scaled(g, w):
 
 
 def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj, pending,
-            o, u, v, d, active, reduce, stay=None, f=None):
+            o, u, v, d, active, reduce, stay=None, f=None, tet=None):
     """One segment in a derivative mode.
 
     ``entry`` and ``exit`` are the ``(t, attributes)`` of the segment's
@@ -202,7 +202,8 @@ def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj,
     entry and exit crossings (the cut points are constants: the integral of
     a continuous integrand does not change where it is split), so their
     gradients go to both crossings, and the tet's entry crossing is complete
-    when the walk leaves the tet.
+    when the walk leaves the tet. ``tet`` is the segment's tet (for models
+    that take it, ``model.per_tet``).
     """
     backward = mode == dr.ADMode.Backward
     model = ts.model
@@ -222,7 +223,8 @@ def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj,
                         else (e, x_t))
         (t0, a0), (t1, a1) = x
         length, b0, b1 = clip_segment(t0, a0, t1, a1, t_begin, t_stop)
-        C_d, T_d, tau = model.segment(ts_ad.params, length, b0, b1)
+        C_d, T_d, tau = model.segment(ts_ad.params, length, b0, b1,
+                                      *((tet,) if model.per_tet else ()))
         C_seg = dr.detach(C_d)
         T_seg = dr.detach(T_d)
         # Radiance reaching the pixel from behind this segment.

@@ -109,7 +109,8 @@ def shape_index_arrays(topology, vertices, reorder=None):
     reads nearby memory (1.55x faster on a shuffled 64^3 grid,
     ``benchmarks/bench_render.py --shuffle``). The order is the walk's alone:
     vertices, attributes and every other tet index stay as the mesh has
-    them. ``reorder`` forces the choice.
+    them. ``reorder`` forces the choice. Reordered, the arrays also hold
+    ``order``: the mesh's index of each stored tet (for cell data).
     """
     m = topology.n_tets
     if 4 * m >= 2 ** 31 or len(vertices) >= 2 ** 32:
@@ -119,21 +120,25 @@ def shape_index_arrays(topology, vertices, reorder=None):
         reorder = far_links(topology.neighbors) > FAR_FRACTION
     tets, nbr, nface = topology.tets, topology.neighbors, topology.neighbor_faces
     btets = topology.boundary_tets
+    order = None
     if reorder and m:
         order = morton_order(centroids(vertices, tets))
         rank = np.empty(m, np.int32)
         rank[order] = np.arange(m, dtype=np.int32)
         tets, nbr, nface, btets = tets[order], nbr[order], nface[order], rank[btets]
         nbr = np.where(nbr >= 0, rank[np.maximum(nbr, 0)], -1)
-        del order, rank
+        del rank
     links = np.where(nbr >= 0, nbr.astype(np.int32) * 4 + nface, -1).astype(np.int32)
-    return dict(
+    out = dict(
         tets=tets.astype(np.uint32).ravel(),
         nbr=links.ravel(),
         boundary=pack_links(btets, topology.boundary_local_faces).astype(np.uint32),
         faces=topology.boundary_faces.astype(np.uint32).ravel(),
         face_adj=topology.boundary_adjacency.astype(np.int32).ravel(),
     )
+    if order is not None:
+        out["order"] = order.astype(np.uint32)
+    return out
 
 
 #: The Dr.Jit and numpy types of the walk's index buffers (:class:`MeshBuffers`).

@@ -29,11 +29,12 @@ linear color and extinction).
 
 Models here: :class:`EmissionAbsorption` (what ``tetmesh`` shapes use),
 :class:`Absorption` (extinction only), :class:`PostClassified` (a scalar and
-a transfer function), :class:`PreIntegrated` (the same by a table) and
-:class:`Projection` (the maximum, minimum or mean of the scalar along the
-ray, accumulated by its own :meth:`~OpticalModel.accumulate`) and
-:class:`Slice` (the scalar where the ray crosses a plane). To add a model (a scalar classified by
-a transfer function, ...), subclass :class:`OpticalModel`, and let the
+a transfer function), :class:`PreIntegrated` (the same by a table),
+:class:`CellClassified` (a scalar per tet and a transfer function), and the
+models that show one point per ray, each accumulated by its own
+:meth:`~OpticalModel.accumulate`: :class:`Projection` (the maximum, minimum
+or mean of the scalar along the ray), :class:`Slice` (the scalar where the
+ray crosses a plane) and :class:`Isosurface`. To add a model, subclass :class:`OpticalModel`, and let the
 ``tetmesh`` shape name it (``shape.optical_model``) and carry its
 ``vertex_attributes``; the walk and the adjoint stay as they are.
 """
@@ -73,8 +74,8 @@ class OpticalModel:
     per_shape = False
     #: The accumulated value before the first segment (every channel).
     initial = 0.0
-    #: Whether :meth:`segment` takes the index of the segment's tet as a
-    #: fifth argument (primal walks only).
+    #: Whether :meth:`segment` takes the index of the segment's tet (in the
+    #: walk's buffers) as a fifth argument.
     per_tet = False
 
     def __init__(self, n_sub: int = 4):
@@ -270,12 +271,16 @@ class PostClassified(OpticalModel):
         s = self.the_shape(shapes)
         return self.Params(s.attribute_buffer("vertex_scalar"), s.tf_color, s.tf_opacity)
 
+    def texel(self, v):
+        """The texel coordinate of scalar value ``v``."""
+        lo, hi = self.value_range
+        return (v - lo) * (self.resolution / (hi - lo)) - 0.5
+
     def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
         # Gathered from the parameter itself (so that its reverse-mode
         # derivative is a scatter-add into it), then mapped to texels.
-        lo, hi = self.value_range
-        v = dr.gather(mi.Float, params.scalar, i, active, mode=reduce)
-        return self.Attributes((v - lo) * (self.resolution / (hi - lo)) - 0.5)
+        return self.Attributes(self.texel(dr.gather(mi.Float, params.scalar, i, active,
+                                                    mode=reduce)))
 
     def classify(self, params, u0, u1):
         """Color and extinction at the texel coordinates ``u0`` and ``u1`` of
@@ -319,6 +324,57 @@ class PostClassified(OpticalModel):
     def linear(self, params, a0, a1):
         (c0, s0), (c1, s1) = self.classify(params, a0.u, a1.u)
         return c0, c1, s0, s1
+
+
+class CellClassified(PostClassified):
+    """A per-tet scalar (cell data) classified by a transfer function, as it
+    is: constant in each tet, so each tet's segment has one color ``c`` and
+    extinction ``s``, integrated exactly (``C = c (1 - exp(-s l))``); nothing
+    is averaged onto the vertices. The walk hands each segment its tet
+    (:attr:`per_tet`); the shape's ``cell_scalar`` (in the mesh's tet order)
+    is read in the walk's order (``shape.cell_order``, where the shape
+    stores its tets reordered). Its derivatives w.r.t. the cell values, the
+    texels and the positions (the segments' lengths) are the adjoint's, as
+    for every model."""
+
+    class Params:
+        DRJIT_STRUCT = {"cells": mi.Float, "order": mi.UInt32, "tf_color": mi.Float,
+                        "tf_opacity": mi.Float}
+
+        def __init__(self, cells=None, order=None, tf_color=None, tf_opacity=None):
+            self.cells, self.order = cells, order
+            self.tf_color, self.tf_opacity = tf_color, tf_opacity
+
+    vertex_attributes = ()
+    cuts = False
+    per_tet = True
+    #: Whether the shape stores its tets reordered (``order`` maps them).
+    reordered = False
+
+    def read_params(self, shapes):
+        # (the cells are read through the order inside the walk: the
+        # parameter itself is gathered, so forward mode needs no tangent
+        # of a derived buffer)
+        s = self.the_shape(shapes)
+        self.reordered = s.cell_order is not None
+        order = s.cell_order if self.reordered else mi.UInt32(0)
+        return self.Params(s.cell_scalar, order, s.tf_color, s.tf_opacity)
+
+    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+        # Nothing varies inside a tet (the walk still carries an attribute).
+        return self.Attributes(mi.Float(0.0))
+
+    def segment(self, params, length, a0, a1, tet):
+        cell = dr.gather(mi.UInt32, params.order, tet) if self.reordered else tet
+        u = self.texel(dr.gather(mi.Float, params.cells, cell))
+        (c, s), _ = self.classify(params, u, u)
+        tau = s * length
+        T = dr.exp(-tau)
+        return c * (1.0 - T), T, tau
+
+    def linear(self, params, a0, a1):
+        raise ValueError("tetvr: a tetmesh of cell data cannot overlap another tetmesh "
+                         "(its segments need their tet)")
 
 
 #: Stands for no value yet in a maximum (its negative in a minimum).
@@ -398,11 +454,6 @@ class RayValue(PostClassified):
         """The scalar (data units) at texel coordinate ``u``."""
         lo, hi = self.value_range
         return lo + (u + 0.5) * ((hi - lo) / self.resolution)
-
-    def texel(self, v):
-        """The texel coordinate of scalar value ``v``."""
-        lo, hi = self.value_range
-        return (v - lo) * (self.resolution / (hi - lo)) - 0.5
 
     def color(self, params, u):
         """The transfer function's color at texel coordinate ``u``."""

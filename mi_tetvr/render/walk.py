@@ -132,14 +132,13 @@ def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
             a_out = tree_select(stay, tree_lerp(a, a_out, f), a_out)
         if dr.hint(primal, mode="scalar"):
             length, a0, a1 = clip_segment(t, a, t_out, a_out, t_begin, t_stop)
-            if dr.hint(model.per_tet, mode="scalar"):
-                C_seg, T_seg, _ = model.segment(params, length, a0, a1, tet)
-            else:
-                C_seg, T_seg, _ = model.segment(params, length, a0, a1)
+            C_seg, T_seg, _ = model.segment(params, length, a0, a1,
+                                            *((tet,) if model.per_tet else ()))
         else:
             C_seg, T_seg, adj, pending = adjoint.segment(
                 mode, ts, ts_ad, st, carry, (t, a), (t_out, a_out), L, T, t_begin, t_stop,
-                adj, pending, o, u, v, d, active, settings.reduce, *((stay, f) if cuts else ()))
+                adj, pending, o, u, v, d, active, settings.reduce, *((stay, f) if cuts else ()),
+                tet=tet)
         L, T = model.accumulate(L, T, C_seg, T_seg)
         t = t_out
         a = a_out

@@ -165,7 +165,7 @@ def test_real_mesh_against_the_reference(data_dir, peaked_tf):
     assert np.abs(alpha - ref_alpha).max() < TOL
     _, pre_alpha = render_rays(scene(classification="pre"), o, d)
     assert np.abs(pre_alpha - ref_alpha).max() > 0.1
-    with pytest.raises(Exception, match="no point-data array 'nope'"):
+    with pytest.raises(Exception, match="no point- or cell-data array 'nope'"):
         scene(scalar_attribute="nope")
 
 
