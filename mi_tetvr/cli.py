@@ -200,15 +200,18 @@ def mesh_scene(a, mesh, framing):
         shape = mi_tetvr.tetmesh_dict(
             mesh.vertices, mesh.tets, **values,
             transfer_function=str(Path(tf).resolve()) if Path(tf).exists() else tf,
-            value_min=lo_v, value_max=hi_v, opacity_scale=a.opacity_scale / radius)
-    elif a.scalar:
-        sys.exit("mi-tetvr: --scalar needs --tf")
+            value_min=lo_v, value_max=hi_v, opacity_scale=a.opacity_scale / radius,
+            **({"shade": True} if a.shade else {}))
+    elif a.scalar or a.shade:
+        sys.exit(f"mi-tetvr: --{'scalar' if a.scalar else 'shade'} needs --tf")
     else:
         shape = mi_tetvr.tetmesh_dict(mesh.vertices, mesh.tets, mesh.color, mesh.opacity)
     width, height = a.res or MESH_RES
     distance = 1.05 * radius / np.sin(np.radians(min(MESH_FOV, MESH_FOV * height / width) / 2))
     azimuth, elevation = a.view
     to_world = orbit_to_world(azimuth, elevation, distance, (lo + hi) / 2, a.up)
+    if a.shade and a.mode != "dvr":
+        sys.exit("mi-tetvr: --shade lights volume rendering (--mode dvr)")
     integrator = {"type": "tetvr"} if a.mode == "dvr" else {"type": "tetproj", "mode": a.mode}
     if a.mode == "iso":
         integrator["iso"] = a.iso or str(sum(framing["value_range"]) / 2)
@@ -407,7 +410,8 @@ def cmd_render(a):
         if given:
             sys.exit(f"mi-tetvr: {', '.join(given)} {'frames' if len(given) == 1 else 'frame'}"
                      f" a mesh file; an XML scene's sensor says where it looks")
-        _refuse(a, ("tf", "scalar", "plane", "clip", "clip_box", "iso"), "to an XML scene (its "
+        _refuse(a, ("tf", "scalar", "plane", "clip", "clip_box", "iso", "shade"),
+                "to an XML scene (its "
                 "shapes name their transfer functions, its integrator its mode and clip)")
         if a.opacity_scale != OPACITY_SCALE:
             sys.exit("mi-tetvr: --opacity-scale applies to a mesh file rendered with --tf")
@@ -945,6 +949,9 @@ def build_parser():
                    default="dvr", help="mesh file: volume rendering (dvr, default), the maximum, "
                    "minimum or mean intensity projection of its scalar, its scalar on a plane "
                    "(slice) or its isosurfaces (iso)")
+    r.add_argument("--shade", action="store_true", help="mesh file, volume rendering with "
+                   "--tf: light the volume by a headlight at the scalar's gradient (ParaView's "
+                   "Shade)")
     r.add_argument("--iso", metavar="V[,V...]", help="--mode iso: the isovalue(s), in the "
                    "scalar's units (default: the middle of its range)")
     r.add_argument("--plane", type=_numbers_of(6), metavar="X,Y,Z,NX,NY,NZ",

@@ -53,6 +53,15 @@
    - ``emission`` (emission and absorption) or ``absorption`` (X-ray
      attenuation: the opacity is the attenuation per unit length, nothing is
      emitted, ``alpha`` is one minus the transmittance). (Default: ``emission``)
+ * - shade
+   - |bool|
+   - With ``post`` classification: light the volume by a headlight, as
+     ParaView's *Shade* (:class:`~mi_tetvr.render.optical.Shaded`): the
+     color times ``ambient + diffuse |n.d|`` plus ``specular |n.d|^specular_power``,
+     ``n`` the scalar's smooth gradient. (Default: false)
+ * - ambient, diffuse, specular, specular_power
+   - |float|
+   - The lighting's coefficients. (Default: 0.1, 0.7, 0.2, 10, VTK's)
  * - tf_resolution
    - |int|
    - Texels the transfer function is resampled to over
@@ -106,10 +115,13 @@ from mi_tetvr.mesh.io import choose_scalar
 from mi_tetvr.mesh.topology import longest_edges
 from mi_tetvr.render.buffers import drjit_index_arrays, shape_index_arrays
 from mi_tetvr.render.optical import (Absorption, CellClassified, EmissionAbsorption,
-                                     PostClassified, PreIntegrated)
+                                     PostClassified, PreIntegrated, Shaded)
 from mi_tetvr.transfer import TransferFunction, read_transfer_function
 
 CLASSIFICATIONS = ("post", "pre", "preintegrated")
+#: The ``shade`` lighting's coefficients and their defaults (VTK's volume property's).
+LIGHTING = ("ambient", "diffuse", "specular", "specular_power")
+LIGHTING_DEFAULTS = (0.1, 0.7, 0.2, 10.0)
 MODELS = {"emission": EmissionAbsorption, "absorption": Absorption}
 
 
@@ -210,6 +222,11 @@ def post_classification(props, mesh):
     """``(optical model, scalar (n,), value_range, tf_color (R, 3), tf_opacity
     (R,))`` of a post-classified ``tetmesh``, or None when it is not one."""
     tf, mode = _transfer_function(props), _classification(props)
+    if tf is None or mode == "pre":
+        for key in ("shade",) + LIGHTING:
+            if key in props:
+                raise ValueError(f"tetmesh: '{key}' lights a transfer function's colors "
+                                 f"classified 'post'")
     if tf is None:
         for key in ("classification", "tf_resolution"):
             if key in props:
@@ -246,6 +263,12 @@ def post_classification(props, mesh):
     color, opacity = tf.texels(resolution)
     model = (CellClassified if per_tet else
              PreIntegrated if mode == "preintegrated" else PostClassified)
+    if bool(props.get("shade", False)):
+        if model is not PostClassified:
+            raise ValueError("tetmesh: shade lights a scalar per vertex classified 'post' "
+                             f"(its smooth gradient); this one is "
+                             f"{'cell data' if per_tet else mode}")
+        model = Shaded
     return model, scalar, (lo, hi), color, opacity * float(props.get("opacity_scale", 1.0))
 
 
@@ -285,6 +308,12 @@ class TetMeshShape(mi.Mesh):
             self.tf_color = mi.Float(np.asarray(color, np.float32).ravel())
             self.tf_opacity = mi.Float(np.asarray(opacity, np.float32))
             values = {"vertex_scalar": scalar}
+            #: ``shade``'s coefficients (ambient, diffuse, specular, power).
+            self.lighting = tuple(float(props.get(k, v)) for k, v in
+                                  zip(LIGHTING, LIGHTING_DEFAULTS))
+            if min(self.lighting) < 0.0:
+                raise ValueError(f"tetmesh: the lighting's coefficients must be >= 0, got "
+                                 f"{dict(zip(LIGHTING, self.lighting))}")
             if self.optical_model is CellClassified:
                 #: The scalar per tet, in the mesh's order (cell data).
                 self.cell_scalar = mi.Float(np.asarray(scalar, np.float32))

@@ -194,9 +194,11 @@ def _color_pieces(color, opacity):
     return col.shape[0], pieces
 
 
-def _classified_pieces(scalar, tf_color, tf_opacity, value_range):
+def _classified_pieces(scalar, tf_color, tf_opacity, value_range, light=None):
     """Linear pieces of a scalar mesh classified after interpolation: each
-    segment cut where the scalar crosses a texel centre."""
+    segment cut where the scalar crosses a texel centre. ``light = (G,
+    directions, (ambient, diffuse, specular, power))``: the colors lit by a
+    headlight at each tet's gradient ``G`` (m, 3)."""
     sca = np.asarray(scalar, dtype=np.float64).reshape(-1)
     tc = np.asarray(tf_color, dtype=np.float64).reshape(-1, 3)
     to = np.asarray(tf_opacity, dtype=np.float64).reshape(-1)
@@ -236,6 +238,14 @@ def _classified_pieces(scalar, tf_color, tf_opacity, value_range):
         vb = v0[seg] + fb * (v1 - v0)[seg]
         ca, sa = tf(va)
         cb, sb = tf(vb)
+        if light is not None:
+            G, D, (ka, kd, ks, power) = light
+            g, d = G[tet][seg], D[ray[seg]]
+            for c in (ca, cb):
+                norm = np.linalg.norm(g, axis=1)
+                cos = np.abs(np.einsum("sc,sc->s", g, d)) / np.where(norm > 0, norm, 1.0)
+                lit = c * (ka + kd * cos)[:, None] + (ks * cos ** power)[:, None]
+                c[:] = np.where((norm > 0)[:, None], lit, c)
         return ray[seg], t0[seg] + fa * L, t0[seg] + fb * L, ca, cb, sa, sb
     return sca.shape[0], pieces
 
@@ -272,6 +282,33 @@ def reference_render_classified(vertices, tets, scalar, tf_color, tf_opacity, va
     return _render(vertices, tets, _classified_pieces(scalar, tf_color, tf_opacity,
                                                       value_range),
                    origins, directions, background, t_max, n_quad)
+
+
+def reference_tet_gradients(vertices, tets, scalar):
+    """(m, 3) float64: the constant gradient of a per-vertex scalar in each
+    tet, solved from its edges (zero in flat tets)."""
+    v = np.asarray(vertices, np.float64)
+    t = np.asarray(tets, np.int64)
+    s = np.asarray(scalar, np.float64)
+    E = np.stack([v[t[:, k]] - v[t[:, 0]] for k in (1, 2, 3)], 1)
+    ds = np.stack([s[t[:, k]] - s[t[:, 0]] for k in (1, 2, 3)], 1)
+    ok = np.abs(np.linalg.det(E)) > 0
+    g = np.zeros((len(t), 3))
+    g[ok] = np.linalg.solve(E[ok], ds[ok][..., None])[..., 0]
+    return g
+
+
+def reference_render_shaded(vertices, tets, scalar, tf_color, tf_opacity, value_range,
+                            lighting, origins, directions, n_quad=48):
+    """:func:`reference_render_classified` with the colors lit by a headlight
+    (``lighting = (ambient, diffuse, specular, power)``) at each tet's
+    gradient of the scalar (:func:`reference_tet_gradients`)."""
+    D = np.asarray(directions, np.float64).reshape(-1, 3)
+    D = D / np.linalg.norm(D, axis=1, keepdims=True)
+    G = reference_tet_gradients(vertices, tets, scalar)
+    return _render(vertices, tets, _classified_pieces(scalar, tf_color, tf_opacity, value_range,
+                                                      (G, D, lighting)),
+                   origins, directions, (0, 0, 0), np.inf, n_quad)
 
 
 def reference_projection(vertices, tets, scalar, origins, directions, mode="max"):

@@ -244,6 +244,27 @@ def test_render_res_on_a_fixed_film_and_repair(tmp_path):
     assert np.array(mi.Bitmap(str(out))).shape == (16, 24, 4)
 
 
+def test_render_shaded(tmp_path):
+    """--shade lights the volume (the colors change, the coverage does not);
+    it needs --tf and volume rendering."""
+    from mi_tetvr.recon.images import read_image
+    make_scene_meshes()
+    mesh = str(ROOT / "scenes" / "meshes" / "radial_scalar.vtu")
+    images = []
+    for extra in ([], ["--shade"]):
+        out = tmp_path / f"shade{len(extra)}.exr"
+        r = run("render", mesh, "--tf", "scenes/tf_radial.json", "--res", "24x16", "-o",
+                str(out), *extra)
+        assert r.returncode == 0, r.stderr
+        images.append(read_image(out))
+    np.testing.assert_allclose(images[0][..., 3], images[1][..., 3], atol=1e-6)
+    assert np.abs(images[0][..., :3] - images[1][..., :3]).max() > 0.02
+    for flags, said in ((["--shade"], "--shade needs --tf"),
+                        (["--shade", "--mode", "max"], "--shade lights volume rendering")):
+        r = run("render", mesh, "-o", str(tmp_path / "x.png"), *flags)
+        assert r.returncode != 0 and said in r.stderr, r.stderr
+
+
 def test_render_cell_data(tmp_path):
     """render MESH --scalar NAME of a cell array renders it constant in each
     tet (not the image of the array averaged onto the vertices, which

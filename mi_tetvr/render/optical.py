@@ -30,7 +30,8 @@ linear color and extinction).
 Models here: :class:`EmissionAbsorption` (what ``tetmesh`` shapes use),
 :class:`Absorption` (extinction only), :class:`PostClassified` (a scalar and
 a transfer function), :class:`PreIntegrated` (the same by a table),
-:class:`CellClassified` (a scalar per tet and a transfer function), and the
+:class:`CellClassified` (a scalar per tet and a transfer function),
+:class:`Shaded` (post-classified and lit by a headlight), and the
 models that show one point per ray, each accumulated by its own
 :meth:`~OpticalModel.accumulate`: :class:`Projection` (the maximum, minimum
 or mean of the scalar along the ray), :class:`Slice` (the scalar where the
@@ -377,6 +378,103 @@ class CellClassified(PostClassified):
                          "(its segments need their tet)")
 
 
+#: The last vertex gradients computed without derivatives:
+#: ``(inputs, buffer)``, the inputs the arrays they were computed from (held,
+#: so that their Dr.Jit variables stay theirs).
+_GRADIENTS = [(), None]
+
+
+def shape_vertex_gradients(shape):
+    """The vertex gradients of a post-classified shape's scalar
+    (:func:`~mi_tetvr.render.linear.vertex_gradients`): attached to the AD
+    graph where the scalar or the positions track gradients, else the
+    last ones computed while the scalar, the positions and the tets are the
+    same arrays."""
+    scalar, positions = shape.attribute_buffer("vertex_scalar"), shape.vertex_positions_buffer()
+    buf = MeshBuffers(tets=shape.tet_buffers["tets"], positions=positions)
+    if dr.grad_enabled(scalar) or dr.grad_enabled(positions):
+        return vertex_gradients(buf, scalar)
+    inputs = (positions, scalar, buf.tets)
+    kept, gradients = _GRADIENTS
+    if len(kept) != 3 or any(a.index != b.index for a, b in zip(kept, inputs)):
+        gradients = vertex_gradients(buf, scalar)
+        dr.eval(gradients)
+        _GRADIENTS[:] = [inputs, gradients]
+    return gradients
+
+
+class Shaded(PostClassified):
+    """Post-classification lit by a headlight, as ParaView's *Shade* lights a
+    volume: the emitted color is ``c (ambient + diffuse |n.d|) + specular
+    |n.d|^power`` (Phong with the light at the eye: the half vector is the
+    view direction), ``n`` the scalar's gradient, ``d`` the ray's direction;
+    where the gradient vanishes the color is unlit. The scalar is linear in
+    a tet, so its gradient is the tet's own constant (the walk hands each
+    segment its tet, :attr:`per_tet`; :class:`~mi_tetvr.render.linear.TetFrame`):
+    the lit color stays linear in the scalar between the transfer
+    function's knots and each piece is integrated exactly, its derivatives
+    (w.r.t. the scalars and positions through the normal too) those of the
+    adjoint. A crossing carries the scalar and its point (a piece's direction
+    is that of its end points). The coefficients are the shape's
+    (``ambient``, ``diffuse``, ``specular``, ``specular_power``; VTK's
+    volume property's defaults)."""
+
+    class Attributes:
+        DRJIT_STRUCT = {"u": mi.Float, "p": mi.Point3f}
+
+        def __init__(self, u=None, p=None):
+            self.u, self.p = u, p
+
+    class Params:
+        DRJIT_STRUCT = {"scalar": mi.Float, "tf_color": mi.Float, "tf_opacity": mi.Float,
+                        "positions": mi.Float, "tets": mi.UInt32}
+
+        def __init__(self, scalar=None, tf_color=None, tf_opacity=None, positions=None,
+                     tets=None):
+            self.scalar, self.tf_color, self.tf_opacity = scalar, tf_color, tf_opacity
+            self.positions, self.tets = positions, tets
+
+        def position(self, i, active=True):
+            return dr.gather(mi.Point3f, self.positions, i, active)
+
+    per_tet = True
+    #: ``(ambient, diffuse, specular, specular_power)``, set from the shape.
+    lighting = (0.1, 0.7, 0.2, 10.0)
+
+    def read_params(self, shapes):
+        s = self.the_shape(shapes)
+        self.lighting = s.lighting
+        return self.Params(s.attribute_buffer("vertex_scalar"), s.tf_color, s.tf_opacity,
+                           s.vertex_positions_buffer(), s.tet_buffers["tets"])
+
+    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+        u = PostClassified.gather(self, params, i, active, reduce).u
+        return self.Attributes(u, dr.gather(mi.Point3f, params.positions, i, active,
+                                            mode=reduce))
+
+    def lit(self, c, g, d):
+        """The color ``c`` lit at gradient ``g`` seen along ``d`` (unit)."""
+        ambient, diffuse, specular, power = self.lighting
+        norm = dr.norm(g)
+        cos = dr.abs(dr.dot(g, d)) / dr.select(norm > 0.0, norm, 1.0)
+        out = c * (ambient + diffuse * cos) + specular * dr.power(cos, power)
+        return dr.select(norm > 0.0, out, c)
+
+    def segment(self, params, length, a0, a1, tet):
+        frame = TetFrame(params, tet)
+        g = frame.gradient([dr.gather(mi.Float, params.scalar, i) for i in frame.ids])
+        step = a1.p - a0.p
+        d = step / dr.select(dr.norm(step) > 0.0, dr.norm(step), 1.0)
+        (c0, s0), (c1, s1) = self.classify(params, a0.u, a1.u)
+        C, T = segment_integral(length, self.lit(c0, g, d), self.lit(c1, g, d), s0, s1,
+                                self.n_sub)
+        return C, T, length * (s0 + s1) * 0.5
+
+    def linear(self, params, a0, a1):
+        raise ValueError("tetvr: a shaded tetmesh cannot overlap another tetmesh (its "
+                         "segments need their tet)")
+
+
 #: Stands for no value yet in a maximum (its negative in a minimum).
 NO_VALUE = 1e30
 
@@ -618,25 +716,11 @@ class Isosurface(RayValue):
             raise ValueError("an isosurface needs at least one value")
         self.initial = -NO_VALUE
 
-    #: The last vertex gradients computed (primal): ``(inputs, buffer)``,
-    #: the inputs the arrays they were computed from (held, so that their
-    #: Dr.Jit variables stay theirs).
-    _gradients = ((), None)
-
     def read_params(self, shapes):
         s = self.the_shape(shapes)
         scalar, positions = s.attribute_buffer("vertex_scalar"), s.vertex_positions_buffer()
-        buf = MeshBuffers(tets=s.tet_buffers["tets"], positions=positions)
-        if dr.grad_enabled(scalar) or dr.grad_enabled(positions):
-            gradients = vertex_gradients(buf, scalar)
-        else:
-            inputs = (positions, scalar, buf.tets)
-            kept, gradients = Isosurface._gradients
-            if len(kept) != 3 or any(a.index != b.index for a, b in zip(kept, inputs)):
-                gradients = vertex_gradients(buf, scalar)
-                dr.eval(gradients)
-                Isosurface._gradients = (inputs, gradients)
-        return self.Params(scalar, s.tf_color, s.tf_opacity, positions, gradients, self.values)
+        return self.Params(scalar, s.tf_color, s.tf_opacity, positions,
+                           shape_vertex_gradients(s), self.values)
 
     def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
         a = RayValue.gather(self, params, i, active, reduce)

@@ -191,3 +191,60 @@ def test_preintegrated_table(field, peaked_tf, tmp_path):
     dr.enable_grad(params["mesh0.tf_opacity"])
     with pytest.raises(ValueError, match="no derivatives"):
         render_rays(scene, o[:4], d[:4])
+
+
+LIGHTING = (0.15, 0.6, 0.3, 8.0)
+
+
+def shaded_scene(field, tf_path):
+    return scene_of(field, tf_path, shade=True,
+                    **dict(zip(("ambient", "diffuse", "specular", "specular_power"), LIGHTING)))
+
+
+def test_shaded_against_the_reference(field, peaked_tf):
+    """shade (a headlight at each tet's gradient of the scalar, ParaView's
+    Shade) against the float64 reference that lights the colors the same
+    way (``reference_render_shaded``, its own float64 tet gradients): within
+    3e-3, and far from the unlit image."""
+    from tests.reference import reference_render_shaded
+    V, T, scalar = field
+    o, d = rays_at(np.random.default_rng(3), 256)
+    color, opacity = read_transfer_function(peaked_tf).texels(RESOLUTION)
+    ref_rgb, ref_alpha = reference_render_shaded(V, T, scalar, color, opacity, RANGE, LIGHTING,
+                                                 o, d)
+    rgb, alpha = render_rays(shaded_scene(field, peaked_tf), o, d)
+    assert np.abs(rgb - ref_rgb).max() < TOL
+    assert np.abs(alpha - ref_alpha).max() < TOL
+    assert np.abs(render_rays(scene_of(field, peaked_tf), o, d)[0] - ref_rgb).max() > 0.05
+    with pytest.raises(Exception, match="shade lights"):
+        scene_of(field, peaked_tf, shade=True, classification="preintegrated")
+    with pytest.raises(Exception, match="'ambient' lights"):
+        scene_of(field, peaked_tf, ambient=0.3, classification="pre")
+
+
+@pytest.mark.parametrize("key, h", [("mesh0.vertex_scalar", 1e-4), ("mesh0.tf_color", 1e-3),
+                                    ("mesh0.vertex_positions", 1e-4)])
+def test_shaded_gradients_against_finite_differences(field, peaked_tf, key, h):
+    """The lit image's derivatives (through the normals too: a tet's
+    gradient depends on its scalars and positions): reverse mode against
+    central differences (5 %), forward against reverse (1 %). (The two-sided
+    light |n.d| has a kink where a tet's gradient is across the ray: the
+    steps are small enough not to reach one.)"""
+    rng = np.random.default_rng(11)
+    o, d = rays_at(rng, 64)
+    keys = ("mesh0.vertex_scalar", "mesh0.tf_color", "mesh0.vertex_positions")
+    obj = Problem(None, o, d, rng, scene=shaded_scene(field, peaked_tf), keys=keys)
+    g = obj.backward()[key]
+    assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
+    direction = rng.normal(size=len(g))
+    if key.endswith("positions"):      # interior vertices only (no silhouette term)
+        from mi_tetvr.mesh.topology import build_topology
+        V, T, _ = field
+        inner = np.ones(len(V), bool)
+        inner[np.unique(build_topology(V, T, warn=False).boundary_faces)] = False
+        direction *= np.repeat(inner, 3)
+    reverse = float(direction @ g)
+    fd = obj.central(key, direction, h)
+    assert abs(reverse - fd) < 0.05 * abs(fd), (reverse, fd)
+    fwd = obj.forward({key: direction})
+    assert abs(fwd - reverse) < 0.01 * abs(reverse), (fwd, reverse)
