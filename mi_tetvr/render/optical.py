@@ -367,7 +367,9 @@ class CellClassified(PostClassified):
 
     def segment(self, params, length, a0, a1, tet):
         cell = dr.gather(mi.UInt32, params.order, tet) if self.reordered else tet
-        u = self.texel(dr.gather(mi.Float, params.cells, cell))
+        # (inside the adjoint's loop: plain atomics; Auto's per-thread
+        # copies raced there)
+        u = self.texel(dr.gather(mi.Float, params.cells, cell, mode=dr.ReduceMode.Direct))
         (c, s), _ = self.classify(params, u, u)
         tau = s * length
         T = dr.exp(-tau)
@@ -403,6 +405,21 @@ def shape_vertex_gradients(shape):
     return gradients
 
 
+class ScalarPoint:
+    """A crossing's attributes for the models that need its point: the
+    scalar's texel coordinate ``u`` and the point ``p``."""
+    DRJIT_STRUCT = {"u": mi.Float, "p": mi.Point3f}
+
+    def __init__(self, u=None, p=None):
+        self.u, self.p = u, p
+
+    @staticmethod
+    def gather(model, params, i, active=True, reduce=dr.ReduceMode.Auto):
+        """The attributes of vertex ``i`` (``params.scalar``, ``params.positions``)."""
+        u = PostClassified.gather(model, params, i, active, reduce).u
+        return ScalarPoint(u, dr.gather(mi.Point3f, params.positions, i, active, mode=reduce))
+
+
 class Shaded(PostClassified):
     """Post-classification lit by a headlight, as ParaView's *Shade* lights a
     volume: the emitted color is ``c (ambient + diffuse |n.d|) + specular
@@ -419,11 +436,7 @@ class Shaded(PostClassified):
     (``ambient``, ``diffuse``, ``specular``, ``specular_power``; VTK's
     volume property's defaults)."""
 
-    class Attributes:
-        DRJIT_STRUCT = {"u": mi.Float, "p": mi.Point3f}
-
-        def __init__(self, u=None, p=None):
-            self.u, self.p = u, p
+    Attributes = ScalarPoint
 
     class Params:
         DRJIT_STRUCT = {"scalar": mi.Float, "tf_color": mi.Float, "tf_opacity": mi.Float,
@@ -435,7 +448,7 @@ class Shaded(PostClassified):
             self.positions, self.tets = positions, tets
 
         def position(self, i, active=True):
-            return dr.gather(mi.Point3f, self.positions, i, active)
+            return dr.gather(mi.Point3f, self.positions, i, active, mode=dr.ReduceMode.Direct)
 
     per_tet = True
     #: ``(ambient, diffuse, specular, specular_power)``, set from the shape.
@@ -448,9 +461,7 @@ class Shaded(PostClassified):
                            s.vertex_positions_buffer(), s.tet_buffers["tets"])
 
     def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
-        u = PostClassified.gather(self, params, i, active, reduce).u
-        return self.Attributes(u, dr.gather(mi.Point3f, params.positions, i, active,
-                                            mode=reduce))
+        return ScalarPoint.gather(self, params, i, active, reduce)
 
     def lit(self, c, g, d):
         """The color ``c`` lit at gradient ``g`` seen along ``d`` (unit)."""
@@ -462,7 +473,8 @@ class Shaded(PostClassified):
 
     def segment(self, params, length, a0, a1, tet):
         frame = TetFrame(params, tet)
-        g = frame.gradient([dr.gather(mi.Float, params.scalar, i) for i in frame.ids])
+        g = frame.gradient([dr.gather(mi.Float, params.scalar, i, mode=dr.ReduceMode.Direct)
+                            for i in frame.ids])
         step = a1.p - a0.p
         d = step / dr.select(dr.norm(step) > 0.0, dr.norm(step), 1.0)
         (c0, s0), (c1, s1) = self.classify(params, a0.u, a1.u)
@@ -512,11 +524,7 @@ class RayValue(PostClassified):
     #: ``L`` holds an integral (``L.x``) over a length (``L.y``).
     mean = False
 
-    class Attributes:
-        DRJIT_STRUCT = {"u": mi.Float, "p": mi.Point3f}
-
-        def __init__(self, u=None, p=None):
-            self.u, self.p = u, p
+    Attributes = ScalarPoint
 
     class Params:
         DRJIT_STRUCT = {"scalar": mi.Float, "tf_color": mi.Float, "tf_opacity": mi.Float,
@@ -532,8 +540,7 @@ class RayValue(PostClassified):
                            s.vertex_positions_buffer())
 
     def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
-        u = PostClassified.gather(self, params, i, active, reduce).u
-        return self.Attributes(u, dr.gather(mi.Point3f, params.positions, i, active))
+        return ScalarPoint.gather(self, params, i, active, reduce)
 
     def start(self):
         if self.mean:
