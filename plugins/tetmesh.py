@@ -58,7 +58,7 @@
    - With ``post`` classification: light the volume by a headlight, as
      ParaView's *Shade* (:class:`~mi_tetvr.render.optical.Shaded`): the
      color times ``ambient + diffuse |n.d|`` plus ``specular |n.d|^specular_power``,
-     ``n`` the scalar's smooth gradient. (Default: false)
+     ``n`` the scalar's gradient in each tet. (Default: false)
  * - ambient, diffuse, specular, specular_power
    - |float|
    - The lighting's coefficients. (Default: 0.1, 0.7, 0.2, 10, VTK's)
@@ -266,7 +266,7 @@ def post_classification(props, mesh):
     if bool(props.get("shade", False)):
         if model is not PostClassified:
             raise ValueError("tetmesh: shade lights a scalar per vertex classified 'post' "
-                             f"(its smooth gradient); this one is "
+                             f"(by its gradient in each tet); this one is "
                              f"{'cell data' if per_tet else mode}")
         model = Shaded
     return model, scalar, (lo, hi), color, opacity * float(props.get("opacity_scale", 1.0))

@@ -186,3 +186,40 @@ class Problem:
         e = np.zeros(np.array(self.params[key]).size)
         e[index] = 1.0
         return self.central(key, e, h)
+
+
+def interior_positions(V, T):
+    """(3 n,) mask of the position entries of vertices off the boundary
+    (moving a boundary vertex moves a silhouette, which has no derivative
+    term)."""
+    from mi_tetvr.mesh.topology import build_topology
+    inner = np.ones(len(V), bool)
+    inner[np.unique(build_topology(V, T, warn=False).boundary_faces)] = False
+    return np.repeat(inner, 3)
+
+
+def check_along(problem, key, h, rng, restrict=None):
+    """A :class:`Problem`'s gradient w.r.t. ``key`` along a random direction
+    (``restrict(direction)`` keeps the entries where the objective is
+    smooth): reverse mode against central differences with step ``h`` (5 %),
+    forward against reverse (1 %)."""
+    g = problem.backward()[key]
+    assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
+    direction = rng.normal(size=len(g))
+    if restrict is not None:
+        direction = restrict(direction)
+    reverse = float(direction @ g)
+    fd = problem.central(key, direction, h)
+    assert abs(reverse - fd) < 0.05 * abs(fd), (reverse, fd)
+    fwd = problem.forward({key: direction})
+    assert abs(fwd - reverse) < 0.01 * abs(reverse), (fwd, reverse)
+
+
+def vtk_tet_grid(V, T, **point_data):
+    """A pyvista unstructured grid of the tets with float64 point arrays (the
+    input of the VTK filters the tests compare with)."""
+    import pyvista as pv
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: np.asarray(T)}, np.asarray(V, np.float64))
+    for k, a in point_data.items():
+        grid.point_data[k] = np.asarray(a, np.float64)
+    return grid

@@ -11,7 +11,7 @@ import mitsuba as mi
 import mi_tetvr
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.transfer import read_transfer_function
-from tests.helpers import Problem, rays_at, render_rays
+from tests.helpers import Problem, check_along, interior_positions, rays_at, render_rays
 from tests.reference import reference_render_classified
 
 TOL = 3e-3
@@ -40,6 +40,12 @@ def field():
     V, T = grid_mesh(4, jitter=0.12, seed=7)
     scalar = np.sin(2.2 * V[:, 0] + 1.3 * V[:, 1]) * np.cos(1.7 * V[:, 2])
     return V, T, scalar
+
+
+def interior(field):
+    """Keeps a positions direction on the interior vertices."""
+    mask = interior_positions(field[0], field[1])
+    return lambda direction: direction * mask
 
 
 def scene_of(field, tf_path, **props):
@@ -114,20 +120,7 @@ def test_gradients_against_finite_differences(field, peaked_tf, key, h):
     obj = Problem(None, o, d, rng, scene=scene_of(field, peaked_tf),
                   keys=("mesh0.vertex_scalar", "mesh0.tf_color", "mesh0.tf_opacity",
                         "mesh0.vertex_positions"))
-    g = obj.backward()[key]
-    assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
-    direction = rng.normal(size=len(g))
-    if key.endswith("positions"):      # interior vertices only (no silhouette term)
-        from mi_tetvr.mesh.topology import build_topology
-        V, T, _ = field
-        inner = np.ones(len(V), bool)
-        inner[np.unique(build_topology(V, T, warn=False).boundary_faces)] = False
-        direction *= np.repeat(inner, 3)
-    reverse = float(direction @ g)
-    fd = obj.central(key, direction, h)
-    assert abs(reverse - fd) < 0.05 * abs(fd), (reverse, fd)
-    fwd = obj.forward({key: direction})
-    assert abs(fwd - reverse) < 0.01 * abs(reverse), (fwd, reverse)
+    check_along(obj, key, h, rng, interior(field) if key.endswith("positions") else None)
 
 
 def test_real_mesh_against_the_reference(data_dir, peaked_tf):
@@ -234,17 +227,4 @@ def test_shaded_gradients_against_finite_differences(field, peaked_tf, key, h):
     o, d = rays_at(rng, 64)
     keys = ("mesh0.vertex_scalar", "mesh0.tf_color", "mesh0.vertex_positions")
     obj = Problem(None, o, d, rng, scene=shaded_scene(field, peaked_tf), keys=keys)
-    g = obj.backward()[key]
-    assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
-    direction = rng.normal(size=len(g))
-    if key.endswith("positions"):      # interior vertices only (no silhouette term)
-        from mi_tetvr.mesh.topology import build_topology
-        V, T, _ = field
-        inner = np.ones(len(V), bool)
-        inner[np.unique(build_topology(V, T, warn=False).boundary_faces)] = False
-        direction *= np.repeat(inner, 3)
-    reverse = float(direction @ g)
-    fd = obj.central(key, direction, h)
-    assert abs(reverse - fd) < 0.05 * abs(fd), (reverse, fd)
-    fwd = obj.forward({key: direction})
-    assert abs(fwd - reverse) < 0.01 * abs(reverse), (fwd, reverse)
+    check_along(obj, key, h, rng, interior(field) if key.endswith("positions") else None)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mi_tetvr.mesh.generate import grid_mesh
-from tests.helpers import make_rays, make_scene, rays_at, render_rays
+from tests.helpers import make_rays, make_scene, rays_at, render_rays, vtk_tet_grid
 from tests.reference import reference_projection, reference_render
 
 TOL = 3e-3          # tetvr's default settings against the reference (as tests/render)
@@ -28,9 +28,7 @@ def vtk_clip(V, T, arrays, planes):
     import pyvista as pv
     from vtkmodules.vtkCommonDataModel import vtkPlane
     from vtkmodules.vtkFiltersGeneral import vtkClipDataSet, vtkDataSetTriangleFilter
-    grid = pv.UnstructuredGrid({pv.CellType.TETRA: np.asarray(T)}, np.asarray(V, np.float64))
-    for k, a in arrays.items():
-        grid.point_data[k] = np.asarray(a, np.float64)
+    grid = vtk_tet_grid(V, T, **arrays)
     data = grid
     for origin, normal in planes:
         f = vtkPlane()

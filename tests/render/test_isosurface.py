@@ -10,7 +10,7 @@ import pytest
 
 import mi_tetvr
 from mi_tetvr.mesh.generate import grid_mesh
-from tests.helpers import make_rays, rays_at
+from tests.helpers import make_rays, rays_at, vtk_tet_grid
 
 
 def field_of(V):
@@ -21,8 +21,7 @@ def vtk_contour(V, T, scalar, values):
     """VTK's isosurface triangles ``(points, faces)`` of the tet mesh."""
     import pyvista as pv
     from vtkmodules.vtkFiltersCore import vtkContourFilter
-    grid = pv.UnstructuredGrid({pv.CellType.TETRA: np.asarray(T)}, np.asarray(V, np.float64))
-    grid.point_data["s"] = np.asarray(scalar, np.float64)
+    grid = vtk_tet_grid(V, T, s=scalar)
     contour = vtkContourFilter()
     contour.SetInputData(grid)
     contour.SetInputArrayToProcess(0, 0, 0, 0, "s")

@@ -9,7 +9,7 @@ import numpy as np
 
 import mi_tetvr
 from mi_tetvr.mesh.generate import grid_mesh
-from tests.helpers import make_rays, rays_at
+from tests.helpers import make_rays, rays_at, vtk_tet_grid
 
 
 def vtk_cut(V, T, scalar, origin, normal):
@@ -17,8 +17,7 @@ def vtk_cut(V, T, scalar, origin, normal):
     import pyvista as pv
     from vtkmodules.vtkCommonDataModel import vtkPlane
     from vtkmodules.vtkFiltersCore import vtkCutter
-    grid = pv.UnstructuredGrid({pv.CellType.TETRA: np.asarray(T)}, np.asarray(V, np.float64))
-    grid.point_data["s"] = np.asarray(scalar, np.float64)
+    grid = vtk_tet_grid(V, T, s=scalar)
     plane = vtkPlane()
     plane.SetOrigin(*origin)
     plane.SetNormal(*normal)
