@@ -270,9 +270,10 @@ def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj,
                                dr.select(advance, 0.0, F_end), new_pend)
 
 
-def finish(ts_ad, pending, carry, steps, u, v, d, reduce, adj, exit_carry=None, inside=None):
+def finish(ts_ad, pending, carry, walked, u, v, d, reduce, adj, exit_carry=None, inside=None):
     """Backward mode, after the walk: the last exit crossing's gradient and
-    the pending ones of its corners (``carry``: the face the walk left by);
+    the pending ones of its corners (``carry``: the face the walk left by;
+    ``walked``: the rays that integrated at least one segment or piece);
     returns ``adj`` (with the camera's gradients).
     A model that cuts tets may have stopped inside one (``inside``): then
     ``carry`` is that tet's entry face, and its exit face ``exit_carry``
@@ -281,7 +282,6 @@ def finish(ts_ad, pending, carry, steps, u, v, d, reduce, adj, exit_carry=None, 
         e, e_x, _, pend = pending
     else:
         e, pend = pending
-    walked = steps > 0
     camera = ts_ad.camera
     vg = crossing_grads(ts_ad, carry, e, u, v, d)
     if camera:

@@ -162,7 +162,9 @@ def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
         if dr.hint(cuts, mode="scalar"):
             # Stopped inside a tet (early termination): its exit face.
             exit_carry = walk_step(buf, tet, f_in, o, u, v, d, stay, carry, gather).carry
-        adj = adjoint.finish(ts_ad, pending, carry, steps, u, v, d, settings.reduce, adj,
+        # (a walk that stopped inside its first tet left none: count its pieces)
+        walked = (pieces > 0) if cuts else (steps > 0)
+        adj = adjoint.finish(ts_ad, pending, carry, walked, u, v, d, settings.reduce, adj,
                              exit_carry, stay)
     return L, T, t, steps, adj
 

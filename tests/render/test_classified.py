@@ -11,7 +11,8 @@ import mitsuba as mi
 import mi_tetvr
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.transfer import read_transfer_function
-from tests.helpers import Problem, check_along, interior_positions, rays_at, render_rays
+from tests.helpers import (Problem, check_along, interior_positions, make_rays, rays_at,
+                           render_rays)
 from tests.reference import reference_render_classified
 
 TOL = 3e-3
@@ -121,6 +122,31 @@ def test_gradients_against_finite_differences(field, peaked_tf, key, h):
                   keys=("mesh0.vertex_scalar", "mesh0.tf_color", "mesh0.tf_opacity",
                         "mesh0.vertex_positions"))
     check_along(obj, key, h, rng, interior(field) if key.endswith("positions") else None)
+
+
+def test_gradients_of_walks_that_stop_in_their_first_tet(field, peaked_tf):
+    """Rays that end shortly past their entry (a surface or an isosurface in
+    front, ``ray.maxt``), most inside the first tet they enter: each ray's
+    reverse-mode gradient against central differences and forward mode
+    (a walk that stopped inside its first tet once lost its entry face's
+    gradients in reverse mode)."""
+    rng = np.random.default_rng(5)
+    o, d = rays_at(rng, 24, target_extent=0.6)
+    scene = scene_of(field, peaked_tf)
+    entry = np.array(scene.ray_intersect_preliminary(make_rays(o, d)).t)
+    obj = Problem(None, o, d, rng, scene=scene, keys=("mesh0.vertex_scalar",))
+    obj.ray.maxt = mi.Float(entry + rng.uniform(0.02, 0.08, len(o)))
+    obj.wa[:] = 0.0
+    weights = obj.wL.copy()
+    direction = rng.normal(size=len(field[2]))
+    for k in range(len(o)):
+        obj.wL = np.zeros_like(weights)
+        obj.wL[k] = weights[k]
+        reverse = obj.backward()["mesh0.vertex_scalar"] @ direction
+        fd = obj.central("mesh0.vertex_scalar", direction, 1e-3)
+        forward = obj.forward({"mesh0.vertex_scalar": direction})
+        assert abs(reverse - fd) <= 0.05 * abs(fd) + 1e-6, (k, reverse, fd)
+        assert abs(forward - reverse) <= 1e-3 * abs(reverse) + 1e-7, (k, forward, reverse)
 
 
 def test_real_mesh_against_the_reference(data_dir, peaked_tf):
