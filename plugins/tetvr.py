@@ -45,6 +45,15 @@ shapes by walking the tet adjacency.
  * - clip_min, clip_max
    - |point|
    - A box that cuts the volume: what lies outside it is cut away.
+ * - overlay
+   - |integrator|
+   - A ``tetproj`` integrator (named ``overlay``) in mode ``slice`` or
+     ``iso``: its surfaces are drawn inside the volume, opaque or
+     translucent (its ``opacity``, ``layers``), as ParaView shows a volume
+     with a slice or a contour (:mod:`mi_tetvr.render.layers`). The scene's
+     one tetmesh must be post-classified (a scalar and a transfer function).
+     Derivatives as without it, and through the surfaces' colors and depths
+     (not w.r.t. a differentiable camera).
  * - surfaces
    - |integrator|
    - Child integrator (named ``surfaces``) that renders the scene's other
@@ -92,7 +101,9 @@ import mitsuba as mi
 from mi_tetvr.render.adjoint import Adjoint
 from mi_tetvr.render.buffers import index_buffers, model_groups, scene_tetmeshes, tet_scene
 from mi_tetvr.render.clipping import Clip
+from mi_tetvr.render.linear import TetFrame
 from mi_tetvr.render.merged import merged_trace, overlapping
+from mi_tetvr.render.optical import PostClassified, Shaded
 from mi_tetvr.render.replay import CAPACITY, PrimalStates, derivative_seed
 from mi_tetvr.render.surfaces import DEFAULT_SURFACES, NestedIntegrator, SceneParts
 from mi_tetvr.render.walk import WalkSettings, trace
@@ -124,13 +135,22 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         self.settings = WalkSettings(t_min, max_steps, reduce=modes[reduce])
         self.alpha = bool(props.get("alpha", True))
         self.clip = Clip.from_props(props)
-        nested = None
+        nested, self.overlay = None, None
         for name, obj in props.objects():
-            if name != "surfaces":
+            if name == "surfaces":
+                nested = obj
+            elif name == "overlay":
+                if getattr(obj, "mode", None) not in ("slice", "iso"):
+                    raise ValueError("tetvr: the overlay is a tetproj integrator in mode 'slice' "
+                                     "or 'iso' (e.g. <integrator type=\"tetproj\" "
+                                     "name=\"overlay\"> with <string name=\"mode\" "
+                                     "value=\"iso\"/>)")
+                self.overlay = obj
+            else:
                 raise ValueError(f"tetvr: unknown child {name!r} ({type(obj).__name__}); the "
-                                 f"only child is the integrator of the surfaces, named "
-                                 f"'surfaces' (e.g. <integrator type=\"prb\" name=\"surfaces\"/>)")
-            nested = obj
+                                 f"children are the integrator of the surfaces, named "
+                                 f"'surfaces' (e.g. <integrator type=\"prb\" name=\"surfaces\"/>), "
+                                 f"and a tetproj named 'overlay'")
         self.surfaces = NestedIntegrator(nested if nested is not None
                                          else mi.load_dict(DEFAULT_SURFACES))
         self.parts = SceneParts()
@@ -138,6 +158,11 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         self._states = PrimalStates(int(props.get("kept_primals", CAPACITY)))
         self._record = None    # (key, inputs) while render() runs with gradients enabled
         self._replay = None    # the kept primal state while a derivative pass runs
+
+    def traverse(self, callback):
+        if self.overlay is not None:
+            # (its isovalues: overlay.iso)
+            callback.put("overlay", self.overlay, mi.ParamFlags.Differentiable)
 
     def aov_names(self):
         return ["alpha"] if self.alpha else []
@@ -189,7 +214,7 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
             # (with surfaces, the nested integrator samples paths: the derivative
             # pass renders its own primal with its own seed, as Mitsuba does)
             tracked = (any(dr.grad_enabled(x) for x in inputs)
-                       and self.parts.split(scene)[2] is None)
+                       and self.parts.split(scene)[2] is None and self.overlay is None)
         if tracked:
             self._record = (PrimalStates.key(scene, sensor, derivative_seed(seed), spp),
                             int(seed), [dr.detach(x) for x in inputs])
@@ -273,27 +298,39 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
             ray.maxt = dr.minimum(ray.maxt, t_end)
             walking = active & (t_end > t_start)
         if primal:
+            # state: (pixel, transmittance, the nested integrator's state, the
+            # overlay's layers, what lies behind the volume)
             if self._replay is not None and dr.width(self._replay[1]) == dr.width(ray):
                 L, T = self._replay
-                state = (L, T)
+                state = (L, T, None, None, None)
             else:
-                C, T = self.volume(walk_scene, tets, ts, ray, settings, walking, t_start)
-                if surfaces is None:
-                    L = C + T * self.background(scene, ray.d, active)
-                    state = (L, T)
-                    if self._record is not None:
-                        key, primal_seed, inputs = self._record
-                        self._states.put(key, primal_seed, (L, T), inputs)
+                layered = None
+                if self.overlay is not None:
+                    layered = self.overlay.layered(
+                        walk_scene, ray, t_start, walking,
+                        lambda r, s, a: self.volume(walk_scene, tets, ts, r, settings, a, s),
+                        settings.t_min)
+                    C, T = layered.L, layered.W
                 else:
-                    Ls, nested_state = self.surfaces.primal(surfaces, sampler, nested_ray,
+                    C, T = self.volume(walk_scene, tets, ts, ray, settings, walking, t_start)
+                if surfaces is None:
+                    Lb, nested_state = self.background(scene, ray.d, active), None
+                else:
+                    Lb, nested_state = self.surfaces.primal(surfaces, sampler, nested_ray,
                                                             active)
-                    L = C + T * Ls
-                    state = (L, T, nested_state)
+                L = C + T * Lb
+                state = (L, T, nested_state, layered, Lb)
+                if surfaces is None and layered is None and self._record is not None:
+                    key, primal_seed, inputs = self._record
+                    self._states.put(key, primal_seed, (L, T), inputs)
             alpha = dr.select(hit, 1.0, 1.0 - T)
             return L, mi.Bool(True), [alpha] if self.alpha else [], state
         if state_in is None:
             raise ValueError("tetvr: the derivative modes need the primal pass's state_in")
-        L_pix, T_fin = state_in[0], state_in[1]
+        L_pix, T_fin, layered = state_in[0], state_in[1], state_in[3]
+        if layered is not None and camera:
+            raise ValueError("tetvr: an overlay's images have no derivatives w.r.t. the camera "
+                             "(its surfaces' depths are not differentiated along the rays)")
         δaovs = kwargs.get("δaovs", None)
         δalpha = mi.Float(δaovs[0]) if (self.alpha and δaovs) else mi.Float(0.0)
         # Where a surface is hit, alpha is 1 whatever the volume.
@@ -323,6 +360,14 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
                 state_in[2], active)
             if mode == dr.ADMode.Forward:
                 d_seen = T_fin * d_seen
+        if layered is not None:
+            dL_layers, dalpha_layers = self.layers_derivative(
+                mode, walk_scene, tets, ts, ray, settings, walking, layered, state_in[4],
+                mi.Color3f(δL) if mode == dr.ADMode.Backward else None, δalpha)
+            if mode == dr.ADMode.Backward:
+                return mi.Color3f(0.0), mi.Bool(True), [], None
+            dalpha = dr.select(hit, 0.0, dalpha_layers)
+            return dL_layers + d_seen, mi.Bool(True), [dalpha] if self.alpha else [], None
         if ts is not None:
             tangent = None
             if camera and mode == dr.ADMode.Forward:
@@ -348,6 +393,52 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         dalpha = dr.select(hit, 0.0, adj.dalpha)
         return dL, mi.Bool(True), [dalpha] if self.alpha else [], None
 
+    def layers_derivative(self, mode, walk_scene, tets, ts, ray, settings, active, layered,
+                          behind, δL, δalpha):
+        """The derivative passes with an overlay (:mod:`mi_tetvr.render.layers`):
+        the volume's intervals by the walk's adjoint (each with the radiance
+        behind it and the transmittance in front), the surfaces' colors and
+        (isosurfaces) depths by their closed forms. Backward: accumulates the
+        gradients; forward: returns the tangents ``(dL, dalpha)``."""
+        backward = mode == dr.ADMode.Backward
+        fronts = layered.fronts()
+        R = layered.behind(behind)
+        zero = mi.Vector3f(0.0)
+        dL, dalpha = mi.Color3f(0.0), mi.Float(0.0)
+        with dr.resume_grad():
+            overlay = self.overlay.tet_scene(walk_scene, differentiable=True)
+            (volume,) = ts
+            shares = self.overlay.replay_layers(
+                overlay, layered, ray.o, ray.d,
+                [W * layer.T for layer, W in zip(layered.layers, fronts)])
+            total = mi.Color3f(0.0)
+            for layer, (share, t, w) in zip(layered.layers, shares):
+                total += share
+                if self.overlay.mode == "iso":
+                    # The surface's depth ends one interval and starts the next.
+                    c, sigma = _volume_at(volume, layer.pick, ray.d)
+                    rate = layered.alpha * w * sigma * (c - layer.color)
+                    total += dr.select(layer.met, dr.detach(rate) * t, 0.0)
+            if backward:
+                dr.backward_from(δL * total, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+            else:
+                # (before the walks' forward mode consumes the input tangents)
+                dL += dr.forward_to(total, flags=dr.ADFlag.ClearEdges | dr.ADFlag.AllowNoGrad)
+        detached = [g.detached() for g in ts]
+        for g in ts:
+            g.camera, g.ray_tangent = False, None
+        for layer, W, R_k in zip(layered.layers, fronts, R):
+            seg = mi.Ray3f(ray)
+            seg.maxt = layer.end
+            adj = (Adjoint(R_k, layered.W, δL * W, δalpha, zero, zero) if backward else
+                   Adjoint(R_k, layered.W, mi.Color3f(0.0), mi.Float(0.0), zero, zero))
+            _, _, _, adj = self.walk(mode, walk_scene, tets, detached, seg, settings,
+                                     active & layer.active, adj, ts, layer.start)
+            if not backward:
+                dL += W * adj.dL
+                dalpha += adj.dalpha
+        return dL, dalpha
+
     def walk(self, mode, walk_scene, tets, ts, ray, settings, active, adj=None, ts_ad=None,
              t_start=0.0):
         """The walk of :func:`~mi_tetvr.render.walk.trace` through the tet
@@ -372,6 +463,20 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         s = self.settings
         return (f"TetVRIntegrator[n_sub={self.n_sub}, min_transmittance={s.t_min}, "
                 f"max_steps={s.max_steps}, surfaces={self.surfaces!r}]")
+
+
+def _volume_at(ts, pick, d):
+    """``(color, extinction)`` of a post-classified volume (:class:`PostClassified`
+    or :class:`Shaded`) at the pick of an isosurface of its scalar (the
+    scalar there is the pick's texel coordinate), detached."""
+    model, params = ts.model, ts.params
+    with dr.suspend_grad():
+        (c, sigma), _ = PostClassified.classify(model, params, pick.u, pick.u)
+        if isinstance(model, Shaded):
+            frame = TetFrame(params, pick.tet)
+            c = model.lit(c, frame.gradient([dr.gather(mi.Float, params.scalar, i)
+                                             for i in frame.ids]), d)
+    return dr.detach(c), dr.detach(sigma)
 
 
 mi.register_integrator("tetvr", lambda props: TetVRIntegrator(props))

@@ -223,3 +223,54 @@ def vtk_tet_grid(V, T, **point_data):
     for k, a in point_data.items():
         grid.point_data[k] = np.asarray(a, np.float64)
     return grid
+
+
+def _render_at(params, key, base, x, scene):
+    import mitsuba as mi
+    params[key] = type(params[key])(x.astype(np.float32))
+    params.update()
+    img = np.array(mi.render(scene, spp=1), np.float64)
+    params[key] = type(params[key])(base.astype(np.float32))
+    params.update()
+    return img
+
+
+def check_derivatives(scene, key, direction, h, smooth_share):
+    """Forward mode of the image along ``direction`` of parameter ``key``
+    against central differences (5 % on the smooth pixels, which must be at
+    least ``smooth_share`` of the pixels whose value moves), and reverse mode
+    of a weighted sum of the image against forward mode (1e-4). ``key`` is
+    a scene parameter, or ``integrator.<name>`` one of the integrator's."""
+    import drjit as dr
+    import mitsuba as mi
+    params = mi.traverse(scene)
+    base = np.array(params[key], np.float64)
+    direction = np.asarray(direction, np.float64)
+    dr.enable_grad(params[key])
+    dr.set_grad(params[key], type(params[key])(direction.astype(np.float32)))
+    ad = np.array(dr.forward_to(mi.render(scene, params, spp=1)), np.float64)
+    dr.disable_grad(params[key])
+    f = {s: _render_at(params, key, base, base + s * h * direction, scene)
+         for s in (-1.0, -0.5, 0.0, 0.5, 1.0)}
+    fd = [(f[1.0] - f[-1.0]) / (2 * h), (f[0.5] - f[-0.5]) / h]
+    one_sided = [(f[0.5] - f[0.0]) / (h / 2), (f[0.0] - f[-0.5]) / (h / 2)]
+    scale = np.abs(fd[1]).max()
+    assert scale > 0
+    moving = np.abs(fd[1]) > 1e-3 * scale
+    # Smooth: no kink or jump within h (the differences at both steps and
+    # on both sides agree).
+    smooth = (moving & (np.abs(fd[0] - fd[1]) <= 0.01 * np.abs(fd[1]))
+              & (np.abs(one_sided[0] - one_sided[1]) <= 0.05 * np.abs(fd[1])))
+    assert smooth.sum() >= smooth_share * moving.sum() and smooth.sum() > 50, \
+        (smooth.sum(), moving.sum())
+    err = np.abs(ad - fd[1])[smooth] / np.abs(fd[1])[smooth]
+    assert err.max() < 0.05, (err.max(), np.median(err))
+
+    w = np.random.default_rng(3).normal(size=ad.shape)
+    dr.enable_grad(params[key])
+    dr.backward(dr.sum(mi.render(scene, params, spp=1) * mi.TensorXf(w.astype(np.float32)),
+                       axis=None))
+    grad = np.array(dr.grad(params[key]), np.float64)
+    dr.disable_grad(params[key])
+    reverse, forward = grad @ direction, float(np.sum(w * ad))
+    assert abs(reverse - forward) <= 1e-4 * np.abs(w * ad).sum(), (reverse, forward)

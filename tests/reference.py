@@ -371,6 +371,58 @@ def reference_slice(vertices, tets, scalar, origins, directions, origin, normal,
     return np.where(met, value, np.nan), met
 
 
+def reference_vertex_gradients(vertices, tets, scalar):
+    """(n, 3) float64: each vertex's gradient of a per-vertex scalar, the
+    gradients of the tets around it averaged by their volumes."""
+    v = np.asarray(vertices, np.float64)
+    t = np.asarray(tets, np.int64)
+    G = reference_tet_gradients(v, t, scalar)
+    vol = np.abs(np.linalg.det(np.stack([v[t[:, k]] - v[t[:, 0]] for k in (1, 2, 3)], 1)))
+    total, weight = np.zeros((len(v), 3)), np.zeros(len(v))
+    for k in range(4):
+        np.add.at(total, t[:, k], G * vol[:, None])
+        np.add.at(weight, t[:, k], vol)
+    return total / np.where(weight > 0, weight, 1.0)[:, None]
+
+
+def reference_isosurface(vertices, tets, scalar, origins, directions, value, t_min=0.0):
+    """The first point past ``t_min`` (scalar or per ray) where each ray's
+    interpolated scalar equals ``value``, in float64: every ray clipped
+    against every tet, the scalar linear along each piece, its crossing
+    solved there. Returns ``t (k,)`` (inf where there is none) and the
+    smooth normal there ``(k, 3)`` (:func:`reference_vertex_gradients`
+    interpolated by the crossing's barycentrics)."""
+    sca = np.asarray(scalar, np.float64).reshape(-1)
+    Gv = reference_vertex_gradients(vertices, tets, sca)
+    k = np.asarray(origins).reshape(-1, 3).shape[0]
+    lo = np.broadcast_to(np.asarray(t_min, np.float64), (k,))
+
+    def pieces(ray, tet, t0, t1, l0, l1, vid):
+        s0 = np.einsum("si,si->s", l0, sca[vid])
+        s1 = np.einsum("si,si->s", l1, sca[vid])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f = (value - s0) / (s1 - s0)
+        ok = (s1 != s0) & (f >= 0) & (f <= 1)
+        f = np.where(ok, f, 0.0)
+        t = t0 + f * (t1 - t0)
+        ok &= t > lo[ray]
+        lam = l0 + f[:, None] * (l1 - l0)
+        n = np.einsum("si,sij->sj", lam, Gv[vid])
+        return ray[ok], t[ok], n[ok]
+
+    t_hit, normal = np.full(k, np.inf), np.zeros((k, 3))
+    out = _pieces(vertices, tets, (len(sca), pieces), origins, directions, np.inf)
+    if out is None:
+        return t_hit, normal
+    ray, t, n = out
+    order = np.lexsort((t, ray))
+    ray, t, n = ray[order], t[order], n[order]
+    first = np.r_[True, ray[1:] != ray[:-1]] if ray.size else np.zeros(0, bool)
+    t_hit[ray[first]] = t[first]
+    normal[ray[first]] = n[first]
+    return t_hit, normal
+
+
 def reference_render_meshes(meshes, origins, directions, background=(0, 0, 0), t_max=np.inf,
                             n_quad=16):
     """The reference for several meshes in one scene, as one medium.

@@ -679,11 +679,18 @@ class Slice(RayValue):
     def accumulate(self, L, T, C, T_seg):
         return tree_select(T_seg < 1.0, C, L), T * T_seg
 
-    def replay_value(self, frame, values, L, o, d):
+    def depth(self, o, d):
+        """Where the rays ``(o, d)`` meet the plane."""
         origin, normal = self.plane()
         slope = dr.dot(d, normal)
-        t = dr.dot(origin - o, normal) / dr.select(slope != 0.0, slope, 1.0)
-        return frame.at(values, o + d * t)
+        return dr.dot(origin - o, normal) / dr.select(slope != 0.0, slope, 1.0)
+
+    def replay_value(self, frame, values, L, o, d):
+        return frame.at(values, o + d * self.depth(o, d))
+
+    def replay_surface(self, params, buf, L, o, d):
+        """``(color, t)``: :meth:`replay` and the plane's depth (fixed)."""
+        return self.replay(params, buf, L, o, d), self.depth(o, d)
 
 
 class Isosurface(RayValue):
@@ -767,6 +774,11 @@ class Isosurface(RayValue):
         return color * self.lambert(L.n, d), met, L.p
 
     def replay(self, params, buf, L, o, d):
+        return self.replay_surface(params, buf, L, o, d)[0]
+
+    def replay_surface(self, params, buf, L, o, d):
+        """``(color, t)``: :meth:`replay` and the hit's depth along the ray,
+        both closed forms in the hit's tet (differentiable)."""
         _, met = self.value(L)
         frame = TetFrame(buf, L.tet, met)
         values = [PostClassified.gather(self, params, i, met).u for i in frame.ids]
@@ -777,7 +789,7 @@ class Isosurface(RayValue):
         x = o + d * t
         n = sum((lam * dr.gather(mi.Vector3f, params.gradients, i, met)
                  for lam, i in zip(frame.weights(x), frame.ids)), mi.Vector3f(0.0))
-        return dr.select(met, self.color(params, w) * self.lambert(n, d), 0.0)
+        return dr.select(met, self.color(params, w) * self.lambert(n, d), 0.0), t
 
 
 #: Samples of the pre-integrated table along the front and back scalar (at
