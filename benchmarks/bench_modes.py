@@ -152,6 +152,12 @@ def main(a):
                                    target, fov, a.repeat)
             row.update(vtk="vtkCutter + render", vtk_filter_s=f, vtk_render_s=r)
         rows.append(row)
+    for name, opacity in (("volume + isosurface", 1.0), ("volume + iso, opacity 0.5", 0.5)):
+        overlay = {"type": "tetproj", "mode": "iso", "iso": str(iso), "opacity": opacity}
+        s, runs = ours(path, scalar, {"type": "tetvr", "overlay": overlay}, eye, target, fov,
+                       a.res, a.repeat)
+        rows.append(dict(mode=name, ours_s=s, ours_runs=runs,
+                         note="(tetvr with a tetproj overlay)"))
     s, runs = ours(path, scalar, {"type": "tetvr", "clip_origin": centre, "clip_normal": normal},
                    eye, target, fov, a.res, a.repeat)
     f, r, rr = vtk_clipped_volume(grid, centre, normal, a.res, eye, target, fov, a.repeat)

@@ -3,6 +3,7 @@
     mi-tetvr render SCENE.xml|MESH [MESH ...|SERIES.pvd] -o OUT.exr|.png|.mp4 [-o ...]
                     [--res WxH] [--spp N]
                     [--tf TF|COLORMAP] [--mode dvr|max|min|mean|slice|iso] [--view AZ,EL]
+                    [--iso V,...] [--plane X,Y,Z,NX,NY,NZ] [--surface-opacity A]
                     [--clip X,Y,Z,NX,NY,NZ] [--clip-box X0,Y0,Z0,X1,Y1,Z1] [--orbit N]
     mi-tetvr info MESH [--json]
     mi-tetvr make-scenes [-o DIR]
@@ -213,15 +214,34 @@ def mesh_scene(a, mesh, framing):
     if a.shade and a.mode != "dvr":
         sys.exit("mi-tetvr: --shade lights volume rendering (--mode dvr)")
     integrator = {"type": "tetvr"} if a.mode == "dvr" else {"type": "tetproj", "mode": a.mode}
-    if a.mode == "iso":
-        integrator["iso"] = a.iso or str(sum(framing["value_range"]) / 2)
-    elif a.iso is not None:
-        sys.exit("mi-tetvr: --iso gives the isovalues of --mode iso")
-    if a.mode == "slice":
+    # The surfaces: tetproj's own (--mode iso|slice), or drawn in the volume
+    # (--mode dvr with --iso or --plane: tetvr's overlay).
+    surface = {"iso": "iso", "slice": "slice"}.get(a.mode)
+    if a.mode == "dvr" and (a.iso is not None or a.plane):
+        if a.iso is not None and a.plane:
+            sys.exit("mi-tetvr: the volume takes one kind of surface: --iso or --plane")
+        if not a.tf:
+            sys.exit("mi-tetvr: --iso or --plane in volume rendering needs --tf (a scalar)")
+        surface = "iso" if a.iso is not None else "slice"
+    elif surface != "iso" and a.iso is not None:
+        sys.exit("mi-tetvr: --iso gives the isovalues of --mode iso (or dvr)")
+    elif surface != "slice" and a.plane:
+        sys.exit("mi-tetvr: --plane is the plane of --mode slice (or dvr)")
+    if a.surface_opacity is not None and (surface is None or not 0 < a.surface_opacity <= 1):
+        sys.exit("mi-tetvr: --surface-opacity is an opacity in (0, 1] of isosurfaces and "
+                 "slices")
+    props = {}
+    if surface == "iso":
+        props["iso"] = a.iso or str(sum(framing["value_range"]) / 2)
+    elif surface == "slice":
         plane = a.plane or (*((lo + hi) / 2), *a.up)
-        integrator.update(origin=list(plane[:3]), normal=list(plane[3:]))
-    elif a.plane:
-        sys.exit("mi-tetvr: --plane is the plane of --mode slice")
+        props.update(origin=list(plane[:3]), normal=list(plane[3:]))
+    if a.surface_opacity is not None:
+        props["opacity"] = a.surface_opacity
+    if a.mode == "dvr" and surface is not None:
+        integrator["overlay"] = {"type": "tetproj", "mode": surface, **props}
+    else:
+        integrator.update(props)
     if a.clip:
         integrator.update(clip_origin=list(a.clip[:3]), clip_normal=list(a.clip[3:]))
     if a.clip_box:
@@ -410,9 +430,10 @@ def cmd_render(a):
         if given:
             sys.exit(f"mi-tetvr: {', '.join(given)} {'frames' if len(given) == 1 else 'frame'}"
                      f" a mesh file; an XML scene's sensor says where it looks")
-        _refuse(a, ("tf", "scalar", "plane", "clip", "clip_box", "iso", "shade"),
-                "to an XML scene (its "
-                "shapes name their transfer functions, its integrator its mode and clip)")
+        _refuse(a, ("tf", "scalar", "plane", "clip", "clip_box", "iso", "shade",
+                    "surface_opacity"),
+                "to an XML scene (its shapes name their transfer functions, its integrator "
+                "its mode and clip)")
         if a.opacity_scale != OPACITY_SCALE:
             sys.exit("mi-tetvr: --opacity-scale applies to a mesh file rendered with --tf")
         if a.mode != "dvr":
@@ -953,10 +974,14 @@ def build_parser():
                    "--tf: light the volume by a headlight at the scalar's gradient (ParaView's "
                    "Shade)")
     r.add_argument("--iso", metavar="V[,V...]", help="--mode iso: the isovalue(s), in the "
-                   "scalar's units (default: the middle of its range)")
+                   "scalar's units (default: the middle of its range); with --mode dvr: "
+                   "isosurfaces drawn in the volume")
     r.add_argument("--plane", type=_numbers_of(6), metavar="X,Y,Z,NX,NY,NZ",
                    help="--mode slice: a point of the plane and its normal (default: the "
-                   "mesh's centre, normal --up)")
+                   "mesh's centre, normal --up); with --mode dvr: a slice drawn in the volume")
+    r.add_argument("--surface-opacity", type=float, metavar="A",
+                   help="isosurfaces and slices: their opacity in (0, 1] (default 1); below 1 "
+                   "what lies behind shows through")
     r.add_argument("--clip", type=_numbers_of(6), metavar="X,Y,Z,NX,NY,NZ",
                    help="mesh file: cut away what lies beyond the plane through X,Y,Z on the "
                    "side its normal points to")

@@ -319,11 +319,37 @@ def test_render_a_mesh_file(tmp_path):
     cut = read_image(tmp_path / "slice.exr")[..., 3] > 0
     assert cut.any() and not np.any(cut & ~met)
     # an isosurface at the middle of the range: inside the projection's coverage
-    r = run("render", mesh, "--mode", "iso", "--res", "24x16", "--view", "30,20",
-            "-o", str(tmp_path / "iso.exr"))
+    import mi_tetvr
+    values = next(iter(mi_tetvr.read_tetmesh(mesh).point_data.values()))
+    middle = (float(np.min(values)) + float(np.max(values))) / 2
+    r = run("render", mesh, "--mode", "iso", "--iso", str(middle), "--res", "24x16",
+            "--view", "30,20", "-o", str(tmp_path / "iso.exr"))
     assert r.returncode == 0, r.stderr
     iso = read_image(tmp_path / "iso.exr")[..., 3] > 0
     assert iso.any() and not np.any(iso & ~met)
+    # the isosurface drawn in the volume: where it is met, the volume in
+    # front of it and the surface replace what lay behind; elsewhere the
+    # volume alone, unchanged
+    r = run("render", mesh, "--tf", "scenes/tf_radial.json", "--iso", str(middle),
+            "--res", "24x16", "--view", "30,20", "-o", str(tmp_path / "dvr_iso.exr"))
+    assert r.returncode == 0, r.stderr
+    both = read_image(tmp_path / "dvr_iso.exr")
+    changed = np.abs(both - images["dvr"]).max(-1) > 1e-6
+    assert changed.any() and np.array_equal(changed, iso)
+    assert np.all(both[..., 3][iso] > 0.999)
+    # translucent: between the volume alone and the opaque surface
+    r = run("render", mesh, "--tf", "scenes/tf_radial.json", "--iso", str(middle),
+            "--surface-opacity", "0.5", "--res", "24x16", "--view", "30,20",
+            "-o", str(tmp_path / "dvr_iso_half.exr"))
+    assert r.returncode == 0, r.stderr
+    half = read_image(tmp_path / "dvr_iso_half.exr")
+    assert np.array_equal(np.abs(half - images["dvr"]).max(-1) > 1e-6, iso)
+    for flags, said in ((["--iso", "0.5", "--plane", "0,0,0,0,0,1"], "one kind of surface"),
+                        (["--surface-opacity", "0.5"], "--surface-opacity is an opacity"),
+                        (["--iso", "0.5", "--surface-opacity", "1.5"], "an opacity in (0, 1]")):
+        r = run("render", mesh, "--tf", "scenes/tf_radial.json", "-o", str(tmp_path / "x.png"),
+                *flags)
+        assert r.returncode != 0 and said in r.stderr, r.stderr
     # clipped away on one side of a plane: less of the mesh, nothing new
     r = run("render", mesh, "--mode", "max", "--res", "24x16", "--view", "30,20",
             "--clip", "0,0,0,1,0,0", "-o", str(tmp_path / "clip.exr"))

@@ -197,14 +197,15 @@ def test_volume_and_surface_tutorial(tmp_path):
 
 
 def test_visualize_modes_tutorial(data_dir, tmp_path):
-    """``tutorials/visualize_modes.py`` shrunk to 48x36: six finite views and
+    """``tutorials/visualize_modes.py`` shrunk to 48x36: eight finite views and
     the figure; what each mode covers nests as it must: the slice and the
     isosurfaces lie inside what the maximum projection covers (the mesh),
-    the clipped volume is less opaque than the whole one, nowhere more."""
+    the clipped volume is less opaque than the whole one, nowhere more, and
+    the volume with a surface drawn in it more opaque, nowhere less."""
     r = _tutorial("visualize_modes").main(["--res", "48", "--quiet", "--out", str(tmp_path),
                                            "--variant", VARIANT])
     assert Path(r["files"]["modes"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert len(r["images"]) == 6
+    assert len(r["images"]) == 8
     for img in r["images"].values():
         assert img.shape == (36, 48, 3) and np.all(np.isfinite(img))
     cover = {k.split(" (")[0].split(" ")[0]: v for k, v in r["coverage"].items()}
@@ -212,6 +213,10 @@ def test_visualize_modes_tutorial(data_dir, tmp_path):
     for name in ("slice", "isosurfaces"):
         seen = cover[name] > 0
         assert seen.any() and not np.any(seen & ~mesh), name
-    volume = [v for k, v in r["coverage"].items() if k.startswith("volume")]
-    whole, clipped = volume
+    whole = r["coverage"]["volume (tetvr)"]
+    clipped, = (v for k, v in r["coverage"].items() if k.startswith("volume clipped"))
     assert np.all(clipped <= whole + 1e-5) and clipped.sum() < 0.9 * whole.sum()
+    drawn = [v for k, v in r["coverage"].items() if k.startswith("volume +")]
+    assert len(drawn) == 2
+    for d in drawn:
+        assert np.all(d >= whole - 1e-5) and np.any(d > whole + 1e-3)

@@ -15,9 +15,12 @@ Each view is a Mitsuba scene of the same ``tetmesh`` (NASA's Blunt Fin,
 * ``tetproj`` with ``mode`` ``iso``: the first of the isosurfaces ``iso``
   (comma-separated values) each ray meets, lit by a headlight;
 * ``tetvr`` with ``clip_origin`` / ``clip_normal``: the volume cut by a
-  plane.
+  plane;
+* ``tetvr`` with an ``overlay`` (a ``tetproj`` in mode ``iso`` or ``slice``):
+  a translucent isosurface (``opacity`` 0.5) or a slice drawn inside the
+  volume, as ParaView shows a volume with a contour or a slice.
 
-The script writes ``modes.png`` (the six side by side) to ``--out`` and
+The script writes ``modes.png`` (the eight side by side) to ``--out`` and
 prints each view's time. The command line does the same one view at a time:
 ``mi-tetvr render bluntfin_tets.vtu --scalar Density --tf viridis --mode max``.
 
@@ -53,7 +56,7 @@ def parse_args(argv=None):
 
 
 def views(lo, hi, values):
-    """The six integrators: name -> integrator dict."""
+    """The eight integrators: name -> integrator dict."""
     centre = ((lo + hi) / 2).tolist()
     q = np.quantile(values, [0.5, 0.97])
     return {
@@ -66,6 +69,12 @@ def views(lo, hi, values):
             "type": "tetproj", "mode": "iso", "iso": f"{q[0]},{q[1]}"},
         "volume clipped at y = centre (tetvr)": {"type": "tetvr", "clip_origin": centre,
                                                  "clip_normal": [0.0, 1.0, 0.0]},
+        f"volume + isosurface {q[0]:.3g}, opacity 0.5 (tetvr overlay)": {
+            "type": "tetvr", "overlay": {"type": "tetproj", "mode": "iso", "iso": f"{q[0]}",
+                                         "opacity": 0.5}},
+        "volume + slice y = centre (tetvr overlay)": {
+            "type": "tetvr", "overlay": {"type": "tetproj", "mode": "slice", "origin": centre,
+                                         "normal": [0.0, 1.0, 0.0]}},
     }
 
 
@@ -119,9 +128,9 @@ def main(argv=None):
 def plot(path, images):
     from matplotlib.figure import Figure
     from mi_tetvr.color import linear_to_srgb
-    fig = Figure(figsize=(12, 6.2))
+    fig = Figure(figsize=(16, 6.2))
     for k, (name, img) in enumerate(images.items()):
-        ax = fig.add_subplot(2, 3, k + 1)
+        ax = fig.add_subplot(2, 4, k + 1)
         ax.imshow(linear_to_srgb(np.clip(img, 0, 1)))
         ax.set_title(name, fontsize=9)
         ax.axis("off")
