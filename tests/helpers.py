@@ -274,3 +274,32 @@ def check_derivatives(scene, key, direction, h, smooth_share):
     dr.disable_grad(params[key])
     reverse, forward = grad @ direction, float(np.sum(w * ad))
     assert abs(reverse - forward) <= 1e-4 * np.abs(w * ad).sum(), (reverse, forward)
+
+
+def grid_field():
+    """``(V, T, scalar)``: a jittered 4x4x4 grid of [-1, 1]^3 and a smooth
+    scalar that spans [-1, 1] several times across it."""
+    from mi_tetvr.mesh.generate import grid_mesh
+    V, T = grid_mesh(4, jitter=0.12, seed=7)
+    return V, T, np.sin(2.2 * V[:, 0] + 1.3 * V[:, 1]) * np.cos(1.7 * V[:, 2])
+
+
+def grid_field_scene(integrator, transfer_function, size, resolution=64):
+    """A scene of :func:`grid_field` (shape ``m``, the scalar over [-1, 1]
+    through ``resolution`` texels) seen by an orthographic camera on
+    ``size`` x ``size`` pixels, one ray each, rendered by ``integrator``."""
+    import mitsuba as mi
+    import mi_tetvr
+    V, T, scalar = grid_field()
+    return mi.load_dict({
+        "type": "scene",
+        "integrator": integrator,
+        "sensor": {"type": "orthographic",
+                   "to_world": mi.ScalarTransform4f().look_at(
+                       origin=[2.5, 1.5, 3.0], target=[0, 0, 0], up=[0, 1, 0])
+                   @ mi.ScalarTransform4f().scale([1.6, 1.6, 1]),
+                   "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
+                   "film": {"type": "hdrfilm", "width": size, "height": size,
+                            "pixel_format": "rgb", "rfilter": {"type": "box"}}},
+        "m": mi_tetvr.tetmesh_dict(V, T, scalar=scalar, transfer_function=transfer_function,
+                                   value_min=-1.0, value_max=1.0, tf_resolution=resolution)})

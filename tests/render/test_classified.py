@@ -9,10 +9,9 @@ import pytest
 
 import mitsuba as mi
 import mi_tetvr
-from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.transfer import read_transfer_function
-from tests.helpers import (Problem, check_along, interior_positions, make_rays, rays_at,
-                           render_rays)
+from tests.helpers import (Problem, check_along, grid_field, interior_positions, make_rays,
+                           rays_at, render_rays)
 from tests.reference import reference_render_classified
 
 TOL = 3e-3
@@ -38,9 +37,7 @@ def peaked_tf(tmp_path_factory):
 def field():
     """A jittered grid and a smooth scalar that spans the range several
     times across it (a tet's segment crosses several texels)."""
-    V, T = grid_mesh(4, jitter=0.12, seed=7)
-    scalar = np.sin(2.2 * V[:, 0] + 1.3 * V[:, 1]) * np.cos(1.7 * V[:, 2])
-    return V, T, scalar
+    return grid_field()
 
 
 def interior(field):

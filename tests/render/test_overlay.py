@@ -12,9 +12,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-import mi_tetvr
-from mi_tetvr.mesh.generate import grid_mesh
-from tests.helpers import check_derivatives, interior_positions, make_rays, rays_at
+from tests.helpers import (check_derivatives, grid_field, grid_field_scene, interior_positions,
+                           make_rays, rays_at)
 from tests.reference import reference_isosurface, reference_render_classified, reference_slice
 
 RANGE = (-1.0, 1.0)
@@ -26,11 +25,7 @@ ISO = [RANGE[0] + k * (RANGE[1] - RANGE[0]) / RESOLUTION for k in (40, 18)]
 PLANE = ([0.1, 0.0, -0.05], [0.3, 0.2, 1.0])
 
 
-def field_of(V):
-    return np.sin(2.2 * V[:, 0] + 1.3 * V[:, 1]) * np.cos(1.7 * V[:, 2])
-
-
-MESH = grid_mesh(4, jitter=0.12, seed=7)
+MESH = grid_field()[:2]
 
 
 def overlay_of(mode, opacity, values=ISO):
@@ -42,21 +37,8 @@ def overlay_of(mode, opacity, values=ISO):
     return out
 
 
-def scene_of(integrator, size=SIZE):
-    V, T = MESH
-    return mi.load_dict({
-        "type": "scene",
-        "integrator": integrator,
-        "sensor": {"type": "orthographic",
-                   "to_world": mi.ScalarTransform4f().look_at(
-                       origin=[2.5, 1.5, 3.0], target=[0, 0, 0], up=[0, 1, 0])
-                   @ mi.ScalarTransform4f().scale([1.6, 1.6, 1]),
-                   "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
-                   "film": {"type": "hdrfilm", "width": size, "height": size,
-                            "pixel_format": "rgb", "rfilter": {"type": "box"}}},
-        "m": mi_tetvr.tetmesh_dict(V, T, scalar=field_of(V), transfer_function="viridis",
-                                   value_min=RANGE[0], value_max=RANGE[1],
-                                   tf_resolution=RESOLUTION)})
+def scene_of(integrator):
+    return grid_field_scene(integrator, "viridis", SIZE, RESOLUTION)
 
 
 def tf_color_at(params, value):
@@ -152,8 +134,8 @@ def test_translucent_layers_show_what_lies_behind():
             L, _, _, _ = scene.integrator().sample(dr.ADMode.Primal, scene, None,
                                                     make_rays(o, d), None, None, True)
         out[a] = np.array(L, np.float64).T
-    t, _ = reference_isosurface(*MESH, field_of(MESH[0]), o, d, ISO[0])
-    t2, _ = reference_isosurface(*MESH, field_of(MESH[0]), o, d, ISO[1])
+    t, _ = reference_isosurface(*MESH, grid_field()[2], o, d, ISO[0])
+    t2, _ = reference_isosurface(*MESH, grid_field()[2], o, d, ISO[1])
     met = np.isfinite(t) | np.isfinite(t2)
     assert met.sum() > 10 and (~met).sum() > 5
     differs = np.abs(out[1.0] - out[0.45]).max(1) > 1e-5

@@ -5,14 +5,11 @@ image is smooth in the parameter (differences at steps h and h/2, and on
 either side, agree: not across a silhouette, the slice's rim, a tie of the
 maximum or a kink of the transfer function), and
 reverse mode against forward mode."""
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 
-import mi_tetvr
-from mi_tetvr.mesh.generate import grid_mesh
-from tests.helpers import check_derivatives
+from tests.helpers import check_derivatives, grid_field_scene
 
 SIZE = 24
 RANGE = (-1.0, 1.0)
@@ -21,25 +18,9 @@ RESOLUTION = 64
 ISO = RANGE[0] + 38.0 * (RANGE[1] - RANGE[0]) / RESOLUTION
 
 
-def field_of(V):
-    return np.sin(2.2 * V[:, 0] + 1.3 * V[:, 1]) * np.cos(1.7 * V[:, 2])
-
-
 def scene_of(mode, tf, **integrator):
-    V, T = grid_mesh(4, jitter=0.12, seed=7)
-    return mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "tetproj", "mode": mode, **integrator},
-        "sensor": {"type": "orthographic",
-                   "to_world": mi.ScalarTransform4f().look_at(
-                       origin=[2.5, 1.5, 3.0], target=[0, 0, 0], up=[0, 1, 0])
-                   @ mi.ScalarTransform4f().scale([1.6, 1.6, 1]),
-                   "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
-                   "film": {"type": "hdrfilm", "width": SIZE, "height": SIZE,
-                            "pixel_format": "rgb", "rfilter": {"type": "box"}}},
-        "m": mi_tetvr.tetmesh_dict(V, T, scalar=field_of(V), transfer_function=tf,
-                                   value_min=RANGE[0], value_max=RANGE[1],
-                                   tf_resolution=RESOLUTION)})
+    return grid_field_scene({"type": "tetproj", "mode": mode, **integrator}, tf, SIZE,
+                            RESOLUTION)
 
 
 @pytest.fixture(scope="module")
