@@ -279,6 +279,15 @@ def _numbers_of(k, nonzero=False):
     return arg
 
 
+def _values(text):
+    """An argparse type: one or more comma-separated numbers, as given."""
+    try:
+        return ",".join(repr(float(v)) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") \
+            from None
+
+
 def _render_defaults(a):
     """``render`` with the mesh flags' defaults filled in (and whether they were given)."""
     a.view_given, a.up_given = a.view is not None, a.up is not None
@@ -973,7 +982,7 @@ def build_parser():
     r.add_argument("--shade", action="store_true", help="mesh file, volume rendering with "
                    "--tf: light the volume by a headlight at the scalar's gradient (ParaView's "
                    "Shade)")
-    r.add_argument("--iso", metavar="V[,V...]", help="--mode iso: the isovalue(s), in the "
+    r.add_argument("--iso", type=_values, metavar="V[,V...]", help="--mode iso: the isovalue(s), in the "
                    "scalar's units (default: the middle of its range); with --mode dvr: "
                    "isosurfaces drawn in the volume")
     r.add_argument("--plane", type=_numbers_of(6), metavar="X,Y,Z,NX,NY,NZ",

@@ -161,23 +161,22 @@ class TetProjIntegrator(mi.ad.integrators.common.RBIntegrator):
         :class:`~mi_tetvr.render.optical.Pick` (for the derivative passes)."""
         ts = self.tet_scene(scene)
         ray, t_start, active = self.clipped(ray, active)
-        L, _, _, _ = trace(dr.ADMode.Primal, scene, ts, ray, self.settings_for(scene), active,
-                           t_start=t_start)
-        if isinstance(ts.model, Isosurface):
-            out = ts.model.shade(ts.params, L, ray.d)
-        else:
-            out = ts.model.finish(ts.params, L)
+        out, L = self.walk(scene, ts, ray, t_start, active)
         return (*out, L) if picks else out
+
+    def walk(self, scene, ts, ray, start, active):
+        """``((color, met, scalar or hit point), pick)`` of the rays walked
+        from ``start``."""
+        L, _, _, _ = trace(dr.ADMode.Primal, scene, ts, ray, self.settings_for(scene), active,
+                           t_start=start)
+        if isinstance(ts.model, Isosurface):
+            return ts.model.shade(ts.params, L, ray.d), L
+        return ts.model.finish(ts.params, L), L
 
     def find(self, scene, ts, ray, start, active):
         """``(met, color, pick, t)``: the first surface (slice or isosurface)
         along ``ray`` after ``start``."""
-        L, _, _, _ = trace(dr.ADMode.Primal, scene, ts, ray, self.settings_for(scene), active,
-                           t_start=start)
-        if isinstance(ts.model, Isosurface):
-            color, met, _ = ts.model.shade(ts.params, L, ray.d)
-        else:
-            color, met, _ = ts.model.finish(ts.params, L)
+        (color, met, _), L = self.walk(scene, ts, ray, start, active)
         return met, color, L, dr.dot(L.p - ray.o, ray.d)
 
     def layered(self, scene, ray, t_start=0.0, active=True, volume=None, t_min=1e-4):

@@ -470,6 +470,9 @@ def _volume_at(ts, pick, d):
     or :class:`Shaded`) at the pick of an isosurface of its scalar (the
     scalar there is the pick's texel coordinate), detached."""
     model, params = ts.model, ts.params
+    if not hasattr(params, "tf_color"):
+        raise ValueError("tetvr: the derivatives of an isosurface overlay need the volume's "
+                         "transfer function: use classification 'post' (not 'preintegrated')")
     with dr.suspend_grad():
         (c, sigma), _ = PostClassified.classify(model, params, pick.u, pick.u)
         if isinstance(model, Shaded):

@@ -215,6 +215,16 @@ def check_along(problem, key, h, rng, restrict=None):
     assert abs(fwd - reverse) < 0.01 * abs(reverse), (fwd, reverse)
 
 
+def vtk_plane(origin, normal):
+    """VTK's implicit plane through ``origin`` with ``normal`` (the clip and
+    cut filters' function)."""
+    from vtkmodules.vtkCommonDataModel import vtkPlane
+    plane = vtkPlane()
+    plane.SetOrigin(*origin)
+    plane.SetNormal(*normal)
+    return plane
+
+
 def vtk_tet_grid(V, T, **point_data):
     """A pyvista unstructured grid of the tets with float64 point arrays (the
     input of the VTK filters the tests compare with)."""

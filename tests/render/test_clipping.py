@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mi_tetvr.mesh.generate import grid_mesh
-from tests.helpers import make_rays, make_scene, rays_at, render_rays, vtk_tet_grid
+from tests.helpers import make_rays, make_scene, rays_at, render_rays, vtk_plane, vtk_tet_grid
 from tests.reference import reference_projection, reference_render
 
 TOL = 3e-3          # tetvr's default settings against the reference (as tests/render)
@@ -26,17 +26,13 @@ def vtk_clip(V, T, arrays, planes):
     """The mesh cut by VTK at ``planes`` ((origin, normal), ...: what the
     normals point to is cut away) as tets with its point arrays."""
     import pyvista as pv
-    from vtkmodules.vtkCommonDataModel import vtkPlane
     from vtkmodules.vtkFiltersGeneral import vtkClipDataSet, vtkDataSetTriangleFilter
     grid = vtk_tet_grid(V, T, **arrays)
     data = grid
     for origin, normal in planes:
-        f = vtkPlane()
-        f.SetOrigin(*origin)
-        f.SetNormal(*normal)
         clip = vtkClipDataSet()
         clip.SetInputData(data)
-        clip.SetClipFunction(f)
+        clip.SetClipFunction(vtk_plane(origin, normal))
         clip.InsideOutOn()          # keep where (p - origin) . normal <= 0
         clip.Update()
         data = clip.GetOutput()

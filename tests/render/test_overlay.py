@@ -12,6 +12,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+import mi_tetvr
 from tests.helpers import (check_derivatives, grid_field, grid_field_scene, interior_positions,
                            make_rays, rays_at)
 from tests.reference import reference_isosurface, reference_render_classified, reference_slice
@@ -193,3 +194,21 @@ def test_overlay_refusals():
         mi.load_dict({"type": "tetproj", "mode": "iso", "iso": "0", "opacity": 0.0})
     with pytest.raises(Exception, match="apply to surfaces"):
         mi.load_dict({"type": "tetproj", "mode": "max", "opacity": 0.5})
+
+
+def test_overlay_refuses_derivatives_it_cannot_take():
+    """A pre-integrated volume has no transfer function texels in its walk
+    (the isosurface's depth term needs them): said, not a crash."""
+    scene = scene_of({"type": "tetvr", "overlay": overlay_of("iso", 1.0)})
+    V, T, scalar = grid_field()
+    pre = mi.load_dict({"type": "scene", "integrator": {"type": "tetvr",
+                                                        "overlay": overlay_of("iso", 1.0)},
+                        "sensor": scene.sensors()[0],
+                        "m": mi_tetvr.tetmesh_dict(V, T, scalar=scalar,
+                                                   transfer_function="viridis",
+                                                   value_min=-1.0, value_max=1.0,
+                                                   classification="preintegrated")})
+    params = mi.traverse(pre)
+    dr.enable_grad(params["m.vertex_scalar"])
+    with pytest.raises(ValueError, match="classification 'post'"):
+        dr.backward(mi.render(pre, params, spp=1))

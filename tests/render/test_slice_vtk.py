@@ -9,21 +9,17 @@ import numpy as np
 
 import mi_tetvr
 from mi_tetvr.mesh.generate import grid_mesh
-from tests.helpers import make_rays, rays_at, vtk_tet_grid
+from tests.helpers import make_rays, rays_at, vtk_plane, vtk_tet_grid
 
 
 def vtk_cut(V, T, scalar, origin, normal):
     """``(points, triangles, scalar at the points)`` of VTK's cut."""
     import pyvista as pv
-    from vtkmodules.vtkCommonDataModel import vtkPlane
     from vtkmodules.vtkFiltersCore import vtkCutter
     grid = vtk_tet_grid(V, T, s=scalar)
-    plane = vtkPlane()
-    plane.SetOrigin(*origin)
-    plane.SetNormal(*normal)
     cutter = vtkCutter()
     cutter.SetInputData(grid)
-    cutter.SetCutFunction(plane)
+    cutter.SetCutFunction(vtk_plane(origin, normal))
     cutter.Update()
     out = pv.wrap(cutter.GetOutput()).triangulate()
     return (np.asarray(out.points, np.float64), out.faces.reshape(-1, 4)[:, 1:],
