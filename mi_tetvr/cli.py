@@ -5,15 +5,18 @@
                     [--tf TF|COLORMAP] [--mode dvr|max|min|mean|slice|iso] [--view AZ,EL]
                     [--iso V,...] [--plane X,Y,Z,NX,NY,NZ] [--surface-opacity A]
                     [--clip X,Y,Z,NX,NY,NZ] [--clip-box X0,Y0,Z0,X1,Y1,Z1] [--orbit N]
+                    [--value-range LO,HI] [--sensor SENSOR.xml]
     mi-tetvr info MESH [--json]
     mi-tetvr make-scenes [-o DIR]
     mi-tetvr make-dataset VOLUME|MESH (--tf TF | --xray) -o DIR [--views N] [--res WxH]
     mi-tetvr make-capture -o DIR [--views N] [--res WxH] [--spp S]
     mi-tetvr process-data IMAGES_DIR|VIDEO -o DIR [--reference DATA]
-    mi-tetvr fit DATA -o DIR [--config FILE] [--print-config] [--time-budget MIN] [...]
+    mi-tetvr fit DATA -o DIR [--config FILE] [--print-config] [--time-budget MIN] [--viewer]
+                 [...]
     mi-tetvr eval FIT_DIR|MESH DATA [-o METRICS.json]
     mi-tetvr refine MESH --select ARRAY [--fraction F] -o OUT
     mi-tetvr viewpoint MESH -o DIR [--tf TF] [--res WxH]
+    mi-tetvr view MESH|SCENE.xml|DATA|FIT_DIR [--tf TF] [--port P] [--host H] [--res N]
 
 Conventions (every command): ``-o/--out`` names what a command writes (a file or a
 folder); ``--res WxH`` (or ``N`` for N x N) is an image size in pixels; ``--variant``
@@ -193,7 +196,7 @@ def mesh_scene(a, mesh, framing):
     tf = a.tf or ("gray" if a.mode != "dvr" else None)
     if tf:
         # a file, or a matplotlib colormap's name
-        lo_v, hi_v = framing["value_range"]
+        lo_v, hi_v = a.value_range or framing["value_range"]
         name = framing["scalar"]
         # a point array, or a cell array (dvr: constant in each tet)
         values = ({"scalar": mesh.point_data[name]} if name in mesh.point_data
@@ -304,11 +307,21 @@ def _load_or_exit(mi, scene_dict, path):
         sys.exit(f"mi-tetvr: cannot load {path}: {_plugin_error(e)}")
 
 
+def render_rgba(image):
+    """The (h, w, 4) RGBA of a render on an ``rgba`` film: where the integrator
+    adds an ``alpha`` channel (``tetvr``: R, G, B, the film's alpha, alpha),
+    that is the coverage; the film's own is 1 wherever ``tetvr`` sampled."""
+    image = np.asarray(image)
+    if image.shape[-1] == 5:
+        return np.concatenate([image[..., :3], image[..., 4:5]], -1)
+    return image
+
+
 def _render_or_exit(mi, scene, path, **kwargs):
-    """``mi.render`` as an array, or a one-line exit naming the innermost
-    error (Dr.Jit wraps the integrator's)."""
+    """``mi.render`` as an array (:func:`render_rgba`), or a one-line exit
+    naming the innermost error (Dr.Jit wraps the integrator's)."""
     try:
-        return np.array(mi.render(scene, **kwargs))
+        return render_rgba(np.array(mi.render(scene, **kwargs)))
     except Exception as e:
         while (e.__cause__ or e.__context__) is not None:
             e = e.__cause__ or e.__context__
@@ -416,6 +429,20 @@ def cmd_render(a):
     if is_mesh and a.tf and Path(a.tf).suffix.lower() in (".json", ".xml") \
             and not Path(a.tf).exists():
         sys.exit(f"mi-tetvr: transfer function file not found: {a.tf}")
+    if a.value_range is not None and not a.value_range[1] > a.value_range[0]:
+        sys.exit(f"mi-tetvr: --value-range needs LO < HI, got {a.value_range}")
+    if a.value_range is not None and is_mesh and not (a.tf or a.mode != "dvr"):
+        sys.exit("mi-tetvr: --value-range is the range of a scalar's transfer function: it "
+                 "needs --tf (or a projection --mode)")
+    if a.sensor is not None:
+        given = [f for f, on in (("--orbit", a.orbit is not None), ("--res", res is not None),
+                                 ("--view", a.view_given), ("--up", a.up_given),
+                                 ("a series", series)) if on]
+        if given:
+            sys.exit(f"mi-tetvr: --sensor says where the camera is and its film's size; "
+                     f"{', '.join(given)} cannot be combined with it")
+        if not Path(a.sensor).is_file():
+            sys.exit(f"mi-tetvr: sensor file not found: {a.sensor}")
     if a.orbit is not None and (not is_mesh or series):
         sys.exit("mi-tetvr: --orbit circles one mesh file (an XML scene's sensors stay)")
     if a.orbit is not None and a.orbit < 1:
@@ -440,7 +467,7 @@ def cmd_render(a):
             sys.exit(f"mi-tetvr: {', '.join(given)} {'frames' if len(given) == 1 else 'frame'}"
                      f" a mesh file; an XML scene's sensor says where it looks")
         _refuse(a, ("tf", "scalar", "plane", "clip", "clip_box", "iso", "shade",
-                    "surface_opacity"),
+                    "surface_opacity", "value_range"),
                 "to an XML scene (its shapes name their transfer functions, its integrator "
                 "its mode and clip)")
         if a.opacity_scale != OPACITY_SCALE:
@@ -465,8 +492,17 @@ def cmd_render(a):
             scene = mi.load_string(text)
         except Exception as e:
             sys.exit(f"mi-tetvr: cannot load {scene_path}: {_plugin_error(e)}")
+    sensor = None
+    if a.sensor is not None:
+        try:
+            sensor = mi.load_file(str(a.sensor))
+        except Exception as e:
+            sys.exit(f"mi-tetvr: cannot load the sensor {a.sensor}: {_plugin_error(e)}")
+        if not isinstance(sensor, mi.Sensor):
+            sys.exit(f"mi-tetvr: {a.sensor} holds a {type(sensor).__name__}, not a sensor")
     t1 = time.time()
-    img = _render_or_exit(mi, scene, scene_path, spp=a.spp or 0)
+    img = _render_or_exit(mi, scene, scene_path, spp=a.spp or 0,
+                          **({} if sensor is None else {"sensor": sensor}))
     t2 = time.time()
     rgb = img[..., :3]
     alpha = img[..., 3] if img.shape[-1] > 3 else None
@@ -569,8 +605,21 @@ def cmd_fit(a):
     data = _load_data(a.data, cfg.downscale, a.holdout)
     print(f"{a.data}: {len(data.train)} training and {len(data.test)} test views "
           f"({data.train[0].camera.width}x{data.train[0].camera.height})")
+    Path(a.out).mkdir(parents=True, exist_ok=True)
+    # what `view FIT_DIR` and `eval` find the data set by
+    (Path(a.out) / "data.json").write_text(json.dumps(
+        {"data": str(Path(a.data).resolve()), "holdout": a.holdout}, indent=2))
+    viewer = None
+    if a.viewer:
+        def viewer(trainer):
+            from mi_tetvr.apps.viewer import FitViewer
+            v = FitViewer(trainer, port=a.port, host=a.host, resolution=a.view_res,
+                          save_dir=Path(a.out) / "views")
+            print(f"viewer: {v.url}" + _forwarding(a.host, v.port))
+            return v
     try:
-        metrics = run(data, a.out, cfg, resume=not a.restart, progress=not a.quiet)
+        metrics = run(data, a.out, cfg, resume=not a.restart, progress=not a.quiet,
+                      viewer=viewer)
     except KeyboardInterrupt:
         sys.exit("mi-tetvr: interrupted; progress saved (run the same command to resume)")
     m = metrics["mean"]
@@ -581,6 +630,89 @@ def cmd_fit(a):
           f"{len(metrics['views'])} view(s) [{metrics['split']}]; {metrics['tets']:,} tets, "
           f"{metrics['step']:,} steps, {metrics['wall_seconds']:.0f} s -> "
           f"{Path(a.out) / result}")
+
+
+def _forwarding(host, port):
+    """How to open a viewer served on this machine from another one."""
+    if host not in ("127.0.0.1", "localhost"):
+        return ""
+    return (f" (from another machine: ssh -N -L {port}:localhost:{port} USER@THIS_HOST, "
+            f"then open http://localhost:{port})")
+
+
+def fit_dataset(fit_dir, data=None):
+    """``(config, data set)`` of a fit's folder: its settings, and its data set
+    (``data``, else the one its ``data.json`` records) at the fit's downscale."""
+    from mi_tetvr.recon.config import FitConfig
+    fit_dir = Path(fit_dir)
+    config = FitConfig.from_file(fit_dir / "config.json")
+    holdout = 8
+    if data is None:
+        record = fit_dir / "data.json"
+        if not record.is_file():
+            raise ValueError(f"{fit_dir} does not record its data set (fits before data.json "
+                             f"was written): give it with --data DATA")
+        saved = json.loads(record.read_text())
+        data, holdout = saved["data"], saved.get("holdout", 8)
+    return config, _load_data(data, config.downscale, holdout)
+
+
+def view_shown(a):
+    """What ``view PATH`` shows: a fit's folder, a data set, an XML scene or a mesh."""
+    import mitsuba as mi
+
+    from mi_tetvr.apps.viewer import DataShown, FitShown, MeshShown, SceneShown
+    path = Path(a.path)
+    if not path.exists():
+        sys.exit(f"mi-tetvr: not found: {path}")
+    fit = path.is_dir() and (path / "checkpoint.npz").is_file() \
+        and (path / "config.json").is_file()
+    mesh = path.suffix.lower() in MESH_SUFFIXES and not _is_image_data(path)
+    if not mesh:
+        _refuse(a, ("tf", "scalar"), "to a fit, a data set or an XML scene (a mesh file's "
+                "scalar is classified by them)")
+    elif a.data:
+        sys.exit("mi-tetvr: --data names a fit's data set")
+    if fit:
+        from mi_tetvr.recon.checkpoint import load_checkpoint
+        config, data = fit_dataset(path, a.data)
+        print(f"{path}: loading the fit ({len(data.train)} training and {len(data.test)} "
+              f"test views)")
+        return FitShown(load_checkpoint(path / "checkpoint.npz", data, config))
+    if mesh:
+        return MeshShown(path, tf=a.tf, scalar=a.scalar, repair=a.repair,
+                         cell_to_point=a.cell_to_point, up=a.up)
+    if path.suffix.lower() == ".xml":
+        from mi_tetvr.apps.viewer import SceneShown
+        try:
+            props = {k: True for k in ("repair", "cell_to_point") if getattr(a, k)}
+            mi.file_resolver().prepend(str(path.resolve().parent))
+            scene = mi.load_string(scene_xml(path, None, props, None))
+        except Exception as e:
+            sys.exit(f"mi-tetvr: cannot load {path}: {_plugin_error(e)}")
+        return SceneShown(scene, path, up=a.up)
+    if a.data:
+        sys.exit("mi-tetvr: --data names a fit's data set")
+    return DataShown(_load_data(path, a.downscale, 8))
+
+
+def cmd_view(a):
+    _set_variant(a.variant)
+    if a.res is not None and a.res[0] != a.res[1]:
+        sys.exit("mi-tetvr: --res of the viewer is one number, the image's longer side (the "
+                 "browser's window sets its shape)")
+    from mi_tetvr.apps.viewer import Viewer
+    shown = view_shown(a)
+    viewer = Viewer(shown, port=a.port, host=a.host, resolution=(a.res or (512,))[0],
+                    spp=a.spp, save_dir=a.out)
+    print(f"viewer: {viewer.url}" + _forwarding(a.host, viewer.port)
+          + "; Ctrl-C stops it")
+    try:
+        viewer.run(seconds=a.seconds)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.stop()
 
 
 def cmd_eval(a):
@@ -889,6 +1021,15 @@ def _mesh_flags(parser):
                         help="average the mesh's per-cell arrays onto its vertices")
 
 
+def _serve(parser):
+    parser.add_argument("--port", type=int, default=8080,
+                        help="viewer: the port to serve on (default 8080; the next free one "
+                        "when taken)")
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="viewer: the address to listen on (default 127.0.0.1, this "
+                        "machine only; 0.0.0.0: every network)")
+
+
 def _res(parser, default, help="image size in pixels, WxH or N"):
     parser.add_argument("--res", type=image_size, default=default, metavar="WxH",
                         help=f"{help} (default {default[0]}x{default[1]})" if default else help)
@@ -996,6 +1137,12 @@ def build_parser():
                    "side its normal points to")
     r.add_argument("--clip-box", type=_numbers_of(6), metavar="X0,Y0,Z0,X1,Y1,Z1",
                    help="mesh file: cut away what lies outside the box")
+    r.add_argument("--value-range", type=_numbers_of(2), metavar="LO,HI",
+                   help="mesh file with --tf or a projection: the scalar values the transfer "
+                   "function spans (default: the data's range)")
+    r.add_argument("--sensor", metavar="SENSOR.xml",
+                   help="render from this Mitsuba sensor (e.g. one the viewer saved) instead "
+                   "of the scene's camera (a mesh file: instead of --view)")
     r.add_argument("--view", type=_numbers_of(2), default=None, metavar="AZ,EL",
                    help="mesh file: camera azimuth and elevation in degrees about --up "
                    "(default 45,30)")
@@ -1114,9 +1261,40 @@ def build_parser():
     f.add_argument("--holdout", type=int, default=8,
                    help="with a train split only: every N-th view is a test view (default 8)")
     f.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
+    f.add_argument("--viewer", action="store_true", help="show the fit in the browser while it "
+                   "runs: the mesh from the browser's camera between steps (in at most 10%% of "
+                   "the time), the loss curve and the stage")
+    _serve(f)
+    f.add_argument("--view-res", type=int, default=384, metavar="N",
+                   help="--viewer: the refined image's longer side (default 384)")
     _quiet(f)
     _variant(f)
     f.set_defaults(func=cmd_fit, config_dests=config_flags(f))
+
+    w = sub.add_parser("view", help="a live viewer in the browser of a mesh, an XML scene, "
+                       "a data set's cameras and images, or a fit (with its cameras)")
+    w.add_argument("path", help="tet mesh file, Mitsuba XML scene, data set folder, or a fit's "
+                   "output folder")
+    w.add_argument("--tf", help="mesh file: the transfer function of its scalar (a file or a "
+                   "matplotlib colormap's name; the page offers presets)")
+    w.add_argument("--scalar", help="mesh file: the array shown first (default: color and "
+                   "opacity when it has them, else its only scalar)")
+    w.add_argument("--data", help="fit folder: its data set (default: the one it records)")
+    w.add_argument("--downscale", type=int, help="data set: shrink its images by this factor")
+    w.add_argument("--up", type=_numbers_of(3, nonzero=True), default=(0.0, 0.0, 1.0),
+                   metavar="X,Y,Z", help="mesh file or XML scene: the up axis (default 0,0,1)")
+    _res(w, None, "the refined image's longer side in pixels (default 512; the browser "
+         "window sets the shape)")
+    w.add_argument("--spp", type=int, default=1, help="passes the refined image accumulates "
+                   "(default 1)")
+    _serve(w)
+    w.add_argument("--seconds", type=float, help="stop after this many seconds (default: at "
+                   "Ctrl-C)")
+    _out(w, "folder the save button writes images and cameras to (default views)",
+         required=False)
+    _mesh_flags(w)
+    _variant(w)
+    w.set_defaults(func=cmd_view, out="views")
 
     e = sub.add_parser("eval", help="PSNR/SSIM of a fit (or a colored mesh) on a data set's "
                        "views, scored as the fit scores itself")

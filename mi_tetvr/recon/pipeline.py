@@ -385,7 +385,7 @@ def check_resume(config: FitConfig, ckpt_path):
 
 
 def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=print,
-        now=time.perf_counter):
+        now=time.perf_counter, viewer=None):
     """Fit, checkpointing to ``out_dir``; returns the final metrics dict.
 
     Runs ``config``'s stages in order (one stage unless ``config.stages``);
@@ -400,6 +400,10 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     (:func:`write_outputs`); ``resume=True`` continues from
     ``out_dir/checkpoint.npz``. ``progress`` shows a progress bar. ``now`` is
     the clock the time budget is kept by (seconds; tests pass a simulated one).
+    ``viewer``: a function of the trainer that returns a
+    :class:`~mi_tetvr.apps.viewer.FitViewer` (``fit --viewer``): it renders
+    the mesh between steps, within its share of the time, and is stopped at
+    the end.
     """
     from mi_tetvr.progress import progress_bar as tqdm
 
@@ -470,6 +474,13 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     else:
         bar = tqdm(total=sum(st["iterations"] for st in stages), initial=trainer.state.step,
                    disable=not progress, unit="step", dynamic_ncols=True)
+    live = viewer(trainer) if viewer is not None else None
+
+    def stage_text():
+        st = stages[trainer.state.stage]
+        grid = f", grid {st['grid']}" if st.get("grid") else ""
+        return (f"stage {trainer.state.stage + 1} of {len(stages)}{grid}: "
+                f"{len(trainer.tets):,} tets")
     steps_begin, train_begin = trainer.state.step, now()
     seconds = trainer.state.elapsed
     recent_mse = collections.deque(maxlen=config.log_every)   # sRGB MSE of the last steps
@@ -497,6 +508,8 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
                                     psnr=f"{psnr(recent):.2f}", tets=f"{len(trainer.tets):,}")
                 if state.step % config.checkpoint_every == 0:
                     save_checkpoint(trainer, ckpt_path)
+                if live is not None:
+                    live.after_step(trainer, loss, h["psnr"][-1], stage_text())
                 if clock is None and state.step == steps_begin + 5:
                     rate = (now() - train_begin) / 5
                     total = sum(st["iterations"] for st in stages) - steps_begin
@@ -505,6 +518,8 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
             if trainer.state.stage + 1 == len(stages):
                 break
             trainer = next_stage(trainer, config, log)
+            if live is not None:
+                live.set_trainer(trainer)
             if clock:
                 clock.begin_stage(trainer.state.stage, output_seconds(trainer, now))
             save_checkpoint(trainer, ckpt_path)
@@ -514,6 +529,8 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     finally:
         bar.close()
         save_checkpoint(trainer, ckpt_path)
+        if live is not None:
+            live.stop()
     optimization = now() - train_begin
     if clock:
         log(f"time budget: {trainer.state.step - steps_begin} steps in {optimization:.0f} s")
