@@ -8,10 +8,17 @@ set -euo pipefail
 cd "$(dirname "$0")"
 # Dr.Jit's LLVM backend crashes with libLLVM 14/15; Debian's libllvm19 works
 # and is picked up automatically once installed.
+SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
 if ! ls /usr/lib/x86_64-linux-gnu/libLLVM-19.so* /usr/lib/*/libLLVM.so.19* >/dev/null 2>&1; then
-    SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
     $SUDO apt-get update -qq
     $SUDO apt-get install -y -qq libllvm19 >/dev/null
+fi
+# Debian's Chromium and its driver run the viewer's test in a real browser
+# (where they cannot be installed that test skips and says why).
+if ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null 2>&1; then
+    { $SUDO apt-get update -qq && $SUDO env DEBIAN_FRONTEND=noninteractive \
+        apt-get install -y -qq chromium chromium-driver >/dev/null; } \
+        || echo "setup.sh: could not install chromium and chromium-driver" >&2
 fi
 python3 -m pip install -q -e ".[test]"
 python3 -m mi_tetvr.cli make-scenes >/dev/null

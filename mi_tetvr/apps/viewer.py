@@ -35,7 +35,6 @@ and SSIM (scored as the fit scores itself, :meth:`Trainer.evaluate`).
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import threading
@@ -183,8 +182,10 @@ class Shown:
             return None
         return _render(self.scene, camera, self.integrator(), spp, seed)
 
-    def controls(self, gui, changed):
-        """Add this kind's controls to ``gui``; they call ``changed()`` after a change."""
+    def controls(self, gui, later):
+        """Add this kind's controls to ``gui``. Their callbacks run in viser's
+        threads: they hand what they do to ``later(fn)``, which runs ``fn()``
+        in the viewer's thread and then renders every view again."""
 
     def compare(self, view):
         """``(render, metrics)`` of a data set's view, or None (nothing to compare)."""
@@ -217,7 +218,7 @@ class SceneShown(Shown):
                           if k.endswith(("tf_opacity", "vertex_opacity"))}
         self.scale = 1.0
 
-    def controls(self, gui, changed):
+    def controls(self, gui, later):
         if not self.opacities:
             return
         with gui.add_folder("Volume"):
@@ -226,8 +227,9 @@ class SceneShown(Shown):
 
         @s.on_update
         def _(_):
-            self.set_opacity_scale(10.0 ** s.value)
-            changed()
+            value = 10.0 ** s.value
+            later(lambda: self.set_opacity_scale(value))
+        self.handles = dict(opacity_scale=s)
 
     def set_opacity_scale(self, scale):
         self.scale = float(scale)
@@ -397,14 +399,17 @@ class MeshShown(Shown):
         self.message = ""
         return True
 
-    def controls(self, gui, changed):
+    def controls(self, gui, later):
         def on(handle, what, set_value):
             @handle.on_update
             def _(_):
-                set_value(handle.value)
-                self.apply(what)
-                show()
-                changed()
+                value = handle.value
+
+                def run():
+                    set_value(value)
+                    self.apply(what)
+                    show()
+                later(run)
 
         with gui.add_folder("Volume"):
             arrays = ["color, opacity"] * (not self.array or "color" in self.mesh.point_data
@@ -474,8 +479,11 @@ class MeshShown(Shown):
 
         @reset.on_click
         def _(_):
-            self.value_range = self.data_range
-            lo.value, hi.value = self.data_range     # (their callbacks apply it)
+            def run():
+                self.value_range = self.data_range
+                self.apply("texels")
+                lo.value, hi.value = self.data_range
+            later(run)
 
         show()
         #: The controls by name (tests and scripts set them as the page does).
@@ -660,6 +668,13 @@ class Viewer:
                 c.latency = {}
         self._wake.set()
 
+    def later(self, fn):
+        """Run ``fn()`` in the viewer's thread (the one that renders), then render
+        every view again."""
+        with self._lock:
+            self._jobs.append(("call", None, fn))
+        self._wake.set()
+
     def _connect(self, client):
         position, target = self.start_camera()
 
@@ -775,7 +790,7 @@ class Viewer:
     def _build_gui(self):
         gui = self.server.gui
         gui.configure_theme(control_width="large")
-        self.shown.controls(gui, self.changed)
+        self.shown.controls(gui, self.later)
         with gui.add_folder("View"):
             res = gui.add_dropdown("resolution", tuple(str(r) for r in RESOLUTIONS),
                                    initial_value=str(self.resolution))
@@ -853,7 +868,11 @@ class Viewer:
             self.frusta.append(f)
 
     def _run_job(self, kind, key, payload):
-        if kind == "save":
+        if kind == "call":
+            payload()
+            self.changed()
+            self._status()
+        elif kind == "save":
             self.save(key)
         elif kind == "compare":
             self.compare(key, *payload)
