@@ -19,13 +19,13 @@ from tests.helpers import ROOT, VARIANT
 POSITIONAL = {"render": ["s.xml"], "info": ["m.vtu"], "make-scenes": [],
               "make-dataset": ["v.npy"], "make-capture": [], "process-data": ["photos"],
               "fit": ["data"], "eval": ["fit", "data"], "refine": ["m.vtu"],
-              "viewpoint": ["m.vtu"]}
+              "viewpoint": ["m.vtu"], "view": ["m.vtu"]}
 REQUIRED = {"refine": ["--select", "x"]}
 WRITES = set(POSITIONAL) - {"info"}
-RENDERS = {"render", "make-dataset", "make-capture", "fit", "eval", "viewpoint"}
+RENDERS = {"render", "make-dataset", "make-capture", "fit", "eval", "viewpoint", "view"}
 SHOWS_PROGRESS = {"make-dataset", "make-capture", "process-data", "fit", "viewpoint"}
-READS_MESHES = {"render", "info", "make-dataset", "fit", "eval", "refine", "viewpoint"}
-MAKES_IMAGES = {"render", "make-dataset", "make-capture", "viewpoint"}
+READS_MESHES = {"render", "info", "make-dataset", "fit", "eval", "refine", "viewpoint", "view"}
+MAKES_IMAGES = {"render", "make-dataset", "make-capture", "viewpoint", "view"}
 
 
 def parse(cmd, *flags):

@@ -256,7 +256,6 @@ class MeshShown(Shown):
         import warnings
 
         import mi_tetvr
-        from mi_tetvr.mesh.io import choose_scalar
         from mi_tetvr.mesh.topology import bounding_radius
         self.path = Path(path)
         with warnings.catch_warnings():
@@ -274,9 +273,14 @@ class MeshShown(Shown):
             or not self.scalars
         #: What is shown: "" (the color and opacity arrays) or a scalar's name.
         self.array = ""
+        if scalar is not None and scalar not in self.scalars:
+            raise ValueError(f"{path} has no scalar array {scalar!r} (its scalar arrays: "
+                             f"{', '.join(self.scalars) or 'none'})")
+        if tf and not self.scalars:
+            raise ValueError(f"{path} has no scalar array for a transfer function")
         if not has_colors or tf or scalar:
-            self.array = scalar or choose_scalar(self.mesh.point_data, None, str(path),
-                                                 self.mesh.cell_data, cells=True)
+            # the one asked for, else the first (the page offers the others)
+            self.array = scalar or self.scalars[0]
         self.tf = tf or PRESETS[0]
         self.presets = ((tf,) if tf and tf not in PRESETS else ()) + PRESETS
         self.mode, self.opacity_scale, self.shade = "volume", 1.0, False
@@ -606,6 +610,7 @@ class Viewer:
         self._jobs = []                    # (kind, client id, payload) for the render thread
         self._stop = threading.Event()
         self.rendered = 0                  # images rendered (all levels)
+        self._cost = {}                    # seconds of the last render of each size
         self.render_seconds = 0.0
         self.server = None
         if server:
@@ -630,14 +635,23 @@ class Viewer:
 
     # -- clients
     def start_camera(self):
-        """``(position, look_at)`` of the first view: ``render MESH``'s (azimuth 45,
-        elevation 30 degrees about ``up``), the whole scene in the field of view."""
+        """``(position, look_at, vertical fov)`` of the first view: a data set's first
+        test camera (else its first), looking at the scene's centre; else
+        ``render MESH``'s (azimuth 45, elevation 30 degrees about ``up``), the
+        whole scene in the field of view."""
         from mi_tetvr.camera import orbit_to_world
         s = self.shown
+        data = s.dataset
+        if data is not None and (data.test or data.train):
+            view = (data.test or data.train)[0]
+            if view.camera.pixel_size is None:
+                if view.name in getattr(self, "frusta", {}):
+                    self.frusta[view.name].visible = False     # it would hide the view
+                return view.camera.center, s.centre, camera_pose(view.camera)[2]
         distance = 1.05 * s.radius / math.sin(math.radians(START_FOV) / 2)
         m = np.array(orbit_to_world(45.0, 30.0, distance, s.centre.tolist(), s.up.tolist()).matrix,
                      np.float64).reshape(4, 4)
-        return m[:3, 3], s.centre
+        return m[:3, 3], s.centre, math.radians(START_FOV)
 
     def add_client(self, key, push, position, wxyz, fov, aspect):
         """Track a view (a browser's, or a program's): ``push(image, final)``
@@ -676,14 +690,14 @@ class Viewer:
         self._wake.set()
 
     def _connect(self, client):
-        position, target = self.start_camera()
+        position, target, fov = self.start_camera()
 
         def push(image, final):
             client.scene.set_background_image(image, format="png" if final else "jpeg",
                                               jpeg_quality=None if final else 90)
         cam = client.camera
         with client.atomic():
-            cam.fov = math.radians(START_FOV)
+            cam.fov = fov
             cam.up_direction = tuple(float(v) for v in self.shown.up)
             cam.position = tuple(float(v) for v in position)
             cam.look_at = tuple(float(v) for v in target)
@@ -725,11 +739,11 @@ class Viewer:
             return True
         if nxt is None or self.shown.scene is None:
             return False
-        if budget is not None and budget <= 0.0:
-            return False
-        t0 = time.perf_counter()
         full = level >= len(LEVELS) - 1
         side = max(32, round(self.resolution * LEVELS[min(level, len(LEVELS) - 1)]))
+        if budget is not None and budget <= self._cost.get(side, 0.0):
+            return False                       # (what this size took last time)
+        t0 = time.perf_counter()
         camera = browser_camera(*pose, side)
         try:
             image = self.shown.render(camera, spp=1, seed=max(level - len(LEVELS) + 1, 0))
@@ -740,6 +754,7 @@ class Viewer:
             self._status()
             return True
         dt = time.perf_counter() - t0
+        self._cost[side] = dt
         self.render_seconds += dt
         self.rendered += 1
         with self._lock:
@@ -792,7 +807,8 @@ class Viewer:
         gui.configure_theme(control_width="large")
         self.shown.controls(gui, self.later)
         with gui.add_folder("View"):
-            res = gui.add_dropdown("resolution", tuple(str(r) for r in RESOLUTIONS),
+            sizes = sorted(set(RESOLUTIONS) | {self.resolution})
+            res = gui.add_dropdown("resolution", tuple(str(r) for r in sizes),
                                    initial_value=str(self.resolution))
             spp = gui.add_slider("samples per pixel", min=1, max=16, step=1,
                                  initial_value=self.spp)
@@ -844,12 +860,14 @@ class Viewer:
             return
         views = [("train", v) for v in data.train] + [("test", v) for v in data.test]
         centres = np.array([v.camera.center for _, v in views])
-        scale = 0.04 * float(np.linalg.norm(centres.max(0) - centres.min(0)) or self.shown.radius)
+        scale = 0.025 * float(np.linalg.norm(centres.max(0) - centres.min(0))
+                              or self.shown.radius)
         with self.server.gui.add_folder("Compare"):
             self._compare_md = self.server.gui.add_markdown(
                 "click a camera: its view, the render beside the image, PSNR")
-            self._compare_img = None
-        self.frusta = []
+            self._compare_img = self.server.gui.add_image(np.zeros((8, 16, 3), np.uint8),
+                                                          format="png", visible=False)
+        self.frusta = {}
         for k, (split, view) in enumerate(views):
             if view.camera.pixel_size is not None:
                 continue                  # parallel beams have no frustum
@@ -858,6 +876,7 @@ class Viewer:
             f = self.server.scene.add_camera_frustum(
                 f"/cameras/{split}/{k:04d}", fov=fov, aspect=aspect, scale=scale,
                 image=thumb, format="jpeg", wxyz=wxyz, position=position,
+                thickness=1.5, thickness_units="screen",
                 color=(40, 90, 220) if split == "train" else (240, 140, 20))
 
             def click(event, view=view, split=split):
@@ -865,7 +884,7 @@ class Viewer:
                     self._jobs.append(("compare", event.client.client_id, (view, split)))
                 self._wake.set()
             f.on_click(click)
-            self.frusta.append(f)
+            self.frusta[view.name] = f
 
     def _run_job(self, kind, key, payload):
         if kind == "call":
@@ -880,13 +899,17 @@ class Viewer:
     def compare(self, key, view, split):
         """Move view ``key`` to a data set's camera and show the render beside its
         image with the metrics."""
-        position, wxyz, fov, aspect = camera_pose(view.camera)
+        position, wxyz, fov, _ = camera_pose(view.camera)
         client = self.server.get_clients().get(key) if self.server else None
         if client is not None:
             with client.atomic():
                 client.camera.wxyz = tuple(wxyz)
                 client.camera.position = tuple(position)
                 client.camera.fov = fov
+            # the camera's own frustum would hide the view: shown again when another
+            # camera is clicked
+            for name, f in self.frusta.items():
+                f.visible = name != view.name
         render, metrics = self.shown.compare(view)
         target = srgb8(np.asarray(view.image, np.float64), self.background)
         if render is not None:
@@ -900,12 +923,11 @@ class Viewer:
         self.compared = dict(view=view.name, split=split, metrics=metrics)
         if self.server is not None:
             self._compare_md.content = text
-            if self._compare_img is None:
-                with self.server.gui.add_folder("Compare"):
-                    self._compare_img = self.server.gui.add_image(pair, format="png")
-            else:
-                self._compare_img.image = pair
-        self.set_camera(key, position, wxyz, fov, aspect)
+            self._compare_img.image = pair
+            self._compare_img.visible = True
+        with self._lock:
+            aspect = self.clients[key].aspect if key in self.clients else 1.0
+        self.set_camera(key, position, wxyz, fov, aspect)     # the window keeps its shape
 
     def save(self, key):
         """Write the view of ``key`` at full resolution: ``view_NNN.png`` (sRGB over

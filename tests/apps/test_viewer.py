@@ -39,7 +39,7 @@ def mesh_file(tmp_path_factory):
 def start_pose(viewer, aspect=1.5):
     """Viser's pose (position, wxyz, vertical fov) of the viewer's first view."""
     from mi_tetvr.camera import Camera, look_at
-    position, target = viewer.start_camera()
+    position, target, _ = viewer.start_camera()
     cam = Camera(300, 200, 250.0, 250.0, 150.0, 100.0, look_at(position, target,
                                                                viewer.shown.up))
     p, q, fov, _ = camera_pose(cam)
@@ -241,3 +241,34 @@ def test_the_page_in_a_real_browser(mesh_file):
     finally:
         browser.quit()
         viewer.stop()
+
+
+def test_the_commands_serve_fits_data_and_meshes(data, mesh_file, tmp_path, capsys):
+    """``fit --viewer`` serves while it fits and records its data set; ``view``
+    opens the fit's folder (its data set found from that record), the data
+    set and the mesh; a click on a test camera moves the view there and
+    scores it as the fit scored it (its metrics.json)."""
+    import json
+
+    from mi_tetvr.apps.viewer import FitShown
+    from mi_tetvr.cli import fit_dataset, main
+    from mi_tetvr.recon.checkpoint import load_checkpoint
+    fit = tmp_path / "fit"
+    main(["fit", str(data.root), "-o", str(fit), "--viewer", "--port", str(_free_port()),
+          "--grid-resolution", "4", "--iterations", "6", "--n-sub", "2", "--no-jitter",
+          "--quiet"])
+    assert "viewer: http://localhost:" in capsys.readouterr().out
+    assert json.loads((fit / "data.json").read_text())["data"] == str(data.root.resolve())
+    for path in (fit, data.root, mesh_file):
+        main(["view", str(path), "--port", str(_free_port()), "--seconds", "0.5"])
+        assert "viewer: http://localhost:" in capsys.readouterr().out
+    config, dataset = fit_dataset(fit)
+    viewer = Viewer(FitShown(load_checkpoint(fit / "checkpoint.npz", dataset, config)),
+                    server=False, resolution=32)
+    viewer.add_client("a", lambda im, final: None, *start_pose(viewer))
+    view = dataset.test[0]
+    viewer.compare("a", view, "test")
+    c = viewer.clients["a"]
+    np.testing.assert_allclose(c.position, view.camera.center, atol=1e-9)
+    saved = json.loads((fit / "metrics.json").read_text())["views"][view.name]
+    assert viewer.compared["metrics"]["psnr"] == pytest.approx(saved["psnr"], abs=1e-6)
