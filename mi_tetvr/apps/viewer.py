@@ -16,7 +16,7 @@ What is shown is a :class:`Shown`:
     A tet mesh file, with the controls of ``mi-tetvr render MESH`` (the
     array shown, the transfer function's preset, value range and opacity
     scale, the render mode, isovalue, slice, shading); its scene is built by
-    the command's own :func:`mi_tetvr.cli.mesh_scene`, so that a saved view is
+    the command's own :func:`mi_tetvr.apps.framing.mesh_scene`, so that a saved view is
     rendered again by ``mi-tetvr render MESH ... --sensor VIEW.xml``.
 :class:`SceneShown`
     A Mitsuba scene (an XML file, or any scene from Python): its own
@@ -139,7 +139,7 @@ def _render(scene, camera, integrator=None, spp=1, seed=0):
     d = camera.sensor_dict(spp=spp, sampler="stratified")
     d["sampler"]["jitter"] = spp > 1
     d["film"]["pixel_format"] = "rgba"
-    from mi_tetvr.cli import render_rgba
+    from mi_tetvr.apps.framing import render_rgba
     with dr.suspend_grad():
         image = render_rgba(np.array(mi.render(scene, sensor=mi.load_dict(d),
                                                integrator=integrator, spp=spp, seed=seed)))
@@ -159,9 +159,6 @@ class Shown:
     scene = None
     #: The data set whose cameras are drawn, or None.
     dataset = None
-    #: Whether the scene's parameters may change under the viewer (a fit
-    #: running): then its controls are only the viewer's own.
-    live = False
 
     def __init__(self, centre, radius, up=(0.0, 0.0, 1.0)):
         self.centre = np.asarray(centre, np.float64)
@@ -246,7 +243,7 @@ class SceneShown(Shown):
 class MeshShown(Shown):
     """A tet mesh file with ``render MESH``'s settings as controls. The
     settings are ``render``'s flags (:attr:`flags`); the scene is
-    :func:`mi_tetvr.cli.mesh_scene`'s for them. The transfer function's
+    :func:`mi_tetvr.apps.framing.mesh_scene`'s for them. The transfer function's
     preset, range and opacity scale change the shape's texels in place (as
     the shape computes them at load); the array shown and shading load the
     shape again (its topology built once); the mode changes the integrator."""
@@ -287,7 +284,7 @@ class MeshShown(Shown):
         self.iso = self.value_range = None
         self.surface_opacity = 1.0
         self.slice_axis, self.slice_at = "z", 0.5
-        self.integrator_ = None
+        self._integrator = None
         self._reset_range()
         self.load()
 
@@ -302,43 +299,51 @@ class MeshShown(Shown):
             self.value_range = self.data_range
             self.iso = sum(self.data_range) / 2
 
-    def flags(self):
-        """The ``render`` flags of the current settings (after the mesh's path)."""
-        out = []
-        if self.repair:
-            out.append("--repair")
-        if self.cell_to_point:
-            out.append("--cell-to-point")
-        if not self.array:
-            return out + (["--opacity-scale", f"{self.opacity_scale:.6g}"]
-                          if self.opacity_scale != 1.0 else [])
-        mode, surface = MODES[self.mode]
-        tf = str(Path(self.tf).resolve()) if Path(self.tf).exists() else self.tf
-        out += ["--tf", tf, "--scalar", self.array, "--mode", mode,
-                "--value-range", f"{self.value_range[0]:.9g},{self.value_range[1]:.9g}",
-                "--opacity-scale", f"{self.opacity_scale:.9g}"]
-        if self.shade and mode == "dvr":
-            out.append("--shade")
-        if surface == "iso":
-            out += ["--iso", f"{self.iso:.9g}"]
-        elif surface == "slice":
+    def settings(self):
+        """``render``'s options (as its parser gives them) for the current settings."""
+        import argparse
+        mode, surface = MODES[self.mode] if self.array else ("dvr", None)
+        plane = None
+        if surface == "slice":
             lo, hi = self.mesh.bounds
             k = "xyz".index(self.slice_axis)
             origin = (lo + hi) / 2
             origin[k] = lo[k] + self.slice_at * (hi[k] - lo[k])
-            normal = np.eye(3)[k]
-            out += ["--plane", ",".join(f"{v:.9g}" for v in (*origin, *normal))]
-        if surface and self.surface_opacity < 1.0:
-            out += ["--surface-opacity", f"{self.surface_opacity:.6g}"]
+            plane = (*origin.tolist(), *np.eye(3)[k].tolist())
+        tf = None
+        if self.array:
+            tf = str(Path(self.tf).resolve()) if Path(self.tf).exists() else self.tf
+        return argparse.Namespace(
+            tf=tf, scalar=self.array or None, mode=mode,
+            shade=bool(self.shade and self.array and mode == "dvr"),
+            iso=repr(float(self.iso)) if surface == "iso" else None, plane=plane,
+            surface_opacity=self.surface_opacity if surface and self.surface_opacity < 1
+            else None,
+            value_range=tuple(self.value_range) if self.array else None,
+            opacity_scale=self.opacity_scale if self.array else 1.0,
+            repair=self.repair, cell_to_point=self.cell_to_point, clip=None, clip_box=None,
+            res=None, spp=1, view=(45.0, 30.0), up=tuple(float(v) for v in self.up))
+
+    def flags(self):
+        """The ``render`` flags of the current settings (after the mesh's path)."""
+        a = self.settings()
+        out = [f"--{k.replace('_', '-')}" for k in ("repair", "cell_to_point", "shade")
+               if getattr(a, k)]
+        if a.scalar:
+            out += ["--tf", a.tf, "--scalar", a.scalar, "--mode", a.mode,
+                    "--value-range", ",".join(repr(float(v)) for v in a.value_range),
+                    "--opacity-scale", repr(float(a.opacity_scale))]
+        for name, value in (("iso", a.iso), ("plane", a.plane),
+                            ("surface-opacity", a.surface_opacity)):
+            if value is not None:
+                out += [f"--{name}", value if isinstance(value, str) else
+                        ",".join(repr(float(v)) for v in np.atleast_1d(value))]
         return out
 
     def _scene_dict(self):
-        from mi_tetvr.cli import _mesh_extent, build_parser, mesh_framing, mesh_scene
-        a = build_parser().parse_args(["render", str(self.path), "-o", "view.png",
-                                       *self.flags()])
-        a.view, a.up = (45.0, 30.0), tuple(float(v) for v in self.up)
-        framing = mesh_framing([_mesh_extent(a, self.mesh, self.path)])
-        return mesh_scene(a, self.mesh, framing)
+        from mi_tetvr.apps.framing import mesh_extent, mesh_framing, mesh_scene
+        a = self.settings()
+        return mesh_scene(a, self.mesh, mesh_framing([mesh_extent(a, self.mesh, self.path)]))
 
     def load(self):
         """Load the shape (and the integrator) for the current settings."""
@@ -347,12 +352,12 @@ class MeshShown(Shown):
         import mi_tetvr
         try:
             d = self._scene_dict()
-        except SystemExit as e:          # a combination render refuses: say so, keep the last
-            self.message = str(e.code).removeprefix("mi-tetvr: ")
+        except ValueError as e:          # a combination render refuses: say so, keep the last
+            self.message = str(e)
             return False
         d.pop("sensor")
         d["volume"]["topology_id"] = mi_tetvr.hand_over_topology(self.topology)
-        self.integrator_ = mi.load_dict(d.pop("integrator"))
+        self._integrator = mi.load_dict(d.pop("integrator"))
         self.scene = mi.load_dict(d)
         self.params = mi.traverse(self.scene)
         self.loaded = self.flags()
@@ -360,7 +365,7 @@ class MeshShown(Shown):
         return True
 
     def integrator(self):
-        return self.integrator_
+        return self._integrator
 
     def retexel(self):
         """The shape's transfer-function texels and value range for the current
@@ -396,10 +401,10 @@ class MeshShown(Shown):
             return self.retexel()
         try:
             d = self._scene_dict()
-        except SystemExit as e:
-            self.message = str(e.code).removeprefix("mi-tetvr: ")
+        except ValueError as e:
+            self.message = str(e)
             return False
-        self.integrator_ = mi.load_dict(d["integrator"])
+        self._integrator = mi.load_dict(d["integrator"])
         self.message = ""
         return True
 
@@ -507,16 +512,15 @@ class MeshShown(Shown):
 
 class FitShown(Shown):
     """A fit: its :class:`~mi_tetvr.recon.trainer.Trainer`'s scene and its data
-    set's cameras. ``live``: the fit is running (the viewer renders between
-    its steps and changes nothing)."""
+    set's cameras, shown as fitted (no controls of its own: while it runs,
+    the fit owns its parameters)."""
 
-    def __init__(self, trainer, live=False, up=None):
+    def __init__(self, trainer, up=None):
         views = trainer.dataset.train + trainer.dataset.test
         centre, radius = _scene_of(trainer.scene)
         if up is None:
             up = _cameras_up([v.camera for v in views])
         super().__init__(centre, radius, up)
-        self.live = live
         self.set_trainer(trainer)
 
     def set_trainer(self, trainer):
@@ -990,7 +994,7 @@ class FitViewer(Viewer):
     def __init__(self, trainer, share=FIT_SHARE, **kwargs):
         self.share = float(share)
         self.began = time.perf_counter()
-        super().__init__(FitShown(trainer, live=True), **kwargs)
+        super().__init__(FitShown(trainer), **kwargs)
         self.curve = {"step": [], "loss": [], "psnr": []}
         self._plotted = 0.0
         if self.server is not None:

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from tests.helpers import use_variant
+from tests.helpers import ROOT, use_variant
 
 use_variant()
 
@@ -259,7 +259,7 @@ def test_the_commands_serve_fits_data_and_meshes(data, mesh_file, tmp_path, caps
           "--quiet"])
     assert "viewer: http://localhost:" in capsys.readouterr().out
     assert json.loads((fit / "data.json").read_text())["data"] == str(data.root.resolve())
-    for path in (fit, data.root, mesh_file):
+    for path in (fit, data.root, mesh_file, ROOT / "scenes" / "default.xml"):
         main(["view", str(path), "--port", str(_free_port()), "--seconds", "0.5"])
         assert "viewer: http://localhost:" in capsys.readouterr().out
     config, dataset = fit_dataset(fit)
@@ -272,3 +272,20 @@ def test_the_commands_serve_fits_data_and_meshes(data, mesh_file, tmp_path, caps
     np.testing.assert_allclose(c.position, view.camera.center, atol=1e-9)
     saved = json.loads((fit / "metrics.json").read_text())["views"][view.name]
     assert viewer.compared["metrics"]["psnr"] == pytest.approx(saved["psnr"], abs=1e-6)
+
+
+def test_serve_shows_a_scene_from_python():
+    """serve(scene, block=False): a viewer of any loaded scene, rendering from a
+    thread of its own until stopped."""
+    from mi_tetvr.apps.viewer import serve
+    scene = mi.load_file(str(ROOT / "scenes" / "default.xml"))
+    viewer = serve(scene, port=_free_port(), block=False, resolution=64)
+    try:
+        pushed = []
+        viewer.add_client("a", lambda im, final: pushed.append(final), *start_pose(viewer))
+        end = time.perf_counter() + 60
+        while not (pushed and pushed[-1]) and time.perf_counter() < end:
+            time.sleep(0.05)
+        assert pushed and pushed[-1]
+    finally:
+        viewer.stop()
