@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_tetvr.apps.framing import mesh_extent as _mesh_extent
-from mi_tetvr.apps.framing import mesh_framing, mesh_scene, mi_scalar_transform, render_rgba
+from mi_tetvr.apps.framing import mesh_framing, mesh_scene, render_rgba
 
 
 def _set_variant(name):

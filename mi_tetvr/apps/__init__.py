@@ -3,6 +3,10 @@
 :mod:`~mi_tetvr.apps.viewpoint`
     The best viewpoint of a volume (DiffDVR Sec. 5.1): gradient ascent of the opacity
     entropy over the camera's position on a sphere, and its plot.
+:mod:`~mi_tetvr.apps.viewer`
+    The live viewer in the browser (``mi-tetvr view``, ``fit --viewer``, :func:`serve`).
+:mod:`~mi_tetvr.apps.framing`
+    The scene of a mesh file as ``mi-tetvr render MESH`` and the viewer make it.
 
 Needs a Mitsuba variant (it renders).
 """
@@ -12,7 +16,7 @@ from mi_tetvr._lazy import lazy_exports
 
 _LAZY = {"ViewpointSearch": "viewpoint", "best_viewpoint": "viewpoint",
          "default_starts": "viewpoint", "opacity_entropy": "viewpoint",
-         "orbit_scene": "viewpoint", "plot_viewpoints": "viewpoint"}
+         "orbit_scene": "viewpoint", "plot_viewpoints": "viewpoint", "serve": "viewer"}
 
 __all__ = [*_LAZY]
 
