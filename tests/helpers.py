@@ -60,6 +60,30 @@ def make_scene(*meshes, background=None, **integrator):
     return mi.load_dict(d)
 
 
+def tetproj_scene(V, T, scalar, transfer_function="gray", value_range=(-1.0, 1.0),
+                  **integrator):
+    """A scene of one scalar mesh (its transfer function over ``value_range``;
+    ``None``: the scalar's range) under ``tetproj`` with these properties."""
+    import mitsuba as mi
+    import mi_tetvr
+    rng = {} if value_range is None else {"value_min": value_range[0],
+                                          "value_max": value_range[1]}
+    return mi.load_dict({"type": "scene", "integrator": {"type": "tetproj", **integrator},
+                         "m": mi_tetvr.tetmesh_dict(V, T, scalar=scalar,
+                                                    transfer_function=transfer_function,
+                                                    **rng)})
+
+
+def project_rays(scene, origins, directions):
+    """``tetproj``'s ``project`` of rays, no gradients: ``(color (3, k), met (k,),
+    value)`` as numpy (float64, bool, float64: the scalar (k,) or the point (3, k))."""
+    import drjit as dr
+    with dr.suspend_grad():
+        color, met, value = scene.integrator().project(scene, make_rays(origins, directions))
+    return (np.array(color, np.float64).reshape(3, -1), np.array(met, bool),
+            np.array(value, np.float64))
+
+
 def seeded_sampler(k, seed=0):
     """An ``independent`` sampler seeded for ``k`` rays (the same numbers
     for the same seed)."""

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from mi_tetvr.mesh.generate import grid_mesh
-from tests.helpers import make_rays, make_scene, rays_at, render_rays, vtk_plane, vtk_tet_grid
+from tests.helpers import (make_scene, project_rays, rays_at, render_rays,
+                           tetproj_scene, vtk_plane, vtk_tet_grid)
 from tests.reference import reference_projection, reference_render
 
 TOL = 3e-3          # tetvr's default settings against the reference (as tests/render)
@@ -72,23 +73,15 @@ def test_clip_against_the_mesh_cut_by_vtk(mesh, cut):
 
 def test_clipped_projection_against_the_mesh_cut_by_vtk(mesh):
     """tetproj's maximum on the clipped mesh: the reference's on VTK's cut."""
-    import drjit as dr
-    import mitsuba as mi
-
-    import mi_tetvr
     V, T, _, _ = mesh
     scalar = np.sin(2.0 * V[:, 0] - V[:, 1]) * np.cos(1.5 * V[:, 2])
     plane = ((0.0, 0.1, 0.05), (-0.3, 1.0, 0.2))
     Vc, Tc, arrays = vtk_clip(V, T, {"s": scalar}, [plane])
     o, d = rays_at(np.random.default_rng(6), 256, target_extent=1.2)
     ref, ref_met = reference_projection(Vc, Tc, arrays["s"], o, d, "max")
-    scene = mi.load_dict({"type": "scene", "integrator": {
-        "type": "tetproj", "clip_origin": list(plane[0]), "clip_normal": list(plane[1])},
-        "m": mi_tetvr.tetmesh_dict(V, T, scalar=scalar, transfer_function="gray",
-                                   value_min=-1.0, value_max=1.0)})
-    with dr.suspend_grad():
-        _, met, value = scene.integrator().project(scene, make_rays(o, d))
-    met, value = np.array(met, bool), np.array(value, np.float64)
+    scene = tetproj_scene(V, T, scalar, clip_origin=list(plane[0]),
+                          clip_normal=list(plane[1]))
+    _, met, value = project_rays(scene, o, d)
     both = met & ref_met
     assert both.sum() > 50 and np.count_nonzero(met != ref_met) <= 2   # grazing the cut
     np.testing.assert_allclose(value[both], ref[both], atol=1e-5)

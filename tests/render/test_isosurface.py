@@ -10,7 +10,7 @@ import pytest
 
 import mi_tetvr
 from mi_tetvr.mesh.generate import grid_mesh
-from tests.helpers import make_rays, rays_at, vtk_tet_grid
+from tests.helpers import make_rays, project_rays, rays_at, tetproj_scene, vtk_tet_grid
 
 
 def field_of(V):
@@ -53,14 +53,10 @@ def test_isosurface_against_vtk_contour(values):
     o, d = rays_at(np.random.default_rng(9), 400, target_extent=1.2)
     points, faces = vtk_contour(V, T, scalar, values)
     t_vtk, hit_vtk = mitsuba_hits(points, faces, o, d)
-    scene = mi.load_dict({"type": "scene", "integrator": {
-        "type": "tetproj", "mode": "iso", "iso": ",".join(str(v) for v in values)},
-        "m": mi_tetvr.tetmesh_dict(V, T, scalar=scalar, transfer_function="viridis",
-                                   value_min=-1.0, value_max=1.0)})
-    with dr.suspend_grad():
-        color, met, point = scene.integrator().project(scene, make_rays(o, d))
-    met = np.array(met, bool)
-    p = np.array(point, np.float64).reshape(3, -1).T
+    scene = tetproj_scene(V, T, scalar, "viridis", mode="iso",
+                          iso=",".join(str(v) for v in values))
+    color, met, point = project_rays(scene, o, d)
+    p = point.reshape(3, -1).T
     depth = np.einsum("ij,ij->i", p - o, d)
     size = np.linalg.norm(V.max(0) - V.min(0))
     both = met & hit_vtk
@@ -73,10 +69,7 @@ def test_isosurface_against_vtk_contour(values):
 
 def iso_scene(cells, value=0.2):
     V, T = grid_mesh(cells, jitter=0.12, seed=7)
-    return mi.load_dict({"type": "scene", "integrator": {
-        "type": "tetproj", "mode": "iso", "iso": str(value)},
-        "m": mi_tetvr.tetmesh_dict(V, T, scalar=field_of(V), transfer_function="viridis",
-                                   value_min=-1.0, value_max=1.0)})
+    return tetproj_scene(V, T, field_of(V), "viridis", mode="iso", iso=str(value))
 
 
 def test_isosurface_normals_converge_to_the_field_gradient():
@@ -89,10 +82,8 @@ def test_isosurface_normals_converge_to_the_field_gradient():
     errors = []
     for cells in (5, 10):
         scene = iso_scene(cells)
-        with dr.suspend_grad():
-            _, met, point = scene.integrator().project(scene, make_rays(o, d))
-        met = np.array(met, bool)
-        x, y, z = np.array(point, np.float64).reshape(3, -1)[:, met]
+        _, met, point = project_rays(scene, o, d)
+        x, y, z = point.reshape(3, -1)[:, met]
         grad = np.stack([2.2 * np.cos(2.2 * x + 1.3 * y) * np.cos(1.7 * z),
                          1.3 * np.cos(2.2 * x + 1.3 * y) * np.cos(1.7 * z),
                          -1.7 * np.sin(2.2 * x + 1.3 * y) * np.sin(1.7 * z)], 1)
@@ -140,13 +131,9 @@ def test_isosurface_against_vtk_on_real_meshes(path, name):
     t_vtk, hit_vtk = mitsuba_hits(points, faces, o, d)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        scene = mi.load_dict({"type": "scene", "integrator": {
-            "type": "tetproj", "mode": "iso", "iso": str(value)},
-            "m": mi_tetvr.tetmesh_dict(V, T, scalar=scalar, transfer_function="viridis")})
-    with dr.suspend_grad():
-        _, met, point = scene.integrator().project(scene, make_rays(o, d))
-    met = np.array(met, bool)
-    depth = np.einsum("ij,ij->i", np.array(point, np.float64).reshape(3, -1).T - o, d)
+        scene = tetproj_scene(V, T, scalar, "viridis", None, mode="iso", iso=str(value))
+    _, met, point = project_rays(scene, o, d)
+    depth = np.einsum("ij,ij->i", point.reshape(3, -1).T - o, d)
     both = met & hit_vtk
     assert both.sum() > 40, both.sum()
     err = np.abs(depth[both] - t_vtk[both])

@@ -10,7 +10,7 @@ import pytest
 
 import mi_tetvr
 from mi_tetvr.mesh.generate import grid_mesh
-from tests.helpers import make_rays, rays_at
+from tests.helpers import project_rays, rays_at
 from tests.reference import reference_projection, reference_slice
 
 RANGE = (-1.0, 1.0)
@@ -47,21 +47,18 @@ def test_projection_against_the_reference(field, mode):
     o, d = rays_at(np.random.default_rng(11), 256, target_extent=1.3)
     ref, ref_met = reference_projection(V, T, scalar, o, d, mode)
     scene = scene_of(field, mode)
-    with dr.suspend_grad():
-        color, met, value = scene.integrator().project(scene, make_rays(o, d))
-    met = np.array(met, bool)
-    value = np.array(value, np.float64)
+    color, met, value = project_rays(scene, o, d)
     assert 0 < np.count_nonzero(ref_met) < len(o)
     np.testing.assert_array_equal(met, ref_met)
     np.testing.assert_allclose(value[met], ref[met], atol=1e-5)
     from mi_tetvr.color import linear_to_srgb
-    rgb = linear_to_srgb(np.array(color, np.float64).reshape(3, -1).T)
+    rgb = linear_to_srgb(color.T)
     # gray shows the normalised value t as the sRGB grey t (the texels hold it at
     # their centres, linear in between: within 2e-3), constant beyond the end texels
     t = (ref[met] - RANGE[0]) / (RANGE[1] - RANGE[0])
     t = np.clip(t, 0.5 / RESOLUTION, 1 - 0.5 / RESOLUTION)
     np.testing.assert_allclose(rgb[met], np.repeat(t[:, None], 3, 1), atol=2e-3)
-    assert np.all(np.array(color, np.float64).reshape(3, -1)[:, ~met] == 0)
+    assert np.all(color[:, ~met] == 0)
 
 
 @pytest.mark.parametrize("plane", [((0.1, -0.2, 0.05), (0.3, 0.5, 1.0)),
@@ -78,9 +75,7 @@ def test_slice_against_the_reference(field, plane):
     o, d = rays_at(np.random.default_rng(5), 256, target_extent=1.3)
     ref, ref_met = reference_slice(V, T, scalar, o, d, origin, normal)
     scene = scene_of(field, "slice", {"origin": list(origin), "normal": list(normal)})
-    with dr.suspend_grad():
-        _, met, value = scene.integrator().project(scene, make_rays(o, d))
-    met, value = np.array(met, bool), np.array(value, np.float64)
+    _, met, value = project_rays(scene, o, d)
     t = ((np.asarray(origin) - o) @ np.asarray(normal)) / (d @ np.asarray(normal))
     p = o + t[:, None] * d
     clear = np.all(np.abs(np.abs(p) - 1.0) > 1e-4, axis=1)      # not on the box's faces

@@ -3,13 +3,11 @@ same tet mesh by the plane (polygons carrying the scalar interpolated to
 their points), Mitsuba's own ray tracer intersects their triangles along
 the same rays, and the scalar there (linear on each triangle) and the
 coverage agree with the slice's."""
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-import mi_tetvr
 from mi_tetvr.mesh.generate import grid_mesh
-from tests.helpers import make_rays, rays_at, vtk_plane, vtk_tet_grid
+from tests.helpers import make_rays, project_rays, rays_at, tetproj_scene, vtk_plane, vtk_tet_grid
 
 
 def vtk_cut(V, T, scalar, origin, normal):
@@ -46,13 +44,8 @@ def test_slice_against_vtk_cutter():
     corners = values[faces[np.where(hit_vtk, prim, 0)]]
     s_vtk = (1 - u - v) * corners[:, 0] + u * corners[:, 1] + v * corners[:, 2]
 
-    scene = mi.load_dict({"type": "scene", "integrator": {
-        "type": "tetproj", "mode": "slice", "origin": origin, "normal": normal},
-        "m": mi_tetvr.tetmesh_dict(V, T, scalar=scalar, transfer_function="gray",
-                                   value_min=-1.0, value_max=1.0)})
-    with dr.suspend_grad():
-        _, met, s = scene.integrator().project(scene, make_rays(o, d))
-    met, s = np.array(met, bool), np.array(s, np.float64)
+    scene = tetproj_scene(V, T, scalar, mode="slice", origin=origin, normal=normal)
+    _, met, s = project_rays(scene, o, d)
     both = met & hit_vtk
     assert both.sum() > 100
     assert np.abs(s[both] - s_vtk[both]).max() < 1e-5 * (scalar.max() - scalar.min())
