@@ -24,7 +24,6 @@ Usage::
 """
 from __future__ import annotations
 
-import math
 import statistics
 import subprocess
 import sys

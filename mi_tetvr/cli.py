@@ -471,6 +471,9 @@ def cmd_fit(a):
         print(json.dumps(dataclasses.asdict(cfg), indent=2))
         return
     from mi_tetvr.recon.config import INITS
+    if a.viewer and cfg.linear_solver:
+        sys.exit(f"mi-tetvr: --viewer shows the steps of an Adam fit; --model absorption "
+                 f"solves with {cfg.linear_solver} (add --solver adam to watch it)")
     if cfg.init not in INITS and not Path(cfg.init).is_file():
         sys.exit(f"mi-tetvr: --init {cfg.init}: no such mesh file (or one of "
                  f"{', '.join(INITS)})")
@@ -480,20 +483,19 @@ def cmd_fit(a):
     print(f"{a.data}: {len(data.train)} training and {len(data.test)} test views "
           f"({data.train[0].camera.width}x{data.train[0].camera.height})")
     Path(a.out).mkdir(parents=True, exist_ok=True)
-    # what `view FIT_DIR` and `eval` find the data set by
+    # what `view FIT_DIR` finds the data set by
     (Path(a.out) / "data.json").write_text(json.dumps(
         {"data": str(Path(a.data).resolve()), "holdout": a.holdout}, indent=2))
-    viewer = None
-    if a.viewer:
-        def viewer(trainer):
-            from mi_tetvr.apps.viewer import FitViewer
-            v = FitViewer(trainer, port=a.port, host=a.host, resolution=a.view_res,
-                          save_dir=Path(a.out) / "views")
-            print(f"viewer: {v.url}" + _forwarding(a.host, v.port))
-            return v
+
+    def open_viewer(trainer):
+        from mi_tetvr.apps.viewer import FitViewer
+        v = FitViewer(trainer, port=a.port, host=a.host, resolution=a.view_res,
+                      save_dir=Path(a.out) / "views")
+        print(f"viewer: {v.url}" + _forwarding(a.host, v.port))
+        return v
     try:
         metrics = run(data, a.out, cfg, resume=not a.restart, progress=not a.quiet,
-                      viewer=viewer)
+                      viewer=open_viewer if a.viewer else None)
     except KeyboardInterrupt:
         sys.exit("mi-tetvr: interrupted; progress saved (run the same command to resume)")
     m = metrics["mean"]
@@ -557,7 +559,6 @@ def view_shown(a):
         return MeshShown(path, tf=a.tf, scalar=a.scalar, repair=a.repair,
                          cell_to_point=a.cell_to_point, up=a.up)
     if path.suffix.lower() == ".xml":
-        from mi_tetvr.apps.viewer import SceneShown
         try:
             props = {k: True for k in ("repair", "cell_to_point") if getattr(a, k)}
             mi.file_resolver().prepend(str(path.resolve().parent))
@@ -567,6 +568,9 @@ def view_shown(a):
         return SceneShown(scene, path, up=a.up)
     if a.data:
         sys.exit("mi-tetvr: --data names a fit's data set")
+    if path.is_file() and path.suffix.lower() != ".json":
+        sys.exit(f"mi-tetvr: view takes a tet mesh file ({', '.join(MESH_SUFFIXES)}), a "
+                 f"Mitsuba XML scene, a data set or a fit's folder, got {path}")
     return DataShown(_load_data(path, a.downscale, 8))
 
 

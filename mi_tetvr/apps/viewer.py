@@ -106,10 +106,10 @@ def camera_pose(camera):
 
 
 def srgb8(rgba, background):
-    """8-bit sRGB of a premultiplied linear RGBA image over a linear RGB background."""
-    from mi_tetvr.color import linear_to_srgb
-    rgb = rgba[..., :3] + (1.0 - rgba[..., 3:4]) * np.asarray(background, np.float64)
-    return np.round(255.0 * np.clip(linear_to_srgb(rgb), 0.0, 1.0)).astype(np.uint8)
+    """8-bit sRGB of a premultiplied linear RGBA image over a linear RGB
+    background: the picture the metrics compare (``display_rgb``), rounded."""
+    from mi_tetvr.recon.metrics import display_rgb
+    return np.round(255.0 * display_rgb(rgba, background)).astype(np.uint8)
 
 
 def sensor_xml(camera, spp=1):
@@ -817,7 +817,7 @@ class Viewer:
             spp = gui.add_slider("samples per pixel", min=1, max=16, step=1,
                                  initial_value=self.spp)
             bg = gui.add_rgb("background", initial_value=tuple(
-                int(v) for v in _to_srgb8(self.background)))
+                int(v) for v in srgb8(np.zeros((1, 1, 4)), self.background)[0, 0]))
             save = gui.add_button("save image and camera")
             self._status_md = gui.add_markdown("")
 
@@ -964,11 +964,6 @@ class Viewer:
             self._status_md.content = (f"saved `{stem}.png`, `.exr`, camera `{stem}.xml`"
                                        + (f"  \n`{command}`" if command else ""))
         return self.saved
-
-
-def _to_srgb8(rgb):
-    from mi_tetvr.color import linear_to_srgb
-    return np.round(255 * np.clip(linear_to_srgb(np.asarray(rgb, np.float64)), 0, 1))
 
 
 def _thumbnail(image, side=96):
