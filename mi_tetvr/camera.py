@@ -6,7 +6,8 @@ numpy arrays with :meth:`Camera.rays`, as a Dr.Jit ``mi.Ray3f`` with :meth:`Came
 builds the Mitsuba ``perspective`` sensor that reproduces it exactly
 (:meth:`Camera.sensor_dict`) and converts from and to the OpenGL (NeRF) and OpenCV (COLMAP)
 camera axes. :func:`fibonacci_cameras` and :func:`random_cameras` place cameras on a sphere
-around a target, :func:`box_cameras` around a box, :func:`fibonacci_sphere` gives the
+around a target, :func:`box_cameras` around a box (at :func:`framing_distance`, the one
+distance at which a field of view holds a bounding sphere), :func:`fibonacci_sphere` gives the
 spiral's longitudes and latitudes, and :func:`orbit_to_world` a differentiable Dr.Jit pose
 by longitude, latitude and distance (camera gradients through ``mi.render``). Everything but :meth:`Camera.rays_drjit` and :meth:`Camera.sensor_dict` is
 numpy and works without a Mitsuba variant.
@@ -68,9 +69,9 @@ from typing import List, Optional, Tuple
 import numpy as np
 
 
-__all__ = ["Camera", "look_at", "as_rigid", "default_fov", "fibonacci_cameras",
-           "random_cameras", "fibonacci_sphere", "box_cameras", "orbit_to_world", "check_factor",
-           "OPENGL_TO_MITSUBA", "OPENCV_TO_MITSUBA"]
+__all__ = ["Camera", "look_at", "as_rigid", "default_fov", "framing_distance", "FRAMING_MARGIN",
+           "fibonacci_cameras", "random_cameras", "fibonacci_sphere", "box_cameras",
+           "orbit_to_world", "check_factor", "OPENGL_TO_MITSUBA", "OPENCV_TO_MITSUBA"]
 
 #: ``c2w_opengl @ OPENGL_TO_MITSUBA`` is Mitsuba's ``to_world`` (and vice versa: an involution).
 OPENGL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
@@ -534,9 +535,42 @@ class Camera:
 # Generated cameras
 # --------------------------------------------------------------------------------------------
 
-def default_fov(radius: float, margin: float = 1.05) -> float:
+#: How much larger than a bounding sphere the sphere is that a framing camera's view holds.
+FRAMING_MARGIN = 1.05
+
+
+def framing_distance(radius: float, fov: float, res=None,
+                     margin: float = FRAMING_MARGIN) -> float:
+    """The distance from a sphere's centre at which a camera's field of view holds the
+    sphere ``margin`` times its ``radius``: ``margin * radius / sin(fov' / 2)``.
+
+    Parameters
+    ----------
+    radius : float
+        The bounding sphere's radius.
+    fov : float
+        The camera's horizontal field of view in degrees.
+    res : (width, height), optional
+        The image size: on an image taller than it is wide ``fov'`` is ``fov``; on a
+        wider one the narrower ``fov * height / width`` (a little less than the vertical
+        field, ``2 atan(tan(fov / 2) height / width)``, so the sphere stays inside).
+        Without it, ``fov'`` is ``fov``.
+    margin : float
+
+    Returns
+    -------
+    float
+    """
+    if res is not None:
+        width, height = res
+        fov = min(fov, fov * height / width)
+    return margin * radius / math.sin(math.radians(fov) / 2)
+
+
+def default_fov(radius: float, margin: float = FRAMING_MARGIN) -> float:
     """Horizontal field of view (degrees) whose cone at distance ``radius`` holds the sphere
-    of radius ``margin * sqrt(3)`` around the origin (the ``[-1, 1]^3`` box)."""
+    of radius ``margin * sqrt(3)`` around the origin (the ``[-1, 1]^3`` box): the inverse
+    of :func:`framing_distance`."""
     r = min(margin * math.sqrt(3.0) / radius, 1.0)
     return math.degrees(2.0 * math.asin(r))
 
@@ -645,7 +679,7 @@ def box_cameras(bounds, views: int, test_views: int, res=256, fov: float = 40.0,
     ``(train, test)`` lists of Camera."""
     lo, hi = np.asarray(bounds, np.float64).reshape(2, 3)
     centre = (lo + hi) / 2
-    distance = 1.05 * (np.linalg.norm(hi - lo) / 2) / np.sin(np.radians(fov / 2))
+    distance = framing_distance(np.linalg.norm(hi - lo) / 2, fov)
     train = fibonacci_cameras(views, distance, res, fov, up=up, target=centre)
     test = random_cameras(test_views, distance, res, fov, seed=seed, up=up, target=centre) \
         if test_views else []

@@ -39,6 +39,8 @@ import numpy as np
 
 from mi_tetvr.apps.framing import mesh_extent as _mesh_extent
 from mi_tetvr.apps.framing import mesh_framing, mesh_scene, render_rgba
+from mi_tetvr.apps.settings import DEFAULT_UP, OPACITY_SCALE, RenderSettings, numbers
+from mi_tetvr.apps.settings import image_size as _image_size
 
 
 def _set_variant(name):
@@ -149,38 +151,11 @@ def _read_mesh(a, path):
             sys.exit(f"mi-tetvr: {e}")
 
 
-def _numbers_of(k, nonzero=False):
-    """An argparse type: ``k`` comma-separated numbers (the fit settings' parser),
-    not all zero where ``nonzero``."""
-    from mi_tetvr.recon.config import _numbers
-    parse = _numbers(k)
-
-    def arg(text):
-        try:
-            x = tuple(parse(text))
-        except ValueError as e:
-            raise argparse.ArgumentTypeError(str(e)) from None
-        if nonzero and not any(x):
-            raise argparse.ArgumentTypeError(f"expected a non-zero vector, got {text!r}")
-        return x
-    return arg
-
-
-def _values(text):
-    """An argparse type: one or more comma-separated numbers, as given."""
-    try:
-        return ",".join(repr(float(v)) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") \
-            from None
-
-
-def _render_defaults(a):
-    """``render`` with the mesh flags' defaults filled in (and whether they were given)."""
-    a.view_given, a.up_given = a.view is not None, a.up is not None
-    a.view = a.view or (45.0, 30.0)
-    a.up = a.up or (0.0, 0.0, 1.0)
-    return cmd_render(a)
+def settings_of(cls, a):
+    """The settings dataclass ``cls`` (:class:`RenderSettings`) of a command line: its
+    fields' options (:func:`settings_flags`) as parsed."""
+    import dataclasses
+    return cls(**{f.name: getattr(a, f.name) for f in dataclasses.fields(cls)})
 
 
 def _load_or_exit(mi, scene_dict, path):
@@ -202,35 +177,36 @@ def _render_or_exit(mi, scene, path, **kwargs):
         sys.exit(f"mi-tetvr: cannot render {path}: {_plugin_error(e)}")
 
 
-def _render_orbit(a, mi, path):
-    """``render MESH --orbit N``: N frames once around ``--up`` from ``--view``,
-    written as an MP4 (the ``.mp4`` outputs) and a contact sheet (the image
-    outputs)."""
+def _render_orbit(s, outs, mi, path):
+    """``render MESH --orbit N`` (:class:`RenderSettings` ``s``): N frames once around
+    ``--up`` from ``--view``, written as an MP4 (the ``.mp4`` outputs) and a contact
+    sheet (the image outputs)."""
+    import dataclasses
+
     from mi_tetvr.apps.orbit import FPS, contact_sheet, orbit_azimuths, write_video
     from mi_tetvr.progress import progress_bar
     t0 = time.time()
-    azimuth, elevation = a.view
-    mesh = _read_mesh(a, path)
-    framing = mesh_framing([_mesh_extent(a, mesh, path)])
+    azimuth, elevation = s.azimuth_elevation
+    mesh = _read_mesh(s, path)
+    framing = mesh_framing([_mesh_extent(s, mesh, path)])
     frames = []
     scene = None
-    for az in progress_bar(orbit_azimuths(azimuth, a.orbit), desc="orbit", unit="frame"):
-        a.view = (float(az), elevation)
-        d = mesh_scene(a, mesh, framing)
+    for az in progress_bar(orbit_azimuths(azimuth, s.orbit), desc="orbit", unit="frame"):
+        d = mesh_scene(dataclasses.replace(s, view=(float(az), elevation)), mesh, framing)
         if scene is None:
             scene = _load_or_exit(mi, d, path)
         frames.append(_render_or_exit(mi, scene, path, sensor=mi.load_dict(d["sensor"]),
-                                      spp=a.spp or 0))
+                                      spp=s.spp or 0))
     frames = np.stack(frames)
     sheet = contact_sheet(frames)
-    for out in a.out:
+    for out in outs:
         if Path(out).suffix.lower() == ".mp4":
             write_video(out, np.stack([_srgb8(f[..., :3]) for f in frames]), FPS)
         else:
             _write_render(out, sheet[..., :3], sheet[..., 3] if sheet.shape[-1] > 3 else None)
-    print(f"rendered {a.orbit} frames of {path} around {tuple(a.up)} at "
+    print(f"rendered {s.orbit} frames of {path} around {tuple(s.up_axis)} at "
           f"{frames.shape[2]}x{frames.shape[1]} ({time.time() - t0:.1f} s) -> "
-          f"{', '.join(a.out)}")
+          f"{', '.join(outs)}")
 
 
 def series_paths(names):
@@ -257,23 +233,23 @@ def series_paths(names):
     return paths
 
 
-def _render_series(a, mi, paths):
-    """``render MESH MESH ...`` (or a ``.pvd``): every mesh with one transfer
-    function range and one camera (:func:`mesh_framing` over all), as an MP4
-    (the ``.mp4`` outputs) and numbered images (``stem_0000.png``, ...)."""
+def _render_series(s, outs, mi, paths):
+    """``render MESH MESH ...`` (or a ``.pvd``; :class:`RenderSettings` ``s``): every
+    mesh with one transfer function range and one camera (:func:`mesh_framing` over
+    all), as an MP4 (the ``.mp4`` outputs) and numbered images (``stem_0000.png``, ...)."""
     from mi_tetvr.apps.orbit import FPS, write_video
     from mi_tetvr.progress import progress_bar
     t0 = time.time()
     # the range and the box of all the meshes first (each read again to render: a
     # series need not fit in memory at once)
-    framing = mesh_framing([_mesh_extent(a, _read_mesh(a, p), p) for p in paths])
+    framing = mesh_framing([_mesh_extent(s, _read_mesh(s, p), p) for p in paths])
     frames = []
     for path in progress_bar(paths, desc="series", unit="mesh"):
-        scene = _load_or_exit(mi, mesh_scene(a, _read_mesh(a, path), framing), path)
-        frames.append(_render_or_exit(mi, scene, path, spp=a.spp or 0))
+        scene = _load_or_exit(mi, mesh_scene(s, _read_mesh(s, path), framing), path)
+        frames.append(_render_or_exit(mi, scene, path, spp=s.spp or 0))
     frames = np.stack(frames)
     written = []
-    for out in a.out:
+    for out in outs:
         out = Path(out)
         if out.suffix.lower() == ".mp4":
             write_video(out, np.stack([_srgb8(f[..., :3]) for f in frames]), FPS)
@@ -290,38 +266,26 @@ def _render_series(a, mi, paths):
 
 
 def cmd_render(a):
+    s = settings_of(RenderSettings, a)
     mi = _set_variant(a.variant)
     paths = series_paths(a.scene)
     scene_path = paths[0]
-    res = a.res
     is_mesh = all(p.suffix.lower() in MESH_SUFFIXES and not _is_image_data(p) for p in paths)
     series = len(paths) > 1
     if not is_mesh and (series or scene_path.suffix.lower() != ".xml"):
         sys.exit(f"mi-tetvr: render takes a Mitsuba XML scene, or tet mesh files "
                  f"({', '.join(MESH_SUFFIXES)}; several, or a .pvd of them, as a series), got "
                  f"{', '.join(str(p) for p in paths)}")
-    if is_mesh and a.tf and Path(a.tf).suffix.lower() in (".json", ".xml") \
-            and not Path(a.tf).exists():
-        sys.exit(f"mi-tetvr: transfer function file not found: {a.tf}")
-    if a.value_range is not None and not a.value_range[1] > a.value_range[0]:
-        sys.exit(f"mi-tetvr: --value-range needs LO < HI, got {a.value_range}")
-    if a.value_range is not None and is_mesh and not (a.tf or a.mode != "dvr"):
-        sys.exit("mi-tetvr: --value-range is the range of a scalar's transfer function: it "
-                 "needs --tf (or a projection --mode)")
-    if a.sensor is not None:
-        given = [f for f, on in (("--orbit", a.orbit is not None), ("--res", res is not None),
-                                 ("--view", a.view_given), ("--up", a.up_given),
-                                 ("a series", series)) if on]
-        if given:
-            sys.exit(f"mi-tetvr: --sensor says where the camera is and its film's size; "
-                     f"{', '.join(given)} cannot be combined with it")
-        if not Path(a.sensor).is_file():
-            sys.exit(f"mi-tetvr: sensor file not found: {a.sensor}")
-    if a.orbit is not None and (not is_mesh or series):
-        sys.exit("mi-tetvr: --orbit circles one mesh file (an XML scene's sensors stay)")
-    if a.orbit is not None and a.orbit < 1:
-        sys.exit(f"mi-tetvr: --orbit needs at least 1 frame, got {a.orbit}")
-    video = bool(a.orbit) or series
+    if is_mesh and s.tf and Path(s.tf).suffix.lower() in (".json", ".xml") \
+            and not Path(s.tf).exists():
+        sys.exit(f"mi-tetvr: transfer function file not found: {s.tf}")
+    try:
+        s.validate("mesh" if is_mesh else "xml", series=series)
+    except ValueError as e:
+        sys.exit(f"mi-tetvr: {e}")
+    if s.sensor is not None and not Path(s.sensor).is_file():
+        sys.exit(f"mi-tetvr: sensor file not found: {s.sensor}")
+    video = bool(s.orbit) or series
     for out in a.out:
         suffix = Path(out).suffix.lower()
         if suffix == ".mp4" and not video:
@@ -330,52 +294,36 @@ def cmd_render(a):
             sys.exit(f"mi-tetvr: unsupported image format '{Path(out).suffix}' for {out} (use "
                      f"{', '.join(IMAGE_SUFFIXES)}" + (", .mp4 for the video)" if video
                                                        else ")"))
-    if a.orbit and not any(Path(o).suffix.lower() == ".mp4" for o in a.out):
+    if s.orbit and not any(Path(o).suffix.lower() == ".mp4" for o in a.out):
         sys.exit("mi-tetvr: --orbit writes a video: give an -o FILE.mp4 (and images for the "
                  "contact sheet)")
-    if is_mesh:
-        _refuse(a, ("classification",), "to a mesh (its scalar is post-classified)")
-    else:
-        given = [f for f, on in (("--view", a.view_given), ("--up", a.up_given)) if on]
-        if given:
-            sys.exit(f"mi-tetvr: {', '.join(given)} {'frames' if len(given) == 1 else 'frame'}"
-                     f" a mesh file; an XML scene's sensor says where it looks")
-        _refuse(a, ("tf", "scalar", "plane", "clip", "clip_box", "iso", "shade",
-                    "surface_opacity", "value_range"),
-                "to an XML scene (its shapes name their transfer functions, its integrator "
-                "its mode and clip)")
-        if a.opacity_scale != OPACITY_SCALE:
-            sys.exit("mi-tetvr: --opacity-scale applies to a mesh file rendered with --tf")
-        if a.mode != "dvr":
-            sys.exit("mi-tetvr: --mode applies to a mesh file (an XML scene names its "
-                     "integrator: 'tetproj' with its mode)")
-    if a.orbit:
-        return _render_orbit(a, mi, scene_path)
+    if s.orbit:
+        return _render_orbit(s, a.out, mi, scene_path)
     if series:
-        return _render_series(a, mi, paths)
+        return _render_series(s, a.out, mi, paths)
     t0 = time.time()
     if is_mesh:
-        mesh = _read_mesh(a, scene_path)
-        scene = _load_or_exit(mi, mesh_scene(a, mesh, mesh_framing(
-            [_mesh_extent(a, mesh, scene_path)])), scene_path)
+        mesh = _read_mesh(s, scene_path)
+        scene = _load_or_exit(mi, mesh_scene(s, mesh, mesh_framing(
+            [_mesh_extent(s, mesh, scene_path)])), scene_path)
     else:
         try:
-            props = {k: True for k in ("repair", "cell_to_point") if getattr(a, k)}
-            text = scene_xml(scene_path, res, props, a.classification)
+            props = {k: True for k in ("repair", "cell_to_point") if getattr(s, k)}
+            text = scene_xml(scene_path, s.res, props, s.classification)
             mi.file_resolver().prepend(str(scene_path.resolve().parent))
             scene = mi.load_string(text)
         except Exception as e:
             sys.exit(f"mi-tetvr: cannot load {scene_path}: {_plugin_error(e)}")
     sensor = None
-    if a.sensor is not None:
+    if s.sensor is not None:
         try:
-            sensor = mi.load_file(str(a.sensor))
+            sensor = mi.load_file(str(s.sensor))
         except Exception as e:
-            sys.exit(f"mi-tetvr: cannot load the sensor {a.sensor}: {_plugin_error(e)}")
+            sys.exit(f"mi-tetvr: cannot load the sensor {s.sensor}: {_plugin_error(e)}")
         if not isinstance(sensor, mi.Sensor):
-            sys.exit(f"mi-tetvr: {a.sensor} holds a {type(sensor).__name__}, not a sensor")
+            sys.exit(f"mi-tetvr: {s.sensor} holds a {type(sensor).__name__}, not a sensor")
     t1 = time.time()
-    img = _render_or_exit(mi, scene, scene_path, spp=a.spp or 0,
+    img = _render_or_exit(mi, scene, scene_path, spp=s.spp or 0,
                           **({} if sensor is None else {"sensor": sensor}))
     t2 = time.time()
     rgb = img[..., :3]
@@ -855,24 +803,25 @@ def cmd_viewpoint(a):
 # the shared flags
 # --------------------------------------------------------------------------------------------
 
-#: The default of ``--opacity-scale`` (a transfer function's opacity per mesh radius).
-OPACITY_SCALE = 1.0
 #: The default of ``--test-views``.
 TEST_VIEWS = 8
 VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
 
 
-def image_size(text):
-    """``WxH`` or ``N`` (N x N) -> (width, height)."""
-    try:
-        parts = tuple(int(x) for x in str(text).lower().split("x"))
-        if len(parts) == 1:
-            parts = parts * 2
-        if len(parts) != 2 or min(parts) < 1:
-            raise ValueError
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be WxH (e.g. 640x480) or N, got {text!r}")
-    return parts
+def _argument_type(parse, name):
+    """``parse`` (text -> value, ``ValueError`` on bad text) as an argparse type: its
+    message is argparse's error (exit status 2)."""
+    def typed(text):
+        try:
+            return parse(text)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+    typed.__name__ = name
+    return typed
+
+
+#: ``WxH`` or ``N`` (N x N) -> (width, height), as an argparse type.
+image_size = _argument_type(_image_size, "image_size")
 
 
 def _out(parser, help, required=True, append=False):
@@ -941,32 +890,49 @@ def config_flags(parser):
     dests = {}
     for f in dataclasses.fields(FitConfig):
         meta = f.metadata
-        flag = meta.get("flag", "--" + f.name.replace("_", "-"))
         default = "chosen by the run" if f.default is None else json.dumps(f.default)
         help = meta["help"] if "default" in meta["help"] else \
             f"{meta['help']} (default: {default})"
-        help = help.replace("%", "%%")
         kind = _setting_type(f)
-        kw = dict(dest=f"cfg_{f.name}", default=None, help=help)
+        kw = dict(dest=f"cfg_{f.name}", default=None, help=help.replace("%", "%%"))
         if kind is bool:
             kw["action"] = argparse.BooleanOptionalAction
         else:
-            parse = meta.get("parse", kind)
-
-            def typed(text, parse=parse, name=f.name):
-                try:
-                    return parse(text)
-                except ValueError as e:
-                    raise argparse.ArgumentTypeError(str(e)) from None
-            typed.__name__ = kind.__name__
-            kw["type"] = typed
-            if "choices" in meta:
-                kw["choices"] = meta["choices"]
+            kw.update(_typed(f, kind))
             if "choices" not in meta:
                 kw["metavar"] = meta.get("metavar", {int: "N", float: "X"}.get(kind, "TEXT"))
-        group.add_argument(flag, **kw)
+        group.add_argument(meta.get("flag", "--" + f.name.replace("_", "-")), **kw)
         dests[f"cfg_{f.name}"] = f.name
     return dests
+
+
+def settings_flags(parser, cls):
+    """One option per field of the settings dataclass ``cls`` (:class:`RenderSettings`),
+    generated from the fields as :func:`config_flags` does: ``--name-with-dashes`` (or the
+    field's ``flag``), the field's default, type (its ``parse``), choices, metavar and
+    help; a boolean is a switch (``store_true``). The parsed options are the settings
+    again by :func:`settings_of`."""
+    import dataclasses
+    for f in dataclasses.fields(cls):
+        meta = f.metadata
+        kind = _setting_type(f)
+        kw = dict(dest=f.name, default=f.default, help=meta["help"].replace("%", "%%"))
+        if kind is bool:
+            kw["action"] = "store_true"
+        else:
+            kw.update(_typed(f, kind))
+            if "metavar" in meta:
+                kw["metavar"] = meta["metavar"]
+        parser.add_argument(meta.get("flag", "--" + f.name.replace("_", "-")), **kw)
+
+
+def _typed(f, kind):
+    """argparse's ``type`` (the field's ``parse``, else its type) and ``choices`` of a
+    settings field."""
+    kw = {"type": _argument_type(f.metadata.get("parse", kind), kind.__name__)}
+    if "choices" in f.metadata:
+        kw["choices"] = f.metadata["choices"]
+    return kw
 
 
 def build_parser():
@@ -990,56 +956,10 @@ def build_parser():
     r.add_argument("scene", nargs="+", help="Mitsuba XML scene, or a tet mesh file (.vtu, "
                    ".vtk, .msh, .mesh), or several (a time series; or a .pvd of them): one "
                    "camera and transfer function range for all")
-    r.add_argument("--tf", help="mesh file: transfer function of its scalar (a file, or a "
-                   "matplotlib colormap's name; default for --mode max|min|mean: gray)")
-    r.add_argument("--scalar", help="mesh file: the scalar array: point data, or cell data (volume "
-                   "rendering, constant in each tet) (default: the only one)")
-    r.add_argument("--mode", choices=("dvr", "max", "min", "mean", "slice", "iso"),
-                   default="dvr", help="mesh file: volume rendering (dvr, default), the maximum, "
-                   "minimum or mean intensity projection of its scalar, its scalar on a plane "
-                   "(slice) or its isosurfaces (iso)")
-    r.add_argument("--shade", action="store_true", help="mesh file, volume rendering with "
-                   "--tf: light the volume by a headlight at the scalar's gradient (ParaView's "
-                   "Shade)")
-    r.add_argument("--iso", type=_values, metavar="V[,V...]", help="--mode iso: the isovalue(s), in the "
-                   "scalar's units (default: the middle of its range); with --mode dvr: "
-                   "isosurfaces drawn in the volume")
-    r.add_argument("--plane", type=_numbers_of(6), metavar="X,Y,Z,NX,NY,NZ",
-                   help="--mode slice: a point of the plane and its normal (default: the "
-                   "mesh's centre, normal --up); with --mode dvr: a slice drawn in the volume")
-    r.add_argument("--surface-opacity", type=float, metavar="A",
-                   help="isosurfaces and slices: their opacity in (0, 1] (default 1); below 1 "
-                   "what lies behind shows through")
-    r.add_argument("--clip", type=_numbers_of(6), metavar="X,Y,Z,NX,NY,NZ",
-                   help="mesh file: cut away what lies beyond the plane through X,Y,Z on the "
-                   "side its normal points to")
-    r.add_argument("--clip-box", type=_numbers_of(6), metavar="X0,Y0,Z0,X1,Y1,Z1",
-                   help="mesh file: cut away what lies outside the box")
-    r.add_argument("--value-range", type=_numbers_of(2), metavar="LO,HI",
-                   help="mesh file with --tf or a projection: the scalar values the transfer "
-                   "function spans (default: the data's range)")
-    r.add_argument("--sensor", metavar="SENSOR.xml",
-                   help="render from this Mitsuba sensor (e.g. one the viewer saved) instead "
-                   "of the scene's camera (a mesh file: instead of --view)")
-    r.add_argument("--view", type=_numbers_of(2), default=None, metavar="AZ,EL",
-                   help="mesh file: camera azimuth and elevation in degrees about --up "
-                   "(default 45,30)")
-    r.add_argument("--up", type=_numbers_of(3, nonzero=True), default=None,
-                   metavar="X,Y,Z",
-                   help="mesh file: the up axis (default 0,0,1)")
-    r.add_argument("--orbit", type=int, metavar="N",
-                   help="mesh file: N frames once around --up from --view, written as the "
-                   "-o FILE.mp4 video and a contact sheet to the -o images")
-    _opacity_scale(r)
+    settings_flags(r, RenderSettings)
     _out(r, "output image (.exr: linear RGBA; .png/.jpg: sRGB); repeatable", append=True)
-    r.add_argument("--spp", type=int, default=0, help="samples per pixel (default: the scene's)")
-    _res(r, None, "film size of every sensor, WxH or N (default: the scene's)")
-    r.add_argument("--classification", choices=("post", "pre"),
-                   help="how tetmesh shapes with a transfer function classify their scalar: "
-                        "post (along each ray, the default) or pre (vertices shaded at load)")
-    _mesh_flags(r)
     _variant(r)
-    r.set_defaults(func=_render_defaults)
+    r.set_defaults(func=cmd_render)
 
     i = sub.add_parser("info", help="counts, bounds, boundary, quality and arrays of a mesh")
     i.add_argument("mesh", help="tet mesh file (.vtu, .vtk, .msh, .mesh, ...)")
@@ -1159,7 +1079,8 @@ def build_parser():
                    "opacity when it has them, else its only scalar)")
     w.add_argument("--data", help="fit folder: its data set (default: the one it records)")
     w.add_argument("--downscale", type=int, help="data set: shrink its images by this factor")
-    w.add_argument("--up", type=_numbers_of(3, nonzero=True), default=(0.0, 0.0, 1.0),
+    w.add_argument("--up", type=_argument_type(numbers(3, nonzero=True), "numbers"),
+                   default=DEFAULT_UP,
                    metavar="X,Y,Z", help="mesh file or XML scene: the up axis (default 0,0,1)")
     _res(w, None, "the refined image's longer side in pixels (default 512; the browser "
          "window sets the shape)")

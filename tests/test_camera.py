@@ -366,3 +366,69 @@ def test_default_fov_frames_the_box():
         uv, depth = cam.project(corners)
         assert np.all(depth > 0)
         assert np.all((uv >= 0) & (uv <= 64))
+
+
+def _sphere_silhouette(cam, centre, radius):
+    """Where the sphere's outline lands in the image: the projections of its tangent points
+    from the camera centre (a circle of them), (n, 2) pixels."""
+    c = np.asarray(centre, float)
+    v = c - cam.center
+    d = np.linalg.norm(v)
+    axis = v / d
+    # the tangent points: at angle asin(r / d) from the axis, distance sqrt(d^2 - r^2)
+    e1 = np.cross(axis, [0.3, 0.5, 0.8])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    t = np.linspace(0, 2 * np.pi, 721)[:-1]
+    half = math.asin(radius / d)
+    dirs = math.cos(half) * axis + math.sin(half) * (np.cos(t)[:, None] * e1
+                                                     + np.sin(t)[:, None] * e2)
+    uv, depth = cam.project(cam.center + math.sqrt(d * d - radius * radius) * dirs)
+    assert np.all(depth > 0)
+    return uv
+
+
+@pytest.mark.parametrize("radius,fov,res", [(1.0, 40.0, None), (0.37, 40.0, (64, 64)),
+                                            (2.5, 25.0, (96, 48)), (2.5, 60.0, (40, 90))])
+def test_framing_distance_is_the_closed_form(radius, fov, res):
+    """framing_distance(r, fov) = 1.05 r / sin(fov' / 2), fov' the horizontal field, or
+    fov * h / w on a wider image; a camera there sees the sphere 1.05 r inside its image
+    (touching the narrower side's edges where the field is fov itself)."""
+    d = C.framing_distance(radius, fov, res)
+    narrow = fov if res is None else min(fov, fov * res[1] / res[0])
+    assert d == pytest.approx(1.05 * radius / math.sin(math.radians(narrow) / 2), rel=1e-14)
+    assert C.framing_distance(radius, fov, res, margin=1.0) == pytest.approx(d / 1.05,
+                                                                             rel=1e-14)
+    w, h = res or (64, 64)
+    centre = np.array([0.3, -1.2, 0.5])
+    cam = Camera.look_at(centre + d * np.array([0.6, 0.0, 0.8]), centre, [0, 0, 1], w, h,
+                         fov_x=fov)
+    uv = _sphere_silhouette(cam, centre, 1.05 * radius)
+    assert np.all((uv >= -1e-6) & (uv <= np.array([w, h]) + 1e-6))
+    if narrow == fov:   # the field is the horizontal one: the sphere touches its sides
+        # (to the outline's sampling, 720 points: 1e-4 of a pixel)
+        assert uv[:, 0].min() == pytest.approx(0.0, abs=1e-3)
+        assert uv[:, 0].max() == pytest.approx(w, abs=1e-3)
+    else:               # a wider image: the vertical extent is the one that fits
+        assert 0 < uv[:, 1].min() < 0.05 * h and 0.95 * h < uv[:, 1].max() < h
+
+
+def test_default_fov_is_framing_distance_inverted():
+    """default_fov(d) is the field in which [-1, 1]^3's bounding sphere (radius sqrt 3)
+    is framed from distance d: framing_distance gives d back."""
+    for d in (2.5, 4.0, 10.0):
+        assert C.framing_distance(math.sqrt(3.0), C.default_fov(d)) == pytest.approx(d,
+                                                                                    rel=1e-12)
+
+
+def test_the_framing_distance_is_written_once():
+    """Every camera that frames a bounding sphere (render MESH, the viewer's first view,
+    the best viewpoint's orbit, data set cameras, the tutorials) calls framing_distance:
+    no other module writes its formula."""
+    import re
+
+    from tests.helpers import ROOT
+    formula = re.compile(r"1\.05\s*\*[^\n]*\bsin\(")
+    found = [str(p.relative_to(ROOT)) for d in ("mi_tetvr", "tutorials", "plugins")
+             for p in sorted((ROOT / d).rglob("*.py")) if formula.search(p.read_text())]
+    assert found == []

@@ -82,7 +82,7 @@ def main(argv=None):
     a = parse_args(argv)
     mi.set_variant(a.variant)
     import mi_tetvr
-    from mi_tetvr.camera import orbit_to_world
+    from mi_tetvr.camera import framing_distance, orbit_to_world
     from mi_tetvr.mesh.topology import bounding_radius
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -92,7 +92,7 @@ def main(argv=None):
     radius = bounding_radius(mesh.vertices)
     width, height = a.res, a.res * 3 // 4
     fov = 40.0
-    distance = 1.05 * radius / np.sin(np.radians(fov * height / width / 2))
+    distance = framing_distance(radius, fov, (width, height))
     to_world = orbit_to_world(30.0, 25.0, distance, (lo + hi) / 2, (0.0, 0.0, 1.0))
     sensor = {"type": "perspective", "fov": fov,
               "to_world": mi.ScalarTransform4f(np.array(to_world.matrix).reshape(4, 4)),

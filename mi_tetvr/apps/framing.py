@@ -1,9 +1,9 @@
 """How ``mi-tetvr render MESH`` and the live viewer make the scene of a mesh
 file: the framing (the box, the bounding sphere and the scalar's range of one
 mesh or a series), the shape, the integrator of a render mode and the camera,
-from ``render``'s options (an ``argparse.Namespace`` or any object with its
-attributes). Bad combinations raise ``ValueError`` (the command line prints
-them as one line)."""
+from a :class:`~mi_tetvr.apps.settings.RenderSettings` (``render``'s options,
+or the viewer's controls). Options that do not combine raise ``ValueError``
+(:meth:`RenderSettings.validate`; the command line prints them as one line)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -16,18 +16,20 @@ MESH_RES = (512, 512)
 MESH_FOV = 40.0
 
 
-def mesh_extent(a, mesh, path):
+def mesh_extent(settings, mesh, path):
     """``(lo, hi, scalar name, (min, max))`` of a mesh for :func:`mesh_framing`
-    (the scalar only where it is classified: ``--tf`` or a projection)."""
+    (the scalar only where the :class:`RenderSettings` classify it: ``--tf`` or
+    a projection)."""
     from mi_tetvr.mesh.io import choose_scalar
-    if not (a.tf or a.mode != "dvr"):
+    if not settings.classified:
         return mesh.bounds[0], mesh.bounds[1], None, None
+    mode = settings.mode
     try:
-        name = choose_scalar(mesh.point_data, a.scalar, str(path), mesh.cell_data,
-                             cells=a.mode == "dvr")
+        name = choose_scalar(mesh.point_data, settings.scalar, str(path), mesh.cell_data,
+                             cells=mode == "dvr")
     except ValueError as e:
-        raise ValueError(f"{e}" + ("" if a.mode == "dvr" else
-                                   f" (--mode {a.mode} shows point data)")) from None
+        raise ValueError(f"{e}" + ("" if mode == "dvr" else
+                                   f" (--mode {mode} shows point data)")) from None
     values = np.asarray(mesh.point_data.get(name, mesh.cell_data.get(name)), np.float64)
     return mesh.bounds[0], mesh.bounds[1], name, (float(values.min()), float(values.max()))
 
@@ -49,19 +51,23 @@ def mesh_framing(extents):
             "scalar": name, "value_range": value_range}
 
 
-def mesh_scene(a, mesh, framing):
-    """The scene ``render MESH`` renders: the mesh (a ``TetMesh``; its
-    color and opacity, or its scalar through ``--tf`` over the framing's
-    range), ``tetvr`` or ``tetproj`` (``--mode``), and a camera at ``--view``
-    (azimuth, elevation in degrees about ``--up``) whose field of view holds
-    the framing's bounding sphere (:func:`mesh_framing`)."""
+def mesh_scene(settings, mesh, framing):
+    """The scene ``render MESH`` renders with the :class:`RenderSettings`
+    ``settings``: the mesh (a ``TetMesh``; its color and opacity, or its scalar
+    through ``--tf`` over the framing's range), ``tetvr`` or ``tetproj``
+    (``--mode``), and a camera at ``--view`` (azimuth, elevation in degrees
+    about ``--up``) at the :func:`~mi_tetvr.camera.framing_distance` of the
+    framing's bounding sphere (:func:`mesh_framing`). Raises ``ValueError``
+    where the settings do not combine for a mesh file."""
     import mi_tetvr
-    from mi_tetvr.camera import orbit_to_world
+    from mi_tetvr.camera import framing_distance, orbit_to_world
+    s = settings
+    s.validate("mesh")
     lo, hi, radius = framing["lo"], framing["hi"], framing["radius"]
-    tf = a.tf or ("gray" if a.mode != "dvr" else None)
+    tf = s.tf or ("gray" if s.mode != "dvr" else None)
     if tf:
         # a file, or a matplotlib colormap's name
-        lo_v, hi_v = a.value_range or framing["value_range"]
+        lo_v, hi_v = s.value_range or framing["value_range"]
         name = framing["scalar"]
         # a point array, or a cell array (dvr: constant in each tet)
         values = ({"scalar": mesh.point_data[name]} if name in mesh.point_data
@@ -69,55 +75,39 @@ def mesh_scene(a, mesh, framing):
         shape = mi_tetvr.tetmesh_dict(
             mesh.vertices, mesh.tets, **values,
             transfer_function=str(Path(tf).resolve()) if Path(tf).exists() else tf,
-            value_min=lo_v, value_max=hi_v, opacity_scale=a.opacity_scale / radius,
-            **({"shade": True} if a.shade else {}))
-    elif a.scalar or a.shade:
-        raise ValueError(f"--{'scalar' if a.scalar else 'shade'} needs --tf")
+            value_min=lo_v, value_max=hi_v, opacity_scale=s.opacity_scale / radius,
+            **({"shade": True} if s.shade else {}))
     else:
         shape = mi_tetvr.tetmesh_dict(mesh.vertices, mesh.tets, mesh.color, mesh.opacity)
-    width, height = a.res or MESH_RES
-    distance = 1.05 * radius / np.sin(np.radians(min(MESH_FOV, MESH_FOV * height / width) / 2))
-    azimuth, elevation = a.view
-    to_world = orbit_to_world(azimuth, elevation, distance, (lo + hi) / 2, a.up)
-    if a.shade and a.mode != "dvr":
-        raise ValueError("--shade lights volume rendering (--mode dvr)")
-    integrator = {"type": "tetvr"} if a.mode == "dvr" else {"type": "tetproj", "mode": a.mode}
+    width, height = s.res or MESH_RES
+    distance = framing_distance(radius, MESH_FOV, (width, height))
+    azimuth, elevation = s.azimuth_elevation
+    to_world = orbit_to_world(azimuth, elevation, distance, (lo + hi) / 2, s.up_axis)
+    integrator = {"type": "tetvr"} if s.mode == "dvr" else {"type": "tetproj", "mode": s.mode}
     # The surfaces: tetproj's own (--mode iso|slice), or drawn in the volume
     # (--mode dvr with --iso or --plane: tetvr's overlay).
-    surface = {"iso": "iso", "slice": "slice"}.get(a.mode)
-    if a.mode == "dvr" and (a.iso is not None or a.plane):
-        if a.iso is not None and a.plane:
-            raise ValueError("the volume takes one kind of surface: --iso or --plane")
-        if not a.tf:
-            raise ValueError("--iso or --plane in volume rendering needs --tf (a scalar)")
-        surface = "iso" if a.iso is not None else "slice"
-    elif surface != "iso" and a.iso is not None:
-        raise ValueError("--iso gives the isovalues of --mode iso (or dvr)")
-    elif surface != "slice" and a.plane:
-        raise ValueError("--plane is the plane of --mode slice (or dvr)")
-    if a.surface_opacity is not None and (surface is None or not 0 < a.surface_opacity <= 1):
-        raise ValueError("--surface-opacity is an opacity in (0, 1] of isosurfaces and "
-                 "slices")
+    surface = s.surface
     props = {}
     if surface == "iso":
-        props["iso"] = a.iso or str(sum(framing["value_range"]) / 2)
+        props["iso"] = ",".join(repr(float(v)) for v in s.iso) if s.iso \
+            else str(sum(framing["value_range"]) / 2)
     elif surface == "slice":
-        plane = a.plane or (*((lo + hi) / 2), *a.up)
+        plane = s.plane or (*((lo + hi) / 2), *s.up_axis)
         props.update(origin=list(plane[:3]), normal=list(plane[3:]))
-    if a.surface_opacity is not None:
-        props["opacity"] = a.surface_opacity
-    if a.mode == "dvr" and surface is not None:
+    if s.surface_opacity is not None:
+        props["opacity"] = s.surface_opacity
+    if s.mode == "dvr" and surface is not None:
         integrator["overlay"] = {"type": "tetproj", "mode": surface, **props}
     else:
         integrator.update(props)
-    if a.clip:
-        integrator.update(clip_origin=list(a.clip[:3]), clip_normal=list(a.clip[3:]))
-    if a.clip_box:
-        integrator.update(clip_min=list(a.clip_box[:3]), clip_max=list(a.clip_box[3:]))
+    if s.clip:
+        integrator.update(clip_origin=list(s.clip[:3]), clip_normal=list(s.clip[3:]))
+    if s.clip_box:
+        integrator.update(clip_min=list(s.clip_box[:3]), clip_max=list(s.clip_box[3:]))
     return {"type": "scene", "integrator": integrator,
             "sensor": {"type": "perspective", "fov": MESH_FOV,
                        "to_world": mi_scalar_transform(to_world),
-                       "sampler": {"type": "stratified", "sample_count": a.spp or 1,
+                       "sampler": {"type": "stratified", "sample_count": s.spp or 1,
                                    "jitter": False},
                        "film": {"type": "hdrfilm", "width": width, "height": height,
                                 "pixel_format": "rgba", "rfilter": {"type": "box"}}},

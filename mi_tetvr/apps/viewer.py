@@ -300,8 +300,9 @@ class MeshShown(Shown):
             self.iso = sum(self.data_range) / 2
 
     def settings(self):
-        """``render``'s options (as its parser gives them) for the current settings."""
-        import argparse
+        """The :class:`~mi_tetvr.apps.settings.RenderSettings` of the current controls
+        (``render``'s options)."""
+        from mi_tetvr.apps.settings import RenderSettings
         mode, surface = MODES[self.mode] if self.array else ("dvr", None)
         plane = None
         if surface == "slice":
@@ -313,10 +314,10 @@ class MeshShown(Shown):
         tf = None
         if self.array:
             tf = str(Path(self.tf).resolve()) if Path(self.tf).exists() else self.tf
-        return argparse.Namespace(
+        return RenderSettings(
             tf=tf, scalar=self.array or None, mode=mode,
             shade=bool(self.shade and self.array and mode == "dvr"),
-            iso=repr(float(self.iso)) if surface == "iso" else None, plane=plane,
+            iso=(float(self.iso),) if surface == "iso" else None, plane=plane,
             surface_opacity=self.surface_opacity if surface and self.surface_opacity < 1
             else None,
             value_range=tuple(self.value_range) if self.array else None,
@@ -643,7 +644,7 @@ class Viewer:
         test camera (else its first), looking at the scene's centre; else
         ``render MESH``'s (azimuth 45, elevation 30 degrees about ``up``), the
         whole scene in the field of view."""
-        from mi_tetvr.camera import orbit_to_world
+        from mi_tetvr.camera import framing_distance, orbit_to_world
         s = self.shown
         data = s.dataset
         if data is not None and (data.test or data.train):
@@ -652,7 +653,7 @@ class Viewer:
                 if view.name in getattr(self, "frusta", {}):
                     self.frusta[view.name].visible = False     # it would hide the view
                 return view.camera.center, s.centre, camera_pose(view.camera)[2]
-        distance = 1.05 * s.radius / math.sin(math.radians(START_FOV) / 2)
+        distance = framing_distance(s.radius, START_FOV)
         m = np.array(orbit_to_world(45.0, 30.0, distance, s.centre.tolist(), s.up.tolist()).matrix,
                      np.float64).reshape(4, 4)
         return m[:3, 3], s.centre, math.radians(START_FOV)

@@ -117,11 +117,12 @@ def orbit_scene(shape, bounds, res=128, fov=40.0):
     through pixel centres with ``fov`` (degrees, horizontal). Returns ``(scene, centre, distance)``: the box
     ``bounds``' centre and the distance at which its bounding sphere fills the
     view (what :class:`ViewpointSearch` takes)."""
+    from mi_tetvr.camera import framing_distance
     from mi_tetvr.mesh.topology import bounding_radius
     width, height = (int(res), int(res)) if np.isscalar(res) else (int(res[0]), int(res[1]))
     lo, hi = np.asarray(bounds, np.float64)
     centre = (lo + hi) / 2
-    distance = 1.05 * bounding_radius(bounds) / math.sin(math.radians(fov / 2))
+    distance = framing_distance(bounding_radius(bounds), fov)
     scene = mi.load_dict({
         "type": "scene", "integrator": {"type": "tetvr"},
         "sensor": {"type": "perspective", "fov": fov,
