@@ -18,20 +18,23 @@ Sub-packages (see the README's *Architecture*):
 * :mod:`mi_tetvr.transfer` -- transfer functions and their files;
   :mod:`mi_tetvr.color` -- the sRGB curve.
 
+In a scene dict, :func:`tetmesh_dict` is a ``tetmesh`` entry made from arrays;
+:func:`tetmesh_shape` is the shape itself, built from a ``TetMesh`` (or from an
+entry and the topology of its arrays, built once and handed on).
+
 If no variant is set at import, call :func:`register` after
 :func:`mitsuba.set_variant`.
 """
 from __future__ import annotations
 
 import importlib
-import itertools
 import sys
 
 from .mesh import MeshError, TetMesh, Topology, build_topology, quality, read_tetmesh, write_tetmesh
 from .transfer import TransferFunction, read_transfer_function
 
-__all__ = ["register", "tetmesh_dict", "read_tetmesh", "write_tetmesh", "MeshError",
-           "TetMesh", "Topology", "build_topology", "quality", "TransferFunction",
+__all__ = ["register", "tetmesh_dict", "tetmesh_shape", "read_tetmesh", "write_tetmesh",
+           "MeshError", "TetMesh", "Topology", "build_topology", "quality", "TransferFunction",
            "read_transfer_function"]
 
 _registered_variant = None
@@ -67,28 +70,6 @@ def register():
     _registered_variant = variant
 
 
-#: Topologies handed from a fit to the ``tetmesh`` plugin that takes them (by a
-#: token in its properties); the latest few only.
-_HANDED = {}
-_TOKENS = itertools.count()
-
-
-def hand_over_topology(topology) -> str:
-    """Keep ``topology`` for the ``tetmesh`` built next from the same arrays (its property
-    ``topology_id`` is the token returned): a mesh whose topology was built once is not
-    built again by the shape."""
-    token = f"topology-{next(_TOKENS)}"
-    _HANDED[token] = topology
-    while len(_HANDED) > 4:
-        _HANDED.pop(next(iter(_HANDED)))
-    return token
-
-
-def take_topology(token):
-    """The topology :func:`hand_over_topology` kept under ``token`` (once), or None."""
-    return _HANDED.pop(token, None) if token else None
-
-
 def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, cell_scalar=None,
                  **props):
     """A ``mi.load_dict`` entry for a ``tetmesh`` built from arrays.
@@ -121,6 +102,41 @@ def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, cell_sca
         d["cell_scalar"] = mi.TensorXf(np.asarray(cell_scalar, dtype=np.float32))
     d.update(props)
     return d
+
+
+def tetmesh_shape(source, topology=None, **props):
+    """The ``tetmesh`` shape itself, built now, for a scene dict: ``mi.load_dict``
+    takes the object as it is, and the key it is under becomes its id (the prefix of
+    its ``mi.traverse`` names, ``volume.vertex_color`` under ``"volume"``).
+
+    Parameters
+    ----------
+    source : TetMesh or dict
+        A mesh (its vertices, tets, color and opacity, and its topology, built by
+        the mesh once and kept with it), or a ``tetmesh`` dict entry with the
+        tensors ``vertices`` and ``tets`` (:func:`tetmesh_dict`'s).
+    topology : Topology, optional
+        :func:`build_topology` of those vertices and tets (any order of each
+        tet's corners), when the caller has it: the shape does not build it
+        again. Default: a ``TetMesh``'s own; for a dict, built by the shape.
+    **props
+        Other properties of the shape (``transfer_function``, ``scalar``, ...).
+
+    Raises
+    ------
+    ValueError
+        As the plugin does (:class:`MeshError` for a mesh it refuses), with
+        its own message: a shape built here is not wrapped by Mitsuba's parser.
+    """
+    register()
+    from .plugins.tetmesh import build_shape
+    if isinstance(source, TetMesh):
+        entry = tetmesh_dict(source.vertices, source.tets, source.color, source.opacity,
+                             **props)
+        topology = source.topology if topology is None else topology
+    else:
+        entry = {**source, **props}
+    return build_shape(entry, topology)
 
 
 def _auto_register():

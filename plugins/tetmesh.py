@@ -103,13 +103,23 @@ After changing them,
         'type': 'tetmesh',
         'filename': 'scenes/meshes/blob.vtu',
     }
+
+A mesh whose topology was built already (a ``TetMesh``, a fit's mesh) is
+handed to the shape in Python, not through the scene's properties:
+:func:`mi_tetvr.tetmesh_shape` builds the shape object (``TetMeshShape(props,
+topology=...)``), which goes into the ``mi.load_dict`` scene as it is, under
+the id its parameters are named by:
+
+.. code-block:: python
+
+    'volume': mi_tetvr.tetmesh_shape(mesh),          # a TetMesh: its topology
+    'volume': mi_tetvr.tetmesh_shape(mi_tetvr.tetmesh_dict(v, t), topology=topo),
 """
 from __future__ import annotations
 
 import mitsuba as mi
 import numpy as np
 
-from mi_tetvr import take_topology
 from mi_tetvr.mesh import TetMesh, read_tetmesh
 from mi_tetvr.mesh.io import choose_scalar
 from mi_tetvr.mesh.topology import longest_edges
@@ -129,9 +139,14 @@ def _tensor(props, key):
     return np.array(props[key]) if key in props else None
 
 
-def mesh_from_properties(props) -> TetMesh:
-    """The numpy mesh described by a ``tetmesh`` property set."""
+def mesh_from_properties(props, topology=None) -> TetMesh:
+    """The numpy mesh described by a ``tetmesh`` property set; ``topology``
+    (:class:`~mi_tetvr.mesh.Topology`, optional) is that of its arrays
+    ``vertices`` and ``tets``, built before: kept, not built again."""
     if "filename" in props:
+        if topology is not None:
+            raise ValueError("tetmesh: a topology is handed with the tensors 'vertices' and "
+                             "'tets', not with a 'filename'")
         fs = mi.file_resolver()
         path = str(fs.resolve(props["filename"]))
         vmin = props.get("value_min", None)
@@ -168,7 +183,7 @@ def mesh_from_properties(props) -> TetMesh:
                        None if opacity is None else opacity.reshape(-1),
                        None if scalar is None else {"scalar": scalar.reshape(-1)},
                        None if cells is None else {"scalar": cells.reshape(-1)},
-                       topology=take_topology(props.get("topology_id", None)))
+                       topology=topology)
         tf = _transfer_function(props)
         if tf is not None and _classification(props) == "pre":
             if scalar is None:
@@ -277,8 +292,8 @@ class TetMeshShape(mi.Mesh):
     #: The optical model that integrates this shape's vertex attributes.
     optical_model = EmissionAbsorption
 
-    def __init__(self, props):
-        mesh = mesh_from_properties(props)
+    def __init__(self, props, topology=None):
+        mesh = mesh_from_properties(props, topology)
         post = post_classification(props, mesh)
         model = str(props.get("model", "emission")).lower()
         if model not in MODELS:
@@ -355,6 +370,41 @@ class TetMeshShape(mi.Mesh):
     def to_string(self):
         return (f"TetMeshShape[vertices={self.vertex_count()}, tets={self.tet_count}, "
                 f"boundary_faces={self.face_count()}]")
+
+
+def shape_properties(entry) -> mi.Properties:
+    """The ``mi.Properties`` of a ``tetmesh`` dict entry (as
+    :func:`mi_tetvr.tetmesh_dict` makes): its values as they are, nested
+    dicts (an ``emitter``, a ``bsdf``) loaded as objects."""
+    kind = entry.get("type", "tetmesh")
+    if kind != "tetmesh":
+        raise ValueError(f"tetmesh: the entry is a {kind!r}, not a 'tetmesh'")
+    props = mi.Properties("tetmesh")
+    for key, value in entry.items():
+        if key == "type":
+            continue
+        if key == "id":
+            props.set_id(str(value))
+            continue
+        props[key] = mi.load_dict(value) if isinstance(value, dict) else value
+    return props
+
+
+def build_shape(entry, topology=None) -> TetMeshShape:
+    """A ``tetmesh`` shape built in Python from its dict entry (or its
+    ``mi.Properties``) and, optionally, the topology of its arrays (kept, not
+    built again; with ``to_world`` the moved mesh builds its own).
+
+    Errors are the plugin's own exceptions (``ValueError``,
+    :class:`~mi_tetvr.mesh.MeshError`), not Mitsuba's parser's: a property
+    that the shape does not read is one, as ``mi.load_dict`` refuses it."""
+    props = entry if isinstance(entry, mi.Properties) else shape_properties(entry)
+    shape = TetMeshShape(props, topology=topology)
+    unread = props.unqueried()
+    if unread:
+        raise ValueError(f"tetmesh: unknown propert{'y' if len(unread) == 1 else 'ies'} "
+                         f"{', '.join(map(repr, sorted(unread)))}")
+    return shape
 
 
 mi.register_shape("tetmesh", lambda props: TetMeshShape(props))

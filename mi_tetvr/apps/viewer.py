@@ -353,11 +353,12 @@ class MeshShown(Shown):
         import mi_tetvr
         try:
             d = self._scene_dict()
+            # the shape built here, with the topology built once (a refusal is a ValueError)
+            d["volume"] = mi_tetvr.tetmesh_shape(d["volume"], topology=self.topology)
         except ValueError as e:          # a combination render refuses: say so, keep the last
             self.message = str(e)
             return False
         d.pop("sensor")
-        d["volume"]["topology_id"] = mi_tetvr.hand_over_topology(self.topology)
         self._integrator = mi.load_dict(d.pop("integrator"))
         self.scene = mi.load_dict(d)
         self.params = mi.traverse(self.scene)

@@ -90,10 +90,11 @@ class Projector:
         if topology is None:
             topology = build_topology(vertices, tets)
         self.n = len(vertices)
-        shape = mi_tetvr.tetmesh_dict(vertices, topology.tets, opacity=np.zeros(self.n),
-                                      model="absorption")
-        shape["topology_id"] = mi_tetvr.hand_over_topology(
-            dataclasses.replace(topology, n_flipped=0))
+        # the shape's tets are the oriented ones: their topology is this one, built once
+        shape = mi_tetvr.tetmesh_shape(
+            mi_tetvr.tetmesh_dict(vertices, topology.tets, opacity=np.zeros(self.n),
+                                  model="absorption"),
+            topology=dataclasses.replace(topology, n_flipped=0))
         # no early termination: the depth stays linear however large it gets
         self.scene = mi.load_dict({"type": "scene",
                                    "integrator": {"type": "tetvr", "min_transmittance": 0.0},

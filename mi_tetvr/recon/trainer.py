@@ -159,10 +159,9 @@ class Trainer:
                 self.cell = cell
                 initial[self.field.extinction] = np.full(n, config.init_opacity) / cell
         values = {**initial, **(values or {})}
-        shape = self.field.shape(vertices, self.tets, values)
         # the shape's tets are the oriented ones: their topology is this one, built once
-        shape["topology_id"] = mi_tetvr.hand_over_topology(
-            dataclasses.replace(topology, n_flipped=0))
+        shape = mi_tetvr.tetmesh_shape(self.field.shape(vertices, self.tets, values),
+                                       topology=dataclasses.replace(topology, n_flipped=0))
         scene = {"type": "scene", "integrator": {"type": "tetvr", "n_sub": config.n_sub},
                  MESH_ID: shape}
         #: Whether the background is learned: then the renders already hold
