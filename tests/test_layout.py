@@ -12,10 +12,13 @@ PACKAGES = ["mi_tetvr", "mi_tetvr.mesh", "mi_tetvr.render", "mi_tetvr.grid", "mi
             "mi_tetvr.apps"]
 
 #: The layers, lowest first: a module imports only from its own layer and those below.
+#: The plugins (``plugins/``, installed as ``mi_tetvr.plugins``) are the top one: they
+#: may import any of mi_tetvr's modules, and none of those imports them (the package's
+#: ``__init__`` registers them).
 LAYERS = [("mi_tetvr.color", "mi_tetvr.transfer", "mi_tetvr.camera", "mi_tetvr.progress",
            "mi_tetvr._lazy"),
           ("mi_tetvr.mesh",), ("mi_tetvr.render",), ("mi_tetvr.grid",), ("mi_tetvr.recon",),
-          ("mi_tetvr.apps",), ("mi_tetvr.cli",)]
+          ("mi_tetvr.apps",), ("mi_tetvr.cli",), ("mi_tetvr.plugins",)]
 
 
 def _layer(module):
@@ -25,29 +28,137 @@ def _layer(module):
     return None
 
 
-def test_no_module_imports_a_layer_above_its_own():
-    """Every import of mi_tetvr's modules (also those inside functions) reaches its own
-    layer or one below: the numpy utilities, mesh, render, grid, recon, apps, cli."""
+def _module_name(path):
+    """The dotted name ``path`` (a file of mi_tetvr/ or plugins/) is imported as."""
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    if parts[0] == "plugins":                  # installed as mi_tetvr.plugins
+        parts = ("mi_tetvr",) + parts
+    return ".".join(parts).removesuffix(".__init__")
+
+
+def _imported_names(path, module):
+    """Every module ``path`` imports (also inside functions), relative imports
+    resolved; ``from a import b`` names ``a.b`` (b a module or a name in ``a``)."""
     import ast
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            yield from (a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                up = package.split(".")[:len(package.split(".")) - (node.level - 1)]
+                base = ".".join(up + ([node.module] if node.module else []))
+            yield from (f"{base}.{a.name}" for a in node.names)
+
+
+def _layer_violations(files):
     bad = []
-    for path in sorted((ROOT / "mi_tetvr").rglob("*.py")):
-        module = ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(
-            ".__init__")
+    for path in files:
+        module = _module_name(path)
         rank = _layer(module)
         if rank is None:             # the package's own __init__ (registration, exports)
             continue
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-                names = [node.module]
-            elif isinstance(node, ast.Import):
-                names = [a.name for a in node.names]
-            else:
-                continue
-            for name in names:
-                other = _layer(name)
-                if other is not None and other > rank:
-                    bad.append(f"{module} imports {name}")
+        for name in _imported_names(path, module):
+            other = _layer(name)
+            if other is not None and other > rank:
+                bad.append(f"{module} imports {name}")
+    return bad
+
+
+def _package_files():
+    return sorted((ROOT / "mi_tetvr").rglob("*.py")) + sorted((ROOT / "plugins").glob("*.py"))
+
+
+def test_no_module_imports_a_layer_above_its_own():
+    """Every import of mi_tetvr's modules and plugins (also those inside functions,
+    and relative ones) reaches its own layer or one below: the numpy utilities,
+    mesh, render, grid, recon, apps, cli, plugins."""
+    bad = _layer_violations(_package_files())
     assert not bad, bad
+
+
+@pytest.mark.parametrize("source, module, expected", [
+    ("from mi_tetvr.render.walk import trace\n", "mi_tetvr/mesh/x.py", ["mi_tetvr.mesh.x"]),
+    ("from ..apps import framing\n", "mi_tetvr/render/x.py", ["mi_tetvr.render.x"]),
+    ("from mi_tetvr import plugins\n", "mi_tetvr/cli/x.py", ["mi_tetvr.cli.x"]),
+    ("import mi_tetvr.plugins.tetvr\n", "mi_tetvr/apps/x.py", ["mi_tetvr.apps.x"]),
+    ("from mi_tetvr.apps import framing\nfrom .tetmesh import build_shape\n",
+     "plugins/x.py", []),
+    ("from . import walk\nfrom mi_tetvr.mesh import TetMesh\n", "mi_tetvr/render/x.py", []),
+])
+def test_the_layer_check_sees_an_import_from_above(tmp_path, monkeypatch, source, module,
+                                                    expected):
+    """The check itself: imports from a layer above (absolute, relative, of a
+    package's attribute, of the plugins) are reported; those below are not."""
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    path = tmp_path / module
+    path.parent.mkdir(parents=True)
+    path.write_text(source)
+    assert sorted({b.split(" imports ")[0] for b in _layer_violations([path])}) == expected
+
+
+def architecture_entries(readme_text):
+    """The modules the README's *Architecture* section names, as paths from the
+    repository root: the first code block of the section is a tree, one entry a
+    line, two spaces of indent a level, ``name.py`` a module and ``name/`` a
+    package (which names its ``__init__.py``), each followed by what it does.
+
+    Raises
+    ------
+    ValueError
+        Where the block is missing or a line is not such an entry.
+    """
+    import re
+    section = re.search(r"^## Architecture\n(.*?)(?=^## )", readme_text, re.S | re.M)
+    block = section and re.search(r"^```\n(.*?)^```", section.group(1), re.S | re.M)
+    if not block:
+        raise ValueError("the README has no '## Architecture' section with a code block")
+    entries, parents = set(), []
+    for line in block.group(1).splitlines():
+        m = re.fullmatch(r"( *)([\w.]+(?:/|\.py)) {2,}\S.*", line)
+        depth = m and len(m.group(1)) // 2
+        if not m or len(m.group(1)) % 2 or depth > len(parents) or (
+                depth > 0 and not parents[depth - 1].endswith("/")):
+            raise ValueError(f"not an entry of the tree (NAME.py or NAME/, indented by "
+                             f"two spaces a level under a package, then what it does): "
+                             f"{line!r}")
+        parents[depth:] = [m.group(2)]
+        path = "".join(parents)
+        entries.add(path + "__init__.py" if path.endswith("/") else path)
+    return entries
+
+
+def _module_files():
+    return {str(p.relative_to(ROOT)) for p in _package_files() if "__pycache__" not in p.parts}
+
+
+def test_the_readme_names_every_module():
+    """The README's *Architecture* tree names every module of mi_tetvr/ and
+    plugins/ as the tree holds them now, and nothing else."""
+    named = architecture_entries((ROOT / "README.md").read_text())
+    files = _module_files()
+    assert not files - named, (f"modules the README's Architecture section does not name "
+                               f"(add a line for each): {sorted(files - named)}")
+    assert not named - files, (f"modules the README's Architecture section names that do "
+                               f"not exist: {sorted(named - files)}")
+
+
+def test_the_readme_tree_is_read_as_written():
+    """The tree's reading: nesting by indent, packages by their __init__.py,
+    and lines that are not entries refused."""
+    text = ("## Architecture\n\n```\nmi_tetvr/    the package\n  a.py       one\n"
+            "  sub/       a package\n    b.py     two\n  c.py       three\n"
+            "plugins/     plugins\n  d.py       four\n```\n\nmore.py is prose\n## Next\n")
+    assert architecture_entries(text) == {
+        "mi_tetvr/__init__.py", "mi_tetvr/a.py", "mi_tetvr/sub/__init__.py",
+        "mi_tetvr/sub/b.py", "mi_tetvr/c.py", "plugins/__init__.py", "plugins/d.py"}
+    for bad in ("  a.py       wrapped\n    on two lines\n",   # a description's second line
+                "  a.py\n",                                  # no description
+                "  a.py       one\n      b.py   too deep\n",  # under a module
+                "   a.py      odd indent\n"):
+        with pytest.raises(ValueError, match="not an entry"):
+            architecture_entries("## Architecture\n```\nmi_tetvr/   pkg\n" + bad + "```\n## N\n")
 
 
 @pytest.mark.parametrize("name", PACKAGES)
