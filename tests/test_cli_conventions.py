@@ -282,3 +282,30 @@ def test_cone_beam_takes_fov_and_radius(tmp_path):
         c = v.camera
         assert np.degrees(2 * np.arctan(c.width / (2 * c.fx))) == pytest.approx(30.0)
         assert np.linalg.norm((c.center - axis)[:2]) == pytest.approx(5.0)
+
+
+def test_one_module_per_command_and_main_alone_exits():
+    """The command line is a package with one module per command (its NAME, HELP,
+    add_arguments and run), and only ``main`` ends the process: no other module of it
+    calls ``sys.exit`` or raises ``SystemExit``; a command's error is one line."""
+    import ast
+
+    package = ROOT / "mi_tetvr" / "cli"
+    sub = next(a for a in cli.build_parser()._actions if a.dest == "cmd")
+    assert list(sub.choices) == [c.NAME for c in cli.COMMANDS]
+    for command in cli.COMMANDS:
+        assert command.__file__ == str(package / command.__name__.rsplit(".", 1)[1]) + ".py"
+        assert sub.choices[command.NAME].get_default("func") is command.run
+    exits = {}
+    for path in sorted(package.glob("*.py")):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            call = isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) \
+                and node.func.attr == "exit" and getattr(node.func.value, "id", "") == "sys"
+            raised = isinstance(node, ast.Raise) and node.exc is not None and "SystemExit" in \
+                ast.unparse(node.exc)
+            if call or raised:
+                exits.setdefault(path.name, set()).add(
+                    next(f.name for f in ast.walk(tree) if isinstance(f, ast.FunctionDef)
+                         and f.lineno <= node.lineno <= f.end_lineno))
+    assert exits == {"__init__.py": {"main"}}

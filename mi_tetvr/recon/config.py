@@ -70,7 +70,7 @@ def _bounds(text):
 
 def setting(default, help, choices=None, flag=None, metavar=None, parse=None):
     """A :class:`FitConfig` field with its help text (and choices) written once: the
-    ``mi-tetvr fit`` options are generated from them (:func:`mi_tetvr.cli.config_flags`);
+    ``mi-tetvr fit`` options are generated from them (:func:`mi_tetvr.cli.flags.config_flags`);
     ``parse`` reads the setting from command-line text (default: from its type)."""
     meta = {"help": help}
     if parse is not None:

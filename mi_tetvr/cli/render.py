@@ -1,0 +1,183 @@
+"""``mi-tetvr render SCENE.xml|MESH [MESH ...|SERIES.pvd] -o OUT``: a Mitsuba XML scene,
+or a mesh file framed by a camera (:mod:`mi_tetvr.apps.framing`), or an orbit of one
+(``--orbit N``: an MP4 and a contact sheet), or a time series of meshes (one camera and
+one transfer-function range). Its options are the fields of
+:class:`~mi_tetvr.apps.settings.RenderSettings`, which check which of them combine."""
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mi_tetvr.apps.framing import mesh_extent, mesh_framing, mesh_scene
+from mi_tetvr.apps.settings import RenderSettings
+from mi_tetvr.cli import flags
+from mi_tetvr.cli.common import (IMAGE_SUFFIXES, MESH_SUFFIXES, CommandError, is_mesh_file,
+                                 load_scene, load_xml, plugin_error, read_mesh, render_image,
+                                 set_variant, srgb8, write_render)
+
+NAME = "render"
+HELP = "render a Mitsuba XML scene with tetmesh shapes, or a mesh file framed by a camera"
+
+
+def add_arguments(p):
+    p.add_argument("scene", nargs="+", help="Mitsuba XML scene, or a tet mesh file (.vtu, "
+                   ".vtk, .msh, .mesh), or several (a time series; or a .pvd of them): one "
+                   "camera and transfer function range for all")
+    flags.settings_flags(p, RenderSettings)
+    flags.out(p, "output image (.exr: linear RGBA; .png/.jpg: sRGB); repeatable", append=True)
+    flags.variant(p)
+
+
+def series_paths(names):
+    """The files ``render`` is given: a ``.pvd`` collection expands to its
+    data sets in time order (paths relative to it)."""
+    import xml.etree.ElementTree as ET
+    paths = []
+    for name in names:
+        path = Path(name)
+        if not path.exists():
+            raise FileNotFoundError(f"scene file not found: {path}")
+        if path.suffix.lower() == ".pvd":
+            try:
+                sets = ET.parse(path).getroot().iter("DataSet")
+                entries = sorted(((float(d.get("timestep", k)), d.get("file"))
+                                  for k, d in enumerate(sets)), key=lambda e: e[0])
+            except (ET.ParseError, TypeError, ValueError) as e:
+                raise ValueError(f"cannot read the collection {path}: {e}") from None
+            if not entries:
+                raise ValueError(f"the collection {path} names no DataSet files")
+            paths += [path.parent / f for _, f in entries]
+        else:
+            paths.append(path)
+    return paths
+
+
+def check_outputs(outs, video):
+    """The ``-o`` files: images, and ``.mp4`` where a video is made (``video``)."""
+    for out in outs:
+        suffix = Path(out).suffix.lower()
+        if suffix == ".mp4" and not video:
+            raise ValueError(f"{out}: a video is written by --orbit N or of a series")
+        if suffix not in IMAGE_SUFFIXES + ((".mp4",) if video else ()):
+            raise ValueError(f"unsupported image format '{Path(out).suffix}' for {out} (use "
+                             f"{', '.join(IMAGE_SUFFIXES)}"
+                             + (", .mp4 for the video)" if video else ")"))
+
+
+def run(a):
+    s = flags.settings_of(RenderSettings, a)
+    mi = set_variant(a.variant)
+    paths = series_paths(a.scene)
+    scene_path = paths[0]
+    is_mesh = all(is_mesh_file(p) for p in paths)
+    series = len(paths) > 1
+    if not is_mesh and (series or scene_path.suffix.lower() != ".xml"):
+        raise ValueError(f"render takes a Mitsuba XML scene, or tet mesh files "
+                         f"({', '.join(MESH_SUFFIXES)}; several, or a .pvd of them, as a "
+                         f"series), got {', '.join(str(p) for p in paths)}")
+    if is_mesh and s.tf and Path(s.tf).suffix.lower() in (".json", ".xml") \
+            and not Path(s.tf).exists():
+        raise FileNotFoundError(f"transfer function file not found: {s.tf}")
+    s.validate("mesh" if is_mesh else "xml", series=series)
+    if s.sensor is not None and not Path(s.sensor).is_file():
+        raise FileNotFoundError(f"sensor file not found: {s.sensor}")
+    check_outputs(a.out, video=bool(s.orbit) or series)
+    if s.orbit and not any(Path(o).suffix.lower() == ".mp4" for o in a.out):
+        raise ValueError("--orbit writes a video: give an -o FILE.mp4 (and images for the "
+                         "contact sheet)")
+    if s.orbit:
+        return render_orbit(s, a.out, mi, scene_path)
+    if series:
+        return render_series(s, a.out, mi, paths)
+    t0 = time.time()
+    if is_mesh:
+        mesh = read_mesh(s, scene_path)
+        scene = load_scene(mi, mesh_scene(s, mesh, mesh_framing(
+            [mesh_extent(s, mesh, scene_path)])), scene_path)
+    else:
+        props = {k: True for k in ("repair", "cell_to_point") if getattr(s, k)}
+        scene = load_xml(mi, scene_path, s.res, props, s.classification)
+    sensor = None
+    if s.sensor is not None:
+        try:
+            sensor = mi.load_file(str(s.sensor))
+        except Exception as e:
+            raise CommandError(f"cannot load the sensor {s.sensor}: {plugin_error(e)}") \
+                from None
+        if not isinstance(sensor, mi.Sensor):
+            raise ValueError(f"{s.sensor} holds a {type(sensor).__name__}, not a sensor")
+    t1 = time.time()
+    img = render_image(mi, scene, scene_path, spp=s.spp or 0,
+                       **({} if sensor is None else {"sensor": sensor}))
+    t2 = time.time()
+    rgb = img[..., :3]
+    alpha = img[..., 3] if img.shape[-1] > 3 else None
+    for out in a.out:
+        write_render(out, rgb, alpha)
+    print(f"rendered {scene_path} at {img.shape[1]}x{img.shape[0]} (load {t1 - t0:.1f} s, "
+          f"render {t2 - t1:.1f} s) -> {', '.join(a.out)}")
+
+
+def render_orbit(s, outs, mi, path):
+    """``render MESH --orbit N`` (:class:`RenderSettings` ``s``): N frames once around
+    ``--up`` from ``--view``, written as an MP4 (the ``.mp4`` outputs) and a contact
+    sheet (the image outputs)."""
+    from mi_tetvr.apps.orbit import FPS, contact_sheet, orbit_azimuths, write_video
+    from mi_tetvr.progress import progress_bar
+    t0 = time.time()
+    azimuth, elevation = s.azimuth_elevation
+    mesh = read_mesh(s, path)
+    framing = mesh_framing([mesh_extent(s, mesh, path)])
+    frames = []
+    scene = None
+    for az in progress_bar(orbit_azimuths(azimuth, s.orbit), desc="orbit", unit="frame"):
+        d = mesh_scene(dataclasses.replace(s, view=(float(az), elevation)), mesh, framing)
+        if scene is None:
+            scene = load_scene(mi, d, path)
+        frames.append(render_image(mi, scene, path, sensor=mi.load_dict(d["sensor"]),
+                                   spp=s.spp or 0))
+    frames = np.stack(frames)
+    sheet = contact_sheet(frames)
+    for out in outs:
+        if Path(out).suffix.lower() == ".mp4":
+            write_video(out, np.stack([srgb8(f[..., :3]) for f in frames]), FPS)
+        else:
+            write_render(out, sheet[..., :3], sheet[..., 3] if sheet.shape[-1] > 3 else None)
+    print(f"rendered {s.orbit} frames of {path} around {tuple(s.up_axis)} at "
+          f"{frames.shape[2]}x{frames.shape[1]} ({time.time() - t0:.1f} s) -> "
+          f"{', '.join(outs)}")
+
+
+def render_series(s, outs, mi, paths):
+    """``render MESH MESH ...`` (or a ``.pvd``; :class:`RenderSettings` ``s``): every
+    mesh with one transfer function range and one camera (:func:`mesh_framing` over
+    all), as an MP4 (the ``.mp4`` outputs) and numbered images (``stem_0000.png``, ...)."""
+    from mi_tetvr.apps.orbit import FPS, write_video
+    from mi_tetvr.progress import progress_bar
+    t0 = time.time()
+    # the range and the box of all the meshes first (each read again to render: a
+    # series need not fit in memory at once)
+    framing = mesh_framing([mesh_extent(s, read_mesh(s, p), p) for p in paths])
+    frames = []
+    for path in progress_bar(paths, desc="series", unit="mesh"):
+        scene = load_scene(mi, mesh_scene(s, read_mesh(s, path), framing), path)
+        frames.append(render_image(mi, scene, path, spp=s.spp or 0))
+    frames = np.stack(frames)
+    written = []
+    for out in outs:
+        out = Path(out)
+        if out.suffix.lower() == ".mp4":
+            write_video(out, np.stack([srgb8(f[..., :3]) for f in frames]), FPS)
+            written.append(str(out))
+            continue
+        for k, f in enumerate(frames):
+            name = out.with_name(f"{out.stem}_{k:04d}{out.suffix}")
+            write_render(name, f[..., :3], f[..., 3])
+        written.append(str(out.with_name(f"{out.stem}_####{out.suffix}")))
+    rng = framing["value_range"]
+    print(f"rendered {len(paths)} meshes at {frames.shape[2]}x{frames.shape[1]}"
+          + (f", '{framing['scalar']}' over [{rng[0]:.4g}, {rng[1]:.4g}]" if rng else "")
+          + f" ({time.time() - t0:.1f} s) -> {', '.join(written)}")
