@@ -22,19 +22,28 @@ In a scene dict, :func:`tetmesh_dict` is a ``tetmesh`` entry made from arrays;
 :func:`tetmesh_shape` is the shape itself, built from a ``TetMesh`` (or from an
 entry and the topology of its arrays, built once and handed on).
 
+A plugin that refuses its input raises ``ValueError`` (or :class:`MeshError`);
+Mitsuba's parser passes it on as a ``RuntimeError`` holding the plugin's
+traceback as text. :func:`load_dict`, :func:`load_file` and :func:`load_string`
+are Mitsuba's, raising the plugin's own exception instead
+(:func:`plugin_error` reads it back from such a ``RuntimeError``).
+
 If no variant is set at import, call :func:`register` after
 :func:`mitsuba.set_variant`.
 """
 from __future__ import annotations
 
+import builtins
+import contextlib
 import importlib
+import re
 import sys
 
 from .mesh import MeshError, TetMesh, Topology, build_topology, quality, read_tetmesh, write_tetmesh
 from .transfer import TransferFunction, read_transfer_function
 
-__all__ = ["register", "tetmesh_dict", "tetmesh_shape", "read_tetmesh", "write_tetmesh",
-           "MeshError", "TetMesh", "Topology", "build_topology", "quality", "TransferFunction",
+__all__ = ["register", "tetmesh_dict", "tetmesh_shape", "load_dict", "load_file", "load_string",
+           "plugin_error", "read_tetmesh", "write_tetmesh", "MeshError", "TetMesh", "Topology", "build_topology", "quality", "TransferFunction",
            "read_transfer_function"]
 
 _registered_variant = None
@@ -86,6 +95,13 @@ def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, cell_sca
         Or a scalar per tet (cell data, constant in each tet).
     **props
         Other plugin properties (e.g. ``to_world``, ``transfer_function``).
+
+    Raises
+    ------
+    ValueError
+        Where the shape would refuse the scalar (two of them, none to map it,
+        a constant one without ``value_min`` and ``value_max``), with the
+        shape's message: here, before Mitsuba's parser would wrap it.
     """
     import mitsuba as mi
     import numpy as np
@@ -101,6 +117,10 @@ def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, cell_sca
     if cell_scalar is not None:
         d["cell_scalar"] = mi.TensorXf(np.asarray(cell_scalar, dtype=np.float32))
     d.update(props)
+    if scalar is not None or cell_scalar is not None:
+        register()
+        from .plugins.tetmesh import check_array_scalars
+        check_array_scalars(d)
     return d
 
 
@@ -137,6 +157,100 @@ def tetmesh_shape(source, topology=None, **props):
     else:
         entry = {**source, **props}
     return build_shape(entry, topology)
+
+
+#: Exception classes of the project a plugin may raise, besides Python's own.
+_PLUGIN_EXCEPTIONS = {"MeshError": MeshError}
+
+
+def plugin_error(exc):
+    """The exception a plugin raised while Mitsuba built a scene, read back from
+    the ``RuntimeError`` Mitsuba's parser raises for it.
+
+    The parser's message is its own line (``[parser.cpp:...] At dictionary node
+    "volume": failed to instantiate ...``) followed by the plugin's traceback as
+    text; the traceback's last exception is the plugin's. It is returned as that
+    exception again, its message alone: of the same class where it is one of
+    Python's or :class:`MeshError`, else a ``RuntimeError`` saying
+    ``"module.Name: message"``. Where Python allows (3.11), a note says which
+    plugin raised it and where in the scene (``err.__notes__``).
+
+    Parameters
+    ----------
+    exc : BaseException
+        What ``mi.load_dict``, ``mi.load_file`` or ``mi.load_string`` raised.
+
+    Returns
+    -------
+    BaseException
+        The plugin's exception, or ``exc`` itself when it does not come from a
+        plugin's constructor (Mitsuba's own errors, an unknown plugin type, ...).
+    """
+    text = str(exc)
+    marker = "Traceback (most recent call last):"
+    if not isinstance(exc, RuntimeError) or marker not in text:
+        return exc
+    head, _, trace = text.rpartition(marker)
+    lines = [line for line in trace.splitlines() if line.strip()]
+    # the frames are indented; the exception starts at the first line that is not
+    first = next((i for i, line in enumerate(lines) if not line[0].isspace()), None)
+    if first is None:
+        return exc
+    name, sep, message = lines[first].partition(": ")
+    if not re.fullmatch(r"[\w.]+", name):        # not "Name: message" nor "Name"
+        name, message = "", lines[first]
+    message = "\n".join([message] + lines[first + 1:])
+    module, _, short = name.rpartition(".")
+    cls = getattr(builtins, short, None) if module in ("", "builtins") else None
+    if cls is None and (module == "" or module.split(".")[0] == __name__):
+        cls = _PLUGIN_EXCEPTIONS.get(short)
+    if isinstance(cls, type) and issubclass(cls, Exception):
+        err = cls(message)
+    else:
+        err = RuntimeError(f"{name}: {message}" if name else message)
+    # the innermost plugin (one plugin's constructor may load another's scene)
+    where = re.findall(r'At (.*?): failed to instantiate .*?plugin of type "([^"]+)"', head)
+    if where and hasattr(err, "add_note"):
+        err.add_note(f'(raised by the "{where[-1][1]}" plugin while Mitsuba loaded '
+                     f'{where[-1][0]})')
+    return err
+
+
+@contextlib.contextmanager
+def _plugin_errors():
+    """Raise a plugin's own exception (:func:`plugin_error`) where Mitsuba's
+    parser wraps it in a ``RuntimeError``; others pass unchanged."""
+    try:
+        yield
+    except RuntimeError as e:
+        err = plugin_error(e)
+        if err is e:
+            raise
+        raise err from None      # (Mitsuba's whole text stays as its __context__)
+
+
+def load_dict(scene, **kwargs):
+    """``mi.load_dict``, a plugin's refusal raised as the plugin raised it
+    (:func:`plugin_error`)."""
+    import mitsuba as mi
+    with _plugin_errors():
+        return mi.load_dict(scene, **kwargs)
+
+
+def load_file(path, **kwargs):
+    """``mi.load_file`` (an XML scene), a plugin's refusal raised as the plugin
+    raised it (:func:`plugin_error`)."""
+    import mitsuba as mi
+    with _plugin_errors():
+        return mi.load_file(str(path), **kwargs)
+
+
+def load_string(xml, **kwargs):
+    """``mi.load_string`` (an XML scene in a string), a plugin's refusal raised
+    as the plugin raised it (:func:`plugin_error`)."""
+    import mitsuba as mi
+    with _plugin_errors():
+        return mi.load_string(xml, **kwargs)
 
 
 def _auto_register():

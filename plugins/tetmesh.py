@@ -139,6 +139,56 @@ def _tensor(props, key):
     return np.array(props[key]) if key in props else None
 
 
+def _given_range(props):
+    """``(value_min, value_max)`` as given, or None where neither is."""
+    vmin, vmax = props.get("value_min", None), props.get("value_max", None)
+    if (vmin is None) != (vmax is None):
+        raise ValueError("tetmesh: give both value_min and value_max (or neither: the "
+                         "scalar field's range)")
+    return None if vmin is None else (float(vmin), float(vmax))
+
+
+def _array_scalars(props):
+    """Refuse scalar tensors that do not combine: a ``scalar`` and a
+    ``cell_scalar``, or either without a transfer function."""
+    scalar, cells = "scalar" in props, "cell_scalar" in props
+    if scalar and cells:
+        raise ValueError("tetmesh: give a 'scalar' (per vertex) or a 'cell_scalar' (per "
+                         "tet), not both")
+    has_tf = any(k in props for k in ("transfer_function", "tf_color", "tf_opacity"))
+    if (scalar or cells) and not has_tf:
+        raise ValueError("tetmesh: a 'scalar' or 'cell_scalar' needs a transfer_function "
+                         "(or the tensors tf_color and tf_opacity) to map it")
+
+
+def scalar_range(scalar, name, props):
+    """``(lo, hi)``, the scalar range a transfer function maps to [0, 1]:
+    ``value_min`` and ``value_max``, else the range of ``scalar`` (the array
+    ``name``); ValueError where it is empty or the scalar is not finite."""
+    if not np.all(np.isfinite(scalar)):
+        raise ValueError(f"tetmesh: scalar array '{name}' has non-finite values")
+    given = _given_range(props)
+    lo, hi = given or (float(np.min(scalar)), float(np.max(scalar)))
+    if not hi > lo:
+        raise ValueError(f"tetmesh: the scalar range must have value_min < value_max, got "
+                         f"[{lo}, {hi}]" + ("" if given else
+                                             f" (array '{name}' is constant: give a range)"))
+    return lo, hi
+
+
+def check_array_scalars(entry):
+    """The shape's checks of a dict entry's scalar tensors that need neither
+    the mesh nor a file, with the shape's messages (ValueError): for
+    :func:`mi_tetvr.tetmesh_dict`, which makes them before Mitsuba builds the
+    shape (whose parser would pass them on wrapped in its own error)."""
+    _array_scalars(entry)
+    values = _tensor(entry, "scalar")
+    values = _tensor(entry, "cell_scalar") if values is None else values
+    mode = str(entry.get("classification", "post")).lower()
+    if values is not None and mode in ("post", "preintegrated"):
+        scalar_range(np.asarray(values, np.float64).reshape(-1), "scalar", entry)
+
+
 def mesh_from_properties(props, topology=None) -> TetMesh:
     """The numpy mesh described by a ``tetmesh`` property set; ``topology``
     (:class:`~mi_tetvr.mesh.Topology`, optional) is that of its arrays
@@ -149,11 +199,7 @@ def mesh_from_properties(props, topology=None) -> TetMesh:
                              "'tets', not with a 'filename'")
         fs = mi.file_resolver()
         path = str(fs.resolve(props["filename"]))
-        vmin = props.get("value_min", None)
-        vmax = props.get("value_max", None)
-        if (vmin is None) != (vmax is None):
-            raise ValueError("tetmesh: give both value_min and value_max (or neither: the "
-                             "scalar field's range)")
+        given = _given_range(props)
         repairs = dict(cell_to_point=bool(props.get("cell_to_point", False)),
                        repair=bool(props.get("repair", False)))
         if _classification(props) in ("post", "preintegrated"):
@@ -167,17 +213,12 @@ def mesh_from_properties(props, topology=None) -> TetMesh:
                 scalar=props.get("scalar_attribute", None),
                 transfer_function=(str(fs.resolve(props["transfer_function"]))
                                    if "transfer_function" in props else None),
-                value_range=None if vmin is None or vmax is None else (float(vmin), float(vmax)),
+                value_range=given,
                 opacity_scale=float(props.get("opacity_scale", 1.0)), **repairs)
     elif "vertices" in props and "tets" in props:
         opacity = _tensor(props, "opacity")
         scalar, cells = _tensor(props, "scalar"), _tensor(props, "cell_scalar")
-        if scalar is not None and cells is not None:
-            raise ValueError("tetmesh: give a 'scalar' (per vertex) or a 'cell_scalar' (per "
-                             "tet), not both")
-        if (scalar is not None or cells is not None) and _transfer_function(props) is None:
-            raise ValueError("tetmesh: a 'scalar' or 'cell_scalar' needs a transfer_function "
-                             "(or the tensors tf_color and tf_opacity) to map it")
+        _array_scalars(props)
         mesh = TetMesh(_tensor(props, "vertices"), _tensor(props, "tets"),
                        _tensor(props, "color"),
                        None if opacity is None else opacity.reshape(-1),
@@ -189,10 +230,8 @@ def mesh_from_properties(props, topology=None) -> TetMesh:
             if scalar is None:
                 raise ValueError("tetmesh: classification 'pre' shades the vertices: it needs "
                                  "the tensor 'scalar' (per vertex)")
-            vmin, vmax = props.get("value_min", None), props.get("value_max", None)
             mesh.color, mesh.opacity = tf.shade(
-                scalar.reshape(-1), None if vmin is None else (float(vmin), float(vmax)),
-                float(props.get("opacity_scale", 1.0)))
+                scalar.reshape(-1), _given_range(props), float(props.get("opacity_scale", 1.0)))
     else:
         raise ValueError("tetmesh: give either 'filename' or the tensors 'vertices' and 'tets'")
     if "to_world" in props:
@@ -265,16 +304,7 @@ def post_classification(props, mesh):
     data, count = (mesh.cell_data, len(mesh.tets)) if per_tet else (mesh.point_data,
                                                                     len(mesh.vertices))
     scalar = np.asarray(data[name], np.float64).reshape(count)
-    if not np.all(np.isfinite(scalar)):
-        raise ValueError(f"tetmesh: scalar array '{name}' has non-finite values")
-    if "value_min" in props:
-        lo, hi = float(props["value_min"]), float(props["value_max"])
-    else:
-        lo, hi = float(scalar.min()), float(scalar.max())
-    if not hi > lo:
-        raise ValueError(f"tetmesh: the scalar range must have value_min < value_max, got "
-                         f"[{lo}, {hi}]" + ("" if "value_min" in props else
-                                             f" (array '{name}' is constant: give a range)"))
+    lo, hi = scalar_range(scalar, name, props)
     color, opacity = tf.texels(resolution)
     model = (CellClassified if per_tet else
              PreIntegrated if mode == "preintegrated" else PostClassified)

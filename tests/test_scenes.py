@@ -1,6 +1,8 @@
 """Scenes the project builds itself: the ``tetmesh`` shape built in Python
 (:func:`mi_tetvr.tetmesh_shape`) with the topology handed to it, and a plugin's
 refusal as its own exception when Mitsuba builds the scene."""
+import sys
+
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -8,7 +10,7 @@ import pytest
 import mi_tetvr
 import mi_tetvr.mesh.topology
 from mi_tetvr.mesh.generate import grid_mesh
-from tests.helpers import rays_at, render_rays
+from tests.helpers import ROOT, rays_at, render_rays
 
 
 @pytest.fixture(scope="module")
@@ -85,3 +87,132 @@ def test_a_built_shape_reads_its_properties_as_mitsuba_does():
                                    to_world=mi.ScalarTransform4f().translate([0, 0, 2]))
     assert shape.optical_model.__name__ == "Absorption"
     assert np.array(shape.bbox().min) == pytest.approx([-1, -1, 1])
+
+
+# -- a plugin's refusal, as Python users read it -------------------------------------------
+#: Exceptions carry notes (where in the scene a plugin refused it) from Python 3.11 on.
+NOTES = sys.version_info >= (3, 11)
+SCENE_XML = """<scene version="3.0.0">
+    <integrator type="tetvr"/>
+    <shape type="tetmesh" id="volume">
+        <string name="filename" value="{mesh}"/>{extra}
+    </shape>
+</scene>
+"""
+
+
+def refusals(scene_dict, xml_path):
+    """What each loader raises for a scene: mi_tetvr.load_dict, load_file,
+    load_string, ``(exception, its notes)`` each."""
+    out = []
+    for load in (lambda: mi_tetvr.load_dict(scene_dict), lambda: mi_tetvr.load_file(xml_path),
+                 lambda: mi_tetvr.load_string(xml_path.read_text())):
+        with pytest.raises(Exception) as e:
+            load()
+        out.append((e.value, " ".join(getattr(e.value, "__notes__", []))))
+    return out
+
+
+def test_a_folded_mesh_is_refused_in_the_plugins_words(tmp_path):
+    """Mitsuba's loader wraps the plugin's MeshError in its own RuntimeError with
+    the plugin's traceback as text; the project's loaders raise the MeshError
+    itself, its one line, and say in a note where in the scene it was."""
+    import meshio
+    from tests.mesh.test_io import folded_grid
+    v, t = folded_grid()
+    meshio.write(tmp_path / "folded.vtu", meshio.Mesh(v, [("tetra", t)]))
+    with pytest.raises(mi_tetvr.MeshError) as e:
+        mi_tetvr.read_tetmesh(tmp_path / "folded.vtu").topology
+    expected = str(e.value)
+    assert "folds over itself" in expected and "repair" in expected and "\n" not in expected
+    xml = tmp_path / "scene.xml"
+    xml.write_text(SCENE_XML.format(mesh=tmp_path / "folded.vtu", extra=""))
+    scene = {"type": "scene", "integrator": {"type": "tetvr"},
+             "volume": {"type": "tetmesh", "filename": str(tmp_path / "folded.vtu")}}
+    with pytest.raises(RuntimeError, match=r"(?s)^\[parser.*Traceback.*folds over itself"):
+        mi.load_dict(scene)
+    (by_dict, dict_note), (by_file, file_note), (by_string, _) = refusals(scene, xml)
+    for err in (by_dict, by_file, by_string):
+        assert type(err) is mi_tetvr.MeshError and str(err) == expected
+    if NOTES:
+        assert dict_note == '(raised by the "tetmesh" plugin while Mitsuba loaded ' \
+                            'dictionary node "volume")'
+        assert str(xml) in file_note and "line 3" in file_note
+    # the loaders return what Mitsuba's return where nothing is refused
+    xml.write_text(SCENE_XML.format(mesh=tmp_path / "folded.vtu",
+                                    extra='\n        <boolean name="repair" value="true"/>'))
+    with pytest.warns(UserWarning, match="dropped"):
+        loaded = mi_tetvr.load_file(xml)
+    assert loaded.shapes()[0].tet_count == len(t) - 2
+
+
+def test_a_constant_scalar_is_refused_in_the_plugins_words(tmp_path):
+    """A constant scalar with a transfer function and no value range: refused by
+    tetmesh_dict and tetmesh_shape before Mitsuba builds anything, by the loaders
+    for an entry made by hand and for a file, each with the shape's one line."""
+    import meshio
+    v, t = grid_mesh(2)
+    tf = str(ROOT / "scenes" / "tf_default.json")
+    line = ("tetmesh: the scalar range must have value_min < value_max, got [2.0, 2.0] "
+            "(array '{}' is constant: give a range)")
+    flat = np.full(len(v), 2.0)
+    with pytest.raises(ValueError) as e:
+        mi_tetvr.tetmesh_dict(v, t, scalar=flat, transfer_function=tf)
+    assert str(e.value) == line.format("scalar")
+    # by hand: the same entry as tetmesh_dict's
+    entry = {"type": "tetmesh", "vertices": mi.TensorXf(v.astype(np.float32)),
+             "tets": mi.TensorXi(t.astype(np.int32)),
+             "scalar": mi.TensorXf(flat.astype(np.float32)), "transfer_function": tf}
+    with pytest.raises(ValueError) as e:
+        mi_tetvr.tetmesh_shape(entry)
+    assert str(e.value) == line.format("scalar")
+    meshio.write(tmp_path / "flat.vtu", meshio.Mesh(v, [("tetra", t)],
+                                                    point_data={"density": flat}))
+    xml = tmp_path / "scene.xml"
+    xml.write_text(SCENE_XML.format(mesh=tmp_path / "flat.vtu", extra=f"""
+        <string name="transfer_function" value="{tf}"/>"""))
+    (by_dict, _), (by_file, _), (by_string, _) = refusals({"type": "scene", "v": entry}, xml)
+    assert type(by_dict) is ValueError and str(by_dict) == line.format("scalar")
+    for err in (by_file, by_string):
+        assert type(err) is ValueError and str(err) == line.format("density")
+    # with a range it loads
+    mi_tetvr.tetmesh_dict(v, t, scalar=flat, transfer_function=tf, value_min=0.0, value_max=4.0)
+
+
+def test_other_errors_pass_unchanged():
+    """Mitsuba's own errors (an unknown plugin, a property no plugin reads) are
+    not a plugin's: the loaders raise them as Mitsuba does."""
+    for scene in ({"type": "scene", "v": {"type": "tetmeshes"}},
+                  {"type": "scene", "v": mi_tetvr.tetmesh_dict(*grid_mesh(1), colour=1.0)}):
+        with pytest.raises(RuntimeError) as mitsuba_error:
+            mi.load_dict(scene)
+        with pytest.raises(RuntimeError) as ours:
+            mi_tetvr.load_dict(scene)
+        assert str(ours.value) == str(mitsuba_error.value)
+    plain = RuntimeError("[parser.cpp:12] no traceback here")
+    assert mi_tetvr.plugin_error(plain) is plain
+    assert mi_tetvr.plugin_error(ValueError("x")).args == ("x",)
+
+
+def test_plugin_error_reads_the_innermost_exception():
+    """A plugin that loads another scene (a nested integrator) passes on its
+    error as text inside its own traceback: the last exception is the one that
+    says what is wrong. Qualified names are read; a class that is neither
+    Python's nor the project's becomes a RuntimeError that names it."""
+    frames = 'Traceback (most recent call last):\n  File "a.py", line 1, in f\n'
+    inner = ('[parser.cpp:1718] At dictionary node "surfaces": failed to instantiate '
+             'integrator plugin of type "tetproj": ' + frames + "ValueError: tetproj: bad mode")
+    outer = RuntimeError('[parser.cpp:1718] At dictionary node "integrator": failed to '
+                         'instantiate integrator plugin of type "tetvr": ' + frames +
+                         "RuntimeError: " + inner)
+    err = mi_tetvr.plugin_error(outer)
+    assert type(err) is ValueError and str(err) == "tetproj: bad mode"
+    if NOTES:
+        assert err.__notes__ == ['(raised by the "tetproj" plugin while Mitsuba loaded '
+                                 'dictionary node "surfaces")']
+    err = mi_tetvr.plugin_error(RuntimeError(
+        "At x: failed to instantiate plugin of type \"t\": " + frames +
+        "mi_tetvr.mesh.topology.MeshError: folds"))
+    assert type(err) is mi_tetvr.MeshError and str(err) == "folds"
+    err = mi_tetvr.plugin_error(RuntimeError(frames + "drjit.Exception: out of memory"))
+    assert type(err) is RuntimeError and str(err) == "drjit.Exception: out of memory"
