@@ -430,7 +430,9 @@ def reference_render_meshes(meshes, origins, directions, background=(0, 0, 0), t
     ``meshes``: a list of dicts, each ``{"vertices", "tets", "color", "opacity"}``
     (emission-absorption; ``color`` may be zeros for absorption only) or
     ``{"vertices", "tets", "scalar", "tf_color", "tf_opacity", "value_range"}``
-    (post-classified). Every mesh's linear pieces along a ray (as in the
+    (post-classified; with ``"lighting"``, lit as
+    :func:`reference_render_shaded` lights it). Every mesh's linear pieces
+    along a ray (as in the
     single-mesh references) are merged in depth order: the ray is cut at
     every piece end of every mesh, and on each resulting interval the
     extinctions of the meshes that cover it add and so do their emissions
@@ -446,8 +448,13 @@ def reference_render_meshes(meshes, origins, directions, background=(0, 0, 0), t
     parts = []
     for m in meshes:
         if "scalar" in m:
+            light = None
+            if "lighting" in m:
+                D = np.asarray(directions, np.float64).reshape(-1, 3)
+                light = (reference_tet_gradients(m["vertices"], m["tets"], m["scalar"]),
+                         D / np.linalg.norm(D, axis=1, keepdims=True), m["lighting"])
             spec = _classified_pieces(m["scalar"], m["tf_color"], m["tf_opacity"],
-                                      m["value_range"])
+                                      m["value_range"], light)
         else:
             spec = _color_pieces(m["color"], m["opacity"])
         p = _pieces(m["vertices"], m["tets"], spec, origins, directions, t_max)

@@ -1,27 +1,42 @@
-"""The renderer in Dr.Jit: the tet walk, its optical models and its adjoint.
+"""The renderer in Dr.Jit: the tet walk, its media and probes, its adjoint,
+and the ray program that composes them.
 
 Modules, from the bottom up:
 
+* :mod:`~mi_tetvr.render.pytree`: field-wise arithmetic on the walk's small
+  structures;
 * :mod:`~mi_tetvr.render.segment`: segment integrals (emission-absorption
-  with sub-intervals) and clipping a segment to ``[t_begin, t_end]``;
+  with sub-intervals, several media at once) and clipping a segment;
+* :mod:`~mi_tetvr.render.surfaces`: the scene's other shapes, rendered by a
+  nested integrator and seen through the volume;
 * :mod:`~mi_tetvr.render.buffers`: the flat buffers the walk reads and the
   one encoding of neighbour links (``4 * tet + face``);
 * :mod:`~mi_tetvr.render.geometry`: the ray frame, the consistent edge
   predicate, face crossings, one step through a tet, entry through the
   boundary;
-* :mod:`~mi_tetvr.render.optical`: optical models (what a crossing
-  interpolates, how a segment is integrated);
+* :mod:`~mi_tetvr.render.clipping`: a plane and a box that cut the volume;
+* :mod:`~mi_tetvr.render.linear`: linear functions inside one tet;
+* :mod:`~mi_tetvr.render.optical`: the media (what a crossing interpolates,
+  how a piece is integrated);
+* :mod:`~mi_tetvr.render.probes`: the probes (projections, slices,
+  isosurfaces: what picks one value along a ray);
+* :mod:`~mi_tetvr.render.adjoint`: the derivative passes' context and the
+  piece adjoint (the inversion trick, written once);
 * :mod:`~mi_tetvr.render.walk`: the traversal (boundary entry, the walk,
   re-entry, a start point inside a mesh);
-* :mod:`~mi_tetvr.render.adjoint`: the derivative modes of the walk;
-* :mod:`~mi_tetvr.render.merged`: meshes that overlap in space, walked
-  together as one medium;
-* :mod:`~mi_tetvr.render.surfaces`: the other shapes of a scene, rendered
-  by a nested integrator and seen through the volume.
+* :mod:`~mi_tetvr.render.merged`: meshes that overlap in space, one cursor
+  each, walked together as one medium;
+* :mod:`~mi_tetvr.render.layers`: surfaces inside the volume, composited
+  front to back;
+* :mod:`~mi_tetvr.render.replay`: the primal renders kept for their
+  derivative passes;
+* :mod:`~mi_tetvr.render.program`: the ray program (surfaces, clip,
+  probes, media, what lies behind), built per scene.
 
-The ``tetmesh`` shape and ``tetvr`` integrator (``mi_tetvr.plugins``) are thin
-wrappers over these. Importing this package needs a Mitsuba variant
-(``mi.set_variant('llvm_ad_rgb')`` or ``'cuda_ad_rgb'``).
+The ``tetmesh`` shape and the ``tetvr`` and ``tetproj`` integrators
+(``mi_tetvr.plugins``) are thin wrappers over these. Importing this package
+needs a Mitsuba variant (``mi.set_variant('llvm_ad_rgb')`` or
+``'cuda_ad_rgb'``).
 """
 import mitsuba as _mi
 
@@ -29,7 +44,7 @@ if _mi.variant() is None:
     raise ImportError("mi_tetvr.render needs a Mitsuba variant: call "
                       "mitsuba.set_variant('llvm_ad_rgb') (or 'cuda_ad_rgb') first")
 
-from mi_tetvr.render.adjoint import Adjoint  # noqa: E402
+from mi_tetvr.render.adjoint import Adjoint, Derivative  # noqa: E402
 from mi_tetvr.render.buffers import (MeshBuffers, TetScene, index_buffers,  # noqa: E402
                                      model_groups, offset_links, pack_links,
                                      scene_tetmeshes,
@@ -42,10 +57,12 @@ from mi_tetvr.render.segment import (clip_segment, interval_terms, merged_integr
                                      segment_integral)
 from mi_tetvr.render.merged import merged_trace, overlapping  # noqa: E402
 from mi_tetvr.render.surfaces import NestedIntegrator, SceneParts, split_shapes  # noqa: E402
-from mi_tetvr.render.walk import WalkSettings, locate, trace, walk  # noqa: E402
+from mi_tetvr.render.walk import WalkSettings, enter, locate, trace, walk  # noqa: E402
+from mi_tetvr.render.probes import Isosurface, Probe, Projection, Slice  # noqa: E402
+from mi_tetvr.render.program import Probes, VolumeProgram  # noqa: E402
 
 __all__ = [
-    "Adjoint",
+    "Adjoint", "Derivative",
     "MeshBuffers", "TetScene", "index_buffers", "model_groups", "offset_links", "pack_links",
     "scene_tetmeshes", "shape_index_arrays", "tet_scene", "unpack_link",
     "crossing", "edge_function", "face_crossing", "face_entry", "face_weights", "project",
@@ -53,5 +70,6 @@ __all__ = [
     "Absorption", "EmissionAbsorption", "OpticalModel",
     "clip_segment", "interval_terms", "merged_integral", "segment_integral",
     "merged_trace", "overlapping", "NestedIntegrator", "SceneParts", "split_shapes",
-    "WalkSettings", "locate", "trace", "walk",
+    "WalkSettings", "enter", "locate", "trace", "walk",
+    "Isosurface", "Probe", "Projection", "Slice", "Probes", "VolumeProgram",
 ]

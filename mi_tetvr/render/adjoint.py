@@ -50,6 +50,35 @@ from mi_tetvr.render.pytree import tree_add, tree_copy, tree_dot, tree_lerp, tre
 from mi_tetvr.render.segment import clip_segment
 
 
+class Derivative:
+    """The context of a derivative pass, handed down the walk explicitly (never
+    set on the data it reads).
+
+    mode : dr.ADMode
+        ``Backward`` or ``Forward``.
+    scenes : list of :class:`~mi_tetvr.render.buffers.TetScene`
+        Per walk group, its buffers attached to the parameters' AD graph
+        (the walk itself reads detached copies).
+    camera : bool
+        Whether the rays are differentiated (a differentiable sensor).
+    ray_tangent : (Vector3f, Vector3f) or None
+        Forward mode with a moving camera: the rays' tangents (origin,
+        direction).
+    """
+
+    def __init__(self, mode, scenes, camera=False, ray_tangent=None):
+        self.mode = mode
+        self.backward = mode == dr.ADMode.Backward
+        self.scenes = list(scenes)
+        self.camera = bool(camera)
+        self.ray_tangent = ray_tangent
+
+    def geometric(self, ts_ad):
+        """Whether the pass needs the geometry of ``ts_ad``'s walk: vertices
+        that move, or a differentiable camera."""
+        return self.camera or moves_vertices(ts_ad)
+
+
 class Adjoint:
     """Per-ray inputs and outputs of the derivative modes.
 
@@ -87,7 +116,7 @@ def vertex_grad_type(model):
     return _VERTEX_GRAD_TYPES[A]
 
 
-def start(mode, ts_ad, entry_ids, o, u, v, d, active):
+def start(deriv, ts_ad, entry_ids, o, u, v, d, active):
     """The derivative modes' loop state besides the ray's adjoint, at the
     walk's entry face: ``(e, pend)``.
 
@@ -97,8 +126,8 @@ def start(mode, ts_ad, entry_ids, o, u, v, d, active):
     """
     model = ts_ad.model
     e = (mi.Float(0.0), dr.zeros(model.Attributes))
-    if mode == dr.ADMode.Forward:
-        e = tangent(ts_ad, entry_ids, o, u, v, d, active)
+    if not deriv.backward:
+        e = tangent(deriv, ts_ad, entry_ids, o, u, v, d, active)
     G = vertex_grad_type(model)
     pend = tuple(dr.zeros(G) for _ in range(3))
     if model.cuts:
@@ -116,25 +145,46 @@ def moves_vertices(ts_ad):
         return dr.grad_enabled(ts_ad.buf.positions)
 
 
-def geometric(ts_ad):
-    """Whether the derivative modes need the geometry: vertices that move or
-    a differentiable camera (``ts_ad.camera``)."""
-    return moves_vertices(ts_ad) or ts_ad.camera
-
-
-def camera_grads(adj, carry, vg, u, v, d, mask):
-    """Add one crossing's vertex-position gradients ``vg`` (of the corners
-    ``carry``) to the ray's origin and direction gradients (see
-    :class:`Adjoint`); a corner's offset from the origin is ``p.x u + p.y v
-    + z d``."""
-    for c, g in zip(carry[0], vg):
-        r = c.p.x * u + c.p.y * v + c.z * d
-        adj.g_o = dr.select(mask, adj.g_o - g.p, adj.g_o)
-        adj.g_w = dr.select(mask, adj.g_w - dr.cross(r, g.p), adj.g_w)
+def ray_grads(adj, r, g, mask):
+    """Add the gradient ``g`` of a vertex at offset ``r`` from the ray's
+    origin to the ray's origin and direction gradients (see
+    :class:`Adjoint`): moving the ray is moving the vertex the other way."""
+    adj.g_o = dr.select(mask, adj.g_o - g, adj.g_o)
+    adj.g_w = dr.select(mask, adj.g_w - dr.cross(r, g), adj.g_w)
     return adj
 
 
-def crossing_grads(ts_ad, carry, g, u, v, d):
+def camera_grads(adj, carry, vg, u, v, d, mask):
+    """:func:`ray_grads` of one crossing's vertex-position gradients ``vg``
+    (of the corners ``carry``); a corner's offset from the origin is ``p.x u
+    + p.y v + z d``."""
+    for c, g in zip(carry[0], vg):
+        adj = ray_grads(adj, c.p.x * u + c.p.y * v + c.z * d, g.p, mask)
+    return adj
+
+
+def inversion(deriv, adj, L, T, C_seg, C_d, tau):
+    """The inversion trick, for one segment or piece: with ``L, T`` the
+    emission and transmittance in front of it, ``C_seg`` its emission (as the
+    primal computed it) and ``C_d``, ``tau`` its emission and optical depth
+    attached to the AD graph, the radiance reaching the pixel from behind it
+    is ``R = L_pix - (L + T C_seg)``, and ``d L_pix = T dC - R dtau``, ``d
+    alpha = T_fin dtau``. Backward mode propagates the ray's adjoint through
+    them; forward mode returns ``adj`` with their tangents added."""
+    R = adj.L_pix - (L + T * C_seg)
+    Lo = T * C_d - tau * R
+    Lo_alpha = tau * adj.T_fin
+    flags = dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
+    if deriv.backward:
+        dr.backward_from(dr.dot(adj.dL, Lo) + adj.dalpha * Lo_alpha, flags=flags)
+    else:
+        dLo, dLo_alpha = dr.forward_to(Lo, Lo_alpha, flags=flags)
+        adj.dL = adj.dL + dLo
+        adj.dalpha = adj.dalpha + dLo_alpha
+    return adj
+
+
+def crossing_grads(deriv, ts_ad, carry, g, u, v, d):
     """Gradient of ``g . (t, attributes)`` of the ray's crossing of the face
     the walk carries (``carry``: corners, their attributes, edge functions)
     w.r.t. each corner's position and attributes
@@ -143,7 +193,7 @@ def crossing_grads(ts_ad, carry, g, u, v, d):
     ``dP = dp.x u + dp.y v + dz d``."""
     G = vertex_grad_type(ts_ad.model)
     corners, values, edges = carry
-    if not geometric(ts_ad):
+    if not deriv.geometric(ts_ad):
         w = face_weights(*edges)
         return [G(mi.Vector3f(0.0), tree_map(lambda x: w[j] * x, g[1])) for j in range(3)]
     return [G(dp.x * u + dp.y * v + dz * d, da)
@@ -162,15 +212,15 @@ def scatter(ts_ad, i, g, active, reduce):
         dr.backward_from(y, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
 
 
-def tangent(ts_ad, ids, o, u, v, d, active):
+def tangent(deriv, ts_ad, ids, o, u, v, d, active):
     """Forward mode: the tangent of a face crossing's ``(t, attributes)``
-    (with a moving camera, ``ts_ad.ray_tangent``, the ray's tangent too)."""
+    (with a moving camera, ``deriv.ray_tangent``, the ray's tangent too)."""
     with dr.resume_grad():
-        if ts_ad.ray_tangent is not None:
+        if deriv.ray_tangent is not None:
             o, d = mi.Point3f(o), mi.Vector3f(d)
             dr.enable_grad(o, d)
-            dr.set_grad(o, ts_ad.ray_tangent[0])
-            dr.set_grad(d, ts_ad.ray_tangent[1])
+            dr.set_grad(o, deriv.ray_tangent[0])
+            dr.set_grad(d, deriv.ray_tangent[1])
             u, v = ray_frame(d)
         t, w = face_crossing(ts_ad.buf, ids, o, u, v, d, active)
         a = ts_ad.model.interpolate(ts_ad.params, ids, w, active)
@@ -182,7 +232,7 @@ def _scaled(g, w):
     return tree_map(lambda x: x * w, g)
 
 
-def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj, pending,
+def segment(deriv, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj, pending,
             o, u, v, d, active, reduce, stay=None, f=None, tet=None):
     """One segment in a derivative mode.
 
@@ -205,7 +255,7 @@ def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj,
     when the walk leaves the tet. ``tet`` is the segment's tet (for models
     that take it, ``model.per_tet``).
     """
-    backward = mode == dr.ADMode.Backward
+    backward = deriv.backward
     model = ts.model
     cuts = model.cuts
     if cuts:
@@ -216,9 +266,9 @@ def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj,
     with dr.resume_grad():
         x = tree_copy((entry, exit))
         # The crossings' ray parameters matter only when vertices move.
-        dr.enable_grad(x if geometric(ts_ad) else (x[0][1], x[1][1]))
+        dr.enable_grad(x if deriv.geometric(ts_ad) else (x[0][1], x[1][1]))
         if dr.hint(not backward, mode="scalar"):
-            x_t = tangent(ts_ad, st.exit, o, u, v, d, active)
+            x_t = tangent(deriv, ts_ad, st.exit, o, u, v, d, active)
             dr.set_grad(x, (tree_lerp(e, x_t, F), tree_lerp(e, x_t, F_end)) if cuts
                         else (e, x_t))
         (t0, a0), (t1, a1) = x
@@ -227,17 +277,9 @@ def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj,
                                       *((tet,) if model.per_tet else ()))
         C_seg = dr.detach(C_d)
         T_seg = dr.detach(T_d)
-        # Radiance reaching the pixel from behind this segment.
-        R = adj.L_pix - (L + T * C_seg)
-        Lo = T * C_d - tau * R
-        Lo_alpha = tau * adj.T_fin
+        adj = inversion(deriv, adj, L, T, C_seg, C_d, tau)
         if dr.hint(backward, mode="scalar"):
-            dr.backward_from(dr.dot(adj.dL, Lo) + adj.dalpha * Lo_alpha)
             g_entry, g_exit = dr.grad(x)
-        else:
-            dLo, dLo_alpha = dr.forward_to(Lo, Lo_alpha)
-            adj.dL += dLo
-            adj.dalpha += dLo_alpha
     if dr.hint(not backward, mode="scalar"):
         if cuts:
             return C_seg, T_seg, adj, (tree_select(stay, e, x_t), e_x,
@@ -248,8 +290,8 @@ def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj,
         e = tree_add(e, tree_add(_scaled(g_entry, 1.0 - F), _scaled(g_exit, 1.0 - F_end)))
         e_x = tree_add(e_x, tree_add(_scaled(g_entry, F), _scaled(g_exit, F_end)))
         g_entry = None
-    vg = crossing_grads(ts_ad, carry, e if cuts else tree_add(e, g_entry), u, v, d)
-    if ts_ad.camera:
+    vg = crossing_grads(deriv, ts_ad, carry, e if cuts else tree_add(e, g_entry), u, v, d)
+    if deriv.camera:
         adj = camera_grads(adj, carry, vg, u, v, d, active & advance)
     G = vertex_grad_type(model)
     pend = [tree_add(pend[j], vg[j]) for j in range(3)]
@@ -270,7 +312,8 @@ def segment(mode, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj,
                                dr.select(advance, 0.0, F_end), new_pend)
 
 
-def finish(ts_ad, pending, carry, walked, u, v, d, reduce, adj, exit_carry=None, inside=None):
+def finish(deriv, ts_ad, pending, carry, walked, u, v, d, reduce, adj, exit_carry=None,
+           inside=None):
     """Backward mode, after the walk: the last exit crossing's gradient and
     the pending ones of its corners (``carry``: the face the walk left by;
     ``walked``: the rays that integrated at least one segment or piece);
@@ -282,14 +325,14 @@ def finish(ts_ad, pending, carry, walked, u, v, d, reduce, adj, exit_carry=None,
         e, e_x, _, pend = pending
     else:
         e, pend = pending
-    camera = ts_ad.camera
-    vg = crossing_grads(ts_ad, carry, e, u, v, d)
+    camera = deriv.camera
+    vg = crossing_grads(deriv, ts_ad, carry, e, u, v, d)
     if camera:
         adj = camera_grads(adj, carry, vg, u, v, d, walked)
     for j in range(3):
         scatter(ts_ad, carry[0][j].i, tree_add(pend[j], vg[j]), walked, reduce)
     if exit_carry is not None:
-        vg = crossing_grads(ts_ad, exit_carry, e_x, u, v, d)
+        vg = crossing_grads(deriv, ts_ad, exit_carry, e_x, u, v, d)
         if camera:
             adj = camera_grads(adj, exit_carry, vg, u, v, d, inside)
         for j in range(3):

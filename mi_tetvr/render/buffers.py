@@ -239,10 +239,6 @@ class TetScene:
     def __init__(self, shapes, face_offsets, buf, model, params):
         self.shapes, self.face_offsets = shapes, face_offsets
         self.buf, self.model, self.params = buf, model, params
-        #: Whether the derivative modes differentiate w.r.t. the rays, and
-        #: (forward mode) the rays' tangents ``(origin, direction)``.
-        self.camera = False
-        self.ray_tangent = None
 
     def detached(self):
         """The same scene with its buffers detached from the AD graph."""

@@ -3,7 +3,7 @@
 ParaView shows a volume with a contour or a slice.
 
 Along a ray the surfaces (the layers) are found one after the other, each
-from just past the previous one (:meth:`~plugins.tetproj.TetProjIntegrator.find`);
+from just past the previous one (:meth:`~mi_tetvr.render.program.Probes.layered`);
 the volume is integrated over the interval in front of each, and after the
 last. With the layers' opacity ``alpha``, colors ``S_k``, the volume's
 emission ``C_k`` and transmittance ``T_k`` over the interval in front of
@@ -16,7 +16,7 @@ Derivatives. The volume's intervals are differentiated by the walk's
 adjoint with the interval's own end points held (``R_k``, the radiance that
 reaches the interval's start from behind, is what the adjoint needs as its
 pixel value), the layers' colors by their closed forms
-(:meth:`~mi_tetvr.render.optical.RayValue.replay`). A layer that moves
+(:meth:`~mi_tetvr.render.probes.Probe.replay`). A layer that moves
 (an isosurface: its depth ``t_k`` depends on the scalars, the positions and
 the isovalue) ends one interval and starts the next; the volume being
 continuous there, the two ends' terms add up to::
@@ -38,7 +38,7 @@ class Layer:
     (emission ``C``, transmittance ``T``; ``active`` where the ray got that
     far) and the surface at ``end``: where it
     is met (``met``), its color and the walk's pick
-    (:class:`~mi_tetvr.render.optical.Pick`). The tail after the last
+    (:class:`~mi_tetvr.render.probes.Pick`). The tail after the last
     surface is a layer that meets none."""
 
     def __init__(self, start, end, active, C, T, met, color=None, pick=None):
@@ -127,3 +127,29 @@ def composite(find, volume, ray, t_start, active, alpha: float, count: int, eps:
     W *= T
     layers.append(Layer(mi.Float(start), t_end, go, C, T, mi.Bool(False)))
     return Layered(layers, L, W, float(alpha))
+
+
+def replay(ts, layered, o, d, weights=None):
+    """The layers' share of the pixel, ``sum_k alpha w_k S_k``, with each
+    surface's color recomputed with the AD graph from its pick (``ts``: the
+    probes' :class:`~mi_tetvr.render.buffers.TetScene`, attached), and each
+    layer's depth ``t_k`` alike: ``[(share, t_k, w_k)]``. ``weights`` are the
+    transmittances in front of each surface (default: those of the layers
+    alone)."""
+    out = []
+    W = mi.Float(1.0)
+    for j, layer in enumerate(layered.layers[:-1]):
+        w = W if weights is None else weights[j]
+        color, t = ts.model.replay_surface(ts.params, ts.buf, layer.pick, o, d)
+        out.append((dr.select(layer.met, layered.alpha * w * color, 0.0), t, w))
+        W = dr.select(layer.met, W * (1.0 - layered.alpha), W)
+    return out
+
+
+def volume_at(ts, pick, d):
+    """``(color, extinction)`` of the volume ``ts`` (a post-classified
+    model) at the pick of an isosurface of its scalar, detached
+    (:meth:`~mi_tetvr.render.optical.PostClassified.medium_at`)."""
+    with dr.suspend_grad():
+        c, sigma = ts.model.medium_at(ts.params, pick.u, pick.tet, d)
+    return dr.detach(c), dr.detach(sigma)

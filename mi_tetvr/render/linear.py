@@ -6,7 +6,7 @@ with the barycentric coordinates ``lambda_k``, themselves affine in ``x``
 form of the tet's four corners, so Dr.Jit's AD differentiates it w.r.t. the
 values and the positions: the derivative passes of the models that show one
 point per ray (isosurfaces, slices, extreme values:
-:meth:`~mi_tetvr.render.optical.RayValue.replay`) recompute that point here,
+:meth:`~mi_tetvr.render.probes.Probe.replay`) recompute that point here,
 in the tet the walk found it in, instead of re-walking the ray.
 """
 from __future__ import annotations

@@ -40,7 +40,7 @@ from mi_tetvr.render.geometry import (corner, crossing_at, entry_carry, face_cro
                                       face_entry, ray_frame, walk_step)
 from mi_tetvr.render.pytree import tree_lerp, tree_select, weighted_sum
 from mi_tetvr.render.segment import merged_integral
-from mi_tetvr.render.walk import WalkSettings, locate
+from mi_tetvr.render.walk import WalkSettings, enter
 
 #: Most meshes one merged walk takes (each is a cursor in every iteration).
 MAX_MESHES = 8
@@ -80,18 +80,19 @@ def _gather(ts):
 
 
 @dr.syntax
-def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
-                 adj: adjoint.Adjoint = None, tss_ad=None, n_sub: int = 4, t_start=0.0):
+def merged_trace(scenes, tss, ray, settings: WalkSettings, active, t_start=0.0,
+                 deriv: adjoint.Derivative = None, adj: adjoint.Adjoint = None, n_sub: int = 4):
     """Emission and transmittance along rays through tet meshes that may
     overlap: per mesh a scene of it alone (``scenes``, whose boundary faces
     are traced) and its :class:`~mi_tetvr.render.buffers.TetScene` (``tss``;
-    ``tss_ad`` the same attached to the AD graph in the derivative modes).
+    a derivative pass's ``deriv.scenes`` the same attached to the AD graph).
     Same results as :func:`~mi_tetvr.render.walk.trace`; pieces are
     integrated with ``2 n_sub`` sub-intervals (the merged integral's error at
     ``2 n`` is about the single medium's at ``n``); the integral starts at
     ``t_start`` (a clip)."""
     _check(tss)
-    primal = mode == dr.ADMode.Primal
+    primal = deriv is None
+    tss_ad = None if primal else deriv.scenes
     K = len(tss)
     o = mi.Point3f(ray.o)
     d = mi.Vector3f(ray.d)
@@ -115,7 +116,7 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
     # The piece starts where the ray crossed mesh k's boundary (its carried
     # face): that point moves with the boundary (derivative modes).
     from_bnd = [mi.Bool(False) for _ in range(K)]
-    geo = tss_ad is not None and any(adjoint.geometric(g) for g in tss_ad)
+    geo = not primal and any(deriv.geometric(g) for g in tss_ad)
     L = mi.Color3f(0.0)
     T = mi.Float(1.0)
     t = mi.Float(t_start)
@@ -135,9 +136,9 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
                 si = scenes[k].ray_intersect_preliminary(
                     mi.Ray3f(o + d * t_trace[k], d, t_max - t_trace[k]), active=need_k)
                 hit = need_k & si.is_valid()
-                tt, ff, out = face_entry(tss[k].buf, si.prim_index, o, u, v, d, hit)
+                tt, ff, out = enter(tss[k].buf, si.prim_index, o, u, v, d, t,
+                                    settings.max_steps, hit)
                 here = hit & out
-                tt, ff = locate(tss[k].buf, tt, ff, o, u, v, d, t, settings.max_steps, here)
                 c_k = tree_select(here, entry_carry(tss[k].buf, tt, ff, o, u, v, d, here,
                                                     _gather(tss[k])), c_k)
                 tet_k = dr.select(here, tt, tet_k)
@@ -197,7 +198,7 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
             te, we, ae, tx, ax, inv = ends[k]
             a1 = tree_select(go[k], tree_select(knots[k][0], knots[k][1], ax),
                              tree_lerp(ae, ax, dr.clip((t_ev - te) * inv, 0.0, 1.0)))
-            lin = tss[k].model.linear(tss[k].params, nows[k], a1)
+            lin = tss[k].model.linear(tss[k].params, nows[k], a1, tet[k])
             media.append(tuple(dr.select(inside[k], x, 0.0) for x in lin))
             kept[k] = inside[k] & go[k] & knots[k][0]
             a_at[k] = a1
@@ -206,7 +207,7 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
             # The piece ends where the ray enters or leaves mesh k.
             to_bnd = [go[k] & (~inside[k] | (~knots[k][0] & (sts[k].link < 0)))
                       for k in range(K)]
-            adj = _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_end,
+            adj = _piece_derivative(deriv, tss, carry, tet, sts, ends, inside, t, t_end,
                                     length, C_seg, L, T, adj, settings.reduce, n_sub,
                                     (from_bnd, to_bnd, f_next) if geo else None, o, d)
         L += T * C_seg
@@ -227,17 +228,17 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
             t_trace[k] = dr.select(left, ends[k][3] + settings.retrace_eps, t_trace[k])
             need[k] = need[k] | left
             # Outside: enter the mesh through its next boundary face.
-            enter = go[k] & ~inside[k] & ~left
+            entering = go[k] & ~inside[k] & ~left
             c_k, tet_k, f_k = carry[k], tet[k], f_in[k]
-            if enter:
-                tt, ff, _ = face_entry(ts.buf, f_next[k], o, u, v, d, enter)
-                c_k = entry_carry(ts.buf, tt, ff, o, u, v, d, enter, _gather(ts))
+            if entering:
+                tt, ff, _ = face_entry(ts.buf, f_next[k], o, u, v, d, entering)
+                c_k = entry_carry(ts.buf, tt, ff, o, u, v, d, entering, _gather(ts))
                 tet_k, f_k = tt, ff
             carry[k], tet[k], f_in[k] = c_k, tet_k, f_k
-            inside[k] = inside[k] | enter
-            kept[k] = kept[k] & ~enter
-            from_bnd[k] = from_bnd[k] | enter
-            t_next[k] = dr.select(enter, inf, t_next[k])
+            inside[k] = inside[k] | entering
+            kept[k] = kept[k] & ~entering
+            from_bnd[k] = from_bnd[k] | entering
+            t_next[k] = dr.select(entering, inf, t_next[k])
         t = t_ev
         steps += 1
         pending = mi.Bool(False)
@@ -247,7 +248,7 @@ def merged_trace(mode, scenes, tss, ray, settings: WalkSettings, active,
     return L, T, steps, adj
 
 
-def _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev, length, C_seg,
+def _piece_derivative(deriv, tss, carry, tets, sts, ends, inside, t, t_ev, length, C_seg,
                       L, T, adj, reduce, n_sub, geo, o, d):
     """One piece in a derivative mode: its emission and optical depth
     recomputed with the AD graph through the gathers of each mesh's entry
@@ -262,11 +263,12 @@ def _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev, leng
     those move with the boundary, and every mesh's attributes at the ends
     follow through their own crossings, recomputed from the positions (and,
     for the camera, from leaf copies of them)."""
-    backward = mode == dr.ADMode.Backward
+    backward = deriv.backward
+    tss_ad = deriv.scenes
     with dr.resume_grad():
         u, v = ray_frame(d)
         t0, t1 = mi.Float(t), mi.Float(t_ev)
-        camera = geo is not None and tss_ad[0].camera
+        camera = geo is not None and deriv.camera
         moved = []          # (the camera) each corner's mesh, index, mask, leaf position
 
         def crossing_of(ts, ids, act):
@@ -286,8 +288,8 @@ def _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev, leng
                     # the ray's tangent (origin, direction) as the vertex's:
                     # -(do + w x (P - o)) with w = d x dd
                     dP = 0.0
-                    if ts.ray_tangent is not None:
-                        do, dd = ts.ray_tangent
+                    if deriv.ray_tangent is not None:
+                        do, dd = deriv.ray_tangent
                         dP = -(do + dr.cross(dr.cross(d, dd), P - o))
                     if adjoint.moves_vertices(ts):
                         dP = dP + dr.forward_to(ts.buf.position(i, act),
@@ -331,29 +333,19 @@ def _piece_derivative(mode, tss, tss_ad, carry, sts, ends, inside, t, t_ev, leng
             # field there, continued past a face that moved)
             F0 = (t0 - te) * inv
             F1 = (t1 - te) * inv
-            lin = ts.model.linear(ts.params, tree_lerp(a_e, a_x, F0), tree_lerp(a_e, a_x, F1))
+            lin = ts.model.linear(ts.params, tree_lerp(a_e, a_x, F0), tree_lerp(a_e, a_x, F1),
+                                  tets[k])
             lin = tuple(dr.select(inside[k], x, 0.0) for x in lin)
             media.append(lin)
             tau += length * (lin[2] + lin[3]) * 0.5
         C_d, _ = merged_integral(length, media, 2 * n_sub)
-        R = adj.L_pix - (L + T * C_seg)
-        Lo = T * C_d - tau * R
-        Lo_alpha = tau * adj.T_fin
+        adj = adjoint.inversion(deriv, adj, L, T, C_seg, C_d, tau)
         if backward:
-            dr.backward_from(dr.dot(adj.dL, Lo) + adj.dalpha * Lo_alpha,
-                             flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
             for ts, i, act, P in moved:
                 # (a corner that is not there has no gradient: zero, not the NaN that a
                 # degenerate crossing's derivative times a zero weight may give)
                 g = dr.select(act, mi.Vector3f(dr.grad(P)), 0.0)
-                # (not in place: the two may start as one array object)
-                adj.g_o = adj.g_o - g
-                adj.g_w = adj.g_w - dr.cross(dr.detach(P) - o, g)
+                adj = adjoint.ray_grads(adj, dr.detach(P) - o, g, True)
                 if adjoint.moves_vertices(ts):
                     dr.backward_from(dr.dot(ts.buf.position(i, act, reduce), dr.detach(g)))
-        else:
-            dLo, dLo_alpha = dr.forward_to(Lo, Lo_alpha,
-                                           flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
-            adj.dL = adj.dL + dLo
-            adj.dalpha = adj.dalpha + dLo_alpha
     return adj

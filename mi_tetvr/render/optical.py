@@ -1,4 +1,5 @@
-"""Optical models: what a vertex carries and how one segment is integrated.
+"""Optical models (the media): what a vertex carries and how one segment is
+integrated.
 
 The walk (:mod:`mi_tetvr.render.walk`) crosses faces; at each crossing it
 asks the model for the per-vertex values interpolated there, and for each
@@ -27,17 +28,20 @@ A model whose attributes map to color and extinction nonlinearly sets
 walk ends a piece, so that each piece is integrated by :meth:`segment` with
 linear color and extinction).
 
+Where meshes overlap, the walk integrates the pieces of all of them as one
+medium from each model's :meth:`OpticalModel.linear` (color and extinction
+at a piece's ends).
+
 Models here: :class:`EmissionAbsorption` (what ``tetmesh`` shapes use),
 :class:`Absorption` (extinction only), :class:`PostClassified` (a scalar and
 a transfer function), :class:`PreIntegrated` (the same by a table),
-:class:`CellClassified` (a scalar per tet and a transfer function),
-:class:`Shaded` (post-classified and lit by a headlight), and the
-models that show one point per ray, each accumulated by its own
-:meth:`~OpticalModel.accumulate`: :class:`Projection` (the maximum, minimum
-or mean of the scalar along the ray), :class:`Slice` (the scalar where the
-ray crosses a plane) and :class:`Isosurface`. To add a model, subclass :class:`OpticalModel`, and let the
-``tetmesh`` shape name it (``shape.optical_model``) and carry its
-``vertex_attributes``; the walk and the adjoint stay as they are.
+:class:`CellClassified` (a scalar per tet and a transfer function) and
+:class:`Shaded` (post-classified and lit by a headlight). To add a model,
+subclass :class:`OpticalModel`, and let the ``tetmesh`` shape name it
+(``shape.optical_model``) and carry its ``vertex_attributes``; the walk and
+the adjoint stay as they are. What picks one value along a ray instead of
+integrating (projections, slices, isosurfaces) is a probe:
+:mod:`~mi_tetvr.render.probes`.
 """
 from __future__ import annotations
 
@@ -45,10 +49,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_tetvr.render.buffers import MeshBuffers, concat
-from mi_tetvr.render.clipping import unit_vector
-from mi_tetvr.render.linear import TetFrame, vertex_gradients
-from mi_tetvr.render.pytree import tree_select, weighted_sum
+from mi_tetvr.render.buffers import concat
+from mi_tetvr.render.linear import TetFrame
+from mi_tetvr.render.pytree import weighted_sum
 from mi_tetvr.render.segment import segment_integral
 
 
@@ -73,8 +76,6 @@ class OpticalModel:
     #: Whether the model takes settings from its shape (then each shape is
     #: walked apart; else the shapes of one model share a walk).
     per_shape = False
-    #: The accumulated value before the first segment (every channel).
-    initial = 0.0
     #: Whether :meth:`segment` takes the index of the segment's tet (in the
     #: walk's buffers) as a fifth argument.
     per_tet = False
@@ -102,27 +103,18 @@ class OpticalModel:
         """``Attributes`` at barycentric weights ``w`` of the vertices ``ids``."""
         return weighted_sum(w, [self.gather(params, i, active, reduce) for i in ids])
 
-    def start(self):
-        """The accumulator ``L`` before the first segment (a ``Color3f`` of
-        :attr:`initial`; a model with its own accumulator returns that)."""
-        return mi.Color3f(self.initial)
-
-    def accumulate(self, L, T, C, T_seg):
-        """``(L, T)`` after a segment ``(C, T_seg)`` behind what was
-        accumulated: front-to-back compositing."""
-        return L + T * C, T * T_seg
-
     def segment(self, params, length, a0, a1):
         """``(C : Color3f, T : Float, tau : Float)`` of a segment of
         ``length`` whose attributes go linearly from ``a0`` to ``a1``."""
         raise NotImplementedError
 
-    def linear(self, params, a0, a1):
+    def linear(self, params, a0, a1, tet):
         """``(c0, c1, s0, s1)``: color and extinction at the ends of a piece
-        whose attributes go linearly from ``a0`` to ``a1`` (between the
-        model's knots: color and extinction are linear on it). Where meshes
-        overlap, the pieces of all of them are integrated as one medium from
-        these (:func:`~mi_tetvr.render.segment.merged_integral`)."""
+        of ``tet`` (an index in the walk's buffers) whose attributes go
+        linearly from ``a0`` to ``a1`` (between the model's knots: color and
+        extinction are linear on it). Where meshes overlap, the pieces of all
+        of them are integrated as one medium from these
+        (:func:`~mi_tetvr.render.segment.merged_integral`)."""
         raise NotImplementedError(f"{type(self).__name__} cannot overlap other meshes")
 
 
@@ -163,7 +155,7 @@ class EmissionAbsorption(OpticalModel):
         tau = length * (a0.s + a1.s) * 0.5
         return C, T, tau
 
-    def linear(self, params, a0, a1):
+    def linear(self, params, a0, a1, tet):
         return a0.c, a1.c, a0.s, a1.s
 
 
@@ -201,7 +193,7 @@ class Absorption(OpticalModel):
         tau = length * (a0.s + a1.s) * 0.5
         return dr.zeros(mi.Color3f, dr.width(length)), dr.exp(-tau), tau
 
-    def linear(self, params, a0, a1):
+    def linear(self, params, a0, a1, tet):
         zero = dr.zeros(mi.Color3f, dr.width(a0.s))
         return zero, zero, a0.s, a1.s
 
@@ -322,9 +314,16 @@ class PostClassified(OpticalModel):
         C, T = segment_integral(length, c0, c1, s0, s1, self.n_sub)
         return C, T, length * (s0 + s1) * 0.5
 
-    def linear(self, params, a0, a1):
+    def linear(self, params, a0, a1, tet):
         (c0, s0), (c1, s1) = self.classify(params, a0.u, a1.u)
         return c0, c1, s0, s1
+
+    def medium_at(self, params, u, tet, d):
+        """``(color, extinction)`` where the scalar's texel coordinate is
+        ``u`` in ``tet``, seen along ``d`` (an isosurface drawn in the
+        volume: :mod:`~mi_tetvr.render.layers`)."""
+        (c, sigma), _ = self.classify(params, u, u)
+        return c, sigma
 
 
 class CellClassified(PostClassified):
@@ -365,44 +364,24 @@ class CellClassified(PostClassified):
         # Nothing varies inside a tet (the walk still carries an attribute).
         return self.Attributes(mi.Float(0.0))
 
-    def segment(self, params, length, a0, a1, tet):
+    def cell_texel(self, params, tet):
+        """The texel coordinate of the cell value of ``tet`` (the walk's index)."""
         cell = dr.gather(mi.UInt32, params.order, tet) if self.reordered else tet
         # (inside the adjoint's loop: plain atomics; Auto's per-thread
         # copies raced there)
-        u = self.texel(dr.gather(mi.Float, params.cells, cell, mode=dr.ReduceMode.Direct))
+        return self.texel(dr.gather(mi.Float, params.cells, cell, mode=dr.ReduceMode.Direct))
+
+    def segment(self, params, length, a0, a1, tet):
+        u = self.cell_texel(params, tet)
         (c, s), _ = self.classify(params, u, u)
         tau = s * length
         T = dr.exp(-tau)
         return c * (1.0 - T), T, tau
 
-    def linear(self, params, a0, a1):
-        raise ValueError("tetvr: a tetmesh of cell data cannot overlap another tetmesh "
-                         "(its segments need their tet)")
-
-
-#: The last vertex gradients computed without derivatives:
-#: ``(inputs, buffer)``, the inputs the arrays they were computed from (held,
-#: so that their Dr.Jit variables stay theirs).
-_GRADIENTS = [(), None]
-
-
-def shape_vertex_gradients(shape):
-    """The vertex gradients of a post-classified shape's scalar
-    (:func:`~mi_tetvr.render.linear.vertex_gradients`): attached to the AD
-    graph where the scalar or the positions track gradients, else the
-    last ones computed while the scalar, the positions and the tets are the
-    same arrays."""
-    scalar, positions = shape.attribute_buffer("vertex_scalar"), shape.vertex_positions_buffer()
-    buf = MeshBuffers(tets=shape.tet_buffers["tets"], positions=positions)
-    if dr.grad_enabled(scalar) or dr.grad_enabled(positions):
-        return vertex_gradients(buf, scalar)
-    inputs = (positions, scalar, buf.tets)
-    kept, gradients = _GRADIENTS
-    if len(kept) != 3 or any(a.index != b.index for a, b in zip(kept, inputs)):
-        gradients = vertex_gradients(buf, scalar)
-        dr.eval(gradients)
-        _GRADIENTS[:] = [inputs, gradients]
-    return gradients
+    def linear(self, params, a0, a1, tet):
+        u = self.cell_texel(params, tet)
+        (c, s), _ = self.classify(params, u, u)
+        return c, c, s, s
 
 
 class ScalarPoint:
@@ -471,325 +450,36 @@ class Shaded(PostClassified):
         out = c * (ambient + diffuse * cos) + specular * dr.power(cos, power)
         return dr.select(norm > 0.0, out, c)
 
-    def segment(self, params, length, a0, a1, tet):
+    @staticmethod
+    def gradient(params, tet):
+        """The scalar's gradient in ``tet`` (constant: the scalar is linear)."""
         frame = TetFrame(params, tet)
-        g = frame.gradient([dr.gather(mi.Float, params.scalar, i, mode=dr.ReduceMode.Direct)
-                            for i in frame.ids])
+        return frame.gradient([dr.gather(mi.Float, params.scalar, i, mode=dr.ReduceMode.Direct)
+                               for i in frame.ids])
+
+    @staticmethod
+    def direction(a0, a1):
+        """The unit direction of a piece from its ends' points (0 when empty)."""
         step = a1.p - a0.p
-        d = step / dr.select(dr.norm(step) > 0.0, dr.norm(step), 1.0)
+        return step / dr.select(dr.norm(step) > 0.0, dr.norm(step), 1.0)
+
+    def segment(self, params, length, a0, a1, tet):
+        g = self.gradient(params, tet)
+        d = self.direction(a0, a1)
         (c0, s0), (c1, s1) = self.classify(params, a0.u, a1.u)
         C, T = segment_integral(length, self.lit(c0, g, d), self.lit(c1, g, d), s0, s1,
                                 self.n_sub)
         return C, T, length * (s0 + s1) * 0.5
 
-    def linear(self, params, a0, a1):
-        raise ValueError("tetvr: a shaded tetmesh cannot overlap another tetmesh (its "
-                         "segments need their tet)")
+    def linear(self, params, a0, a1, tet):
+        g = self.gradient(params, tet)
+        d = self.direction(a0, a1)
+        (c0, s0), (c1, s1) = self.classify(params, a0.u, a1.u)
+        return self.lit(c0, g, d), self.lit(c1, g, d), s0, s1
 
-
-#: Stands for no value yet in a maximum (its negative in a minimum).
-NO_VALUE = 1e30
-
-
-class Pick:
-    """The one point a ray shows (:class:`RayValue`): the scalar's texel
-    coordinate ``u`` there (``initial`` while there is none), the point
-    ``p``, the tet ``tet`` that holds it and, on an isosurface, the smooth
-    normal ``n`` (unnormalised) and the index ``k`` of its isovalue."""
-    DRJIT_STRUCT = {"u": mi.Float, "p": mi.Point3f, "n": mi.Vector3f, "tet": mi.UInt32,
-                    "k": mi.UInt32}
-
-    def __init__(self, u=None, p=None, n=None, tet=None, k=None):
-        self.u, self.p, self.n, self.tet, self.k = u, p, n, tet, k
-
-
-class RayValue(PostClassified):
-    """Base of the models that give each ray one value of a post-classified
-    shape's scalar instead of an integral (:class:`Projection`,
-    :class:`Slice`, :class:`Isosurface`). The accumulator is a :class:`Pick`
-    (the ``mean`` projection: a ``Color3f``, ``L.x`` the scalar's integral
-    over the length ``L.y``); :meth:`finish` makes it a pixel.
-
-    Derivatives: the point a ray shows lies in one tet (the walk hands each
-    segment its tet, :attr:`per_tet`), where the scalar is linear; its
-    value there is a closed form of the tet's corners
-    (:class:`~mi_tetvr.render.linear.TetFrame`), which :meth:`replay`
-    recomputes with the parameters' AD graph from the primal :class:`Pick`:
-    the derivatives w.r.t. the scalars, the transfer function's texels, the
-    vertex positions and (isosurfaces) the isovalues are exact wherever the
-    pick does not jump to another tet or surface (silhouettes, edges of the
-    slice, ties of the maximum)."""
-    cuts = False
-    per_tet = True
-    #: ``L`` holds an integral (``L.x``) over a length (``L.y``).
-    mean = False
-
-    Attributes = ScalarPoint
-
-    class Params:
-        DRJIT_STRUCT = {"scalar": mi.Float, "tf_color": mi.Float, "tf_opacity": mi.Float,
-                        "positions": mi.Float}
-
-        def __init__(self, scalar=None, tf_color=None, tf_opacity=None, positions=None):
-            self.scalar, self.tf_color, self.tf_opacity = scalar, tf_color, tf_opacity
-            self.positions = positions
-
-    def read_params(self, shapes):
-        s = self.the_shape(shapes)
-        return self.Params(s.attribute_buffer("vertex_scalar"), s.tf_color, s.tf_opacity,
-                           s.vertex_positions_buffer())
-
-    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
-        return ScalarPoint.gather(self, params, i, active, reduce)
-
-    def start(self):
-        if self.mean:
-            return mi.Color3f(self.initial)
-        return Pick(mi.Float(self.initial), mi.Point3f(0.0), mi.Vector3f(0.0), mi.UInt32(0),
-                    mi.UInt32(0))
-
-    def value(self, L):
-        """``(texel coordinate, met)`` of the accumulated ``L`` of a ray."""
-        if self.mean:
-            met = L.y > 0.0
-            return L.x / dr.select(met, L.y, 1.0), met
-        return L.u, dr.abs(L.u) < 0.5 * NO_VALUE
-
-    def scalar(self, u):
-        """The scalar (data units) at texel coordinate ``u``."""
-        lo, hi = self.value_range
-        return lo + (u + 0.5) * ((hi - lo) / self.resolution)
-
-    def color(self, params, u):
-        """The transfer function's color at texel coordinate ``u``."""
-        (color, _), _ = self.classify(params, u, u)
-        return color
-
-    def finish(self, params, L):
-        """``(color, met, scalar)`` of a ray's accumulated ``L``: the transfer
-        function's color at the value (black where the ray met nothing)."""
-        u, met = self.value(L)
-        return dr.select(met, self.color(params, u), 0.0), met, self.scalar(u)
-
-    def replay(self, params, buf, L, o, d):
-        """The pixel color of a ray ``(o, d)`` (detached) whose primal walk
-        picked ``L`` (detached), recomputed in ``L.tet`` from ``params`` and
-        ``buf`` (attached to the AD graph)."""
-        if self.mean:
-            raise NotImplementedError("tetproj: the mean intensity projection is not "
-                                      "differentiable (it integrates every tet of a ray); "
-                                      "max, min, slice and iso are")
-        u, met = self.value(L)
-        frame = TetFrame(buf, L.tet, met)
-        values = [PostClassified.gather(self, params, i, met).u for i in frame.ids]
-        return dr.select(met, self.color(params, self.replay_value(frame, values, L, o, d)),
-                         0.0)
-
-    def replay_value(self, frame, values, L, o, d):
-        """The texel coordinate at the picked point, from the tet's corner
-        ``values`` (:meth:`replay`)."""
-        raise NotImplementedError
-
-
-class Projection(RayValue):
-    """Intensity projections of a post-classified shape's scalar along each
-    ray, exact per segment (the scalar is linear in a tet): the maximum
-    (``max``, MIP) and minimum (``min``) are at a segment's ends, the mean
-    over the length inside the meshes (``mean``, average intensity) is the
-    trapezoid's. The transmittance stays 1, so every tet on the ray is
-    visited."""
-    MODES = ("max", "min", "mean")
-
-    def __init__(self, mode: str = "max", **kwargs):
-        super().__init__(**kwargs)
-        if mode not in self.MODES:
-            raise ValueError(f"projection mode must be one of {self.MODES}, got {mode!r}")
-        self.mode = mode
-        self.mean = mode == "mean"
-        self.initial = {"max": -NO_VALUE, "min": NO_VALUE, "mean": 0.0}[mode]
-
-    def better(self, a, b):
-        """Whether value ``a`` beats ``b`` (greater for ``max``)."""
-        return a > b if self.mode == "max" else a < b
-
-    def segment(self, params, length, a0, a1, tet):
-        if self.mean:
-            return (mi.Color3f(length * 0.5 * (a0.u + a1.u), length, 0.0), mi.Float(1.0),
-                    mi.Float(0.0))
-        end = self.better(a1.u, a0.u)
-        u = dr.select(length > 0.0, dr.select(end, a1.u, a0.u), self.initial)
-        pick = Pick(u, dr.select(end, a1.p, a0.p), mi.Vector3f(0.0), tet, mi.UInt32(0))
-        return pick, mi.Float(1.0), mi.Float(0.0)
-
-    def accumulate(self, L, T, C, T_seg):
-        if self.mean:
-            return L + C, T
-        return tree_select(self.better(C.u, L.u), C, L), T
-
-    def replay_value(self, frame, values, L, o, d):
-        # The extreme lies on the face of the tet where the ray crosses it
-        # (the one of the smallest barycentric coordinate at the primal
-        # point), or on a clip plane or the camera's origin (kept where it is).
-        lam = frame.weights(L.p)
-        grads = frame.weight_gradients()
-        k = mi.UInt32(0)
-        smallest = dr.abs(lam[0])
-        for j in (1, 2, 3):
-            less = dr.abs(lam[j]) < smallest
-            k = dr.select(less, j, k)
-            smallest = dr.select(less, dr.abs(lam[j]), smallest)
-        at_o = frame.weights(o)
-        lam_o = dr.select(k == 0, at_o[0], dr.select(k == 1, at_o[1],
-                          dr.select(k == 2, at_o[2], at_o[3])))
-        g = dr.select(k == 0, grads[0], dr.select(k == 1, grads[1],
-                      dr.select(k == 2, grads[2], grads[3])))
-        slope = dr.dot(g, d)
-        on_face = (smallest < 1e-3) & (dr.abs(slope) > 0.0)
-        x = dr.select(on_face, o + d * (-lam_o / dr.select(on_face, slope, 1.0)), L.p)
-        return frame.at(values, x)
-
-
-class Slice(RayValue):
-    """A plane through the mesh showing its scalar: each ray stops where it
-    first crosses the plane inside the mesh, and the scalar there is exact.
-    The signed distance ``s`` of a crossing's point to the plane is linear
-    along the ray in a tet, so a segment meets the plane at the fraction
-    ``s0 / (s0 - s1)`` where the scalar is ``lerp(u0, u1, f)``. ``T`` turns
-    0 there (the walk stops)."""
-
-    def __init__(self, origin, normal, **kwargs):
-        super().__init__(**kwargs)
-        self.origin = np.asarray(origin, np.float64).reshape(3)
-        self.normal = unit_vector(normal, "a slice's normal")
-        self.initial = -NO_VALUE
-
-    def plane(self):
-        return mi.Point3f(*self.origin.tolist()), mi.Vector3f(*self.normal.tolist())
-
-    def segment(self, params, length, a0, a1, tet):
-        origin, normal = self.plane()
-        s0, s1 = dr.dot(a0.p - origin, normal), dr.dot(a1.p - origin, normal)
-        meets = ((length > 0.0) & (s0 != s1) & (dr.minimum(s0, s1) <= 0.0)
-                 & (dr.maximum(s0, s1) >= 0.0))
-        f = dr.clip(s0 / dr.select(s0 != s1, s0 - s1, 1.0), 0.0, 1.0)
-        u = dr.select(meets, dr.lerp(a0.u, a1.u, f), self.initial)
-        pick = Pick(u, dr.lerp(a0.p, a1.p, f), mi.Vector3f(0.0), tet, mi.UInt32(0))
-        return pick, dr.select(meets, 0.0, 1.0), mi.Float(0.0)
-
-    def accumulate(self, L, T, C, T_seg):
-        return tree_select(T_seg < 1.0, C, L), T * T_seg
-
-    def depth(self, o, d):
-        """Where the rays ``(o, d)`` meet the plane."""
-        origin, normal = self.plane()
-        slope = dr.dot(d, normal)
-        return dr.dot(origin - o, normal) / dr.select(slope != 0.0, slope, 1.0)
-
-    def replay_value(self, frame, values, L, o, d):
-        return frame.at(values, o + d * self.depth(o, d))
-
-    def replay_surface(self, params, buf, L, o, d):
-        """``(color, t)``: :meth:`replay` and the plane's depth (fixed)."""
-        return self.replay(params, buf, L, o, d), self.depth(o, d)
-
-
-class Isosurface(RayValue):
-    """The first isosurface a ray meets, of one or more ``values`` of a
-    post-classified shape's scalar, exact: the scalar is linear along the ray
-    in a tet, so a segment crosses value ``v`` at ``f = (v - u0) / (u1 -
-    u0)``. A crossing carries the scalar's texel coordinate, the position and
-    the vertex gradient (the tets' gradients around the vertex averaged by
-    volume, :func:`~mi_tetvr.render.linear.vertex_gradients`), all linear
-    inside a tet: the hit point and its smooth normal are exact lerps. The
-    pixel is the transfer function's color at the isovalue lit by a headlight
-    (Lambert, two-sided). ``T`` turns 0 at the hit (the walk stops).
-
-    ``values`` : Float (the isovalues, data units; differentiable in
-    :meth:`replay`)."""
-
-    class Attributes:
-        DRJIT_STRUCT = {"u": mi.Float, "p": mi.Point3f, "g": mi.Vector3f}
-
-        def __init__(self, u=None, p=None, g=None):
-            self.u, self.p, self.g = u, p, g
-
-    class Params:
-        DRJIT_STRUCT = {"scalar": mi.Float, "tf_color": mi.Float, "tf_opacity": mi.Float,
-                        "positions": mi.Float, "gradients": mi.Float, "values": mi.Float}
-
-        def __init__(self, scalar=None, tf_color=None, tf_opacity=None, positions=None,
-                     gradients=None, values=None):
-            self.scalar, self.tf_color, self.tf_opacity = scalar, tf_color, tf_opacity
-            self.positions, self.gradients, self.values = positions, gradients, values
-
-    def __init__(self, values, **kwargs):
-        super().__init__(**kwargs)
-        self.values = mi.Float(values)
-        self.count = dr.width(self.values)
-        if not self.count:
-            raise ValueError("an isosurface needs at least one value")
-        self.initial = -NO_VALUE
-
-    def read_params(self, shapes):
-        s = self.the_shape(shapes)
-        scalar, positions = s.attribute_buffer("vertex_scalar"), s.vertex_positions_buffer()
-        return self.Params(scalar, s.tf_color, s.tf_opacity, positions,
-                           shape_vertex_gradients(s), self.values)
-
-    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
-        a = RayValue.gather(self, params, i, active, reduce)
-        return self.Attributes(a.u, a.p, dr.gather(mi.Vector3f, params.gradients, i, active))
-
-    def segment(self, params, length, a0, a1, tet):
-        best = mi.Float(2.0)
-        value = mi.Float(0.0)
-        k = mi.UInt32(0)
-        du = a1.u - a0.u
-        for j in range(self.count):
-            w = self.texel(dr.gather(mi.Float, params.values, mi.UInt32(j)))
-            f = (w - a0.u) / dr.select(du != 0.0, du, 1.0)
-            ok = (du != 0.0) & (f >= 0.0) & (f <= 1.0) & (f < best)
-            best = dr.select(ok, f, best)
-            value = dr.select(ok, w, value)
-            k = dr.select(ok, j, k)
-        meets = (length > 0.0) & (best <= 1.0)
-        hit = Pick(dr.select(meets, value, self.initial), dr.lerp(a0.p, a1.p, best),
-                   dr.lerp(a0.g, a1.g, best), tet, k)
-        return hit, dr.select(meets, 0.0, 1.0), mi.Float(0.0)
-
-    def accumulate(self, L, T, C, T_seg):
-        return tree_select(T_seg < 1.0, C, L), T * T_seg
-
-    @staticmethod
-    def lambert(n, d):
-        """The headlight's factor ``|n . d| / |n|`` (1 where ``n`` is 0)."""
-        norm = dr.norm(n)
-        return dr.select(norm > 0.0, dr.abs(dr.dot(n, d)) / dr.select(norm > 0.0, norm, 1.0),
-                         1.0)
-
-    def shade(self, params, L, d):
-        """``(color, met, point)``: the transfer function's color at the hit's
-        value lit by the headlight."""
-        color, met, _ = self.finish(params, L)
-        return color * self.lambert(L.n, d), met, L.p
-
-    def replay(self, params, buf, L, o, d):
-        return self.replay_surface(params, buf, L, o, d)[0]
-
-    def replay_surface(self, params, buf, L, o, d):
-        """``(color, t)``: :meth:`replay` and the hit's depth along the ray,
-        both closed forms in the hit's tet (differentiable)."""
-        _, met = self.value(L)
-        frame = TetFrame(buf, L.tet, met)
-        values = [PostClassified.gather(self, params, i, met).u for i in frame.ids]
-        w = self.texel(dr.gather(mi.Float, params.values, L.k, met))
-        g = frame.gradient(values)
-        slope = dr.dot(g, d)
-        t = (w - frame.at(values, o)) / dr.select(slope != 0.0, slope, 1.0)
-        x = o + d * t
-        n = sum((lam * dr.gather(mi.Vector3f, params.gradients, i, met)
-                 for lam, i in zip(frame.weights(x), frame.ids)), mi.Vector3f(0.0))
-        return dr.select(met, self.color(params, w) * self.lambert(n, d), 0.0), t
+    def medium_at(self, params, u, tet, d):
+        c, sigma = PostClassified.medium_at(self, params, u, tet, d)
+        return self.lit(c, self.gradient(params, tet), d), sigma
 
 
 #: Samples of the pre-integrated table along the front and back scalar (at
@@ -868,7 +558,11 @@ class PreIntegrated(PostClassified):
             active &= f < 1.0
         return C, T
 
-    def linear(self, params, a0, a1):
+    def medium_at(self, params, u, tet, d):
+        raise ValueError("tetvr: the derivatives of an isosurface overlay need the volume's "
+                         "transfer function: use classification 'post' (not 'preintegrated')")
+
+    def linear(self, params, a0, a1, tet):
         raise ValueError("tetvr: a pre-integrated tetmesh (classification 'preintegrated') "
                          "cannot overlap another tetmesh: its table integrates whole segments "
                          "of its own medium alone; use classification 'post'")

@@ -33,6 +33,7 @@ import mitsuba as mi
 from mi_tetvr.render import adjoint
 from mi_tetvr.render.buffers import unpack_link
 from mi_tetvr.render.geometry import crossing_at, entry_carry, face_entry, ray_frame, walk_step
+from mi_tetvr.render.probes import Probe
 from mi_tetvr.render.pytree import tree_copy, tree_lerp, tree_select, weighted_sum
 from mi_tetvr.render.segment import clip_segment
 
@@ -82,25 +83,38 @@ def locate(buf, tet, f_out, o, u, v, d, t_start, max_steps: int, active):
     return tet, f_in
 
 
+def enter(buf, face, o, u, v, d, t_start, max_steps: int, active):
+    """Where a ray that hits the boundary face ``face`` (global index, from
+    Mitsuba's ray tracer) walks from: ``(tet, f_in, outward)``. A ray that
+    enters through the face starts in the tet behind it; one that leaves
+    through it (``outward``) is inside the mesh at ``t_start`` and is
+    :func:`locate` d there."""
+    tet, f, outward = face_entry(buf, face, o, u, v, d, active)
+    tet, f = locate(buf, tet, f, o, u, v, d, t_start, max_steps, active & outward)
+    return tet, f, outward
+
+
 @dr.syntax
-def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
-         settings: WalkSettings, active, adj: adjoint.Adjoint = None, ts_ad=None):
+def walk(ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop, settings: WalkSettings, active,
+         deriv: adjoint.Derivative = None, ts_ad=None, adj: adjoint.Adjoint = None):
     """Walk front to back from ``tet`` (entered through its local face
     ``f_in``), integrating over ``[t_begin, t_stop]``, until the ray leaves
     the mesh, reaches ``t_stop`` or becomes nearly opaque.
 
     ``ts`` is the :class:`~mi_tetvr.render.buffers.TetScene` (detached in
-    the derivative modes), ``ts_ad`` the same attached to the parameters' AD
-    graph (derivative modes). ``L, T`` are the emission and transmittance
-    accumulated in front; returns their updated values, where the walk ended,
-    the number of tets crossed and (forward mode) the updated ``adj``.
+    the derivative modes); a derivative pass gives its context ``deriv``,
+    ``ts_ad`` (``ts`` attached to the parameters' AD graph) and the rays'
+    ``adj``. ``L, T`` are the emission and transmittance accumulated in
+    front; returns their updated values, where the walk ended, the number of
+    tets crossed and (forward mode) the updated ``adj``.
     """
-    primal = mode == dr.ADMode.Primal
-    backward = mode == dr.ADMode.Backward
+    primal = deriv is None
+    backward = not primal and deriv.backward
     buf, model, params = ts.buf, ts.model, ts.params
+    probe = isinstance(model, Probe)
     tet = mi.UInt32(tet)
     f_in = mi.UInt32(f_in)
-    L = tree_copy(L)           # (Color3f, or a model's own accumulator)
+    L = tree_copy(L)           # (Color3f, or a probe's accumulator)
     T = mi.Float(T)
     active = mi.Bool(active)
 
@@ -115,7 +129,7 @@ def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
     steps = mi.UInt32(0)
     pending = None
     if dr.hint(not primal, mode="scalar"):
-        pending = adjoint.start(mode, ts_ad, entry_ids, o, u, v, d, active)
+        pending = adjoint.start(deriv, ts_ad, entry_ids, o, u, v, d, active)
     cuts = model.cuts
     pieces = mi.UInt32(0)
     stay = mi.Bool(False)     # (models that cut tets) the last piece ended inside its tet
@@ -130,16 +144,23 @@ def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
             stay = f < 1.0
             t_out = dr.select(stay, dr.lerp(t, t_out, f), t_out)
             a_out = tree_select(stay, tree_lerp(a, a_out, f), a_out)
-        if dr.hint(primal, mode="scalar"):
+        if dr.hint(probe, mode="scalar"):
+            # (a probe picks: the ray goes on, T = 1, until it stops, T = 0)
+            length, a0, a1 = clip_segment(t, a, t_out, a_out, t_begin, t_stop)
+            L, stop = model.visit(params, L, length, a0, a1, tet)
+            T = dr.select(stop, 0.0, T)
+        elif dr.hint(primal, mode="scalar"):
             length, a0, a1 = clip_segment(t, a, t_out, a_out, t_begin, t_stop)
             C_seg, T_seg, _ = model.segment(params, length, a0, a1,
                                             *((tet,) if model.per_tet else ()))
         else:
             C_seg, T_seg, adj, pending = adjoint.segment(
-                mode, ts, ts_ad, st, carry, (t, a), (t_out, a_out), L, T, t_begin, t_stop,
+                deriv, ts, ts_ad, st, carry, (t, a), (t_out, a_out), L, T, t_begin, t_stop,
                 adj, pending, o, u, v, d, active, settings.reduce, *((stay, f) if cuts else ()),
                 tet=tet)
-        L, T = model.accumulate(L, T, C_seg, T_seg)
+        if dr.hint(not probe, mode="scalar"):
+            L = L + T * C_seg
+            T = T * T_seg
         t = t_out
         a = a_out
         if dr.hint(cuts, mode="scalar"):
@@ -164,31 +185,31 @@ def walk(mode, ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop,
             exit_carry = walk_step(buf, tet, f_in, o, u, v, d, stay, carry, gather).carry
         # (a walk that stopped inside its first tet left none: count its pieces)
         walked = (pieces > 0) if cuts else (steps > 0)
-        adj = adjoint.finish(ts_ad, pending, carry, walked, u, v, d, settings.reduce, adj,
+        adj = adjoint.finish(deriv, ts_ad, pending, carry, walked, u, v, d, settings.reduce, adj,
                              exit_carry, stay)
     return L, T, t, steps, adj
 
 
 @dr.syntax
-def trace(mode, scene, ts, ray, settings: WalkSettings, active,
-          adj: adjoint.Adjoint = None, ts_ad=None, t_start=0.0):
+def trace(scene, ts, ray, settings: WalkSettings, active, t_start=0.0,
+          deriv: adjoint.Derivative = None, adj: adjoint.Adjoint = None):
     """Emission and transmittance along rays through the tet meshes.
 
     Parameters
     ----------
-    mode : dr.ADMode
-        ``Primal``, or ``Backward`` / ``Forward`` with ``adj`` and ``ts_ad``
-        (the scene's buffers attached to the AD graph) set.
     scene : mi.Scene
         Its shapes must be exactly the tet meshes of ``ts`` (their boundaries).
     ts : mi_tetvr.render.buffers.TetScene, or a list of them
         One per group of shapes that one walk renders (an optical model:
-        :func:`~mi_tetvr.render.buffers.model_groups`); ``ts_ad`` alike.
-        Each boundary hit is walked in its own group's mesh.
+        :func:`~mi_tetvr.render.buffers.model_groups`). Each boundary hit is
+        walked in its own group's mesh.
     ray : mi.Ray3f
         Normalized direction; ``ray.maxt`` bounds the integral.
     t_start : float or mi.Float
         Where the integral starts along the ray (a clip, :mod:`mi_tetvr.render.clipping`).
+    deriv : adjoint.Derivative, optional
+        A derivative pass's context (its ``scenes`` pair with ``ts``), with
+        the rays' adjoint ``adj``.
 
     Returns
     -------
@@ -198,13 +219,13 @@ def trace(mode, scene, ts, ray, settings: WalkSettings, active,
         tangents accumulated).
     """
     groups = list(ts) if isinstance(ts, (list, tuple)) else [ts]
-    groups_ad = (list(ts_ad) if isinstance(ts_ad, (list, tuple)) else [ts_ad]) \
-        if ts_ad is not None else [None] * len(groups)
+    groups_ad = deriv.scenes if deriv is not None else [None] * len(groups)
     o = mi.Point3f(ray.o)
     d = mi.Vector3f(ray.d)
     t_max = mi.Float(ray.maxt)
     u, v = ray_frame(d)
-    L = groups[0].model.start()
+    model = groups[0].model
+    L = model.start() if isinstance(model, Probe) else mi.Color3f(0.0)
     T = mi.Float(1.0)
     steps = mi.UInt32(0)
     start = mi.Float(t_start)
@@ -217,12 +238,10 @@ def trace(mode, scene, ts, ray, settings: WalkSettings, active,
         for g, g_ad in zip(groups, groups_ad):
             # The hit face's own group walks it (all of them with one group).
             mine = hit if len(groups) == 1 else hit & g.owns(si)
-            tet, f, outward = face_entry(g.buf, g.boundary_face(si), o, u, v, d, mine)
-            # Leaving through the face: the start point is inside; locate it.
-            tet, f = locate(g.buf, tet, f, o, u, v, d, start, settings.max_steps,
-                            mine & outward)
-            L, T, t_g, n, adj = walk(mode, g, tet, f, L, T, o, u, v, d, start, t_max,
-                                     settings, mine, adj, g_ad)
+            tet, f, _ = enter(g.buf, g.boundary_face(si), o, u, v, d, start, settings.max_steps,
+                              mine)
+            L, T, t_g, n, adj = walk(g, tet, f, L, T, o, u, v, d, start, t_max, settings, mine,
+                                     deriv, g_ad, adj)
             t_end = dr.select(mine, t_g, t_end)
             steps += dr.select(mine, n, 0)
         start = dr.maximum(t_end, start) + settings.retrace_eps

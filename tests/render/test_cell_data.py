@@ -74,6 +74,38 @@ def test_cell_data_against_the_exploded_reference(cells):
     assert np.abs(render_rays(smooth, o, d)[0] - ref_rgb).max() > 0.05
 
 
+def test_cell_data_overlapping_another_mesh(cells):
+    """Cell data overlapped by a color mesh (the merged walk, one cursor per
+    mesh, each cell's value read in its cursor's tet): against the float64
+    reference of both as one medium, the cell mesh exploded; and the
+    derivatives w.r.t. the cell values where they stay between two knots
+    (reverse against central differences 5 %, forward against reverse 1 %)."""
+    from tests.reference import reference_render_meshes
+    V, T, values, tf_color, tf_opacity = cells
+    rng = np.random.default_rng(8)
+    VB, TB = grid_mesh(2, lo=(-0.3, -1.2, -0.4), hi=(1.2, 0.4, 1.1), jitter=0.1, seed=9)
+    cB, oB = rng.uniform(0, 1, (len(VB), 3)), rng.uniform(0, 1.5, len(VB))
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetvr"},
+                          "mesh0": scene_of(*cells).shapes()[0],
+                          "mesh1": mi_tetvr.tetmesh_dict(VB, TB, cB, oB)})
+    o, d = rays_at(rng, 256)
+    rgb, alpha = render_rays(scene, o, d)
+    Vx = V[T].reshape(-1, 3)
+    Tx = np.arange(4 * len(T)).reshape(-1, 4)
+    ref_rgb, ref_alpha = reference_render_meshes(
+        [dict(vertices=Vx, tets=Tx, color=np.repeat(classify(values, tf_color), 4, 0),
+              opacity=np.repeat(classify(values, tf_opacity)[:, 0], 4)),
+         dict(vertices=VB, tets=TB, color=cB, opacity=oB)], o, d)
+    assert np.abs(rgb - ref_rgb).max() < 3e-3
+    assert np.abs(alpha - ref_alpha).max() < 3e-3
+    h = 1e-3
+    knots = RANGE[0] + (np.arange(RESOLUTION) + 0.5) * (RANGE[1] - RANGE[0]) / RESOLUTION
+    gap = np.abs(values[:, None] - knots[None]).min(1)
+    obj = Problem(None, o[:64], d[:64], rng, scene=scene, keys=("mesh0.cell_scalar",))
+    check_along(obj, "mesh0.cell_scalar", h, rng,
+                lambda direction: direction * (gap > 10 * h * np.abs(direction)))
+
+
 @pytest.fixture
 def reordering(monkeypatch):
     """Shapes store shuffled tets in Morton order, small as they are."""

@@ -98,7 +98,7 @@ def _lambert(scene, o, d):
         integrator = scene.integrator()
         ts = integrator.tet_scene(scene)
         from mi_tetvr.render.walk import WalkSettings, trace
-        L, _, _, _ = trace(dr.ADMode.Primal, scene, ts, make_rays(o, d),
+        L, _, _, _ = trace(scene, ts, make_rays(o, d),
                            WalkSettings(0.0, 100_000, 1e-5), True)
         n = np.array(L.n, np.float64).reshape(3, -1).T
     return np.abs(np.einsum("ij,ij->i", n, d)) / np.linalg.norm(n, axis=1)

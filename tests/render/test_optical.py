@@ -8,7 +8,7 @@ import pytest
 
 from tests.helpers import make_scene, rays_at
 from mi_tetvr.mesh.generate import grid_mesh
-from mi_tetvr.render.adjoint import Adjoint
+from mi_tetvr.render.adjoint import Adjoint, Derivative
 from mi_tetvr.render.buffers import TetScene
 from mi_tetvr.render.optical import Absorption
 from mi_tetvr.render.walk import trace
@@ -47,7 +47,7 @@ def test_absorption_transmittance_matches_reference(problem):
     scene, V, T, S, o, d = problem
     ts = absorption_scene(scene, mi.Float(S.astype(np.float32)))
     settings = scene.integrator().settings_for(scene)
-    C, Tr, steps, _ = trace(dr.ADMode.Primal, scene, ts, rays(o, d), settings, True)
+    C, Tr, steps, _ = trace(scene, ts, rays(o, d), settings, True)
     assert np.asarray(C).max() == 0.0
     ref = 1.0 - reference_alpha(V, T, S, o, d)
     assert np.asarray(steps).max() > 5
@@ -65,10 +65,11 @@ def test_absorption_adjoint_matches_finite_differences(problem):
     settings = scene.integrator().settings_for(scene)
     ray = rays(o, d)
     with dr.suspend_grad():
-        _, Tr, _, _ = trace(dr.ADMode.Primal, scene, ts.detached(), ray, settings, True)
+        _, Tr, _, _ = trace(scene, ts.detached(), ray, settings, True)
     adj = Adjoint(mi.Color3f(0.0), mi.Float(Tr), mi.Color3f(0.0),
                   mi.Float(weights.astype(np.float32)))
-    trace(dr.ADMode.Backward, scene, ts.detached(), ray, settings, True, adj, ts_ad=ts)
+    trace(scene, ts.detached(), ray, settings, True, deriv=Derivative(dr.ADMode.Backward, [ts]),
+          adj=adj)
     grad = np.asarray(dr.grad(opacity), np.float64)
 
     def loss(s):
