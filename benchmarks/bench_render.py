@@ -36,7 +36,7 @@ import sys
 
 import numpy as np
 
-from common import grid_scene, header, make_parser, timed, write_json
+from common import grid_scene, header, make_parser, pixel_rays, timed, write_json
 
 
 def parse_args(argv=None):
@@ -78,18 +78,6 @@ from plain_walk import plain_trace  # noqa: E402
 REFERENCE_N_SUB = 32
 
 
-def pixel_rays(sensor, res):
-    """One normalized ray through each pixel center (row-major, like the film)."""
-    idx = dr.arange(mi.UInt32, res * res)
-    x = mi.Float(idx % res) + 0.5
-    y = mi.Float(idx // res) + 0.5
-    ray, _ = sensor.sample_ray(mi.Float(0.0), mi.Float(0.5),
-                               mi.Point2f(x / res, y / res), mi.Point2f(0.5))
-    ray = mi.Ray3f(ray.o, dr.normalize(ray.d))
-    dr.eval(ray)
-    return ray
-
-
 def total(x):
     return int(np.asarray(x, dtype=np.uint64).sum())
 
@@ -123,7 +111,7 @@ def main(a):
         return img
 
     def run_trace():
-        C, T, steps, _ = trace(dr.ADMode.Primal, scene, ts, rays, settings, True)
+        C, T, steps, _ = trace(scene, ts, rays, settings, True)
         dr.eval(C, T, steps)
         return C, T, steps
 
@@ -148,7 +136,7 @@ def main(a):
             positions=ts.buf.positions), ts.model, ts.params)
 
         def run_unordered():
-            C, T, steps, _ = trace(dr.ADMode.Primal, scene, unordered, rays, settings, True)
+            C, T, steps, _ = trace(scene, unordered, rays, settings, True)
             dr.eval(C, T, steps)
             return C, T, steps
         methods.append(("tetvr  trace(), tets in the file's order", run_unordered))
@@ -162,7 +150,7 @@ def main(a):
     n_steps = total(steps_np)
     # The reference: the same walk, the integral converged.
     ts.model.n_sub = REFERENCE_N_SUB
-    C_ref, T_ref, _, _ = trace(dr.ADMode.Primal, scene, ts, rays, settings, True)
+    C_ref, T_ref, _, _ = trace(scene, ts, rays, settings, True)
     ts.model.n_sub = n_sub
     C_ref = rgb_np(C_ref)
 

@@ -253,6 +253,20 @@ def grid_scene(cells, res, jitter=0.15, scale=1.0, shuffle=False, **integrator):
     return scene, v, tets, color, opacity
 
 
+def pixel_rays(sensor, res):
+    """One normalized ray through each pixel center (row-major, like the film)."""
+    import drjit as dr
+    import mitsuba as mi
+    idx = dr.arange(mi.UInt32, res * res)
+    x = mi.Float(idx % res) + 0.5
+    y = mi.Float(idx // res) + 0.5
+    ray, _ = sensor.sample_ray(mi.Float(0.0), mi.Float(0.5),
+                               mi.Point2f(x / res, y / res), mi.Point2f(0.5))
+    ray = mi.Ray3f(ray.o, dr.normalize(ray.d))
+    dr.eval(ray)
+    return ray
+
+
 def render_steps(scene, keys, spp=1):
     """``(primal, backward)``: one ``mi.render`` of ``scene`` (evaluated),
     and one ``mi.render`` + ``dr.backward`` of an L2 loss against 0.9 x the

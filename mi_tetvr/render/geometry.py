@@ -70,16 +70,18 @@ def ray_frame(d):
 def face_weights(e_a, e_b, e_c):
     """Barycentric weights of the ray's crossing point in a triangle from the
     three edge functions opposite each vertex (any common sign); degenerate
-    (edge-on) triangles get equal weights."""
+    (edge-on) triangles get equal weights. An edge function of the other
+    sign than their sum (round-off, a ray on an edge) counts as zero: the
+    weights ``max(e_j / S, 0)``, normalised, are ``max(e_j sign(S), 0)``
+    over their sum (one division)."""
     s = e_a + e_b + e_c
-    ok = dr.abs(s) > 0
-    inv = dr.select(ok, dr.rcp(dr.select(ok, s, 1.0)), 0.0)
-    wa = dr.maximum(e_a * inv, 0.0)
-    wb = dr.maximum(e_b * inv, 0.0)
-    wc = dr.maximum(e_c * inv, 0.0)
+    sign = dr.select(s < 0, -1.0, 1.0)
+    wa = dr.maximum(e_a * sign, 0.0)
+    wb = dr.maximum(e_b * sign, 0.0)
+    wc = dr.maximum(e_c * sign, 0.0)
     n = wa + wb + wc
-    ok &= n > 0
-    inv_n = dr.select(ok, dr.rcp(dr.select(ok, n, 1.0)), 0.0)
+    ok = (s != 0) & (n > 0)
+    inv_n = dr.rcp(dr.select(ok, n, 1.0))
     third = 1.0 / 3.0
     return (dr.select(ok, wa * inv_n, third), dr.select(ok, wb * inv_n, third),
             dr.select(ok, wc * inv_n, third))

@@ -108,7 +108,18 @@ def segment_integral(length, c0, c1, s0, s1, n_sub: int):
     """
     dt = length * (1.0 / n_sub)
     x = [dt * dr.lerp(s0, s1, (i + 0.5) / n_sub) for i in range(n_sub)]
-    A = [dr.exp(-xi) for xi in x]
+    # The depths step by a constant, so the transmittances are powers of one
+    # ratio: two exponentials, however many sub-intervals (counted from the
+    # thinner end, so that neither factor overflows).
+    A = [dr.exp(-x[0])]
+    if n_sub > 1:
+        step = x[1] - x[0]
+        up = step >= 0.0
+        powers = [dr.exp(-dr.minimum(x[0], x[-1]))]
+        ratio = dr.exp(-dr.abs(step))
+        for _ in range(1, n_sub):
+            powers.append(powers[-1] * ratio)
+        A = [dr.select(up, powers[i], powers[n_sub - 1 - i]) for i in range(n_sub)]
     P, Q, T = _moments(x, A)
     if n_sub % 2 == 0:
         # The same segment in n_sub / 2 sub-intervals: midpoint depths add.
