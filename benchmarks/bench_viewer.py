@@ -7,7 +7,9 @@ to the refined one (full resolution), at 256x256 and 512x512, on Blunt Fin
 on a fitted mesh of about 2M tets (the default data set fitted on a grid of
 that size; made once under --work). The camera orbits 15 degrees between
 changes; each change is timed to the end (the viewer's own clock in
-``ClientState.latency``). The baseline, in the same run: one plain
+``ClientState.latency``), with the frames replaying their recorded kernels
+(``frozen``, :mod:`mi_tetvr.apps.frames`, what the viewer does) and traced
+anew each time (``traced``). The baseline, in the same run: one plain
 ``mi.render`` of the same view at full resolution. Not timed: the image's
 trip through the websocket and the browser's drawing (a few ms for a JPEG of
 64x64 to 512x512 on this machine's loopback).
@@ -115,9 +117,13 @@ def poses(viewer, k):
     return out
 
 
-def latency(shown, size, repeat):
+def latency(shown, size, repeat, freeze=True):
     """Median and range of the first and refined image's latency (seconds) over
-    ``repeat`` camera changes, and a plain render's time at full size."""
+    ``repeat`` camera changes, and a plain render's time at full size (one
+    ``mi.render`` with a sensor made for the view); ``freeze``: whether the
+    viewer's frames replay their recorded kernels (:mod:`mi_tetvr.apps.frames`)."""
+    from mi_tetvr.apps.frames import Frames
+    shown.freeze, shown._frames = freeze, None
     viewer = Viewer(shown, server=False, resolution=size)
     views = poses(viewer, repeat + 1)
     viewer.add_client("bench", lambda image, final: None, *views[0])
@@ -132,7 +138,8 @@ def latency(shown, size, repeat):
         first.append(c.latency["first"])
         refined.append(c.latency["refined"])
         t0 = time.perf_counter()
-        shown.render(browser_camera(*pose, size))
+        np.array(Frames(shown.scene, freeze=False).render(browser_camera(*pose, size),
+                                                          shown.integrator()))
         plain.append(time.perf_counter() - t0)
     return {k: {"median": statistics.median(v), "min": min(v), "max": max(v)}
             for k, v in (("first", first), ("refined", refined), ("plain_render", plain))}
@@ -189,7 +196,7 @@ def main(a):
             print(f"skipped Blunt Fin: {blunt} is absent")
         meshes["fitted"] = (fitted_mesh(a), None)
     rows = []
-    print(f"{'mesh':<26}{'size':>6}{'first (ms)':>22}{'refined (ms)':>24}"
+    print(f"{'mesh':<26}{'size':>6}{'frames':>8}{'first (ms)':>22}{'refined (ms)':>24}"
           f"{'plain render (ms)':>20}{'refined/plain':>15}")
     for name, (path, scalar) in meshes.items():
         with warnings.catch_warnings():
@@ -199,16 +206,17 @@ def main(a):
         if name == "fitted":
             name = f"fitted ({tets / 1e6:.2f}M tets)"
         for size in a.sizes:
-            r = latency(shown, size, a.repeat)
-            f, g, p = r["first"], r["refined"], r["plain_render"]
-            ratio = g["median"] / p["median"]
-            print(f"{name:<26}{size:>6}"
-                  f"{1e3 * f['median']:>10.0f} [{1e3 * f['min']:.0f}-{1e3 * f['max']:.0f}]"
-                  .ljust(54) +
-                  f"{1e3 * g['median']:>12.0f} [{1e3 * g['min']:.0f}-{1e3 * g['max']:.0f}]"
-                  .ljust(24) + f"{1e3 * p['median']:>12.0f}{ratio:>15.2f}")
-            rows.append({"mesh": name, "tets": tets, "size": size, **r,
-                         "refined_over_plain": ratio})
+            for freeze in (False, True):
+                r = latency(shown, size, a.repeat, freeze)
+                f, g, p = r["first"], r["refined"], r["plain_render"]
+                ratio = g["median"] / p["median"]
+                print(f"{name:<26}{size:>6}{'frozen' if freeze else 'traced':>8}"
+                      f"{1e3 * f['median']:>10.0f} [{1e3 * f['min']:.0f}-{1e3 * f['max']:.0f}]"
+                      .ljust(62) +
+                      f"{1e3 * g['median']:>12.0f} [{1e3 * g['min']:.0f}-{1e3 * g['max']:.0f}]"
+                      .ljust(24) + f"{1e3 * p['median']:>12.0f}{ratio:>15.2f}")
+                rows.append({"mesh": name, "tets": tets, "size": size, "frozen": freeze, **r,
+                             "refined_over_plain": ratio})
     data = Path(a.work) / ("data" if not a.quick else "quick_data")
     if a.quick and not data.is_dir():
         cli("make-dataset", "scenes/volumes/default.npy", "--tf", "scenes/tf_default.json",

@@ -372,14 +372,15 @@ def test_render_a_mesh_file(tmp_path):
 def test_render_an_orbit(tmp_path):
     """render MESH --orbit N: N frames once around --up, as an MP4 (read back:
     N frames of the film's size) and a contact sheet of the frames; the first
-    frame is what render MESH writes at that view."""
+    and the last frame (whose kernels the orbit replays) are what render MESH
+    writes at their views."""
     import imageio_ffmpeg
     from mi_tetvr.recon.images import read_image
     make_scene_meshes()
     mesh = str(ROOT / "scenes" / "meshes" / "radial_scalar.vtu")
     video, sheet = tmp_path / "orbit.mp4", tmp_path / "orbit.png"
     r = run("render", mesh, "--mode", "max", "--res", "16x12", "--orbit", "4", "-o", str(video),
-            "-o", str(sheet))
+            "-o", str(sheet), "-o", str(tmp_path / "orbit.exr"))
     assert r.returncode == 0, r.stderr
     reader = imageio_ffmpeg.read_frames(str(video))
     meta = next(reader)
@@ -389,6 +390,14 @@ def test_render_an_orbit(tmp_path):
     assert r.returncode == 0, r.stderr
     first = read_image(tmp_path / "one.png")[..., :3]
     np.testing.assert_allclose(read_image(sheet)[:12, :16, :3], first, atol=1e-6)
+    # the fourth frame: 270 degrees on from the default view (45, 30)
+    r = run("render", mesh, "--mode", "max", "--res", "16x12", "--view", "315,30", "-o",
+            str(tmp_path / "last.exr"))
+    assert r.returncode == 0, r.stderr
+    last = read_image(tmp_path / "last.exr")[..., :3]
+    assert np.abs(last - first).max() > 0.05
+    np.testing.assert_allclose(read_image(tmp_path / "orbit.exr")[14:26, 18:34, :3], last,
+                               atol=1e-6)
     r = run("render", mesh, "--orbit", "4", "-o", str(tmp_path / "x.exr"))
     assert r.returncode != 0 and ".mp4" in r.stderr
 

@@ -132,17 +132,11 @@ def sensor_xml(camera, spp=1):
             f'</sensor>\n')
 
 
-def _render(scene, camera, integrator=None, spp=1, seed=0):
-    """``mi.render`` of a scene from a camera (no gradients) as a numpy RGBA array."""
-    import drjit as dr
-    import mitsuba as mi
-    d = camera.sensor_dict(spp=spp, sampler="stratified")
-    d["sampler"]["jitter"] = spp > 1
-    d["film"]["pixel_format"] = "rgba"
+def _render(frames, camera, integrator=None, spp=1, seed=0):
+    """A frame of :class:`~mi_tetvr.apps.frames.Frames` (no gradients) as a
+    numpy RGBA array."""
     from mi_tetvr.apps.framing import render_rgba
-    with dr.suspend_grad():
-        image = render_rgba(np.array(mi.render(scene, sensor=mi.load_dict(d),
-                                               integrator=integrator, spp=spp, seed=seed)))
+    image = render_rgba(np.array(frames.render(camera, integrator, spp, seed)))
     if image.shape[-1] == 3:
         image = np.concatenate([image, np.ones(image.shape[:2] + (1,), image.dtype)], -1)
     return image
@@ -159,6 +153,11 @@ class Shown:
     scene = None
     #: The data set whose cameras are drawn, or None.
     dataset = None
+    #: Whether frames replay recorded kernels (:mod:`~mi_tetvr.apps.frames`):
+    #: for scenes that change only through :meth:`controls` (which
+    #: :meth:`forget` the recordings).
+    freeze = True
+    _frames = None
 
     def __init__(self, centre, radius, up=(0.0, 0.0, 1.0)):
         self.centre = np.asarray(centre, np.float64)
@@ -177,7 +176,15 @@ class Shown:
         """(h, w, 4) premultiplied linear RGBA of the scene from ``camera``, or None."""
         if self.scene is None:
             return None
-        return _render(self.scene, camera, self.integrator(), spp, seed)
+        if self._frames is None or self._frames.scene is not self.scene:
+            from mi_tetvr.apps.frames import Frames
+            self._frames = Frames(self.scene, self.freeze)
+        return _render(self._frames, camera, self.integrator(), spp, seed)
+
+    def forget(self):
+        """Forget the recorded frames (something else than the camera changed)."""
+        if self._frames is not None:
+            self._frames.clear()
 
     def controls(self, gui, later):
         """Add this kind's controls to ``gui``. Their callbacks run in viser's
@@ -229,6 +236,7 @@ class SceneShown(Shown):
         self.handles = dict(opacity_scale=s)
 
     def set_opacity_scale(self, scale):
+        self.forget()
         self.scale = float(scale)
         for k, v in self.opacities.items():
             self.params[k] = v * self.scale
@@ -397,6 +405,7 @@ class MeshShown(Shown):
         (preset, range, opacity scale), "integrator" (mode, isovalue, slice)
         or "shape" (array, shading)."""
         import mitsuba as mi
+        self.forget()
         if what == "shape" or (what == "texels" and not self.array):
             return self.load()
         if what == "texels":
@@ -516,6 +525,8 @@ class FitShown(Shown):
     """A fit: its :class:`~mi_tetvr.recon.trainer.Trainer`'s scene and its data
     set's cameras, shown as fitted (no controls of its own: while it runs,
     the fit owns its parameters)."""
+    #: (the fit changes the scene between frames)
+    freeze = False
 
     def __init__(self, trainer, up=None):
         views = trainer.dataset.train + trainer.dataset.test
@@ -895,6 +906,7 @@ class Viewer:
     def _run_job(self, kind, key, payload):
         if kind == "call":
             payload()
+            self.shown.forget()
             self.changed()
             self._status()
         elif kind == "save":

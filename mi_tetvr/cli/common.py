@@ -8,6 +8,8 @@ is, e.g. the plugin's own error); :func:`mi_tetvr.cli.main` prints it as one lin
 """
 from __future__ import annotations
 
+import contextlib
+
 from pathlib import Path
 
 import numpy as np
@@ -125,14 +127,13 @@ def load_xml(mi, path, res=None, shape_props=None, classification=None):
 
 
 def plugin_error(e):
-    """The message of an error raised in a plugin's constructor: Mitsuba
-    passes on the Python traceback as text; its last line says what is wrong."""
-    text = str(e)
-    if "Traceback (most recent call last)" not in text:
-        return text
-    last = [line for line in text.splitlines() if line.strip()][-1]
-    name, _, message = last.partition(": ")
-    return f"{name.rsplit('.', 1)[-1]}: {message}" if message else last
+    """The one line of an error raised in a plugin's constructor, read back from
+    Mitsuba's parser error (:func:`mi_tetvr.plugin_error`): ``Class: message``."""
+    import mi_tetvr
+    err = mi_tetvr.plugin_error(e)
+    if err is e:
+        return str(e)
+    return f"{type(err).__name__}: {err}"
 
 
 def load_scene(mi, scene_dict, path):
@@ -143,15 +144,23 @@ def load_scene(mi, scene_dict, path):
         raise CommandError(f"cannot load {path}: {plugin_error(e)}") from None
 
 
-def render_image(mi, scene, path, **kwargs):
-    """``mi.render`` as an array (:func:`render_rgba`), or :class:`CommandError` naming
-    the innermost error (Dr.Jit wraps the integrator's)."""
+@contextlib.contextmanager
+def render_errors(path):
+    """A render's error as :class:`CommandError` naming the innermost one (Dr.Jit
+    wraps the integrator's)."""
     try:
-        return render_rgba(np.array(mi.render(scene, **kwargs)))
+        yield
     except Exception as e:
         while (e.__cause__ or e.__context__) is not None:
             e = e.__cause__ or e.__context__
         raise CommandError(f"cannot render {path}: {plugin_error(e)}") from None
+
+
+def render_image(mi, scene, path, **kwargs):
+    """``mi.render`` as an array (:func:`render_rgba`), or :class:`CommandError`
+    (:func:`render_errors`)."""
+    with render_errors(path):
+        return render_rgba(np.array(mi.render(scene, **kwargs)))
 
 
 def read_mesh(options, path):

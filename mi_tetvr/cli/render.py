@@ -11,12 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_tetvr.apps.framing import mesh_extent, mesh_framing, mesh_scene
+from mi_tetvr.apps.framing import mesh_extent, mesh_framing, mesh_scene, render_rgba
 from mi_tetvr.apps.settings import RenderSettings
 from mi_tetvr.cli import flags
 from mi_tetvr.cli.common import (IMAGE_SUFFIXES, MESH_SUFFIXES, CommandError, is_mesh_file,
-                                 load_scene, load_xml, plugin_error, read_mesh, render_image,
-                                 set_variant, srgb8, write_render)
+                                 load_scene, load_xml, plugin_error, read_mesh, render_errors,
+                                 render_image, set_variant, srgb8, write_render)
 
 NAME = "render"
 HELP = "render a Mitsuba XML scene with tetmesh shapes, or a mesh file framed by a camera"
@@ -131,14 +131,16 @@ def render_orbit(s, outs, mi, path):
     azimuth, elevation = s.azimuth_elevation
     mesh = read_mesh(s, path)
     framing = mesh_framing([mesh_extent(s, mesh, path)])
+    from mi_tetvr.apps.frames import Frames
     frames = []
-    scene = None
+    recorded = None
     for az in progress_bar(orbit_azimuths(azimuth, s.orbit), desc="orbit", unit="frame"):
         d = mesh_scene(dataclasses.replace(s, view=(float(az), elevation)), mesh, framing)
-        if scene is None:
-            scene = load_scene(mi, d, path)
-        frames.append(render_image(mi, scene, path, sensor=mi.load_dict(d["sensor"]),
-                                   spp=s.spp or 0))
+        if recorded is None:
+            # (one scene, the camera moving: each frame replays the first's kernels)
+            recorded = Frames(load_scene(mi, d, path))
+        with render_errors(path):
+            frames.append(render_rgba(np.array(recorded.render_dict(d["sensor"]))))
     frames = np.stack(frames)
     sheet = contact_sheet(frames)
     for out in outs:
