@@ -198,7 +198,9 @@ def merged_trace(scenes, tss, ray, settings: WalkSettings, active, t_start=0.0,
             te, we, ae, tx, ax, inv = ends[k]
             a1 = tree_select(go[k], tree_select(knots[k][0], knots[k][1], ax),
                              tree_lerp(ae, ax, dr.clip((t_ev - te) * inv, 0.0, 1.0)))
-            lin = tss[k].model.linear(tss[k].params, nows[k], a1, tet[k])
+            # (outside its mesh a cursor's tet is stale: past the boundary, no tet)
+            lin = tss[k].model.linear(tss[k].params, nows[k], a1,
+                                      dr.select(inside[k], tet[k], 0))
             media.append(tuple(dr.select(inside[k], x, 0.0) for x in lin))
             kept[k] = inside[k] & go[k] & knots[k][0]
             a_at[k] = a1
@@ -334,7 +336,7 @@ def _piece_derivative(deriv, tss, carry, tets, sts, ends, inside, t, t_ev, lengt
             F0 = (t0 - te) * inv
             F1 = (t1 - te) * inv
             lin = ts.model.linear(ts.params, tree_lerp(a_e, a_x, F0), tree_lerp(a_e, a_x, F1),
-                                  tets[k])
+                                  dr.select(inside[k], tets[k], 0))
             lin = tuple(dr.select(inside[k], x, 0.0) for x in lin)
             media.append(lin)
             tau += length * (lin[2] + lin[3]) * 0.5

@@ -113,10 +113,12 @@ def segment_integral(length, c0, c1, s0, s1, n_sub: int):
     # thinner end, so that neither factor overflows).
     A = [dr.exp(-x[0])]
     if n_sub > 1:
+        # (selects, not min and abs: their derivatives would vanish at a
+        # constant extinction, step = 0)
         step = x[1] - x[0]
         up = step >= 0.0
-        powers = [dr.exp(-dr.minimum(x[0], x[-1]))]
-        ratio = dr.exp(-dr.abs(step))
+        powers = [dr.exp(-dr.select(up, x[0], x[-1]))]
+        ratio = dr.exp(-dr.select(up, step, -step))
         for _ in range(1, n_sub):
             powers.append(powers[-1] * ratio)
         A = [dr.select(up, powers[i], powers[n_sub - 1 - i]) for i in range(n_sub)]

@@ -128,3 +128,29 @@ def test_segment_integral_steep_opaque_segments(n_sub):
     dr.backward_from(dr.sum(C) + T)
     for x in (s0, s1, length):
         assert np.all(np.isfinite(np.array(dr.grad(x))))
+
+
+@pytest.mark.parametrize("n_sub", [2, 4])
+def test_segment_integral_derivatives_at_constant_extinction(n_sub):
+    """Where the extinction is the same at both ends (a constant texel of a
+    transfer function, equal vertex opacities) the derivatives w.r.t. each
+    end's extinction are those of central differences (each end's share of
+    the segment, not their sum split by a kink)."""
+    s = [0.3, 1.7, 6.0]
+    c0, c1 = [0.2, 0.5, 0.9], [0.9, 0.1, 0.4]
+
+    def emission(a, b):
+        C, _ = segment_integral(mi.Float(1.3), mi.Color3f(c0), mi.Color3f(c1), mi.Float(a),
+                                mi.Float(b), n_sub)
+        return np.array(C, np.float64).ravel()
+    for v in s:
+        s0, s1 = mi.Float(v), mi.Float(v)
+        dr.enable_grad(s0, s1)
+        C, _ = segment_integral(mi.Float(1.3), mi.Color3f(c0), mi.Color3f(c1), s0, s1, n_sub)
+        dr.backward_from(C.x)
+        h = 1e-3
+        for grad, shift in ((dr.grad(s0), (h, 0.0)), (dr.grad(s1), (0.0, h))):
+            fd = (emission(v + shift[0], v + shift[1])[0]
+                  - emission(v - shift[0], v - shift[1])[0]) / (2 * h)
+            # (float32 differences: about 1e-5 of rounding)
+            assert abs(float(grad[0]) - fd) < 0.01 * abs(fd) + 3e-5, (v, grad, fd)
