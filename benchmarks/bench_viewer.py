@@ -50,6 +50,8 @@ def parse_args(argv=None):
     p.add_argument("--fit-minutes", type=float, default=3.0,
                    help="time budget of the fitted mesh's fit (default 3)")
     p.add_argument("--steps", type=int, default=40, help="fit steps per timed run (default 40)")
+    p.add_argument("--latency-only", action="store_true",
+                   help="Blunt Fin's latency alone: no fitted mesh, no fit")
     a = p.parse_args(argv)
     a.sizes = (64, 128) if a.quick else (256, 512)
     if a.quick:
@@ -194,7 +196,8 @@ def main(a):
             meshes["bluntfin (187k tets)"] = (blunt, "Density")
         else:
             print(f"skipped Blunt Fin: {blunt} is absent")
-        meshes["fitted"] = (fitted_mesh(a), None)
+        if not a.latency_only:
+            meshes["fitted"] = (fitted_mesh(a), None)
     rows = []
     print(f"{'mesh':<26}{'size':>6}{'frames':>8}{'first (ms)':>22}{'refined (ms)':>24}"
           f"{'plain render (ms)':>20}{'refined/plain':>15}")
@@ -217,6 +220,9 @@ def main(a):
                       .ljust(24) + f"{1e3 * p['median']:>12.0f}{ratio:>15.2f}")
                 rows.append({"mesh": name, "tets": tets, "size": size, "frozen": freeze, **r,
                              "refined_over_plain": ratio})
+    if a.latency_only:
+        write_json(a, info, {"latency": rows})
+        return
     data = Path(a.work) / ("data" if not a.quick else "quick_data")
     if a.quick and not data.is_dir():
         cli("make-dataset", "scenes/volumes/default.npy", "--tf", "scenes/tf_default.json",

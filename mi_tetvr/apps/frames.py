@@ -10,8 +10,11 @@ through it, keeping one sensor per film and field of view whose pose it
 updates (a new sensor object would be a new input and a new recording).
 
 Sensors are described by dictionaries (``mi.load_dict``'s, e.g.
-:meth:`Frames.camera_dict` of a :class:`~mi_tetvr.camera.Camera`). What a
-replay does not see: Python state of the plugins (an integrator's
+:meth:`Frames.camera_dict` of a :class:`~mi_tetvr.camera.Camera`). Where Dr.Jit
+cannot record a render (it reads arrays that the inputs do not reach, such
+as a probe's isovalues held by a plain Python object), the frames of that
+integrator are traced as ``mi.render`` traces them. What a replay does not
+see: Python state of the plugins (an integrator's
 settings, a shape's index buffers, values a plugin keeps between renders).
 So a :class:`Frames` belongs to one scene, keeps one recording per
 integrator object, and is to be :meth:`cleared <Frames.clear>` (or made
@@ -86,4 +89,12 @@ class Frames:
                 # per film size and spp: a viewer's few sizes)
                 entry = self._recorded[key] = (integrator, dr.freeze(
                     _trace, limit=RECORDINGS, warn_after=RECORDINGS))
-            return entry[1](self.scene, sensor, integrator, mi.UInt32(int(seed)))
+            if entry[1] is None:
+                return _trace(self.scene, sensor, integrator, int(seed))
+            try:
+                return entry[1](self.scene, sensor, integrator, mi.UInt32(int(seed)))
+            except RuntimeError:
+                # Dr.Jit refuses to record a render that reads arrays it cannot
+                # reach from the inputs (a plugin's own Python objects): trace it.
+                self._recorded[key] = (integrator, None)
+                return _trace(self.scene, sensor, integrator, int(seed))

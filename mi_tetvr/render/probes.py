@@ -63,10 +63,13 @@ class VertexGradients:
     (:func:`~mi_tetvr.render.linear.vertex_gradients`), kept while the
     scalar, the positions and the tets are the same arrays (held, so that
     their Dr.Jit variables stay theirs); attached to the AD graph, and not
-    kept, where the scalar or the positions track gradients."""
+    kept, where the scalar or the positions track gradients. The kept
+    buffer is a field Dr.Jit traverses (a frozen render reaches it)."""
+    DRJIT_STRUCT = {"kept": mi.Float}
 
     def __init__(self):
-        self._kept = ((), None)
+        self._inputs = ()
+        self.kept = mi.Float()
 
     def __call__(self, shape):
         scalar = shape.attribute_buffer("vertex_scalar")
@@ -75,12 +78,12 @@ class VertexGradients:
         if dr.grad_enabled(scalar) or dr.grad_enabled(positions):
             return vertex_gradients(buf, scalar)
         inputs = (positions, scalar, buf.tets)
-        kept, gradients = self._kept
-        if len(kept) != 3 or any(a.index != b.index for a, b in zip(kept, inputs)):
-            gradients = vertex_gradients(buf, scalar)
-            dr.eval(gradients)
-            self._kept = (inputs, gradients)
-        return gradients
+        if len(self._inputs) != 3 or any(a.index != b.index
+                                         for a, b in zip(self._inputs, inputs)):
+            self.kept = vertex_gradients(buf, scalar)
+            dr.eval(self.kept)
+            self._inputs = inputs
+        return self.kept
 
 
 class Probe:

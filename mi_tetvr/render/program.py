@@ -68,6 +68,10 @@ class Probes:
     ``iso``, the values, a differentiable ``Float``). Surfaces are drawn with
     ``opacity``, at most ``count`` of them along a ray (:mod:`~mi_tetvr.render.layers`);
     ``clip`` cuts the mesh."""
+    #: (the arrays Dr.Jit reaches through the integrator that holds the
+    #: probes, e.g. as a frozen render's input: the isovalues, the kept
+    #: vertex gradients)
+    DRJIT_STRUCT = {"iso": mi.Float, "gradients": VertexGradients}
 
     def __init__(self, mode, iso, origin, normal, opacity, count, clip, settings: WalkSettings,
                  retrace_epsilon: float):
