@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import re
 import sys
-from collections import Counter
 
 from common import grid_scene, header, make_parser, pixel_rays, timed, write_json
 
