@@ -57,17 +57,21 @@ def scene_of(a, tf_path):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             mesh = mi_tetvr.read_tetmesh(MESH)
-        shape = {"type": "tetmesh", "filename": str(MESH), "scalar_attribute": "Density"}
+        def shape(tf):
+            return {"type": "tetmesh", "filename": str(MESH), "scalar_attribute": "Density",
+                    **tf}
         name, bounds = "Blunt Fin", mesh.bounds
     else:
         from mi_tetvr.mesh.generate import grid_mesh
         V, T = grid_mesh(16, jitter=0.1)
-        shape = mi_tetvr.tetmesh_dict(V, T, scalar=np.sin(2 * V[:, 0]) * np.cos(2 * V[:, 1]))
+        def shape(tf):
+            return mi_tetvr.tetmesh_dict(V, T, scalar=np.sin(2 * V[:, 0]) * np.cos(2 * V[:, 1]),
+                                         **tf)
         name, bounds = "16^3 grid", np.array([V.min(0), V.max(0)])
     lo, hi = bounds
     centre, diag = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
-    shape.update({"transfer_function": str(tf_path), "tf_resolution": a.resolution,
-                  "opacity_scale": 4.0 / diag})
+    shape = shape({"transfer_function": str(tf_path), "tf_resolution": a.resolution,
+                   "opacity_scale": 4.0 / diag})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return name, mi.load_dict({
