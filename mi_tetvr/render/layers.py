@@ -82,6 +82,15 @@ class Layered:
         return out[::-1]
 
 
+def own_kernel(*values):
+    """Evaluates ``values`` (and the scatters queued with them) unless traced in
+    a symbolic loop or call: each layer's walks then run as kernels of their
+    own, whose code is the same from one layer to the next (compiled once, not
+    once per layer inside one kernel LLVM takes many minutes to compile)."""
+    if not dr.flag(dr.JitFlag.SymbolicScope):
+        dr.eval(*values)
+
+
 def composite(find, volume, ray, t_start, active, alpha: float, count: int, eps: float,
               t_min: float = 1e-4) -> Layered:
     """Front to back through at most ``count`` surfaces along ``ray`` (unit
@@ -121,6 +130,7 @@ def composite(find, volume, ray, t_start, active, alpha: float, count: int, eps:
         W = dr.select(met, W * (1.0 - alpha), W)
         start = dr.select(met, end + eps, start)
         go = met & (W > t_min)
+        own_kernel(L, W, start, go, end, C, T, met, color, pick)
     go &= start < t_end
     C, T = interval(t_end, go)
     L += W * C

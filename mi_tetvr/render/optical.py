@@ -55,6 +55,15 @@ from mi_tetvr.render.pytree import weighted_sum
 from mi_tetvr.render.segment import segment_integral
 
 
+def piece_of(x, n):
+    """The linear piece ``k`` in ``[0, n - 2]`` of ``n`` samples at ``0 .. n-1``
+    that holds ``x`` (the first or last one beyond them). Written with
+    comparisons, false for a NaN: a lane whose coordinate is not a number (an
+    inactive one) reads samples 0 and 1, never outside the array."""
+    k = dr.floor(x)
+    return mi.UInt32(dr.select(k > 0.0, dr.select(k < n - 2.0, k, float(n - 2)), 0.0))
+
+
 class OpticalModel:
     """Interface of an optical model (see the module docstring).
 
@@ -285,7 +294,7 @@ class PostClassified(OpticalModel):
         last = float(self.resolution - 1)
         mid = 0.5 * (u0 + u1)
         below, above = mid < 0.0, mid > last
-        k = mi.UInt32(dr.clip(dr.floor(mid), 0.0, last - 1.0))
+        k = piece_of(mid, self.resolution)
         mode = TEXEL_REDUCE
         c0 = dr.gather(mi.Color3f, params.tf_color, k, mode=mode)
         c1 = dr.gather(mi.Color3f, params.tf_color, k + 1, mode=mode)
@@ -574,7 +583,7 @@ class PreIntegrated(PostClassified):
 
         def coord(u, n):
             x = dr.clip(u, 0.0, float(n - 1))
-            lo = mi.UInt32(dr.minimum(dr.floor(x), float(n - 2)))
+            lo = piece_of(x, n)
             return lo, x - mi.Float(lo)
         i, wi = coord(dr.clip(a0.u, 0.0, last) * scale, S)
         j, wj = coord(dr.clip(a1.u, 0.0, last) * scale, S)

@@ -394,4 +394,5 @@ class VolumeProgram:
             if not backward:
                 dL += W * adj.dL
                 dalpha += adj.dalpha
+            layers.own_kernel(dL, dalpha)
         return dL, dalpha

@@ -81,3 +81,14 @@ def test_absorption_adjoint_matches_finite_differences(problem):
                    for i in picks])
     assert np.abs(fd).max() > 1e-2
     np.testing.assert_allclose(grad[picks], fd, rtol=1e-4)
+
+
+def test_a_lookup_reads_inside_its_table_whatever_the_coordinate():
+    """The piece of a transfer function or table that a coordinate reads: the
+    one holding it, the first or last beyond the samples, and the first for a
+    NaN (an inactive lane's coordinate), never an index outside the table
+    (such a read crashed a forward-mode pass)."""
+    from mi_tetvr.render.optical import piece_of
+    x = [np.nan, -np.inf, -3.0, 0.0, 0.5, 1.0, 2.7, 3.0, 9.0, np.inf]
+    k = np.array(piece_of(mi.Float(np.array(x, np.float32)), 4))
+    assert k.tolist() == [0, 0, 0, 0, 0, 1, 2, 2, 2, 2]
