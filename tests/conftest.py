@@ -13,11 +13,28 @@ import pytest
 from tests.helpers import DATA, VARIANT, use_variant
 
 
+def pytest_addoption(parser):
+    parser.addoption("--run-slow", action="store_true",
+                     help="also run the tests marked slow (each compiles for many minutes)")
+
+
 def pytest_configure(config):
+    config.addinivalue_line(
+        "markers", "slow: compiles for many minutes (Dr.Jit's debug mode); "
+                   "run with --run-slow")
     try:
         use_variant(VARIANT)
     except RuntimeError as e:
         raise pytest.UsageError(str(e)) from None
+
+
+def pytest_collection_modifyitems(config, items):
+    if config.getoption("--run-slow"):
+        return
+    skip = pytest.mark.skip(reason="compiles for many minutes: run with --run-slow")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip)
 
 
 def pytest_report_header(config):
