@@ -123,7 +123,7 @@ import numpy as np
 from mi_tetvr.mesh import TetMesh, read_tetmesh
 from mi_tetvr.mesh.io import choose_scalar
 from mi_tetvr.mesh.topology import longest_edges
-from mi_tetvr.render.buffers import drjit_index_arrays, shape_index_arrays
+from mi_tetvr.render.buffers import drjit_index_arrays, owned, shape_index_arrays
 from mi_tetvr.render.optical import (Absorption, CellClassified, EmissionAbsorption,
                                      PostClassified, PreIntegrated, Shaded)
 from mi_tetvr.transfer import TransferFunction, read_transfer_function
@@ -341,8 +341,8 @@ class TetMeshShape(mi.Mesh):
                              "emitter")
         self.optical_model = MODELS[model]
         params = mi.traverse(self)
-        params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
-        params["faces"] = mi.UInt32(topo.boundary_faces.astype(np.uint32).ravel())
+        params["vertex_positions"] = owned(mi.Float, mesh.vertices.astype(np.float32).ravel())
+        params["faces"] = owned(mi.UInt32, topo.boundary_faces.astype(np.uint32).ravel())
         if post is None:
             values = self.optical_model.vertex_values(mesh)
         else:
@@ -350,8 +350,8 @@ class TetMeshShape(mi.Mesh):
             #: The longest chord of any tet (the pre-integrated table's range).
             self.longest_edge = float(longest_edges(mesh.vertices, mesh.tets).max())
             self.tf_resolution = len(opacity)
-            self.tf_color = mi.Float(np.asarray(color, np.float32).ravel())
-            self.tf_opacity = mi.Float(np.asarray(opacity, np.float32))
+            self.tf_color = owned(mi.Float, np.asarray(color, np.float32).ravel())
+            self.tf_opacity = owned(mi.Float, np.asarray(opacity, np.float32))
             values = {"vertex_scalar": scalar}
             #: ``shade``'s coefficients (ambient, diffuse, specular, power).
             self.lighting = tuple(float(props.get(k, v)) for k, v in
@@ -361,10 +361,10 @@ class TetMeshShape(mi.Mesh):
                                  f"{dict(zip(LIGHTING, self.lighting))}")
             if self.optical_model is CellClassified:
                 #: The scalar per tet, in the mesh's order (cell data).
-                self.cell_scalar = mi.Float(np.asarray(scalar, np.float32))
+                self.cell_scalar = owned(mi.Float, np.asarray(scalar, np.float32))
         for name, channels in self.optical_model.vertex_attributes:
             self.add_attribute(name, channels,
-                               mi.Float(np.asarray(values[name], np.float32).ravel()))
+                               owned(mi.Float, np.asarray(values[name], np.float32).ravel()))
         params.update()
         arrays = shape_index_arrays(topo, mesh.vertices)
         #: Index buffers of the walk (Dr.Jit, local indices; see
@@ -372,7 +372,7 @@ class TetMeshShape(mi.Mesh):
         self.tet_buffers = drjit_index_arrays(arrays)
         #: The mesh's index of each tet the walk stores, where it reorders
         #: them (cell data is read through it), else None.
-        self.cell_order = mi.UInt32(arrays["order"]) if (
+        self.cell_order = owned(mi.UInt32, arrays["order"]) if (
             "order" in arrays and self.optical_model is CellClassified) else None
         self.tet_count = topo.n_tets
 

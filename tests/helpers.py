@@ -99,7 +99,10 @@ def make_rays(origins, directions):
     o = np.asarray(origins, np.float32)
     d = np.asarray(directions, np.float64)
     d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
-    return mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T))
+    # (in memory of Dr.Jit's own: see mi_tetvr.render.buffers.owned)
+    from mi_tetvr.render.buffers import owned
+    o, d = ([owned(mi.Float, np.ascontiguousarray(c)) for c in a.T] for a in (o, d))
+    return mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d))
 
 
 def render_rays(scene, origins, directions, sampler=None):

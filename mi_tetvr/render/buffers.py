@@ -41,6 +41,22 @@ def offset_links(links, tet_offset):
     return np.where(links >= 0, links + 4 * int(tet_offset), -1)
 
 
+def owned(cls, array):
+    """``array`` (NumPy) as a Dr.Jit array of type ``cls`` in memory of Dr.Jit's
+    own. Dr.Jit maps a NumPy array's memory without copying it: a later change
+    of the NumPy array would show in the scene, and the array's alignment,
+    which varies from one run to the next, changes the kernels generated from
+    it (their loads' alignment), so that they miss Dr.Jit's kernel cache and
+    compile again in every process."""
+    x = cls(array)
+    if dr.width(x) == 0:
+        return x
+    zero = dr.opaque(cls, 0)            # (an opaque zero: not folded away)
+    x = (x | zero) if dr.is_integral_v(cls) else x + zero
+    dr.eval(x)
+    return x
+
+
 def unpack_link(link):
     """``(tet, face)`` as ``UInt32`` of a Dr.Jit link (meaningless where the
     link is ``-1``)."""
@@ -150,7 +166,7 @@ INDEX_TYPES = {"tets": (mi.UInt32, np.uint32), "nbr": (mi.Int32, np.int32),
 def drjit_index_arrays(arrays):
     """:func:`shape_index_arrays`' arrays as the Dr.Jit buffers the walk reads
     (what a ``tetmesh`` shape keeps: the numpy arrays can go)."""
-    return {k: INDEX_TYPES[k][0](np.ascontiguousarray(arrays[k], INDEX_TYPES[k][1]))
+    return {k: owned(INDEX_TYPES[k][0], np.ascontiguousarray(arrays[k], INDEX_TYPES[k][1]))
             for k in INDEX_TYPES}
 
 
@@ -212,7 +228,7 @@ def index_buffers(shapes):
         fo += s.face_count()
     if vo >= 2 ** 32 or 4 * to >= 2 ** 31:
         raise ValueError("tet meshes too large for 32-bit indices")
-    return ({k: t(np.concatenate(idx[k]).astype(nt)) for k, (t, nt) in INDEX_TYPES.items()},
+    return ({k: owned(t, np.concatenate(idx[k]).astype(nt)) for k, (t, nt) in INDEX_TYPES.items()},
             face_offsets)
 
 
