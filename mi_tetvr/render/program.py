@@ -249,6 +249,10 @@ class VolumeProgram:
             ray.maxt = dr.select(hit, si.t, ray.maxt)
         # (surfaces are not clipped)
         ray, t_start, walking = clipped(self.clip, ray, active)
+        # The rays as a kernel of their own: the walk's kernels then hold no
+        # code of the sensor or the sampler (a camera pose given as literal
+        # values made every pose compile the walk again).
+        layers.own_kernel(ray, t_start, walking, hit)
         return ray, nested_ray, hit, t_start, walking
 
     # -- the passes -----------------------------------------------------------
@@ -316,11 +320,13 @@ class VolumeProgram:
                     tangent = tuple(dr.detach(x) for x in dr.forward_to(
                         ray_ad.o, dr.normalize(ray_ad.d),
                         flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad))
+                layers.own_kernel(tangent)          # (the pose's code out of the walk)
             deriv = Derivative(mode, media_ad, camera, tangent)
             _, _, _, adj = self.walk([g.detached() for g in media_ad], ray, t_start, walking,
                                      deriv, adj)
         if backward:
             if camera:
+                layers.own_kernel(adj.g_o, adj.g_w)   # (the pose's code out of the walk)
                 # The ray's gradient into the sensor: the origin's as is, the
                 # direction's from the rotation gradient (g_d = g_w x d; the
                 # direction is normalized, so its length has none).
