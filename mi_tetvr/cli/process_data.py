@@ -34,6 +34,10 @@ def add_arguments(p):
     flags.quiet(p)
 
 
+_PRIOR = {"exif": "the EXIF focal length", "exif for some photos": "the EXIF focal length of "
+          "some photos", "guess": "a guess, 1.2 x the longest side", "given": "the given one"}
+
+
 def run(a):
     from mi_tetvr.recon.sfm import run_sfm
     try:
@@ -47,7 +51,8 @@ def run(a):
           f"{s['points']:,} points, mean reprojection error "
           f"{s['mean_reprojection_error']:.2f} px, mean track length "
           f"{s['mean_track_length']:.2f}, {s['seconds']:.1f} s ({cam['model']} "
-          f"f = {cam['params'][0]:.1f} px) -> {s['model']}")
+          f"f = {cam['params'][0]:.1f} px, started from {_PRIOR[s['focal_prior']]}) "
+          f"-> {s['model']}")
     if a.reference:
         compare(a.out, a.reference)
     print(f"next: mi-tetvr fit {a.out} --out {Path(a.out).with_name(Path(a.out).name + '_fit')}"

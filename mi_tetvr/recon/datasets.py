@@ -47,7 +47,8 @@ import numpy as np
 
 from mi_tetvr.camera import OPENGL_TO_MITSUBA, Camera, as_rigid
 from mi_tetvr.recon.hull import frusta_bounds
-from mi_tetvr.recon.images import check_factor, downscale_image, read_image, write_image
+from mi_tetvr.recon.images import (check_factor, downscale_image, image_size, read_image,
+                                   write_image)
 from mi_tetvr.recon.undistort import Lens, nerf_lens
 
 __all__ = ["View", "Dataset", "load_dataset", "load_nerf", "load_colmap", "write_nerf"]
@@ -218,9 +219,7 @@ def _image_file_size(path: Path):
     """``(width, height)`` of an image file without decoding it (None for EXR)."""
     if path.suffix.lower() == ".exr":
         return None
-    from PIL import Image
-    with Image.open(path) as im:
-        return im.size
+    return image_size(path)
 
 
 def holdout_protocol(holdout: Holdout, order: str) -> str:
@@ -602,6 +601,13 @@ def load_colmap(path, images=None, downscale: int = 1, holdout: Holdout = 8, *,
             image = read_image(images / name)
             ih, iw = image.shape[:2]
             if (iw, ih) != (lens.width, lens.height):   # stored at another size
+                if abs(iw * lens.height - ih * lens.width) > max(iw, ih, lens.width):
+                    raise ValueError(
+                        f"{images / name}: the photo is {iw}x{ih} (upright, by its EXIF "
+                        f"orientation) but its camera in {model} is {lens.width}x"
+                        f"{lens.height}: the model was made from pictures of another shape "
+                        f"(turned or cropped); run structure from motion on the photos again "
+                        f"(mi-tetvr process-data), which makes upright copies")
                 lens = lens.resized(iw, ih)
             image = lens.undistort(image)
         camera = Camera.from_colmap(quat, translation, lens.width, lens.height, *lens.pinhole())

@@ -1,9 +1,14 @@
 """Images as the reconstruction sees them: premultiplied linear RGBA arrays,
 read from and written to PNG/JPEG (sRGB, straight alpha) and EXR (linear,
 premultiplied); area downscaling.
+
+Photos are upright everywhere: a phone stores a portrait photo as landscape pixels with an EXIF
+orientation tag, and every reader here (:func:`read_image`, :func:`image_size`,
+:func:`upright_copy`) applies the tag, as image viewers do.
 """
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -12,10 +17,98 @@ from mi_tetvr.color import linear_to_srgb, srgb_to_linear
 
 from mi_tetvr.camera import check_factor
 
-__all__ = ["read_image", "write_image", "downscale_image"]
+__all__ = ["read_image", "write_image", "downscale_image", "image_size", "exif_orientation",
+           "exif_focal_px", "upright_copy"]
 
 
 _SRGB_LUT8 = srgb_to_linear(np.arange(256) / 255.0).astype(np.float32)
+
+
+#: EXIF orientations (tag 274) whose upright picture swaps width and height.
+_TRANSPOSED = (5, 6, 7, 8)
+
+#: The diagonal of a 36 x 24 mm frame, in mm: the 35 mm equivalent focal length is
+#: defined on the diagonal (CIPA DC-008), so that it holds for any aspect ratio.
+_FULL_FRAME_DIAGONAL_MM = float(np.hypot(36.0, 24.0))
+
+
+def exif_orientation(im) -> int:
+    """The EXIF orientation (1 - 8) of an open PIL image; 1 when absent or invalid."""
+    try:
+        o = int(im.getexif().get(0x0112, 1))
+    except Exception:                    # a damaged EXIF block: no orientation
+        return 1
+    return o if 1 <= o <= 8 else 1
+
+
+def image_size(path):
+    """``(width, height)`` of an image file as shown upright, without decoding its pixels."""
+    from PIL import Image
+    with Image.open(path) as im:
+        w, h = im.size
+        return (h, w) if exif_orientation(im) in _TRANSPOSED else (w, h)
+
+
+def exif_focal_px(path):
+    """The focal length in pixels of the upright picture from its EXIF data, or None.
+
+    From the 35 mm equivalent focal length (tag 41989) over the frame's diagonal, else from the
+    focal length in mm (tag 37386) and the focal plane's resolution (tags 41486/41488, scaled
+    from the original picture's width, tag 40962, to this file's). Both are the camera's
+    nominal values: a starting guess for structure from motion, which refines it.
+    """
+    from PIL import Image
+    with Image.open(path) as im:
+        w, h = im.size
+        try:
+            ifd = im.getexif().get_ifd(0x8769)
+        except Exception:
+            return None
+    f35 = _positive(ifd.get(41989))
+    if f35 is not None:
+        return f35 / _FULL_FRAME_DIAGONAL_MM * float(np.hypot(w, h))
+    f_mm, res = _positive(ifd.get(37386)), _positive(ifd.get(41486))
+    unit = {2: 25.4, 3: 10.0, 4: 1.0}.get(int(ifd.get(41488, 2) or 2))
+    if f_mm is None or res is None or unit is None:
+        return None
+    original = _positive(ifd.get(40962))
+    scale = max(w, h) / original if original and original >= max(w, h) else 1.0
+    return f_mm * res / unit * scale
+
+
+def _positive(value):
+    try:
+        v = float(value)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return v if np.isfinite(v) and v > 0 else None
+
+
+def upright_copy(src, dst) -> bool:
+    """Copy a picture to ``dst`` turned upright by its EXIF orientation.
+
+    The picture is decoded whole first, so that a damaged file raises here (``OSError``, as
+    Pillow raises it) rather than later. A picture already upright is copied byte for byte; a
+    turned one is written again (JPEG at quality 95 without chroma subsampling, others
+    losslessly), with its other EXIF data (camera, focal length) kept and the orientation tag
+    dropped. Returns whether it was turned.
+    """
+    from PIL import Image, ImageOps
+    with Image.open(src) as im:
+        im.load()
+        if exif_orientation(im) == 1:
+            turned = None
+        else:
+            fmt = im.format
+            turned = ImageOps.exif_transpose(im)
+    if turned is None:
+        shutil.copy2(src, dst)
+        return False
+    exif = turned.getexif()
+    exif.pop(0x0112, None)
+    options = dict(quality=95, subsampling=0) if fmt == "JPEG" else {}
+    turned.save(dst, format=fmt, exif=exif.tobytes(), **options)
+    return True
 
 
 #: The largest transmittance an X-ray image may hold: above 1 only by photon
@@ -57,7 +150,7 @@ def read_image(path, downscale: int = 1) -> np.ndarray:
     """Read an image as premultiplied linear RGBA.
 
     PNG / JPEG (8 or 16 bit, grey, palette, RGB or RGBA) are sRGB with straight alpha: decoded to
-    linear, then premultiplied. EXR (and other HDR formats ``mitsuba.Bitmap`` reads) are linear and
+    linear, then premultiplied, and turned upright by their EXIF orientation. EXR (and other HDR formats ``mitsuba.Bitmap`` reads) are linear and
     premultiplied (OpenEXR convention). A missing alpha channel is 1. ``.npy``: an (H, W)
     float array of X-ray transmittance ``T = I / I0``, read as what an absorbing volume renders:
     RGB 0 and alpha ``1 - T``.
@@ -94,9 +187,11 @@ def read_image(path, downscale: int = 1) -> np.ndarray:
         img = np.array(bmp, dtype=np.float32).reshape(bmp.height(), bmp.width(), 4)
         return downscale_image(img, downscale)
 
-    from PIL import Image
+    from PIL import Image, ImageOps
     with Image.open(path) as im:
         im.load()
+        if exif_orientation(im) != 1:
+            im = ImageOps.exif_transpose(im)
         mode = im.mode
         if mode in ("I;16", "I;16B", "I;16L", "I"):
             g = np.asarray(im, dtype=np.float64) / (65535.0 if mode != "I" or im.getextrema()[1] > 255

@@ -58,6 +58,9 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv",
                   ".gif")
 
+#: Inlier matches of a verified image pair (COLMAP's ``min_num_inliers``).
+_MIN_INLIERS = 15
+
 #: Fraction of registered images below which :func:`run_sfm` warns.
 _WARN_FRACTION = 0.7
 
@@ -140,23 +143,121 @@ def _images_in(folder: Path) -> List[Path]:
                   and not p.name.startswith("."))
 
 
-def _copy(src: Path, dst: Path) -> None:
-    """Copy a picture (kept when an identical copy, same size and time, is there)."""
-    if dst.exists():
-        a, b = src.stat(), dst.stat()
-        if a.st_size == b.st_size and int(a.st_mtime) == int(b.st_mtime):
-            return
-        dst.unlink()
-    shutil.copy2(src, dst)
+def _copy_photos(given: Sequence[Path], image_dir: Path, log: Callable) -> Tuple[list, dict]:
+    """Upright copies of the photos in ``image_dir`` (COLMAP reads the pixels as stored, the
+    loaders turn them by their EXIF orientation: both must see the same picture). Returns the
+    copies and ``{name: why}`` of the photos that could not be read (left out, logged)."""
+    from mi_tetvr.recon.images import upright_copy
+    files, unreadable, turned = [], {}, 0
+    for src in given:
+        dst = image_dir / src.name
+        if dst.exists():
+            dst.unlink()
+        try:
+            turned += upright_copy(src, dst)
+        except (OSError, SyntaxError, ValueError) as e:   # Pillow's errors for damaged files
+            if dst.exists():
+                dst.unlink()
+            unreadable[src.name] = f"cannot be read: {e}"
+            log(f"run_sfm: {src.name} cannot be read ({e}); left out")
+            continue
+        files.append(dst)
+    if turned:
+        log(f"run_sfm: {turned} of {len(files)} photos turned upright by their EXIF orientation")
+    return files, unreadable
+
+
+def _readable_in_place(given: Sequence[Path]) -> Tuple[list, dict]:
+    """The photos of a folder that is already the data set's image folder: read, not copied
+    (a turned one would be seen sideways by COLMAP and upright by the loaders)."""
+    from PIL import Image
+    from mi_tetvr.recon.images import exif_orientation
+    files, unreadable = [], {}
+    for p in given:
+        try:
+            with Image.open(p) as im:
+                im.load()
+                turned = exif_orientation(im) != 1
+        except (OSError, SyntaxError, ValueError) as e:
+            unreadable[p.name] = f"cannot be read: {e}"
+            continue
+        if turned:
+            raise ValueError(f"{p} carries an EXIF orientation and lies in the output's own "
+                             f"image folder: pass the folder of photos and a different output "
+                             f"folder, so that upright copies can be made")
+        files.append(p)
+    return files, unreadable
 
 
 def _image_sizes(paths: Sequence[Path]) -> set:
-    from PIL import Image
-    sizes = set()
-    for p in paths:
-        with Image.open(p) as im:
-            sizes.add(im.size)
-    return sizes
+    from mi_tetvr.recon.images import image_size
+    return {image_size(p) for p in paths}
+
+
+def _focal_priors(database: Path, image_dir: Path, log: Callable) -> str:
+    """Where the mapper's starting focal length comes from: COLMAP reads it from the EXIF data
+    with its camera sensor database; where it found none, the photos' own 35 mm equivalent
+    (:func:`mi_tetvr.recon.images.exif_focal_px`) is set as the prior in the database. Returns
+    ``"exif"``, ``"exif for some photos"`` or ``"guess"`` (1.2 times the longest side)."""
+    import pycolmap
+    from mi_tetvr.recon.images import exif_focal_px
+    db = pycolmap.Database.open(database)
+    try:
+        by_camera = {}
+        for im in db.read_all_images():
+            by_camera.setdefault(int(im.camera_id), []).append(im.name)
+        known = 0
+        for cam in db.read_all_cameras():
+            names = by_camera.get(int(cam.camera_id), [])
+            if not cam.has_prior_focal_length:
+                f = [x for x in (exif_focal_px(image_dir / n) for n in names) if x]
+                if f:
+                    params = np.asarray(cam.params, dtype=np.float64).copy()
+                    params[list(cam.focal_length_idxs())] = float(np.median(f))
+                    cam.params = params
+                    cam.has_prior_focal_length = True
+                    db.update_camera(cam)
+            known += len(names) if cam.has_prior_focal_length else 0
+        total = sum(len(v) for v in by_camera.values())
+    finally:
+        db.close()
+    if known < total:
+        log(f"run_sfm: {total - known} of {total} photos have no focal length in their EXIF "
+            f"data; the mapper starts from 1.2 times the longest side")
+    return "exif" if known == total else ("exif for some photos" if known else "guess")
+
+
+def _why_unregistered(database: Path, names: Sequence[str]) -> dict:
+    """``{name: why}`` for photos left out of the model, from the database: too few features,
+    no verified match with another photo, or matched but not placed by the mapper."""
+    import pycolmap
+    db = pycolmap.Database.open(database)
+    try:
+        ids = {im.name: int(im.image_id) for im in db.read_all_images()}
+        pairs, geometries = db.read_two_view_geometries()
+        partners, best = {}, {}
+        for pid, g in zip(pairs, geometries):
+            n = len(g.inlier_matches)
+            if n < _MIN_INLIERS:
+                continue
+            for i in pycolmap.pair_id_to_image_pair(int(pid)):
+                partners[int(i)] = partners.get(int(i), 0) + 1
+                best[int(i)] = max(best.get(int(i), 0), n)
+        out = {}
+        for name in names:
+            i = ids.get(name)
+            k = db.num_keypoints_for_image(i) if i is not None else 0
+            if k < 2 * _MIN_INLIERS:
+                out[name] = f"too few features ({k}): blurred, dark or without texture"
+            elif i not in partners:
+                out[name] = f"{k} features but no verified match with any other photo"
+            else:
+                out[name] = (f"matched with {partners[i]} photo(s) (at most {best[i]} inliers) "
+                             f"but not placed: too little overlap or parallax with the "
+                             f"registered ones")
+    finally:
+        db.close()
+    return out
 
 
 def _summary_of(rec) -> dict:
@@ -324,8 +425,9 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
     Parameters
     ----------
     images : str or Path
-        A folder of photos (``.jpg``, ``.png``, ``.tif``, ``.bmp``; not its subfolders), or a
-        video file (``.mp4``, ``.mov``, ... ``.gif``), whose frames are extracted evenly
+        A folder of photos (``.jpg``, ``.png``, ``.tif``, ``.bmp``; not its subfolders; of
+        any sizes; copied upright by their EXIF orientation; a photo that cannot be read is left
+        out and reported), or a video file (``.mp4``, ``.mov``, ... ``.gif``), whose frames are extracted evenly
         (:func:`extract_frames`, at most ``max_frames``).
     out_dir : str or Path
     matcher : {"exhaustive", "sequential"}, optional
@@ -367,7 +469,10 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
         ``mean_reprojection_error`` (pixels), ``mean_track_length`` (images per point),
         ``seconds`` (wall time), ``stage_seconds`` (dict: ``frames``, ``features``,
         ``matching``, ``mapping``), ``camera`` (model name and parameters of the first camera),
-        ``registered`` / ``unregistered`` (lists of image names), ``models`` (the sizes of all
+        ``registered`` / ``unregistered`` (lists of image names), ``why_unregistered``
+        (``{name: reason}`` read from the matches), ``unreadable`` (``{name: reason}`` of photos
+        left out), ``focal_prior`` (``"exif"``, ``"exif for some photos"``, ``"guess"`` or
+        ``"given"``), ``models`` (the sizes of all
         models found), ``model`` (path of ``sparse/0``), ``images`` (path of the image folder),
         ``matcher``.
 
@@ -404,7 +509,7 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
         _video_backend(src)                    # no decoder: fail before touching out_dir
         for old in image_dir.glob("frame_*.jpg") if image_dir.is_dir() else ():
             old.unlink()
-        files = extract_frames(src, image_dir, max_frames, log=log)
+        files, unreadable = extract_frames(src, image_dir, max_frames, log=log), {}
         matcher = matcher or "sequential"
     else:
         given = _images_in(src)
@@ -412,16 +517,17 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
             raise ValueError(f"structure from motion needs at least 2 images, {src} has "
                              f"{len(given)} ({', '.join(IMAGE_SUFFIXES)})")
         image_dir.mkdir(exist_ok=True)
-        same = image_dir.resolve() == src.resolve()
-        files = given if same else [image_dir / p.name for p in given]
-        if not same:
-            for a, b in zip(given, files):
-                _copy(a, b)
+        if image_dir.resolve() == src.resolve():
+            files, unreadable = _readable_in_place(given)
+        else:
+            files, unreadable = _copy_photos(given, image_dir, log)
         matcher = matcher or "exhaustive"
     stages["frames"] = time.perf_counter() - t
     n = len(files)
     if n < 2:
-        raise ValueError(f"structure from motion needs at least 2 images, got {n}")
+        raise ValueError(f"structure from motion needs at least 2 images, got {n}"
+                         + (f" ({len(unreadable)} could not be read: "
+                            f"{', '.join(sorted(unreadable)[:5])})" if unreadable else ""))
     names = [f.name for f in files]
     affine = n < SMALL_SET if affine_features is None else bool(affine_features)
 
@@ -451,6 +557,8 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
             _extract(database, image_dir, names, camera_mode, reader,
                      _extraction_options(max_image_size, affine), bar,
                      chunk=max(2, math.ceil(n / 20)))
+            focal_prior = "given" if camera_params is not None else \
+                _focal_priors(database, image_dir, log)
             stages["features"] = time.perf_counter() - t
 
             # -- matching -----------------------------------------------------------------
@@ -492,6 +600,9 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
     k = int(best.num_reg_images()) if best is not None else 0
     if k < 3:
         shutil.rmtree(mapping_dir, ignore_errors=True)
+        placed = {best.images[i].name for i in best.reg_image_ids()} if best is not None else set()
+        why = _why_unregistered(database, [m for m in names if m not in placed])
+        log("run_sfm: not registered: " + "; ".join(f"{m}: {w}" for m, w in why.items()))
         raise ValueError(
             f"structure from motion registered {k} of {n} images: the photos need more "
             f"overlap (each part of the scene seen by 3 or more photos from nearby "
@@ -511,12 +622,16 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
                           "params": [float(x) for x in np.asarray(cam.params)]},
                "registered": registered,
                "unregistered": sorted(set(names) - set(registered)),
+               "why_unregistered": _why_unregistered(
+                   database, sorted(set(names) - set(registered))),
+               "unreadable": unreadable, "focal_prior": focal_prior,
                "models": sizes, "model": str(model_dir), "images": str(image_dir),
                "matcher": matcher}
     if k < _WARN_FRACTION * n:
         log(f"warning: structure from motion registered only {k} of {n} images "
-            f"({100 * k / n:.0f} %); the others ({', '.join(summary['unregistered'][:5])}"
-            f"{', ...' if n - k > 5 else ''}) need more overlap with the rest")
+            f"({100 * k / n:.0f} %); the others need more overlap with the rest")
+    for name, why in summary["why_unregistered"].items():
+        log(f"run_sfm: {name} not registered: {why}")
     elsewhere = sorted({r.images[i].name for r in recs if r is not best
                         for i in r.reg_image_ids()} - set(registered))
     if elsewhere:

@@ -8,7 +8,8 @@ from PIL import Image
 
 from mi_tetvr.recon import datasets as D
 from mi_tetvr.camera import Camera
-from mi_tetvr.recon.images import read_image, write_image
+from mi_tetvr.recon.images import (exif_focal_px, image_size, read_image, upright_copy,
+                                   write_image)
 from mi_tetvr.color import srgb_to_linear
 from tests.test_camera import (KNOWN_POSE, assert_rays_hit, check_known_pose, gl_look_at,
                                      mitsuba_ray_dirs)
@@ -86,6 +87,63 @@ def test_srgb_decode_and_premultiply(tmp_path):
     np.testing.assert_allclose(comp[1, 2], 1.0)
     np.testing.assert_allclose(comp[1, 0], lin * 128 / 255 + (1 - 128 / 255), rtol=1e-6)
     np.testing.assert_allclose(v.composite([0, 0, 0]), img[..., :3])
+
+
+#: The pixels a camera stores for an upright picture ``u`` under each EXIF orientation (tag 274:
+#: how to turn the stored pixels for display), written with numpy from the EXIF specification.
+STORED_FOR_ORIENTATION = {
+    1: lambda u: u,
+    2: lambda u: u[:, ::-1],                       # shown mirrored left-right
+    3: lambda u: u[::-1, ::-1],                    # shown turned 180 degrees
+    4: lambda u: u[::-1],                          # shown mirrored top-bottom
+    5: lambda u: u.transpose(1, 0, 2),             # shown transposed
+    6: lambda u: np.rot90(u, 1),                   # shown turned 90 degrees clockwise
+    7: lambda u: u[::-1, ::-1].transpose(1, 0, 2),  # shown transverse
+    8: lambda u: np.rot90(u, -1),                  # shown turned 90 degrees counter-clockwise
+}
+
+
+def _exif(orientation, f35=None):
+    e = Image.Exif()
+    e[0x0112] = orientation
+    if f35 is not None:
+        e.get_ifd(0x8769)[41989] = f35
+    return e
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_photos_are_read_upright(tmp_path, orientation):
+    """A photo stored turned, with the EXIF orientation that says so, reads as the upright
+    picture (pixel for pixel, PNG), sized upright, and its upright copy carries no turn left."""
+    upright = np.random.default_rng(orientation).integers(0, 256, (5, 7, 3), dtype=np.uint8)
+    stored = np.ascontiguousarray(STORED_FOR_ORIENTATION[orientation](upright))
+    Image.fromarray(stored).save(tmp_path / "p.png", exif=_exif(orientation))
+    expected = np.take(srgb_to_linear(np.arange(256) / 255.0).astype(np.float32), upright)
+    np.testing.assert_array_equal(read_image(tmp_path / "p.png")[..., :3], expected)
+    assert image_size(tmp_path / "p.png") == (7, 5)
+    assert upright_copy(tmp_path / "p.png", tmp_path / "q.png") == (orientation != 1)
+    with Image.open(tmp_path / "q.png") as im:
+        assert im.getexif().get(0x0112, 1) == 1
+        np.testing.assert_array_equal(np.asarray(im), upright)
+
+
+def test_focal_length_from_exif(tmp_path):
+    """The 35 mm equivalent focal length is defined on the frame's diagonal: for a 3:2 picture
+    (the 36 x 24 mm frame's shape) it is ``f35 / 36 mm`` of the width; the focal length in mm
+    with the focal plane's resolution gives ``f_mm * pixels per mm``, scaled to a downsized
+    file. Kept in an upright copy of a turned JPEG."""
+    Image.new("RGB", (60, 40)).save(tmp_path / "a.jpg", exif=_exif(6, f35=28))
+    assert exif_focal_px(tmp_path / "a.jpg") == pytest.approx(28 / 36 * 60, rel=1e-12)
+    upright_copy(tmp_path / "a.jpg", tmp_path / "b.jpg")
+    assert image_size(tmp_path / "b.jpg") == (40, 60)
+    assert exif_focal_px(tmp_path / "b.jpg") == pytest.approx(28 / 36 * 60, rel=1e-12)
+    e = _exif(1)
+    ifd = e.get_ifd(0x8769)
+    ifd.update({37386: 4.0, 41486: 500.0, 41488: 4, 40962: 1200})   # 500 px/mm, taken 1200 wide
+    Image.new("RGB", (300, 200)).save(tmp_path / "c.jpg", exif=e)
+    assert exif_focal_px(tmp_path / "c.jpg") == pytest.approx(4.0 * 500.0 * 300 / 1200)
+    Image.new("RGB", (30, 20)).save(tmp_path / "d.jpg")
+    assert exif_focal_px(tmp_path / "d.jpg") is None
 
 
 def test_exr_is_linear_and_premultiplied(tmp_path):

@@ -173,16 +173,52 @@ def room_photos(tmp_path_factory):
     return out, info, load_nerf(out, holdout=None, load_images=False)
 
 
+def _as_a_phone_stores_them(src, dst, f35):
+    """The photos of ``src`` as a phone stores them: every other one turned (EXIF orientations
+    6, 8 and 3 in turn, the pixels stored accordingly), all with a 35 mm equivalent focal
+    length ``f35`` in their EXIF data; and a damaged file among them."""
+    from PIL import Image
+    from tests.recon.test_datasets import STORED_FOR_ORIENTATION, _exif
+    dst.mkdir()
+    for i, path in enumerate(sorted(src.glob("*.png"))):
+        o = (1, 6, 1, 8, 1, 3)[i % 6]
+        upright = np.asarray(Image.open(path).convert("RGB"))
+        Image.fromarray(np.ascontiguousarray(STORED_FOR_ORIENTATION[o](upright))).save(
+            dst / path.name, exif=_exif(o, f35=f35))
+    (dst / "frame_broken.png").write_bytes((dst / path.name).read_bytes()[:500])
+    return dst
+
+
 def test_run_sfm_recovers_the_rendered_cameras(room_photos, tmp_path):
     """Photos without poses against the cameras they were rendered from (independent of
-    COLMAP). Measured: 12 of 12 registered, ~1100 points; rotations within 0.7 deg (relative
-    0.4 deg), positions within 0.3 % of the camera extent, focal length 229.0 px against the
-    true 228.5 px (SIMPLE_RADIAL's k1 -0.09 stands for the OPENCV lens k1 -0.12, k2 0.03)."""
+    COLMAP), stored as a phone stores them (half of them turned, with EXIF orientations; a
+    focal length in the EXIF data about 9 % off; a damaged file). Measured: 12 of 12 registered,
+    ~1100 points; rotations within 0.7 deg (relative 0.4 deg), positions within 0.3 % of the
+    camera extent, focal length 229.0 px against the true 228.5 px (SIMPLE_RADIAL's k1 -0.09
+    stands for the OPENCV lens k1 -0.12, k2 0.03)."""
+    import pycolmap
     src, info, ref = room_photos
-    s = sfm.run_sfm(src / "images", tmp_path / "sfm", progress=False, log=lambda *a: None)
-    assert s["images_registered"] == s["images_given"] == 12
-    assert s["points"] > 300 and s["mean_reprojection_error"] < 1.5
     f_true = info["width"] / 2 / np.tan(np.radians(info["fov_x_deg"]) / 2)
+    diagonal_px = np.hypot(info["width"], info["height"])
+    f35 = round(1.1 * f_true * np.hypot(36, 24) / diagonal_px)    # EXIF: whole mm
+    f_exif = f35 / np.hypot(36, 24) * diagonal_px                   # about 9 % too long
+    photos = _as_a_phone_stores_them(src / "images", tmp_path / "phone", f35=f35)
+    logs = []
+    s = sfm.run_sfm(photos, tmp_path / "sfm", progress=False, log=logs.append)
+    assert s["images_registered"] == s["images_given"] == 12
+    assert list(s["unreadable"]) == ["frame_broken.png"]
+    assert any("frame_broken.png cannot be read" in line for line in logs)
+    assert any("6 of 12 photos turned upright" in line for line in logs)
+    assert s["points"] > 300 and s["mean_reprojection_error"] < 1.5
+    # the mapper starts from the EXIF focal length and refines it to the true one
+    assert s["focal_prior"] == "exif"
+    db = pycolmap.Database.open(tmp_path / "sfm" / "database.db")
+    try:
+        (cam,) = db.read_all_cameras()
+        assert (cam.width, cam.height) == (info["width"], info["height"])
+        assert cam.focal_length == pytest.approx(f_exif, rel=0.01)
+    finally:
+        db.close()
     assert s["camera"]["params"][0] == pytest.approx(f_true, rel=0.02)
     est = load_dataset(tmp_path / "sfm", holdout=None, load_images=False)
     names = {v.name: v.camera for v in ref.views}
@@ -197,8 +233,11 @@ def test_run_sfm_recovers_the_rendered_cameras(room_photos, tmp_path):
 
 def test_run_sfm_unregistrable_noise(tmp_path):
     src = _noise_folder(tmp_path / "noise")
+    logs = []
     with pytest.raises(ValueError, match=r"registered 0 of 3 images"):
-        sfm.run_sfm(src, tmp_path / "out", progress=False, log=lambda *a: None)
+        sfm.run_sfm(src, tmp_path / "out", progress=False, log=logs.append)
+    (line,) = [x for x in logs if "not registered" in x]
+    assert line.count("no verified match with any other photo") == 3, line
 
 
 def test_run_sfm_copies_of_one_photo(tmp_path):
@@ -209,8 +248,11 @@ def test_run_sfm_copies_of_one_photo(tmp_path):
     im = Image.open(MAUPERTUIS / "images" / "00.jpg").resize((480, 270))
     for i in range(3):
         im.save(src / f"{i}.jpg", quality=95)
+    logs = []
     with pytest.raises(ValueError, match=r"registered 0 of 3 images"):
-        sfm.run_sfm(src, tmp_path / "out", progress=False, log=lambda *a: None)
+        sfm.run_sfm(src, tmp_path / "out", progress=False, log=logs.append)
+    (line,) = [x for x in logs if "not registered" in x]
+    assert line.count("matched with 2 photo(s)") == 3 and "not placed" in line, line
 
 
 def test_run_sfm_too_few_images(tmp_path):
