@@ -131,7 +131,7 @@ def _extract(database: Path, image_dir: Path, names: Sequence[str], camera_mode,
         if camera_mode == pycolmap.CameraMode.SINGLE and reader.existing_camera_id < 0:
             db = pycolmap.Database.open(database)
             try:
-                reader.existing_camera_id = int(db.read_all_cameras()[0].camera_id)
+                reader.existing_camera_id = int(db.read_image_with_name(part[0]).camera_id)
             finally:
                 db.close()
         _advance(bar, len(part))
@@ -189,9 +189,10 @@ def _readable_in_place(given: Sequence[Path]) -> Tuple[list, dict]:
     return files, unreadable
 
 
-def _image_sizes(paths: Sequence[Path]) -> set:
+def _image_sizes(paths: Sequence[Path]) -> list:
+    """The upright ``(width, height)`` of each picture."""
     from mi_tetvr.recon.images import image_size
-    return {image_size(p) for p in paths}
+    return [image_size(p) for p in paths]
 
 
 def _focal_priors(database: Path, image_dir: Path, log: Callable) -> str:
@@ -442,8 +443,9 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
         ``SIMPLE_RADIAL`` (default), ``RADIAL``, ``OPENCV``, ...); the loaders resample
         distorted images into pinholes.
     single_camera : bool
-        One shared camera for all pictures (the same camera and zoom); False, or pictures of
-        different sizes, give each picture its own.
+        One shared camera for all pictures of a size (the same camera and zoom: a phone's
+        portrait photos share one, its landscape ones another); False, or pictures of
+        different sizes with ``camera_params`` given, give each picture its own.
     camera_params : sequence of float, optional
         Starting intrinsics in pycolmap's order for ``camera_model`` (``SIMPLE_RADIAL``:
         ``f, cx, cy, k``; ``PINHOLE``: ``fx, fy, cx, cy``); the mapper refines them. Default:
@@ -539,9 +541,19 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
     mapping_dir = out_dir / "sparse" / "_models"
 
     single = bool(single_camera)
-    if single and len(_image_sizes(files)) > 1:
-        log("run_sfm: the pictures have different sizes; each gets its own camera")
-        single = False
+    groups = [names]
+    sizes = _image_sizes(files)
+    if single and len(set(sizes)) > 1:
+        if camera_params is not None:
+            log("run_sfm: the pictures have different sizes; each gets its own camera")
+            single = False
+        else:
+            # (a phone's portrait and landscape photos: one camera per size)
+            groups = [[f.name for f, s in zip(files, sizes) if s == size]
+                      for size in sorted(set(sizes))]
+            log(f"run_sfm: the pictures have {len(groups)} sizes ("
+                + ", ".join(f"{len(g)} of {w}x{h}" for g, (w, h) in zip(groups, sorted(set(sizes))))
+                + "); one camera for each size")
     camera_mode = pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.PER_IMAGE
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
@@ -554,9 +566,11 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
         with _quiet_colmap():
             # -- features -----------------------------------------------------------------
             t = time.perf_counter()
-            _extract(database, image_dir, names, camera_mode, reader,
-                     _extraction_options(max_image_size, affine), bar,
-                     chunk=max(2, math.ceil(n / 20)))
+            for group in groups:
+                reader.existing_camera_id = -1
+                _extract(database, image_dir, group, camera_mode, reader,
+                         _extraction_options(max_image_size, affine), bar,
+                         chunk=max(2, math.ceil(n / 20)))
             focal_prior = "given" if camera_params is not None else \
                 _focal_priors(database, image_dir, log)
             stages["features"] = time.perf_counter() - t

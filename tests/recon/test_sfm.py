@@ -175,14 +175,18 @@ def room_photos(tmp_path_factory):
 
 def _as_a_phone_stores_them(src, dst, f35):
     """The photos of ``src`` as a phone stores them: every other one turned (EXIF orientations
-    6, 8 and 3 in turn, the pixels stored accordingly), all with a 35 mm equivalent focal
-    length ``f35`` in their EXIF data; and a damaged file among them."""
+    6, 8 and 3 in turn, the pixels stored accordingly), one in six at 3/4 of the size, all
+    with a 35 mm equivalent focal length ``f35`` in their EXIF data; and a damaged file among
+    them."""
     from PIL import Image
     from tests.recon.test_datasets import STORED_FOR_ORIENTATION, _exif
     dst.mkdir()
     for i, path in enumerate(sorted(src.glob("*.png"))):
         o = (1, 6, 1, 8, 1, 3)[i % 6]
-        upright = np.asarray(Image.open(path).convert("RGB"))
+        im = Image.open(path).convert("RGB")
+        if i % 6 == 4:
+            im = im.resize((im.width * 3 // 4, im.height * 3 // 4), Image.LANCZOS)
+        upright = np.asarray(im)
         Image.fromarray(np.ascontiguousarray(STORED_FOR_ORIENTATION[o](upright))).save(
             dst / path.name, exif=_exif(o, f35=f35))
     (dst / "frame_broken.png").write_bytes((dst / path.name).read_bytes()[:500])
@@ -209,17 +213,22 @@ def test_run_sfm_recovers_the_rendered_cameras(room_photos, tmp_path):
     assert list(s["unreadable"]) == ["frame_broken.png"]
     assert any("frame_broken.png cannot be read" in line for line in logs)
     assert any("6 of 12 photos turned upright" in line for line in logs)
+    assert any("2 sizes (2 of 240x180, 10 of 320x240); one camera for each size" in line
+               for line in logs)
     assert s["points"] > 300 and s["mean_reprojection_error"] < 1.5
     # the mapper starts from the EXIF focal length and refines it to the true one
     assert s["focal_prior"] == "exif"
     db = pycolmap.Database.open(tmp_path / "sfm" / "database.db")
     try:
-        (cam,) = db.read_all_cameras()
-        assert (cam.width, cam.height) == (info["width"], info["height"])
-        assert cam.focal_length == pytest.approx(f_exif, rel=0.01)
+        cams = sorted(db.read_all_cameras(), key=lambda c: c.width)
+        assert [(c.width, c.height) for c in cams] == [(240, 180), (320, 240)]
+        for c in cams:
+            assert c.focal_length == pytest.approx(f_exif * c.width / 320, rel=0.01)
     finally:
         db.close()
-    assert s["camera"]["params"][0] == pytest.approx(f_true, rel=0.02)
+    model = pycolmap.Reconstruction(tmp_path / "sfm" / "sparse" / "0")
+    for c in model.cameras.values():
+        assert c.focal_length == pytest.approx(f_true * c.width / 320, rel=0.02)
     est = load_dataset(tmp_path / "sfm", holdout=None, load_images=False)
     names = {v.name: v.camera for v in ref.views}
     assert sorted(v.name for v in est.views) == sorted(names)
