@@ -64,14 +64,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import List, Optional, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
 
 __all__ = ["Camera", "look_at", "as_rigid", "default_fov", "framing_distance", "FRAMING_MARGIN",
            "fibonacci_cameras", "random_cameras", "fibonacci_sphere", "box_cameras",
-           "orbit_to_world", "check_factor", "OPENGL_TO_MITSUBA", "OPENCV_TO_MITSUBA"]
+           "orbit_to_world", "check_factor", "camera_path", "OPENGL_TO_MITSUBA",
+           "OPENCV_TO_MITSUBA"]
 
 #: ``c2w_opengl @ OPENGL_TO_MITSUBA`` is Mitsuba's ``to_world`` (and vice versa: an involution).
 OPENGL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
@@ -537,6 +538,43 @@ class Camera:
 
 #: How much larger than a bounding sphere the sphere is that a framing camera's view holds.
 FRAMING_MARGIN = 1.05
+
+
+def camera_path(cameras: Sequence[Camera], frames: int) -> List[Camera]:
+    """``frames`` cameras along the path of ``cameras``, in their order (a capture's, as the
+    photos were taken): the centers interpolated linearly and the orientations spherically
+    (slerp) by the distance travelled (by the index where the cameras do not move), with the
+    intrinsics of the cameras' most common image size (the median focal length and principal
+    point of those): a fly-through of the capture."""
+    from scipy.spatial.transform import Rotation, Slerp
+    cameras = list(cameras)
+    if len(cameras) < 2 or frames < 2:
+        raise ValueError(f"a camera path needs 2 or more cameras and frames, got "
+                         f"{len(cameras)} cameras and {frames} frames")
+    if any(c.pixel_size is not None for c in cameras):
+        raise ValueError("a camera path is made of pinhole cameras")
+    sizes = [(c.width, c.height) for c in cameras]
+    size = max(set(sizes), key=sizes.count)
+    same = [c for c in cameras if (c.width, c.height) == size]
+    fx, fy, cx, cy = (float(np.median([getattr(c, k) for c in same]))
+                      for k in ("fx", "fy", "cx", "cy"))
+    centers = np.array([c.center for c in cameras])
+    step = np.linalg.norm(np.diff(centers, axis=0), axis=1)
+    key = np.concatenate([[0.0], np.cumsum(step)])
+    if key[-1] <= 1e-12 * max(1.0, float(np.abs(centers).max())):
+        key = np.arange(len(cameras), dtype=np.float64)
+    key = key / key[-1]
+    # (cameras at the same place: their times a little apart, in order)
+    key = np.maximum.accumulate(key + 1e-9 * np.arange(len(key)))
+    t = np.linspace(key[0], key[-1], frames)
+    rotations = Slerp(key, Rotation.from_matrix([c.to_world[:3, :3] for c in cameras]))(t)
+    path = []
+    for r, x in zip(rotations.as_matrix(), np.stack([np.interp(t, key, centers[:, k])
+                                                    for k in range(3)], 1)):
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = r, x
+        path.append(Camera(size[0], size[1], fx, fy, cx, cy, m))
+    return path
 
 
 def framing_distance(radius: float, fov: float, res=None,

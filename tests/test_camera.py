@@ -9,7 +9,7 @@ import pytest
 import mitsuba as mi
 
 from mi_tetvr import camera as C
-from mi_tetvr.camera import Camera
+from mi_tetvr.camera import Camera, camera_path
 
 
 # ---------------------------------------------------------------------------------------------
@@ -432,3 +432,28 @@ def test_the_framing_distance_is_written_once():
     found = [str(p.relative_to(ROOT)) for d in ("mi_tetvr", "tutorials", "plugins")
              for p in sorted((ROOT / d).rglob("*.py")) if formula.search(p.read_text())]
     assert found == []
+
+
+def test_camera_path_through_the_cameras():
+    """A fly-through along three cameras on a line (x = 0, 1, 3) turning about z by 0, 30
+    and 90 degrees: the frames at the cameras' share of the distance are the cameras; between
+    two, the center is the linear blend and the rotation the half turn (slerp's closed form
+    about one axis). The intrinsics are those of the most common image size."""
+    from scipy.spatial.transform import Rotation
+
+    def cam(x, deg, w=40, h=30, f=35.0):
+        m = np.eye(4)
+        m[:3, :3] = Rotation.from_euler("z", deg, degrees=True).as_matrix()
+        m[:3, 3] = [x, 0.0, 0.0]
+        return Camera(w, h, f, f, w / 2, h / 2, m)
+
+    cams = [cam(0.0, 0.0), cam(1.0, 30.0, w=30, h=40, f=50.0), cam(3.0, 90.0, f=37.0)]
+    path = camera_path(cams, 7)                 # t = 0, 1/6, ..., 1: the cameras at 0, 2, 6
+    assert len(path) == 7
+    for k, c in ((0, cams[0]), (2, cams[1]), (6, cams[2])):
+        np.testing.assert_allclose(path[k].to_world, c.to_world, atol=1e-9)
+    np.testing.assert_allclose(path[1].to_world, cam(0.5, 15.0).to_world, atol=1e-9)
+    np.testing.assert_allclose(path[4].to_world, cam(2.0, 60.0).to_world, atol=1e-9)
+    assert all((c.width, c.height, c.fx, c.cx) == (40, 30, 36.0, 20.0) for c in path)
+    with pytest.raises(ValueError, match="2 or more cameras"):
+        camera_path(cams[:1], 7)

@@ -22,7 +22,7 @@ import numpy as np
 
 from mi_tetvr.recon.checkpoint import load_checkpoint, save_checkpoint
 from mi_tetvr.recon.config import RENAMED, FitConfig
-from mi_tetvr.recon.metrics import psnr
+from mi_tetvr.recon.metrics import display_rgb, psnr
 from mi_tetvr.recon.plots import plot_history, save_comparison
 from mi_tetvr.recon.trainer import RunState, Trainer
 
@@ -331,13 +331,57 @@ def data_warnings(config: FitConfig, dataset):
     return out
 
 
+#: Frames of a capture's fly-through (``flythrough.mp4``, :func:`write_flythrough`): 2.5 s.
+FLYTHROUGH_FRAMES = 60
+
+#: Samples per pixel of the fly-through's frames (1: the pixel centres, as the fit sees the
+#: photos without jitter; a frame then costs what a training render costs).
+FLYTHROUGH_SPP = 1
+
+
 def output_seconds(trainer: Trainer, now=time.perf_counter):
     """Estimated time of :func:`write_outputs`: one test render timed, times
-    the views, with a margin for the files and plots."""
+    the views, and a fly-through frame timed, times the frames (captures),
+    with a margin for the files and plots."""
     views = trainer.dataset.test or trainer.dataset.train[:1]
     t0 = now()
     trainer.render_view(views[0])
-    return 0.5 + 1.5 * len(views) * (now() - t0)
+    render = now() - t0
+    seconds = 0.5 + 1.5 * len(views) * render
+    path = flythrough_cameras(trainer)
+    if path:
+        # a frame's samples against the test render's (render_view: 16 spp with jitter)
+        samples = path[0].width * path[0].height * FLYTHROUGH_SPP
+        tested = views[0].camera.width * views[0].camera.height * (16 if trainer.jitter else 1)
+        seconds += 1.5 * len(path) * render * samples / tested + 1.0
+    return seconds
+
+
+def flythrough_cameras(trainer: Trainer):
+    """The cameras of a capture's fly-through: along its photos' cameras in the order of their
+    names (as taken), :data:`FLYTHROUGH_FRAMES` of them; ``[]`` for what is not a capture of a
+    scene in its surroundings (views around an object, X-ray projections)."""
+    from mi_tetvr.camera import camera_path
+    views = sorted(trainer.dataset.train + trainer.dataset.test, key=lambda v: v.name)
+    if trainer.config.scene != "unbounded" or len(views) < 2:
+        return []
+    return camera_path([v.camera for v in views], FLYTHROUGH_FRAMES)
+
+
+def write_flythrough(trainer: Trainer, path):
+    """``path`` (MP4): the fitted scene seen along the capture's camera path
+    (:func:`flythrough_cameras`); returns the number of frames (0: not a capture)."""
+    from mi_tetvr.apps.frames import Frames
+    from mi_tetvr.apps.orbit import write_video
+    cameras = flythrough_cameras(trainer)
+    if not cameras:
+        return 0
+    frames = Frames(trainer.scene)
+    pictures = [np.round(255 * display_rgb(np.array(frames.render(c, spp=FLYTHROUGH_SPP)),
+                                           trainer.background)).astype(np.uint8)
+                for c in cameras]
+    write_video(path, pictures)
+    return len(pictures)
 
 
 class _Clock:
@@ -666,7 +710,9 @@ def write_fitted(trainer: Trainer, out: Path):
 def write_outputs(trainer: Trainer, out: Path):
     """Write what was fitted (:func:`write_fitted`),
     ``test/*.png`` (render | target; X-ray transmittance in grey),
-    ``progress.png`` and, with a learned background, ``background.exr`` (its
+    ``progress.png``, for a capture of a scene in its surroundings ``flythrough.mp4`` (the
+    scene along the photos' camera path, :func:`write_flythrough`) and, with a learned
+    background, ``background.exr`` (its
     latitude-longitude texels, linear RGB: Mitsuba's ``envmap`` with the
     identity ``to_world`` renders it) to ``out``; returns the metrics (which
     :func:`run` writes to ``metrics.json`` with its timings)."""
@@ -697,6 +743,7 @@ def write_outputs(trainer: Trainer, out: Path):
         save_comparison(renders / f"{Path(v.name).stem}.png", trainer.render_view(v), v.image,
                         shown)
     plot_history(trainer.state.history, out / "progress.png", metrics["mean"]["psnr"])
+    write_flythrough(trainer, out / "flythrough.mp4")
     return metrics
 
 
