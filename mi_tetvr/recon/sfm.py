@@ -167,7 +167,7 @@ def _copy_photos(given: Sequence[Path], image_dir: Path, log: Callable) -> Tuple
     return files, unreadable
 
 
-def _readable_in_place(given: Sequence[Path]) -> Tuple[list, dict]:
+def _readable_in_place(given: Sequence[Path], log: Callable) -> Tuple[list, dict]:
     """The photos of a folder that is already the data set's image folder: read, not copied
     (a turned one would be seen sideways by COLMAP and upright by the loaders)."""
     from PIL import Image
@@ -180,6 +180,7 @@ def _readable_in_place(given: Sequence[Path]) -> Tuple[list, dict]:
                 turned = exif_orientation(im) != 1
         except (OSError, SyntaxError, ValueError) as e:
             unreadable[p.name] = f"cannot be read: {e}"
+            log(f"run_sfm: {p.name} cannot be read ({e}); left out")
             continue
         if turned:
             raise ValueError(f"{p} carries an EXIF orientation and lies in the output's own "
@@ -427,9 +428,9 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
     ----------
     images : str or Path
         A folder of photos (``.jpg``, ``.png``, ``.tif``, ``.bmp``; not its subfolders; of
-        any sizes; copied upright by their EXIF orientation; a photo that cannot be read is left
-        out and reported), or a video file (``.mp4``, ``.mov``, ... ``.gif``), whose frames are extracted evenly
-        (:func:`extract_frames`, at most ``max_frames``).
+        any sizes; copied upright by their EXIF orientation; a photo that cannot be read is
+        left out and reported), or a video file (``.mp4``, ``.mov``, ... ``.gif``), whose
+        frames are extracted evenly (:func:`extract_frames`, at most ``max_frames``).
     out_dir : str or Path
     matcher : {"exhaustive", "sequential"}, optional
         Which image pairs are matched: all of them (the default for photos), or each image with
@@ -520,7 +521,7 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
                              f"{len(given)} ({', '.join(IMAGE_SUFFIXES)})")
         image_dir.mkdir(exist_ok=True)
         if image_dir.resolve() == src.resolve():
-            files, unreadable = _readable_in_place(given)
+            files, unreadable = _readable_in_place(given, log)
         else:
             files, unreadable = _copy_photos(given, image_dir, log)
         matcher = matcher or "exhaustive"
@@ -552,7 +553,8 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
             groups = [[f.name for f, s in zip(files, sizes) if s == size]
                       for size in sorted(set(sizes))]
             log(f"run_sfm: the pictures have {len(groups)} sizes ("
-                + ", ".join(f"{len(g)} of {w}x{h}" for g, (w, h) in zip(groups, sorted(set(sizes))))
+                + ", ".join(f"{len(g)} of {w}x{h}"
+                            for g, (w, h) in zip(groups, sorted(set(sizes))))
                 + "); one camera for each size")
     camera_mode = pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.PER_IMAGE
     reader = pycolmap.ImageReaderOptions()
