@@ -125,7 +125,8 @@ def render_orbit(s, outs, mi, path):
     """``render MESH --orbit N`` (:class:`RenderSettings` ``s``): N frames once around
     ``--up`` from ``--view``, written as an MP4 (the ``.mp4`` outputs) and a contact
     sheet (the image outputs)."""
-    from mi_tetvr.apps.orbit import FPS, contact_sheet, orbit_azimuths, write_video
+    from mi_tetvr.apps.orbit import contact_sheet, orbit_azimuths
+    from mi_tetvr.video import FPS, write_video
     from mi_tetvr.progress import progress_bar
     t0 = time.time()
     azimuth, elevation = s.azimuth_elevation
@@ -157,7 +158,7 @@ def render_series(s, outs, mi, paths):
     """``render MESH MESH ...`` (or a ``.pvd``; :class:`RenderSettings` ``s``): every
     mesh with one transfer function range and one camera (:func:`mesh_framing` over
     all), as an MP4 (the ``.mp4`` outputs) and numbered images (``stem_0000.png``, ...)."""
-    from mi_tetvr.apps.orbit import FPS, write_video
+    from mi_tetvr.video import FPS, write_video
     from mi_tetvr.progress import progress_bar
     t0 = time.time()
     # the range and the box of all the meshes first (each read again to render: a

@@ -371,13 +371,11 @@ def flythrough_cameras(trainer: Trainer):
 def write_flythrough(trainer: Trainer, path):
     """``path`` (MP4): the fitted scene seen along the capture's camera path
     (:func:`flythrough_cameras`); returns the number of frames (0: not a capture)."""
-    from mi_tetvr.apps.frames import Frames
-    from mi_tetvr.apps.orbit import write_video
+    from mi_tetvr.video import write_video
     cameras = flythrough_cameras(trainer)
     if not cameras:
         return 0
-    frames = Frames(trainer.scene)
-    pictures = [np.round(255 * display_rgb(np.array(frames.render(c, spp=FLYTHROUGH_SPP)),
+    pictures = [np.round(255 * display_rgb(trainer.render_camera(c, FLYTHROUGH_SPP),
                                            trainer.background)).astype(np.uint8)
                 for c in cameras]
     write_video(path, pictures)

@@ -411,6 +411,14 @@ class Trainer:
         with dr.suspend_grad():
             return np.array(self.render(view, None, seed=seed, spp=spp))
 
+    def render_camera(self, camera, spp=1, seed=0):
+        """Numpy (h, w, 4) render from any pinhole ``camera`` (no gradients; one sample at
+        each pixel centre, jittered samples with ``spp`` above 1)."""
+        d = camera.sensor_dict(spp=spp, sampler="stratified")
+        d["sampler"]["jitter"] = spp > 1
+        with dr.suspend_grad():
+            return np.array(mi.render(self.scene, sensor=mi.load_dict(d), spp=spp, seed=seed))
+
     def evaluate(self, views):
         """PSNR, SSIM and MSE per view (RGB over the config's background) and
         their mean: ``{"views": {name: metrics}, "mean": metrics}``."""

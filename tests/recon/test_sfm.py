@@ -294,7 +294,7 @@ def test_extract_frames_evenly(tmp_path):
 def test_extract_frames_from_an_mp4(tmp_path):
     """An H.264 MP4 (written by the orbit writer, imageio-ffmpeg): frames
     taken evenly, their values kept through the codec."""
-    from mi_tetvr.apps.orbit import write_video
+    from mi_tetvr.video import write_video
     frames = np.stack([np.full((20, 30, 3), 10 * i, np.uint8) for i in range(25)])
     write_video(tmp_path / "clip.mp4", frames)
     files = sfm.extract_frames(tmp_path / "clip.mp4", tmp_path / "frames", max_frames=5,

@@ -156,7 +156,6 @@ def test_unbounded_fit_of_real_photos(tmp_path):
     # the fly-through: along the photos' cameras (by name), its first and last frames the
     # fitted scene seen from the first and the last camera (H.264 at crf 18: within 2 %)
     import imageio_ffmpeg
-    from mi_tetvr.apps.frames import Frames
     from mi_tetvr.recon.metrics import display_rgb
     from mi_tetvr.recon.pipeline import FLYTHROUGH_FRAMES, FLYTHROUGH_SPP
     reader = imageio_ffmpeg.read_frames(str(tmp_path / "flythrough.mp4"))
@@ -166,7 +165,6 @@ def test_unbounded_fit_of_real_photos(tmp_path):
     views = sorted(photos.views, key=lambda v: v.name)
     h, w = views[0].camera.height, views[0].camera.width
     assert len(video) == FLYTHROUGH_FRAMES and video[0].shape[:2] == (h + h % 2, w + w % 2)
-    frames = Frames(back.scene)
     for k, v in ((0, views[0]), (-1, views[-1])):
-        seen = display_rgb(np.array(frames.render(v.camera, spp=FLYTHROUGH_SPP)), None)
+        seen = display_rgb(back.render_camera(v.camera, FLYTHROUGH_SPP), None)
         assert np.abs(video[k][:h, :w] / 255.0 - seen).mean() < 0.02
