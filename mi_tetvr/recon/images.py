@@ -151,9 +151,9 @@ def read_image(path, downscale: int = 1) -> np.ndarray:
 
     PNG / JPEG (8 or 16 bit, grey, palette, RGB or RGBA) are sRGB with straight alpha: decoded to
     linear, then premultiplied, and turned upright by their EXIF orientation. EXR (and other
-    HDR formats ``mitsuba.Bitmap`` reads) are linear and premultiplied (OpenEXR convention). A missing alpha channel is 1. ``.npy``: an (H, W)
-    float array of X-ray transmittance ``T = I / I0``, read as what an absorbing volume renders:
-    RGB 0 and alpha ``1 - T``.
+    HDR formats ``mitsuba.Bitmap`` reads) are linear and premultiplied (OpenEXR convention). A
+    missing alpha channel is 1. ``.npy``: an (H, W) float array of X-ray transmittance
+    ``T = I / I0``, read as what an absorbing volume renders: RGB 0 and alpha ``1 - T``.
 
     Parameters
     ----------

@@ -341,8 +341,8 @@ FLYTHROUGH_SPP = 1
 
 def output_seconds(trainer: Trainer, now=time.perf_counter):
     """Estimated time of :func:`write_outputs`: one test render timed, times
-    the views, and a fly-through frame timed, times the frames (captures),
-    with a margin for the files and plots."""
+    the views, and for a capture the fly-through's frames (their samples
+    against the test render's), with a margin for the files and plots."""
     views = trainer.dataset.test or trainer.dataset.train[:1]
     t0 = now()
     trainer.render_view(views[0])
