@@ -1,6 +1,7 @@
 """Where a fit step's time goes: render, loss, backward, optimizer, the safe step, the
 scene's update, and in each the time of Dr.Jit's kernels against the host's (Python
-tracing the kernels, NumPy, launching).
+tracing the kernels, NumPy, launching); the tets a ray crosses, the walk's rate against a
+regular grid's at the same ray count, and what twice the rays in one launch cost.
 
 The fit of a folder written by ``mi-tetvr fit`` is loaded from its checkpoint (its last
 stage's mesh, values and optimizer state, with its data set, as ``mi-tetvr view`` loads it)
@@ -42,6 +43,7 @@ class Phases:
         self.wall = defaultdict(float)
         self.kernels = defaultdict(float)
         self.depth = 0
+        self.wrapped = []
 
     @contextmanager
     def phase(self, name):
@@ -74,7 +76,13 @@ class Phases:
                     self.dr.eval(out)
             return out
         setattr(owner, attr, timed)
-        return original
+        self.wrapped.append((owner, attr, original))
+
+    def restore(self):
+        """Put the wrapped functions back."""
+        for owner, attr, original in reversed(self.wrapped):
+            setattr(owner, attr, original)
+        self.wrapped.clear()
 
 
 def tets_per_ray(trainer, view):
@@ -88,6 +96,80 @@ def tets_per_ray(trainer, view):
                            integrator.settings_for(scene), True)
     dr.eval(steps)
     return np.array(steps, np.float64)
+
+
+def timed_min(fn, repeat=3):
+    import drjit as dr
+    fn()
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        dr.sync_thread()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def walk_rates(trainer, view, cells=64):
+    """The walk's rate (tet steps per second of ``trace()``) on ``view``'s rays in the fit's
+    mesh and, at the same ray count, on the jittered ``cells``^3 grid seen from outside; and the
+    render + backward of one launch of twice the view's rays over that of the view."""
+    import drjit as dr
+    import mitsuba as mi
+
+    import mi_tetvr
+    from mi_tetvr.camera import Camera
+    from mi_tetvr.mesh.generate import grid_mesh
+    from mi_tetvr.render.walk import trace
+
+    def scene_of(V, T, C, O, cam):
+        return mi.load_dict({"type": "scene", "integrator": {"type": "tetvr"},
+                             "sensor": cam.sensor_dict(sampler="stratified", jitter=False),
+                             "m": mi_tetvr.tetmesh_dict(V, T, C, O)})
+
+    def rate(scene, cam):
+        integrator = scene.integrator()
+        ts, settings = integrator.tet_scene(scene), integrator.settings_for(scene)
+        rays = cam.rays_drjit()
+        out = {}
+
+        def run():
+            out["steps"] = trace(scene, ts, rays, settings, True)[2]
+            dr.eval(out["steps"])
+        seconds = timed_min(run)
+        return float(np.sum(np.array(out["steps"], np.float64))) / seconds
+
+    def render_backward(scene):
+        params = mi.traverse(scene)
+        key = next(k for k in params.keys() if k.endswith("vertex_color"))
+        dr.enable_grad(params[key])
+        params.update()
+
+        def run():
+            dr.backward(dr.sum(mi.render(scene, params), axis=None))
+            dr.eval(dr.grad(params[key]))
+            dr.set_grad(params[key], 0)
+        return timed_min(run)
+
+    V, T, values = trainer.arrays()
+    cam = view.camera
+    fit = scene_of(V, T, values["color"], values["opacity"], cam)
+    rng = np.random.default_rng(0)
+    gv, gt = grid_mesh(cells, jitter=0.15, seed=1)
+    side = int(round(np.sqrt(cam.width * cam.height)))
+    grid_cam = Camera.look_at([2.6, 1.8, 3.4], [0, 0, 0], [0, 0, 1], side, side,
+                              fx=side / 2 / np.tan(np.radians(16.5)))
+    grid = scene_of(gv, gt, rng.uniform(0, 1, (len(gv), 3)), rng.uniform(0, 0.3, len(gv)),
+                    grid_cam)
+    w2, h2 = round(cam.width * np.sqrt(2)), round(cam.height * np.sqrt(2))
+    f2 = cam.fx * w2 / cam.width                  # (square pixels: one focal length)
+    twice = Camera(w2, h2, f2, f2, cam.cx * w2 / cam.width, cam.cy * h2 / cam.height,
+                   cam.to_world)
+    return {"fit_msteps_per_s": rate(fit, cam) / 1e6,
+            "grid_msteps_per_s": rate(grid, grid_cam) / 1e6, "grid_cells": cells,
+            "twice_the_rays_over_one": render_backward(scene_of(V, T, values["color"],
+                                                                values["opacity"], twice))
+            / render_backward(fit), "twice_size": (twice.width, twice.height)}
 
 
 def quick_fit(out):
@@ -113,6 +195,9 @@ def main():
         a.fit, a.steps, a.warmup, a.repeat = str(quick_fit(Path("out/bench_fit_step"))), 3, 2, 1
     if not a.fit:
         p.error("a fit's folder is needed (or --quick)")
+    if not (Path(a.fit) / "checkpoint.npz").is_file():
+        p.error(f"{a.fit} is not a fit's folder (it has no checkpoint.npz: mi-tetvr fit writes "
+                f"one)")
 
     import mitsuba as mi
     mi.set_variant(a.variant)
@@ -164,6 +249,8 @@ def main():
     measured = (time.perf_counter() - t0) / a.steps
     dr.set_flag(dr.JitFlag.KernelHistory, False)
 
+    phases.restore()
+
     rows = {}
     print(f"\n{'phase':<14}{'ms/step':>10}{'share':>8}{'kernels ms':>12}{'host ms':>10}")
     for name in ("render", "loss", "backward", "optimizer", "safe step", "scene update"):
@@ -180,7 +267,13 @@ def main():
     print(f"unmeasured step: {1e3 * statistics.median(plain):.1f} ms median over "
           f"{a.repeat} runs of {a.steps} ({', '.join(f'{1e3 * t:.1f}' for t in plain)}): "
           f"{1 / statistics.median(plain):.2f} steps/s")
-    write_json(a, info, {"tets": n_tets, "tets_per_ray_mean": float(crossed.mean()),
+    rates = walk_rates(trainer, data.train[0], cells=16 if a.quick else 64)
+    print(f"\nwalk rate, trace() of the first photo's rays: {rates['fit_msteps_per_s']:.1f} M tet "
+          f"steps/s; the {rates['grid_cells']}^3 jittered grid from outside at the same ray count: "
+          f"{rates['grid_msteps_per_s']:.1f} M; render + backward of twice the rays in one "
+          f"launch ({rates['twice_size'][0]}x{rates['twice_size'][1]}): "
+          f"{rates['twice_the_rays_over_one']:.2f}x one photo's")
+    write_json(a, info, {"tets": n_tets, "tets_per_ray_mean": float(crossed.mean()), **rates,
                          "phases": rows, "measured_step": measured,
                                "unmeasured_steps": plain})
 

@@ -457,8 +457,8 @@ class Camera:
 
     # -- Mitsuba ----------------------------------------------------------------------------
     def sensor_dict(self, spp: int = 1, sampler: str = "independent", *,
-                    near_clip: Optional[float] = None, far_clip: Optional[float] = None,
-                    square_rtol: float = 1e-6) -> dict:
+                    jitter: Optional[bool] = None, near_clip: Optional[float] = None,
+                    far_clip: Optional[float] = None, square_rtol: float = 1e-6) -> dict:
         """A Mitsuba ``perspective`` sensor that reproduces this camera exactly.
 
         ``fov_axis='x'``, ``fov = 2 atan(width / (2 fx))`` in degrees,
@@ -473,6 +473,9 @@ class Camera:
             Samples per pixel of the sampler.
         sampler : str
             Mitsuba sampler plugin name.
+        jitter : bool, optional
+            The sampler's ``jitter`` (``stratified``, ``multijitter``): False puts one sample
+            at each pixel centre; None leaves the sampler's default.
         near_clip, far_clip : float, optional
             Passed to the sensor when given.
         square_rtol : float
@@ -486,7 +489,10 @@ class Camera:
         """
         import mitsuba as mi
         if self.pixel_size is not None:
-            return self._orthographic_dict(spp, sampler, near_clip, far_clip)
+            d = self._orthographic_dict(spp, sampler, near_clip, far_clip)
+            if jitter is not None:
+                d["sampler"]["jitter"] = bool(jitter)
+            return d
         if abs(self.fx - self.fy) > square_rtol * abs(self.fx):
             raise ValueError(
                 f"non-square pixels (fx={self.fx}, fy={self.fy}) cannot be represented by "
@@ -503,6 +509,8 @@ class Camera:
             "film": {"type": "hdrfilm", "width": self.width, "height": self.height,
                      "rfilter": {"type": "box"}, "pixel_format": "rgb"},
         }
+        if jitter is not None:
+            d["sampler"]["jitter"] = bool(jitter)
         if near_clip is not None:
             d["near_clip"] = float(near_clip)
         if far_clip is not None:

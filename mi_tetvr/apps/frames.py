@@ -64,8 +64,7 @@ class Frames:
     def camera_dict(camera, spp=1):
         """The sensor dictionary of a :class:`~mi_tetvr.camera.Camera`: an RGBA
         film, ``spp`` stratified samples (jittered when more than one)."""
-        d = camera.sensor_dict(spp=spp, sampler="stratified")
-        d["sampler"]["jitter"] = spp > 1
+        d = camera.sensor_dict(spp=spp, sampler="stratified", jitter=spp > 1)
         d["film"]["pixel_format"] = "rgba"
         return d
 

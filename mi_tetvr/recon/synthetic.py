@@ -193,8 +193,7 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
     with tqdm(total=len(train) + len(test), desc="render views", disable=not progress) as bar:
         for split, cams in (("train", train), ("test", test)):
             for i, cam in enumerate(cams):
-                d = cam.sensor_dict(sampler="stratified")
-                d["sampler"]["jitter"] = False
+                d = cam.sensor_dict(sampler="stratified", jitter=False)
                 image = np.array(mi.render(scene, sensor=mi.load_dict(d), spp=1))
                 posed[split].append(View(f"r_{i}", cam, image))
                 bar.update(1)

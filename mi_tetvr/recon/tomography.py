@@ -102,9 +102,8 @@ class Projector:
         self.params = mi.traverse(self.scene)
         self.sensors = []
         for cam in cameras:
-            d = cam.sensor_dict(sampler="stratified")
-            d["sampler"]["jitter"] = False
-            self.sensors.append(mi.load_dict(d))
+            self.sensors.append(mi.load_dict(cam.sensor_dict(sampler="stratified",
+                                                             jitter=False)))
         self.pixels = np.array([c.width * c.height for c in cameras])
         self.offsets = np.concatenate([[0], np.cumsum(self.pixels)])
 

@@ -181,10 +181,8 @@ class Trainer:
         sampler = "independent" if self.jitter else "stratified"
         self.sensors = {}
         for v in dataset.train + dataset.test:
-            d = v.camera.sensor_dict(spp=config.spp, sampler=sampler)
-            if not self.jitter:
-                d["sampler"]["jitter"] = False
-            self.sensors[id(v)] = mi.load_dict(d)
+            self.sensors[id(v)] = mi.load_dict(v.camera.sensor_dict(
+                spp=config.spp, sampler=sampler, jitter=None if self.jitter else False))
         self.targets = {id(v): mi.TensorXf(np.ascontiguousarray(v.image, np.float32))
                         for v in dataset.train}
         rates = self.field.rates()
@@ -414,8 +412,7 @@ class Trainer:
     def render_camera(self, camera, spp=1, seed=0):
         """Numpy (h, w, 4) render from any pinhole ``camera`` (no gradients; one sample at
         each pixel centre, jittered samples with ``spp`` above 1)."""
-        d = camera.sensor_dict(spp=spp, sampler="stratified")
-        d["sampler"]["jitter"] = spp > 1
+        d = camera.sensor_dict(spp=spp, sampler="stratified", jitter=spp > 1)
         with dr.suspend_grad():
             return np.array(mi.render(self.scene, sensor=mi.load_dict(d), spp=spp, seed=seed))
 
