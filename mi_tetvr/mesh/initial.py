@@ -34,7 +34,7 @@ from mi_tetvr.mesh.topology import FLAT_TOLERANCE, MeshError, check_bounds, orie
 
 __all__ = ["grid_init", "grid_shape", "grid_sample", "tetwild_init", "delaunay_init", "box_surface",
            "remove_outliers", "unbounded_init", "shell_points",
-           "orient_and_compact"]
+           "orient_and_compact", "retriangulate"]
 
 
 # --------------------------------------------------------------------------- helpers
@@ -304,6 +304,33 @@ def remove_outliers(points, outlier_std: float = 2.0, k_neighbors: int = 8):
     return md <= md.mean() + outlier_std * md.std()
 
 
+def _delaunay_tets(p, flat_tol, joggle, seed, caller):
+    """Delaunay tets of the points ``p`` (k, 3), the vertices of flat tets joggled and the
+    triangulation redone (see :func:`delaunay_init`); returns the (joggled) points and the
+    tets without the flat ones still left (warned about)."""
+    from scipy.spatial import Delaunay, QhullError, cKDTree
+    rng = np.random.default_rng(seed)
+    nn = None
+    for attempt in range(5):
+        try:
+            tri = Delaunay(p)
+        except QhullError as e:
+            raise MeshError(f"Delaunay failed (points coplanar or degenerate?): {e}") from e
+        t = tri.simplices.astype(np.int64)
+        flat = orient_tets(p, t, flat_tol).flat
+        if not flat.any() or attempt == 4:
+            break
+        if nn is None:
+            nn = cKDTree(p).query(p, k=2)[0][:, 1]
+        moved = np.unique(t[flat])
+        p = p.copy()
+        p[moved] += rng.uniform(-1, 1, (len(moved), 3)) * (joggle * 10 ** attempt) * nn[moved, None]
+    if flat.any():
+        warnings.warn(f"{caller}: {int(flat.sum())} flat tet(s) dropped after joggling; "
+                      "the mesh may have internal boundary faces", stacklevel=3)
+    return p, t[~flat]
+
+
 def delaunay_init(points, outlier_std: float | None = 2.0, k_neighbors: int = 8,
                   min_points: int = 20, padding: float | None = None,
                   flat_tol: float = FLAT_TOLERANCE, joggle: float = 1e-4, seed: int = 0):
@@ -352,8 +379,6 @@ def delaunay_init(points, outlier_std: float | None = 2.0, k_neighbors: int = 8,
     MeshError
         Fewer than 4 points in general position remain.
     """
-    from scipy.spatial import Delaunay, QhullError, cKDTree
-
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"points must have shape (k, 3), got {p.shape}")
@@ -370,30 +395,46 @@ def delaunay_init(points, outlier_std: float | None = 2.0, k_neighbors: int = 8,
         p = np.unique(np.concatenate([p, corners]), axis=0)
     if len(p) < 4:
         raise MeshError(f"Delaunay needs at least 4 points, {len(p)} remain")
-    rng = np.random.default_rng(seed)
-    nn = None
-    for attempt in range(5):
-        try:
-            tri = Delaunay(p)
-        except QhullError as e:
-            raise MeshError(f"Delaunay failed (points coplanar or degenerate?): {e}") from e
-        t = tri.simplices.astype(np.int64)
-        flat = orient_tets(p, t, flat_tol).flat
-        if not flat.any() or attempt == 4:
-            break
-        if nn is None:
-            nn = cKDTree(p).query(p, k=2)[0][:, 1]
-        moved = np.unique(t[flat])
-        p = p.copy()
-        p[moved] += rng.uniform(-1, 1, (len(moved), 3)) * (joggle * 10 ** attempt) * nn[moved, None]
-    if flat.any():
-        warnings.warn(f"delaunay_init: {int(flat.sum())} flat tet(s) dropped after joggling; "
-                      "the mesh may have internal boundary faces", stacklevel=2)
-    v, t = orient_and_compact(p, t[~flat])
+    p, t = _delaunay_tets(p, flat_tol, joggle, seed, "delaunay_init")
+    v, t = orient_and_compact(p, t)
     if len(t) == 0:
         raise MeshError("every Delaunay tet is flat: the points are (nearly) coplanar")
     return v, t
 
+
+
+def retriangulate(vertices, point_data=None, flat_tol: float = FLAT_TOLERANCE,
+                  joggle: float = 1e-4, seed: int = 0):
+    """The Delaunay tetrahedralization of a mesh's vertices where they are now (after they
+    moved in a fit): the same vertices, new tets, the per-vertex data following its vertex.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    point_data : dict of (n, ...) arrays, optional
+    flat_tol, joggle, seed
+        As in :func:`delaunay_init` (the vertices of flat tets are joggled, by up to
+        ``joggle`` times their nearest-neighbour distance).
+
+    Returns
+    -------
+    vertices : (n', 3) float64
+        The vertices that some tet uses (all but duplicates), in their order.
+    tets : (m, 4) int64
+        Positively oriented, no flat tet, conforming; their union is the vertices' convex hull.
+    point_data : dict
+        ``point_data``'s arrays at the vertices kept.
+    parent : (n',) int64
+        Each vertex's index among ``vertices``.
+    """
+    p = np.asarray(vertices, np.float64).reshape(-1, 3)
+    if len(p) < 4 or not np.all(np.isfinite(p)):
+        raise MeshError(f"retriangulate needs at least 4 finite vertices, got {len(p)}")
+    p, t = _delaunay_tets(p, flat_tol, joggle, seed, "retriangulate")
+    t = orient_tets(p, t, 0.0).tets
+    used, inv = np.unique(t, return_inverse=True)
+    data = {k: np.asarray(a)[used] for k, a in (point_data or {}).items()}
+    return p[used], inv.reshape(-1, 4).astype(np.int64), data, used.astype(np.int64)
 
 # --------------------------------------------------------------------------- unbounded
 def shell_points(center, radii, per_shell: int, seed: int = 0):

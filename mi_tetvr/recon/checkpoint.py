@@ -4,7 +4,8 @@ One ``.npz`` file holds the mesh (``vertices``, ``tets``) and the fitted
 values (``value:<name>``, e.g. ``value:color``), the run's state (``step``, ``stage``, ``stage_start``,
 ``elapsed``, ``shortened``, the ``history`` and the view-picking ``rng`` as
 JSON), the ``config`` (JSON, for the record), a learned ``environment`` and the
-photos' color transforms (``appearance``) when fitted, and Adam's state
+photos' color transforms (``appearance``) when fitted, the refinement scores gathered in
+the stage (``split_scores``) and Adam's state
 (``<key>:t``, ``<key>:m``, ``<key>:v`` per optimized parameter). A run
 resumed from it takes the same views, seeds and steps as one that never
 stopped.
@@ -36,6 +37,7 @@ def save_checkpoint(trainer: Trainer, path):
              shortened=state.shortened, history=json.dumps(state.history),
              config=json.dumps(dataclasses.asdict(trainer.config)),
              rng=json.dumps(state.rng.bit_generator.state), **trainer.opt.state_dict(),
+             split_scores=trainer.split_scores(),
              **({} if trainer.environment() is None else {"environment": trainer.environment()}),
              **({} if trainer.appearance() is None else
                 {"appearance": trainer.appearance(), **trainer.appearance_opt.state_dict()}))
@@ -72,6 +74,8 @@ def load_checkpoint(path, dataset, config: FitConfig) -> Trainer:
                       environment=ckpt["environment"] if "environment" in ckpt else None,
                       appearance=ckpt["appearance"] if "appearance" in ckpt else None)
     trainer.opt.load_state_dict(ckpt)
+    if "split_scores" in ckpt:
+        trainer.set_split_scores(ckpt["split_scores"])
     if trainer.appearance_index:
         trainer.appearance_opt.load_state_dict(ckpt)
     return trainer

@@ -26,6 +26,8 @@ RENAMED = {"resolution": "grid_resolution"}
 
 #: The starting meshes made from the data (any other ``init`` is a mesh file).
 INITS = ("auto", "grid", "tetwild", "delaunay", "unbounded")
+#: The settings of a stage (``FitConfig.stages``).
+STAGE_KEYS = ("iterations", "lr_position", "split", "prune", "grid", "downscale")
 
 
 def _numbers(n):
@@ -148,6 +150,10 @@ class FitConfig:
     regularizer_beta: float = setting(100.0, "beta of the tet-quality term (DiffTetVR Eq. 21)")
     freeze_boundary: bool = setting(True, "keep boundary vertices fixed when positions move")
     safeguard: bool = setting(True, "shorten position steps that would invert a tet")
+    retriangulate: bool | None = setting(
+        None, "after a stage that moved the vertices, tetrahedralize them anew (Delaunay of "
+        "where they are), the values following their vertices; default: for meshes born "
+        "Delaunay (init unbounded or delaunay)")
     n_sub: int = setting(4, "sub-intervals per tet segment while fitting")
     spp: int = setting(1, "rays per pixel in each training render")
     jitter: bool | None = setting(
@@ -162,7 +168,8 @@ class FitConfig:
         "\"lr_position\": x (0: colors and opacities only), \"split\": fraction of vertices "
         "refined after the stage, \"prune\": optical depth per cell below which empty tets "
         "are dropped after it, \"grid\": the resolution of a regular grid the stage trains on "
-        "(init grid only)}; default: one stage, or with a time budget a coarse grid and then "
+        "(init grid only), \"downscale\": its training photos area-averaged by this factor "
+        "(coarse photos first)}; default: one stage, or with a time budget a coarse grid and then "
         "the fine one (unbounded scenes: four stages with splits and pruning)",
         metavar="JSON", parse=_json)
     target_tets: int | None = setting(None, "no more splits once the mesh has this many tets")
@@ -325,10 +332,11 @@ class FitConfig:
                     for p in self.stage_list()[:i]):
                 raise ValueError("a stage with 'grid' must follow stages that keep the grid "
                                  "(no split, prune or lr_position)")
-            bad = sorted(set(st) - {"iterations", "lr_position", "split", "prune", "grid"})
+            bad = sorted(set(st) - set(STAGE_KEYS))
             if bad:
-                raise ValueError(f"unknown stage settings {bad}: use iterations, lr_position, "
-                                 f"split, prune, grid")
+                raise ValueError(f"unknown stage settings {bad}: use {', '.join(STAGE_KEYS)}")
+            if int(st.get("downscale", 1)) != st.get("downscale", 1) or st.get("downscale", 1) < 1:
+                raise ValueError(f"bad stage {st}: 'downscale' is an integer >= 1")
             if st.get("grid") is not None and (self.init not in ("grid", "auto") or int(st["grid"]) < 1):
                 raise ValueError(f"bad stage {st}: 'grid' needs init 'grid' and a resolution >= 1")
             if int(st.get("iterations", 0)) < 0 or not 0 <= st.get("split", 0) <= 1:
@@ -341,8 +349,8 @@ class FitConfig:
                  "lr_position": float(st.get("lr_position", 0.0)),
                  "split": float(st.get("split", 0.0)),
                  "prune": st.get("prune", None), "grid": st.get("grid", None),
-                 **{k: v for k, v in st.items()
-                    if k not in ("iterations", "lr_position", "split", "prune", "grid")}}
+                 "downscale": int(st.get("downscale", 1)),
+                 **{k: v for k, v in st.items() if k not in STAGE_KEYS}}
                 for st in raw]
 
     def for_stage(self, i):

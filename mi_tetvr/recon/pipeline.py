@@ -27,7 +27,7 @@ from mi_tetvr.recon.plots import plot_history, save_comparison
 from mi_tetvr.recon.trainer import RunState, Trainer
 
 __all__ = ["run", "next_stage", "for_capture", "capture_kind", "with_sparse_points",
-           "unbounded_stages", "SCORE_VIEWS", "write_outputs", "write_fitted", "fitted_file",
+           "unbounded_stages", "retriangulates", "write_outputs", "write_fitted", "fitted_file",
            "evaluate_mesh",
            "evaluate_fit", "initial_mesh", "data_bounds", "scalar_from_colors", "calibrate",
            "resolution_for_budget", "budget_stages", "DEFAULT_RESOLUTION", "check_resume",
@@ -70,8 +70,6 @@ PIXELS_PER_VERTEX = 2
 UNBOUNDED_STAGES = 4
 UNBOUNDED_PRUNE = 0.01
 UNBOUNDED_SPLIT = 0.05
-#: Training views whose gradients rank vertices for a split (evenly spaced).
-SCORE_VIEWS = 16
 
 
 def capture_kind(dataset):
@@ -611,11 +609,20 @@ def scalar_from_colors(config: FitConfig, dataset, vertices, tets, progress=True
     return scalar
 
 
+def retriangulates(config: FitConfig):
+    """Whether a stage that moved the vertices is followed by their Delaunay
+    tetrahedralization (``config.retriangulate``; by default for meshes born Delaunay)."""
+    if config.retriangulate is not None:
+        return bool(config.retriangulate)
+    return config.init in ("unbounded", "delaunay")
+
+
 def next_stage(trainer: Trainer, config: FitConfig, log=print):
-    """After a stage: prune empty tets and split the top vertices as the
-    stage says, rebuild the scene, and carry parameters and Adam's moments
-    over (new vertices start from their edge's midpoint values). Returns the
-    next stage's trainer."""
+    """After a stage: tetrahedralize the vertices anew if the stage moved them
+    (:func:`retriangulates`), prune empty tets and split the top vertices (by the
+    gradients gathered over the stage, :meth:`Trainer.split_scores`) as the stage says,
+    rebuild the scene, and carry parameters and Adam's moments over (new vertices start
+    from their edge's midpoint values). Returns the next stage's trainer."""
     from mi_tetvr.mesh.refine import prune_empty, select_top_fraction, split_vertices
     stages = config.stage_list()
     stage = stages[trainer.state.stage]
@@ -639,10 +646,14 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
     for k, (_, m, v) in moments.items():
         data[f"{k}:m"], data[f"{k}:v"] = m, v
     split = stage["split"] > 0 and (config.target_tets is None or len(tets) < config.target_tets)
-    # Scored on this stage's mesh; pruning only removes vertices of empty tets.
-    train = trainer.dataset.train
-    scored = train[::max(1, len(train) // SCORE_VIEWS)]
-    scores = trainer.vertex_scores(scored, config.select) if split else None
+    # Scored on this stage's mesh; the vertices kept carry their scores.
+    scores = trainer.split_scores() if split else None
+    if stage["lr_position"] > 0 and retriangulates(config):
+        from mi_tetvr.mesh.initial import retriangulate
+        count = len(tets)
+        vertices, tets, data, parent = retriangulate(vertices, data, seed=config.seed + state.stage)
+        scores = None if scores is None else scores[parent]
+        log(f"tetrahedralized the moved vertices anew (Delaunay): {count:,} -> {len(tets):,} tets")
     if stage["prune"] is not None:
         if trainer.field.extinction is None:
             raise ValueError("'prune' needs a fitted extinction (colors and opacities or an "

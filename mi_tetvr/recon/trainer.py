@@ -141,6 +141,12 @@ class Trainer:
         self.config = config
         self.dataset = dataset
         self.state = state or RunState(rng=np.random.default_rng(config.seed))
+        stages = config.stage_list()
+        #: The photos this stage trains on: the data set's, area-averaged by the stage's
+        #: ``downscale`` (coarse photos first); held-out views are scored as given.
+        self.downscale = int(stages[min(self.state.stage, len(stages) - 1)]["downscale"])
+        self.train = dataset.train if self.downscale == 1 else \
+            [v.downscaled(self.downscale) for v in dataset.train]
         if topology is None:
             topology = build_topology(vertices, tets)
         self.tets = topology.tets.astype(np.int64)
@@ -168,7 +174,7 @@ class Trainer:
         #: it (``C + T * env``) and only their RGB is compared.
         self.learned_background = config.background == "learn"
         if self.learned_background:
-            mean = np.mean([v.image[..., :3].reshape(-1, 3).mean(0) for v in dataset.train], 0)
+            mean = np.mean([v.image[..., :3].reshape(-1, 3).mean(0) for v in self.train], 0)
             w, h = ENVIRONMENT_SIZE
             scene[K_ENVIRONMENT.split(".")[0]] = {
                 "type": "envmap", "bitmap": mi.Bitmap(np.tile(mean, (h, w, 1)).astype(np.float32))}
@@ -178,13 +184,11 @@ class Trainer:
             self.params[K_ENVIRONMENT] = mi.TensorXf(np.asarray(environment, np.float32))
             self.params.update()
         self.jitter = config.jitter if config.jitter is not None else not pixel_center_data(dataset)
-        sampler = "independent" if self.jitter else "stratified"
-        self.sensors = {}
-        for v in dataset.train + dataset.test:
-            self.sensors[id(v)] = mi.load_dict(v.camera.sensor_dict(
-                spp=config.spp, sampler=sampler, jitter=None if self.jitter else False))
+        self._sensors = {}
+        for v in self.train + dataset.test:
+            self.sensor(v)
         self.targets = {id(v): mi.TensorXf(np.ascontiguousarray(v.image, np.float32))
-                        for v in dataset.train}
+                        for v in self.train}
         rates = self.field.rates()
         if config.lr_position > 0:
             rates[K_POSITION] = config.lr_position * self.h
@@ -198,13 +202,19 @@ class Trainer:
             self._step_scale = mi.Float((self.h / self.cell).astype(np.float32))
         self.appearance_index = {}
         if config.appearance:
-            self.appearance_index = {id(v): i for i, v in enumerate(dataset.train)}
+            # a training photo's transform, whether it is seen at the stage's scale or whole
+            self.appearance_index = {id(v): i for i, v in enumerate(self.train)}
+            self.appearance_index.update({id(v): i for i, v in enumerate(dataset.train)})
             init = np.zeros((len(dataset.train), 12)) if appearance is None else appearance
             start = mi.Float(np.asarray(init, np.float32).reshape(len(dataset.train), 12).ravel())
             #: The transforms' optimizer (its state is checkpointed as the volume's).
             self.appearance_opt = VertexAdam({"appearance": start},
                                              {"appearance": config.lr_appearance},
                                              len(dataset.train), shared=("appearance",))
+        #: Per vertex, the absolute image-loss gradients of the training steps so far in this
+        #: stage (:meth:`split_scores`), kept on the device.
+        self._score_weights = self.field.score_weights(config.select)
+        self._scores = dr.zeros(mi.Float, n)
         self.regularizer = None
         if config.regularizer > 0 and config.lr_position > 0:
             from mi_tetvr.recon.regularizer import QualityRegularizer
@@ -212,12 +222,22 @@ class Trainer:
                                                   weight=config.regularizer)
 
     # -- one step ---------------------------------------------------------------
+    def sensor(self, view):
+        """The sensor of a view (made once): its camera with the fit's samples per pixel
+        and sampling (jittered or at the pixel centres)."""
+        s = self._sensors.get(id(view))
+        if s is None:
+            s = self._sensors[id(view)] = mi.load_dict(view.camera.sensor_dict(
+                spp=self.config.spp, sampler="independent" if self.jitter else "stratified",
+                jitter=None if self.jitter else False))
+        return s
+
     def render(self, view, params=None, seed=0, spp=None):
         """(h, w, 4) tensor of a view: premultiplied RGB and alpha (with
         gradients when ``params`` is given)."""
         # seed_grad left to mi.render: tetvr's derivative pass then reuses
         # this render's rays and per-ray values (mi_tetvr.render.replay).
-        return mi.render(self.scene, params, sensor=self.sensors[id(view)],
+        return mi.render(self.scene, params, sensor=self.sensor(view),
                          spp=spp or self.config.spp, seed=seed)
 
     @property
@@ -300,7 +320,7 @@ class Trainer:
         pictures (:meth:`metric_mse`).
         """
         cfg, state = self.config, self.state
-        train = self.dataset.train
+        train = self.train
         pick = state.rng.choice(len(train), min(cfg.views_per_step, len(train)), replace=False)
         total, metric = 0.0, 0.0
         for j, i in enumerate(pick):
@@ -312,6 +332,7 @@ class Trainer:
             dr.backward(loss)
             total += float(loss.array[0])
             metric += float(mse.array[0]) / len(pick)
+        self._accumulate_scores()
         if self.regularizer is not None:
             dr.backward(self.regularizer(self.opt[K_POSITION]))
         prior = self.field.prior(self.opt)
@@ -353,6 +374,9 @@ class Trainer:
         from mi_tetvr.recon.safeguard import safe_step
         new = np.array(self.opt[K_POSITION], np.float64).reshape(-1, 3)
         delta = new - old
+        if self._step_scale is not None:
+            # Adam's step in units of each vertex's own cell (multiscale meshes)
+            delta *= (self.cell / self.h)[:, None]
         if self.config.freeze_boundary:
             delta[self.boundary] = 0.0
         if self.config.safeguard:
@@ -380,26 +404,33 @@ class Trainer:
         vertices, tets, _ = self.arrays()
         return int((signed_volumes(vertices, tets) <= 0).sum())
 
-    def vertex_scores(self, views, criterion="gradient"):
-        """Per-vertex refinement scores: absolute image-loss gradients summed
-        over ``views`` without stepping (AbsGS-style), of the field's
-        per-vertex unknowns (:meth:`Field.score_weights
-        <mi_tetvr.recon.fields.Field.score_weights>`: for colors and
-        opacities ``color``, ``opacity`` in optical depth per cell, or both,
-        ``gradient``). Returns (n,) float."""
+    def _accumulate_scores(self):
+        """Add the image loss's absolute gradients of this step to :meth:`split_scores`
+        (before the regularizer's and the prior's: what the photos ask for)."""
         n = self.opt.n_vertices
-        score = np.zeros(n)
-        weights = self.field.score_weights(criterion)
-        for j, view in enumerate(views):
-            self.opt.clear_grads()
-            image = self.render(view, self.params, seed=2 * (10 ** 6 + j))
-            dr.backward(self.loss(image, view))
-            for k, w in weights.items():
-                score += w * np.abs(np.array(dr.grad(self.opt[k]))).reshape(n, -1).sum(1)
-        self.opt.clear_grads()
-        if self.appearance_index:
-            dr.clear_grad(self.appearance_opt["appearance"])
-        return score
+        idx = dr.arange(mi.UInt32, n)
+        for k, w in self._score_weights.items():
+            g = dr.grad(self.opt[k])
+            c = dr.width(g) // n
+            for j in range(c):
+                self._scores += w * dr.abs(dr.gather(mi.Float, g, c * idx + j))
+        dr.schedule(self._scores)
+
+    def split_scores(self):
+        """Per-vertex refinement scores: the absolute image-loss gradients of the field's
+        per-vertex unknowns (:meth:`Field.score_weights
+        <mi_tetvr.recon.fields.Field.score_weights>` of ``config.select``: for colors and
+        opacities ``color``, ``opacity`` in optical depth per cell, or both, ``gradient``)
+        summed over the training steps of this stage, as AbsGS accumulates them: every
+        photo's gradients as the fit saw them, at no extra render. Returns (n,) float."""
+        return np.array(self._scores, np.float64)
+
+    def set_split_scores(self, scores):
+        """Restore :meth:`split_scores` (a resumed stage goes on adding to them)."""
+        scores = np.asarray(scores, np.float32).ravel()
+        if scores.size != self.opt.n_vertices:
+            raise ValueError(f"{scores.size} scores for {self.opt.n_vertices} vertices")
+        self._scores = mi.Float(scores)
 
     # -- evaluation -------------------------------------------------------------
     def render_view(self, view, seed=0):
