@@ -16,9 +16,16 @@ after the other, never at once::
 
 ``--code-args`` are extra options of the other checkout's fit (e.g. the
 learned background, which the earlier code did not choose by itself).
+
+The held-out photos are also rendered every ``--every`` seconds of the fit and when it
+stops training, by each checkout's own trainer, and scored here the same way: a curve of
+held-out PSNR against the seconds of both versions (``--plot``). The fit's clock stops while it renders
+them (they cost the fit no training time), so a fit's wall time is its budget plus theirs.
 """
 from __future__ import annotations
 
+import argparse
+import json
 import shlex
 import subprocess
 import sys
@@ -30,14 +37,109 @@ import numpy as np
 from common import header_info, make_parser, write_json
 
 
-def fit(command, data, out, downscale, budget, variant, extra):
+def fit(command, data, out, downscale, budget, variant, extra, every):
+    """Run one checkout's default fit (``command``: the argv that runs this script with
+    that checkout's ``mi_tetvr``) in a process of its own; returns its wall seconds."""
     t0 = time.perf_counter()
-    cmd = command + ["fit", str(data), "--out", str(out), "--downscale", str(downscale),
-                     "--time-budget", str(budget), "--restart", "--variant", variant, *extra]
+    cmd = command + [str(Path(__file__).resolve()), "--worker", str(data), "--out", str(out),
+                     "--downscale", str(downscale), "--time-budget", str(budget),
+                     "--every", str(every), "--variant", variant,
+                     "--code-args=" + shlex.join(extra)]
     r = subprocess.run(cmd, capture_output=True, text=True)
     if r.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{r.stderr[-3000:]}")
     return time.perf_counter() - t0
+
+
+def worker(a):
+    """The fit of ``mi-tetvr fit DATA --out OUT --downscale D --time-budget T EXTRA``
+    through the fit's own viewer hook: every ``--every`` seconds of the fit, and when its
+    training ends, the held-out photos are rendered (``OUT/curve/<seconds>.npz``) while the
+    fit's clock stands still."""
+    import argparse
+
+    import mitsuba as mi
+    mi.set_variant(a.variant)
+    from mi_tetvr.cli.fit import add_arguments, fit_config
+    from mi_tetvr.recon.datasets import load_dataset
+    from mi_tetvr.recon.pipeline import run
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    f = parser.parse_args([a.data, "--out", a.out, "--downscale", str(a.downscale),
+                           "--time-budget", str(a.time_budget), *shlex.split(a.code_args)])
+    config = fit_config(f)
+    dataset = load_dataset(a.data, downscale=a.downscale)
+    curve = Path(a.out) / "curve"
+    curve.mkdir(parents=True, exist_ok=True)
+    for old in curve.glob("*.npz"):
+        old.unlink()
+    paused = [0.0]
+
+    def now():
+        return time.perf_counter() - paused[0]
+
+    start = now()
+
+    class Probe:
+        """The fit's viewer hook: renders the held-out photos when due and at the end."""
+
+        def __init__(self, trainer):
+            self.trainer, self.next = trainer, 0.0
+
+        def set_trainer(self, trainer):
+            self.trainer = trainer
+
+        def after_step(self, trainer, *_):
+            if now() - start >= self.next:
+                self.record(trainer)
+
+        def record(self, trainer):
+            seconds = now() - start          # since the fit began, setup and stages included
+            t0 = time.perf_counter()
+            renders = np.stack([trainer.render_view(v) for v in dataset.test])
+            bg = trainer.background
+            np.savez(curve / f"{seconds:09.2f}.npz", renders=renders, seconds=seconds,
+                     step=trainer.state.step, tets=len(trainer.tets),
+                     background=np.zeros(0) if bg is None else np.asarray(bg, np.float64))
+            self.next = seconds + a.every
+            paused[0] += time.perf_counter() - t0
+
+        def stop(self):
+            self.record(self.trainer)
+
+    run(dataset, a.out, config, resume=False, progress=False, log=lambda *x: None, now=now,
+        viewer=Probe)
+
+
+def curve_scores(out, dataset):
+    """``[(seconds of the fit, step, mean held-out PSNR)]`` of the renders in ``out/curve``,
+    scored against the held-out photos as loaded here."""
+    from mi_tetvr.recon.metrics import image_metrics
+    points = []
+    for f in sorted((Path(out) / "curve").glob("*.npz")):
+        d = np.load(f)
+        bg = None if d["background"].size == 0 else d["background"]
+        psnr = np.mean([image_metrics(r, v.image, bg)["psnr"]
+                        for r, v in zip(d["renders"], dataset.test)])
+        points.append((float(d["seconds"]), int(d["step"]), float(psnr)))
+    return points
+
+
+def plot_curves(path, curves, title):
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(7, 4))
+    ax = fig.subplots()
+    for name, points in curves.items():
+        if points:
+            t, _, p = zip(*points)
+            ax.plot(np.asarray(t) / 60, p, marker="o", ms=3, label=name)
+    ax.set_xlabel("time since the fit began [min] (its budget's clock)")
+    ax.set_ylabel("held-out PSNR [dB] (sRGB)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
 
 
 def score(out, dataset):
@@ -67,7 +169,13 @@ def main():
     p.add_argument("--code-args", default="", help="extra fit options of --code's run")
     p.add_argument("--reuse", action="store_true", help="score the fits already in --out "
                    "(OUT/this, OUT/code) instead of running them again")
+    p.add_argument("--every", type=float, default=60.0, help="seconds of the fit between two "
+                   "renders of the held-out photos (the curve; default 60)")
+    p.add_argument("--plot", help="the curves of held-out PSNR against training time (PNG)")
+    p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args()
+    if a.worker:
+        return worker(a)
     if a.quick:
         a.data = a.data or str(Path(__file__).resolve().parents[2] / "shared" / "data" /
                                "colmap-maupertuis")
@@ -88,7 +196,7 @@ def main():
     print(f"{a.data}: {len(dataset.train)} training, {len(dataset.test)} held-out photos "
           f"({dataset.test[0].camera.width}x{dataset.test[0].camera.height}); "
           f"{dataset.protocol}")
-    runs = {"this": [sys.executable, "-m", "mi_tetvr.cli"]}
+    runs = {"this": [sys.executable]}
     extra = {"this": []}
     if a.code:
         from checkout_cli import command
@@ -100,14 +208,27 @@ def main():
         if a.reuse and (out / "test").is_dir():
             seconds = float("nan")
         else:
-            seconds = fit(cmd, a.data, out, a.downscale, a.time_budget, a.variant, extra[name])
-        results[name] = {**score(out, dataset), "seconds": seconds}
+            seconds = fit(cmd, a.data, out, a.downscale, a.time_budget, a.variant,
+                          extra[name], a.every)
+        metrics = json.loads((out / "metrics.json").read_text())
+        results[name] = {**score(out, dataset), "seconds": seconds,
+                         "steps": metrics["step"], "tets": metrics["tets"],
+                         "steps_per_second": metrics["step"] / metrics["optimization_seconds"],
+                         "curve": curve_scores(out, dataset)}
         r = results[name]
-        print(f"{name:>5s}: PSNR {r['psnr']:.2f} dB, SSIM {r['ssim']:.4f} "
-              f"({seconds:.0f} s){'  ' + a.code_args if name == 'code' and a.code_args else ''}")
+        print(f"{name:>5s}: PSNR {r['psnr']:.2f} dB, SSIM {r['ssim']:.4f}; {r['steps']} steps "
+              f"({r['steps_per_second']:.2f}/s), {r['tets']:,} tets ({seconds:.0f} s)"
+              f"{'  ' + a.code_args if name == 'code' and a.code_args else ''}")
+        print("       held-out PSNR at " + ", ".join(f"{t:.0f} s: {q:.2f}"
+                                                   for t, _, q in r["curve"]))
     if a.code:
         print(f"this - code: {results['this']['psnr'] - results['code']['psnr']:+.2f} dB, "
               f"SSIM {results['this']['ssim'] - results['code']['ssim']:+.4f}")
+    if a.plot:
+        plot_curves(a.plot, {("this checkout" if k == "this" else f"{a.code}"): r["curve"]
+                             for k, r in results.items()},
+                    f"{Path(a.data).name} at 1/{a.downscale}, {a.time_budget:g} min budget")
+        print(f"# curves written to {a.plot}")
     write_json(a, info, results)
 
 

@@ -64,12 +64,20 @@ RESOLUTION_RANGE = (12, 96)
 #: budgets: 2 gives C60 42.53 dB (384k vertices), 4 gave 42.71 dB (192k) but
 #: cost the engine 2.2 dB and setup.sh's one-minute job 3.2 dB.
 PIXELS_PER_VERTEX = 2
-#: An unbounded scene's stages (:func:`unbounded_stages`): after each but the
-#: last, tets empty below this optical depth per cell are pruned and the edges
-#: at this fraction of the vertices (largest image-loss gradients) are split.
-UNBOUNDED_STAGES = 4
+#: An unbounded scene's stages (:func:`unbounded_stages`): after each of the first
+#: :data:`UNBOUNDED_SPLITS`, tets empty below this optical depth per cell are pruned and the
+#: edges at this fraction of the vertices (largest image-loss gradients) are split; after the
+#: others up to the last, only pruned.
 UNBOUNDED_PRUNE = 0.01
 UNBOUNDED_SPLIT = 0.05
+UNBOUNDED_SPLITS = 3
+#: The factor each stage's photos are area-averaged by (coarse photos first), at most
+#: the photos' shorter side over :data:`COARSE_PIXELS`. Measured on monstree (20 photos of
+#: 252x189, 4-minute fits, held-out sRGB PSNR): every stage on the whole photos 18.36 dB
+#: (102 steps), the first two at half size 18.71 dB (281 steps), 4, 2, 2, 1 19.10 dB (541
+#: steps; benchmarks/README.md).
+UNBOUNDED_DOWNSCALE = (4, 2, 2, 1)
+COARSE_PIXELS = 40
 
 
 def capture_kind(dataset):
@@ -150,14 +158,27 @@ def _full_resolution(dataset):
     return [by_name[v.name] for v in dataset.train]
 
 
-def unbounded_stages(config: FitConfig):
-    """An unbounded scene's stages: :data:`UNBOUNDED_STAGES` of equal length
-    (time shares with a budget), each but the last followed by pruning and a
-    split of the vertices with the largest gradients (cells where the error is)."""
-    n = max(int(config.iterations) // UNBOUNDED_STAGES, 1)
-    grow = {"split": UNBOUNDED_SPLIT, "prune": UNBOUNDED_PRUNE}
-    return [{"iterations": n, **grow} for _ in range(UNBOUNDED_STAGES - 1)] + \
-        [{"iterations": max(int(config.iterations) - n * (UNBOUNDED_STAGES - 1), 1)}]
+def unbounded_stages(config: FitConfig, dataset):
+    """An unbounded scene's stages: one per :data:`UNBOUNDED_DOWNSCALE` entry, of equal
+    length (time shares with a budget), on photos area-averaged by its factor (at most the
+    shorter side of the smallest photo over :data:`COARSE_PIXELS`), the first
+    :data:`UNBOUNDED_SPLITS` followed by pruning and a split of the vertices with the largest
+    gradients (cells where the error is), the others but the last by pruning."""
+    stages = len(UNBOUNDED_DOWNSCALE)
+    n = max(int(config.iterations) // stages, 1)
+    side = min(min(v.camera.width, v.camera.height) for v in dataset.train)
+    top = max(1, side // COARSE_PIXELS)
+    out = []
+    for i, k in enumerate(UNBOUNDED_DOWNSCALE):
+        st = {"iterations": n if i + 1 < stages else max(int(config.iterations) - n * i, 1)}
+        if min(k, top) > 1:
+            st["downscale"] = int(min(k, top))
+        if i + 1 < stages:
+            st["prune"] = UNBOUNDED_PRUNE
+        if i < UNBOUNDED_SPLITS:
+            st["split"] = UNBOUNDED_SPLIT
+        out.append(st)
+    return out
 
 
 def initial_mesh(config: FitConfig, dataset):
@@ -463,7 +484,7 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     if config.init in ("unbounded", "delaunay"):
         dataset = with_sparse_points(dataset, out, progress, log)
         if config.stages is None and config.init == "unbounded":
-            config = config.updated(stages=unbounded_stages(config))
+            config = config.updated(stages=unbounded_stages(config, dataset))
     if config.bounds is None and config.init in ("grid", "tetwild"):
         # the region once (a visual hull is carved from every view): calibration,
         # limits, warnings, the mesh and each grid stage read it, config.json keeps it

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from mi_tetvr.mesh.initial import delaunay_init, grid_init, grid_sample, tetwild_init
+from mi_tetvr.mesh.initial import (delaunay_init, grid_init, grid_sample, retriangulate,
+                                   tetwild_init)
 from mi_tetvr.mesh.topology import (MeshError, build_topology, format_summary, geometry_summary,
                            signed_volumes)
 
@@ -152,6 +153,37 @@ def test_delaunay_degenerate_lattice_stays_conforming():
     assert np.abs(v - p[np.argmin(np.linalg.norm(v[:, None] - p[None], axis=2), 1)]).max() < 0.01
     assert abs(vol.sum() - 1) < 0.01
     assert abs(_boundary_area(v, topo) - 6) < 0.05     # only the cube's faces are boundary
+
+
+def test_retriangulate_moved_vertices_is_their_delaunay_mesh():
+    """Vertices moved until the old tets invert: the new tets are positive, conforming,
+    fill the moved points' convex hull (scipy's ConvexHull: volume and area), have empty
+    circumspheres, and each vertex keeps its data (found again by position)."""
+    from scipy.spatial import ConvexHull
+    rng = np.random.default_rng(3)
+    v, t = delaunay_init(rng.uniform(-1, 1, (300, 3)), outlier_std=None)
+    moved = v + rng.normal(0, 0.15, v.shape)
+    assert (signed_volumes(moved, t) <= 0).any()              # the old mesh is broken
+    data = {"color": rng.uniform(size=(len(v), 3)), "opacity": rng.uniform(size=len(v))}
+    v2, t2, d2, parent = retriangulate(moved, data)
+    topo, vol = _check_valid(v2, t2)
+    hull = ConvexHull(moved)
+    assert np.isclose(vol.sum(), hull.volume, rtol=1e-9)
+    assert np.isclose(_boundary_area(v2, topo), hull.area, rtol=1e-9)
+    assert len(v2) == len(v)                                  # no vertex lost
+    np.testing.assert_array_equal(v2, moved[parent])
+    for k in data:
+        np.testing.assert_array_equal(d2[k], data[k][parent])
+    # Delaunay: no vertex strictly inside a tet's circumsphere
+    p = v2[t2]
+    a = p[:, 1:] - p[:, :1]
+    rhs = 0.5 * (a ** 2).sum(-1)
+    centre = p[:, 0] + np.linalg.solve(a, rhs[..., None])[..., 0]
+    radius = np.linalg.norm(p[:, 0] - centre, axis=1)
+    dist = np.linalg.norm(v2[None] - centre[:, None], axis=2)
+    assert (dist >= radius[:, None] * (1 - 1e-9)).all()
+    with pytest.raises(MeshError):
+        retriangulate(moved[:3])
 
 
 # ----------------------------------------------------------------------------- report

@@ -3,6 +3,7 @@
 multiscale meshes, and the unbounded fit end to end on real photos."""
 import json
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -168,3 +169,65 @@ def test_unbounded_fit_of_real_photos(tmp_path):
     for k, v in ((0, views[0]), (-1, views[-1])):
         seen = display_rgb(back.render_camera(v.camera, FLYTHROUGH_SPP), None)
         assert np.abs(video[k][:h, :w] / 255.0 - seen).mean() < 0.02
+
+
+def test_split_scores_are_the_steps_gradients_and_coarse_photos_train_first(data):
+    """A stage with ``downscale`` 2 trains on the photos area-averaged by 2 (held-out views
+    scored as given); its refinement scores are the image loss's absolute gradients of its
+    steps, summed (read here from the optimizer before each of its steps)."""
+    from mi_tetvr.recon.images import downscale_image
+    cfg = CFG.updated(stages=[{"iterations": 3, "downscale": 2, "split": 0.1}, {"iterations": 2}])
+    V, T, _ = initial_mesh(cfg, data)
+    trainer = Trainer(data, V, T, cfg.for_stage(0))
+    assert trainer.downscale == 2
+    for v, w in zip(trainer.train, data.train):
+        np.testing.assert_allclose(v.image, downscale_image(w.image, 2), atol=1e-7)
+        assert (v.camera.width, v.camera.fx) == (w.camera.width // 2, w.camera.fx / 2)
+    assert trainer.render_view(data.test[0]).shape[:2] == data.test[0].image.shape[:2]
+    n, seen = len(V), np.zeros(len(V))
+    step = trainer.opt.step
+
+    def recording(**kw):
+        for k, w in trainer.field.score_weights(cfg.select).items():
+            seen[:] += w * np.abs(np.array(dr.grad(trainer.opt[k]))).reshape(n, -1).sum(1)
+        return step(**kw)
+
+    trainer.opt.step = recording
+    for _ in range(3):
+        trainer.step()
+    # (the regularizer and the prior add no gradient to colors and opacities here)
+    assert seen.max() > 0
+    np.testing.assert_allclose(trainer.split_scores(), seen, rtol=1e-5, atol=1e-7 * seen.max())
+    with pytest.raises(ValueError, match="downscale"):
+        CFG.updated(stages=[{"iterations": 2, "downscale": 0}])
+
+
+def test_moving_points_are_tetrahedralized_anew_and_resume_after(data, tmp_path, monkeypatch):
+    """Vertices that move, tetrahedralized anew (Delaunay) after their stage: the next
+    stage's mesh is valid (no inverted tet, conforming), and a run interrupted after the
+    rebuild resumes on the rebuilt mesh."""
+    from mi_tetvr.mesh.topology import build_topology, signed_volumes
+    from tests.recon.test_fit import interrupt_at
+    cfg = CFG.updated(retriangulate=True, stages=[
+        {"iterations": 4, "lr_position": 0.3, "prune": 1e-4, "split": 0.1}, {"iterations": 4}])
+    logs = []
+    full = run(data, tmp_path / "full", cfg, progress=False, log=logs.append)
+    assert any(s.startswith("tetrahedralized the moved vertices anew") for s in logs)
+    ck = np.load(tmp_path / "full" / "checkpoint.npz")
+    V, T = ck["vertices"], ck["tets"]
+    assert full["inverted_tets"] == 0 and (signed_volumes(V, T) > 0).all()
+    build_topology(V, T)                      # conforming (raises otherwise)
+    V0, _, _ = initial_mesh(cfg, data)
+    assert np.abs(V[:len(V0)] - V0).max() > 1e-3           # the vertices did move
+    interrupt_at(monkeypatch, 6)                            # in the second stage
+    with pytest.raises(KeyboardInterrupt):
+        run(data, tmp_path / "part", cfg, progress=False, log=lambda *a: None)
+    mid = np.load(tmp_path / "part" / "checkpoint.npz")
+    assert int(mid["stage"]) == 1 and int(mid["step"]) == 5
+    assert (signed_volumes(mid["vertices"], mid["tets"]) > 0).all()
+    monkeypatch.undo()
+    run(data, tmp_path / "part", cfg, progress=False, log=lambda *a: None)
+    again = np.load(tmp_path / "part" / "checkpoint.npz")
+    # the resumed stage goes on on the mesh rebuilt before the interruption
+    np.testing.assert_array_equal(again["tets"], mid["tets"])
+    assert json.loads(str(again["history"]))["step"] == list(range(1, 9))
