@@ -96,9 +96,10 @@ def worker(a):
         def record(self, trainer):
             seconds = now() - start          # since the fit began, setup and stages included
             t0 = time.perf_counter()
-            renders = np.stack([trainer.render_view(v) for v in dataset.test])
+            # (photos of several sizes: one array each)
+            renders = {f"render{i}": trainer.render_view(v) for i, v in enumerate(dataset.test)}
             bg = trainer.background
-            np.savez(curve / f"{seconds:09.2f}.npz", renders=renders, seconds=seconds,
+            np.savez(curve / f"{seconds:09.2f}.npz", **renders, seconds=seconds,
                      step=trainer.state.step, tets=len(trainer.tets),
                      background=np.zeros(0) if bg is None else np.asarray(bg, np.float64))
             self.next = seconds + a.every
@@ -119,8 +120,8 @@ def curve_scores(out, dataset):
     for f in sorted((Path(out) / "curve").glob("*.npz")):
         d = np.load(f)
         bg = None if d["background"].size == 0 else d["background"]
-        psnr = np.mean([image_metrics(r, v.image, bg)["psnr"]
-                        for r, v in zip(d["renders"], dataset.test)])
+        psnr = np.mean([image_metrics(d[f"render{i}"], v.image, bg)["psnr"]
+                        for i, v in enumerate(dataset.test)])
         points.append((float(d["seconds"]), int(d["step"]), float(psnr)))
     return points
 
