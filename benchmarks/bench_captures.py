@@ -126,6 +126,13 @@ def curve_scores(out, dataset):
     return points
 
 
+def _commit(code):
+    """``commit 1234abc`` of the checkout ``code`` (its folder's name when it is not one)."""
+    r = subprocess.run(["git", "-C", str(code), "rev-parse", "--short", "HEAD"],
+                       capture_output=True, text=True)
+    return f"commit {r.stdout.strip()}" if r.returncode == 0 else Path(code).name
+
+
 def plot_curves(path, curves, title):
     from matplotlib.figure import Figure
     fig = Figure(figsize=(7, 4))
@@ -226,7 +233,7 @@ def main():
         print(f"this - code: {results['this']['psnr'] - results['code']['psnr']:+.2f} dB, "
               f"SSIM {results['this']['ssim'] - results['code']['ssim']:+.4f}")
     if a.plot:
-        plot_curves(a.plot, {("this checkout" if k == "this" else f"{a.code}"): r["curve"]
+        plot_curves(a.plot, {("this checkout" if k == "this" else _commit(a.code)): r["curve"]
                              for k, r in results.items()},
                     f"{Path(a.data).name} at 1/{a.downscale}, {a.time_budget:g} min budget")
         print(f"# curves written to {a.plot}")

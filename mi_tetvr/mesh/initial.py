@@ -402,7 +402,6 @@ def delaunay_init(points, outlier_std: float | None = 2.0, k_neighbors: int = 8,
     return v, t
 
 
-
 def retriangulate(vertices, point_data=None, flat_tol: float = FLAT_TOLERANCE,
                   joggle: float = 1e-4, seed: int = 0):
     """The Delaunay tetrahedralization of a mesh's vertices where they are now (after they
@@ -435,6 +434,7 @@ def retriangulate(vertices, point_data=None, flat_tol: float = FLAT_TOLERANCE,
     used, inv = np.unique(t, return_inverse=True)
     data = {k: np.asarray(a)[used] for k, a in (point_data or {}).items()}
     return p[used], inv.reshape(-1, 4).astype(np.int64), data, used.astype(np.int64)
+
 
 # --------------------------------------------------------------------------- unbounded
 def shell_points(center, radii, per_shell: int, seed: int = 0):
