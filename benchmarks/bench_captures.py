@@ -19,8 +19,9 @@ learned background, which the earlier code did not choose by itself).
 
 The held-out photos are also rendered every ``--every`` seconds of the fit and when it
 stops training, by each checkout's own trainer, and scored here the same way: a curve of
-held-out PSNR against the seconds of both versions (``--plot``). The fit's clock stops while it renders
-them (they cost the fit no training time), so a fit's wall time is its budget plus theirs.
+held-out PSNR against the seconds of both versions (``--plot``). The fit's clock stops while
+it renders them (they cost the fit no training time), so a fit's wall time is its budget plus
+theirs.
 """
 from __future__ import annotations
 
@@ -56,8 +57,6 @@ def worker(a):
     through the fit's own viewer hook: every ``--every`` seconds of the fit, and when its
     training ends, the held-out photos are rendered (``OUT/curve/<seconds>.npz``) while the
     fit's clock stands still."""
-    import argparse
-
     import mitsuba as mi
     mi.set_variant(a.variant)
     from mi_tetvr.cli.fit import add_arguments, fit_config
