@@ -206,19 +206,30 @@ def test_moving_points_are_tetrahedralized_anew_and_resume_after(data, tmp_path,
     """Vertices that move, tetrahedralized anew (Delaunay) after their stage: the next
     stage's mesh is valid (no inverted tet, conforming), and a run interrupted after the
     rebuild resumes on the rebuilt mesh."""
+    import mi_tetvr.mesh.initial as initial
     from mi_tetvr.mesh.topology import build_topology, signed_volumes
     from tests.recon.test_fit import interrupt_at
     cfg = CFG.updated(retriangulate=True, stages=[
         {"iterations": 4, "lr_position": 0.3, "prune": 1e-4, "split": 0.1}, {"iterations": 4}])
+    given = []
+    rebuild = initial.retriangulate
+
+    def recording(vertices, *args, **kw):
+        given.append(np.array(vertices))
+        return rebuild(vertices, *args, **kw)
+
+    monkeypatch.setattr(initial, "retriangulate", recording)
     logs = []
     full = run(data, tmp_path / "full", cfg, progress=False, log=logs.append)
+    monkeypatch.undo()
     assert any(s.startswith("tetrahedralized the moved vertices anew") for s in logs)
+    V0, _, _ = initial_mesh(cfg, data)
+    # what was tetrahedralized anew: the vertices where the stage's steps moved them
+    assert len(given) == 1 and np.abs(given[0] - V0).max() > 1e-3
     ck = np.load(tmp_path / "full" / "checkpoint.npz")
     V, T = ck["vertices"], ck["tets"]
     assert full["inverted_tets"] == 0 and (signed_volumes(V, T) > 0).all()
     build_topology(V, T)                      # conforming (raises otherwise)
-    V0, _, _ = initial_mesh(cfg, data)
-    assert np.abs(V[:len(V0)] - V0).max() > 1e-3           # the vertices did move
     interrupt_at(monkeypatch, 6)                            # in the second stage
     with pytest.raises(KeyboardInterrupt):
         run(data, tmp_path / "part", cfg, progress=False, log=lambda *a: None)
