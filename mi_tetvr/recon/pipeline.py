@@ -669,18 +669,20 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
     split = stage["split"] > 0 and (config.target_tets is None or len(tets) < config.target_tets)
     # Scored on this stage's mesh; the vertices kept carry their scores.
     scores = trainer.split_scores() if split else None
+    cell = trainer.cell
     if stage["lr_position"] > 0 and retriangulates(config):
         from mi_tetvr.mesh.initial import retriangulate
         count = len(tets)
         vertices, tets, data, parent = retriangulate(vertices, data, seed=config.seed + state.stage)
         scores = None if scores is None else scores[parent]
+        cell = cell[parent]
         log(f"tetrahedralized the moved vertices anew (Delaunay): {count:,} -> {len(tets):,} tets")
     if stage["prune"] is not None:
         if trainer.field.extinction is None:
             raise ValueError("'prune' needs a fitted extinction (colors and opacities or an "
                              "attenuation)")
         # in optical depth per each vertex's cell
-        res = prune_empty(vertices, tets, values[trainer.field.extinction] * trainer.cell,
+        res = prune_empty(vertices, tets, data[trainer.field.extinction] * cell,
                           float(stage["prune"]), point_data=data)
         log(f"pruned {len(tets) - len(res.tets):,} empty tets")
         vertices, tets, data = res.vertices, res.tets, res.point_data
