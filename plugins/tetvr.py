@@ -155,6 +155,7 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         self._states = PrimalStates(int(props.get("kept_primals", CAPACITY)))
         self._record = None    # (key, inputs) while render() runs with gradients enabled
         self._replay = None    # the kept primal state while a derivative pass runs
+        self._remote = None    # a partitioned mesh's workers while they render (distributed)
 
     def traverse(self, callback):
         if self.overlay is not None:
@@ -169,7 +170,7 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         return VolumeProgram(scene, self.parts, self.surfaces, self.settings_for(scene),
                              self.n_sub, self.clip,
                              self.overlay.probes if self.overlay is not None else None,
-                             self.index_buffers)
+                             self.index_buffers, self._remote)
 
     def index_buffers(self, groups):
         """The index buffers of each group of shapes that one walk renders,

@@ -122,6 +122,10 @@ def read_mesh_file(path) -> meshio.Mesh:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
+    from mi_tetvr.mesh.partition import assemble, blocks_path, read_partition
+    if path.suffix.lower() == ".pvtu" and blocks_path(path).is_file():
+        # (written by ``partition``: its pieces joined, each tet once)
+        return assemble(read_partition(path))
     try:
         return _read_meshio(path)
     except MeshError as e:

@@ -181,13 +181,23 @@ class VolumeProgram:
         Surfaces drawn inside the volume (``tetvr``'s overlay).
     index_cache : callable
         ``index_cache(groups)``: the index buffers of each group of shapes.
+    remote : object or None
+        A medium rendered elsewhere, in place of the scene's tet meshes (a
+        partitioned mesh over workers, :mod:`mi_tetvr.distributed`): its
+        ``primal(ray, t_start, active) -> (C, T)`` and ``backward(ray,
+        t_start, active, adj, behind)``.
     """
 
-    def __init__(self, scene, parts, nested, settings, n_sub, clip, probes, index_cache):
+    def __init__(self, scene, parts, nested, settings, n_sub, clip, probes, index_cache,
+                 remote=None):
         self.scene = scene
         self.tets, self.walk_scene, self.surfaces = parts.split(scene)
         self.parts, self.nested, self.settings, self.n_sub = parts, nested, settings, n_sub
         self.clip, self.probes, self.index_cache = clip, probes, index_cache
+        self.remote = remote
+        if remote is not None and (self.tets or probes is not None):
+            raise ValueError("tetvr: a partitioned mesh is rendered alone (no other tet mesh "
+                             "in the scene, no overlay)")
         #: Meshes that overlap in space take the merged walk.
         self.merged = overlapping(self.tets)
 
@@ -218,6 +228,8 @@ class VolumeProgram:
     def volume(self, media, ray, t_start, active):
         """``(C, T)`` of the media along ``ray`` from ``t_start``."""
         if media is None:
+            if self.remote is not None:
+                return self.remote.primal(ray, t_start, active)
             return mi.Color3f(0.0), dr.full(mi.Float, 1.0, dr.width(ray.o))
         C, T, _, _ = self.walk(media, ray, t_start, active)
         return C, T
@@ -324,6 +336,12 @@ class VolumeProgram:
             deriv = Derivative(mode, media_ad, camera, tangent)
             _, _, _, adj = self.walk([g.detached() for g in media_ad], ray, t_start, walking,
                                      deriv, adj)
+        elif self.remote is not None:
+            if camera or not backward:
+                raise ValueError("tetvr: a partitioned mesh has reverse-mode derivatives "
+                                 "w.r.t. its own parameters only (not forward mode, not "
+                                 "w.r.t. the camera)")
+            self.remote.backward(ray, t_start, walking, adj, behind)
         if backward:
             if camera:
                 layers.own_kernel(adj.g_o, adj.g_w)   # (the pose's code out of the walk)

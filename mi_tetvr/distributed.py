@@ -1,0 +1,469 @@
+"""Beyond one machine: a partitioned mesh rendered and differentiated by Ray
+workers, composited sort-last, exact to the pixel.
+
+A ``.pvtu`` written by :func:`mi_tetvr.mesh.partition.partition_mesh` (``mi-tetvr
+partition``) tiles space with k-d boxes, one piece per box. Each worker (a Ray
+actor, :class:`BlockWorker`) reads only its blocks' pieces and renders the
+part of each ray inside a block's box: the emission ``C_k`` and transmittance
+``T_k`` of that interval (the walk integrates a clipped interval exactly). The
+driver keeps the scene's camera, surfaces and lights and the ``tetvr``
+integrator: Mitsuba's own ``render`` samples the rays, and where the
+integrator would walk the mesh it hands the rays to the workers instead
+(:class:`Blocks`), then composites the blocks front to back in the order each
+ray enters their boxes (the boxes are convex and disjoint, so the order is
+per ray and exact)::
+
+    C = sum_k (prod_{j<k} T_j) C_k        T = prod_k T_k
+
+and sees the surfaces and the environment through ``T`` as it does for one
+mesh. The image is the whole mesh's, to float rounding.
+
+The adjoint of the compositing is closed form: block ``k``'s seed is ``δL
+prod_{j<k} T_j``, the radiance behind it the composite of the blocks after it
+and of the background; each worker runs its block's adjoint walk and returns
+the gradients of its vertices by their global ids, summed over the copies
+of a vertex that several blocks share (:meth:`PartitionedMesh.backward`).
+
+Ray starts a local cluster of processes by default; ``address`` (or
+``RAY_ADDRESS``) joins a running one (``ray start --head`` on one machine,
+``ray start --address HEAD:6379`` on the others), where every machine sees the
+``.pvtu`` and its pieces at the same path.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import resource
+from pathlib import Path
+
+import numpy as np
+
+from mi_tetvr.mesh.partition import Partition, read_partition, read_piece
+
+#: Vertex parameters of a block's shape, by their ``mi.traverse`` names.
+VERTEX_PARAMS = ("vertex_color", "vertex_opacity", "vertex_positions", "vertex_scalar")
+#: Parameters every block holds whole (the transfer function's texels).
+SHARED_PARAMS = ("tf_color", "tf_opacity")
+
+
+def block_intervals(o, d, t0, t1, boxes):
+    """``(N, B, 2)`` the part ``[a, b]`` of each ray ``o + t d`` (``t0 <= t <=
+    t1``) inside each box (``boxes`` (B, 2, 3), infinite where open); empty
+    where ``b <= a``. A ray parallel to a face of a box is in it where ``lo <=
+    o < hi``: a ray along the plane between two blocks is in one of them."""
+    o, d = np.asarray(o, np.float64), np.asarray(d, np.float64)
+    lo, hi = boxes[:, 0][None], boxes[:, 1][None]             # (1, B, 3)
+    o3, d3 = o[:, None], d[:, None]                              # (N, 1, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = (lo - o3) / d3, (hi - o3) / d3
+    parallel = d3 == 0.0
+    near = np.where(parallel, -np.inf, np.minimum(ta, tb))
+    far = np.where(parallel, np.where((o3 >= lo) & (o3 < hi), np.inf, -np.inf),
+                   np.maximum(ta, tb))
+    a = np.maximum(np.asarray(t0, np.float64)[:, None], near.max(2))
+    b = np.minimum(np.asarray(t1, np.float64)[:, None], far.min(2))
+    return np.stack([a, b], -1)
+
+
+class BlockWorker:
+    """A worker's blocks (a Ray actor): each block's piece as a ``tetmesh`` in
+    a scene of its own, rendered over given ray intervals, and its adjoint.
+
+    Parameters
+    ----------
+    pvtu : str
+        The partitioned mesh (each worker reads its pieces from it).
+    blocks : list of int
+        The blocks this worker holds.
+    shape : dict
+        ``tetmesh`` properties of every block (``transfer_function``,
+        ``opacity_scale``, ``color_attribute``, ...); a transfer function's
+        ``value_min``/``value_max`` default to the whole mesh's range.
+    variant : str
+        The Mitsuba variant.
+    threads : int or None
+        Dr.Jit's CPU threads in this worker.
+    """
+
+    def __init__(self, pvtu, blocks, shape, variant, threads=None):
+        import drjit as dr
+        import mitsuba as mi
+        mi.set_variant(variant)
+        import mi_tetvr
+        mi_tetvr.register()
+        if threads:
+            dr.set_thread_count(int(threads))
+        self.part = read_partition(pvtu)
+        self.shape = dict(shape or {})
+        self.meshes = {}
+        for k in blocks:
+            self.meshes[k] = self._load(k)
+        self.scenes = {}
+
+    def _load(self, k):
+        """``(shape dict, global point ids, piece diagonal)`` of block ``k``."""
+        import mi_tetvr
+        from mi_tetvr.mesh.io import choose_scalar
+        vertices, tets, pd, cd, ids = read_piece(self.part, k)
+        props = dict(self.shape)
+        path = self.part.piece_path(k)
+        if "transfer_function" in props or "tf_color" in props:
+            name = choose_scalar(pd, props.pop("scalar_attribute", None), str(path), cd,
+                                 cells=True)
+            rng = (self.part.point_ranges.get(name) or self.part.cell_ranges.get(name))
+            props.setdefault("value_min", rng[0])
+            props.setdefault("value_max", rng[1])
+            values = {"scalar": pd[name]} if name in pd else {"cell_scalar": cd[name]}
+            entry = mi_tetvr.tetmesh_dict(vertices, tets, **values, **props)
+        else:
+            color = pd.get(props.pop("color_attribute", "color"))
+            opacity = pd.get(props.pop("opacity_attribute", "opacity"))
+            entry = mi_tetvr.tetmesh_dict(vertices, tets, color, opacity, **props)
+        diag = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+        return entry, ids, diag
+
+    def _scene(self, k, settings):
+        """Block ``k``'s scene under the driver's walk ``settings`` (kept
+        while they stay the same)."""
+        import mitsuba as mi
+        key = (k, tuple(sorted(settings.items())))
+        if key not in self.scenes:
+            entry, _, diag = self.meshes[k]
+            s = dict(settings)
+            # the driver's re-trace offset (absolute) in this block's units
+            s["retrace_epsilon"] = s.pop("retrace_offset") / max(diag, 1e-30)
+            self.scenes = {kk: v for kk, v in self.scenes.items() if kk[0] != k}
+            self.scenes[key] = mi.load_dict({"type": "scene", "block": entry,
+                                             "integrator": {"type": "tetvr", "alpha": False,
+                                                            **s}})
+        return self.scenes[key]
+
+    @staticmethod
+    def _rays(o, d, t0, t1):
+        import drjit as dr
+        import mitsuba as mi
+        ray = mi.Ray3f(mi.Point3f(*(mi.Float(np.ascontiguousarray(o[:, i])) for i in range(3))),
+                       mi.Vector3f(*(mi.Float(np.ascontiguousarray(d[:, i])) for i in range(3))))
+        ray.maxt = mi.Float(np.asarray(t1, np.float32))
+        start = mi.Float(np.asarray(t0, np.float32))
+        return ray, start, ray.maxt > start
+
+    def trace(self, k, settings, o, d, t0, t1):
+        """``(C (n, 3), T (n,))`` of block ``k`` along the rays ``o + t d``
+        over ``[t0, t1]``."""
+        import drjit as dr
+        scene = self._scene(k, settings)
+        program = scene.integrator().program(scene)
+        ray, start, active = self._rays(o, d, t0, t1)
+        C, T = program.volume(program.media(), ray, start, active)
+        dr.eval(C, T)
+        return np.array(C, np.float32).reshape(3, -1).T.copy(), np.array(T, np.float32)
+
+    def backward(self, k, settings, o, d, t0, t1, L_pix, T_fin, dL, dalpha):
+        """Block ``k``'s adjoint walk over the rays (its pixel value ``L_pix``
+        with what lies behind it, its transmittance ``T_fin``, the seeds ``dL``
+        and ``dalpha``): ``{name: gradient}`` of its parameters (per vertex
+        for :data:`VERTEX_PARAMS`, in the piece's order)."""
+        import drjit as dr
+        import mitsuba as mi
+        from mi_tetvr.render.adjoint import Adjoint, Derivative
+        scene = self._scene(k, settings)
+        params = mi.traverse(scene)
+        keys = [key for key in params.keys() if key.split(".", 1)[-1] in
+                VERTEX_PARAMS + SHARED_PARAMS and dr.is_diff_v(params[key])]
+        for key in keys:
+            dr.enable_grad(params[key])
+        params.update()
+        try:
+            program = scene.integrator().program(scene)
+            ray, start, active = self._rays(o, d, t0, t1)
+            zero = mi.Vector3f(0.0)
+
+            def color(a):
+                return mi.Color3f(*(mi.Float(np.ascontiguousarray(a[:, i])) for i in range(3)))
+            adj = Adjoint(color(L_pix), mi.Float(T_fin), color(dL), mi.Float(dalpha), zero,
+                          zero)
+            media_ad = program.media(differentiable=True)
+            with dr.suspend_grad():
+                program.walk([g.detached() for g in media_ad], ray, start, active,
+                             Derivative(dr.ADMode.Backward, media_ad), adj)
+            out = {key.split(".", 1)[-1]: np.array(dr.grad(params[key]), np.float32)
+                   for key in keys}
+        finally:
+            for key in keys:
+                dr.disable_grad(params[key])
+            params.update()
+        return out
+
+    def point_ids(self, k):
+        return self.meshes[k][1]
+
+    def peak_memory(self):
+        """This worker process's peak resident memory (bytes)."""
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+    def pid(self):
+        return os.getpid()
+
+
+def walk_settings(integrator, scene, part: Partition):
+    """The ``tetvr`` settings each block is rendered with: the driver's
+    integrator's, its re-trace offset scaled to the whole scene (the
+    driver's shapes and the partitioned mesh) as one process would."""
+    lo, hi = np.array(scene.bbox().min), np.array(scene.bbox().max)
+    if scene.bbox().valid():
+        lo, hi = np.minimum(lo, part.bounds[0]), np.maximum(hi, part.bounds[1])
+    else:
+        lo, hi = part.bounds
+    s = integrator.settings
+    return {"n_sub": int(integrator.n_sub), "min_transmittance": float(s.t_min),
+            "max_steps": int(s.max_steps),
+            "retrace_offset": float(integrator.retrace_epsilon) * float(np.linalg.norm(hi - lo))}
+
+
+class Blocks:
+    """The partitioned mesh as the driver's ray program sees it (its
+    ``remote``): the rays' intervals in each block's box handed to the block's
+    worker, the results composited front to back; the last primal pass's
+    per-block results kept for the adjoint."""
+
+    def __init__(self, mesh: "PartitionedMesh", settings):
+        self.mesh, self.settings = mesh, settings
+        self.kept = None
+        self.grads = {}
+
+    def _intervals(self, ray, t_start, active):
+        import drjit as dr
+        o = np.array(ray.o, np.float64).reshape(3, -1).T
+        d = np.array(ray.d, np.float64).reshape(3, -1).T
+        n = len(o)
+        t0 = np.broadcast_to(np.array(dr.select(active, t_start, 0.0), np.float64), (n,))
+        t1 = np.array(dr.select(active, ray.maxt, -1.0), np.float64)
+        iv = block_intervals(o, d, t0, t1, self.mesh.boxes).astype(np.float32)
+        return o.astype(np.float32), d.astype(np.float32), iv
+
+    def primal(self, ray, t_start, active):
+        import drjit as dr
+        import mitsuba as mi
+        o, d, iv = self._intervals(ray, t_start, active)
+        n, nb = iv.shape[:2]
+        C = np.zeros((nb, n, 3), np.float32)
+        T = np.ones((nb, n), np.float32)
+        jobs = {}
+        for k in range(nb):
+            idx = np.flatnonzero(iv[:, k, 1] > iv[:, k, 0])
+            if len(idx):
+                jobs[k] = (idx, self.mesh.call(k, "trace", self.settings, o[idx], d[idx],
+                                               iv[idx, k, 0], iv[idx, k, 1]))
+        for k, (idx, ref) in jobs.items():
+            C[k, idx], T[k, idx] = self.mesh.get(k, ref)
+        order = np.argsort(np.where(iv[:, :, 1] > iv[:, :, 0], iv[:, :, 0], np.inf), 1,
+                           kind="stable")                                 # (n, B)
+        rows = np.arange(n)
+        Cs = np.zeros((n, 3), np.float64)
+        Tf = np.ones(n, np.float64)
+        for r in range(nb):
+            k = order[:, r]
+            Cs += Tf[:, None] * C[k, rows]
+            Tf *= T[k, rows]
+        self.kept = (o, d, iv, C, T, order)
+        Cs, Tf = Cs.astype(np.float32), Tf.astype(np.float32)
+        out = mi.Color3f(*(mi.Float(np.ascontiguousarray(Cs[:, i])) for i in range(3)))
+        return out, dr.detach(mi.Float(Tf))
+
+    def backward(self, ray, t_start, active, adj, behind):
+        import drjit as dr
+        if self.kept is None or len(self.kept[0]) != dr.width(adj.dL):
+            raise RuntimeError("the partitioned mesh's adjoint runs after its primal pass "
+                               "over the same rays")
+        o, d, iv, C, T, order = self.kept
+        n, nb = iv.shape[:2]
+        rows = np.arange(n)
+        dL = np.array(adj.dL, np.float64).reshape(3, -1).T
+        dalpha = np.broadcast_to(np.array(adj.dalpha, np.float64), (n,))
+        behind = np.broadcast_to(np.array(behind, np.float64).reshape(3, -1).T, (n, 3)) \
+            if behind is not None else np.zeros((n, 3))
+        # transmittance in front of each rank, radiance behind it (back to front)
+        fronts = np.ones((nb + 1, n))
+        for r in range(nb):
+            fronts[r + 1] = fronts[r] * T[order[:, r], rows]
+        backs = np.zeros((nb, n, 3))
+        B = behind.copy()
+        for r in reversed(range(nb)):
+            backs[r] = B
+            k = order[:, r]
+            B = C[k, rows] + T[k, rows, None] * B
+        jobs = {}
+        for k in range(nb):
+            live = iv[:, k, 1] > iv[:, k, 0]
+            rank = np.argmax(order == k, 1)
+            front = fronts[rank, rows]
+            idx = np.flatnonzero(live & (front > 0))
+            if not len(idx):
+                continue
+            Tk = T[k, idx].astype(np.float64)
+            f = front[idx]
+            # the transmittance of the blocks behind k
+            back_T = np.ones(len(idx))
+            for r in range(nb):
+                j = order[idx, r]
+                after = r > rank[idx]
+                back_T = np.where(after, back_T * T[j, idx], back_T)
+            L_pix = C[k, idx] + Tk[:, None] * backs[rank[idx], idx]
+            jobs[k] = (idx, self.mesh.call(
+                k, "backward", self.settings, o[idx], d[idx], iv[idx, k, 0], iv[idx, k, 1],
+                L_pix.astype(np.float32), Tk.astype(np.float32),
+                (dL[idx] * f[:, None]).astype(np.float32),
+                (dalpha[idx] * f * back_T).astype(np.float32)))
+        for k, (idx, ref) in jobs.items():
+            self.mesh.accumulate(k, self.mesh.get(k, ref), self.grads)
+
+
+class PartitionedMesh:
+    """A ``.pvtu`` written by ``partition``, held by Ray workers.
+
+    Parameters
+    ----------
+    pvtu : str or Path
+    workers : int, optional
+        Workers (Ray actors), each holding every ``workers``-th block
+        (default: one per block).
+    shape : dict, optional
+        ``tetmesh`` properties of the blocks (see :class:`BlockWorker`).
+    address : str, optional
+        A running Ray cluster (default: ``RAY_ADDRESS``, else a local one,
+        started here and stopped by :meth:`close`).
+    threads : int, optional
+        Dr.Jit's CPU threads per worker (default: the cores over the workers).
+    retries : int
+        Times a worker that dies is started again (its blocks read anew) and
+        its call run again before the render fails.
+    """
+
+    def __init__(self, pvtu, workers=None, shape=None, address=None, threads=None, retries=1):
+        import mitsuba as mi
+        import ray
+        self.part = read_partition(pvtu)
+        self.boxes = self.part.boxes()
+        nb = len(self.part.blocks)
+        self.workers = int(workers or nb)
+        if self.workers < 1:
+            raise ValueError(f"workers must be at least 1, got {workers}")
+        self.workers = min(self.workers, nb)
+        self.started = False
+        address = address or os.environ.get("RAY_ADDRESS")
+        if not ray.is_initialized():
+            try:
+                if address:
+                    ray.init(address=address, log_to_driver=False)
+                else:
+                    ray.init(num_cpus=max(os.cpu_count() or 1, self.workers),
+                             include_dashboard=False, log_to_driver=False)
+            except ConnectionError as e:
+                raise ConnectionError(f"no Ray cluster answers at {address!r} ({e}); start one "
+                                      f"with `ray start --head`, or leave the address out for "
+                                      f"a local one") from None
+            self.started = True
+        cpus = int(ray.available_resources().get("CPU", self.workers))
+        threads = threads or max(1, cpus // self.workers)
+        remote = ray.remote(num_cpus=0, max_restarts=int(retries),
+                            max_task_retries=int(retries))(BlockWorker)
+        self.assign = [list(range(w, nb, self.workers)) for w in range(self.workers)]
+        self.owner = {k: w for w, ks in enumerate(self.assign) for k in ks}
+        variant = mi.variant()
+        path = str(Path(pvtu).resolve())
+        self.actors = [remote.remote(path, ks, shape or {}, variant, threads)
+                       for ks in self.assign]
+        self._ids = {}
+
+    def call(self, k, method, *args):
+        """Block ``k``'s worker's ``method`` (a Ray object reference)."""
+        return getattr(self.actors[self.owner[k]], method).remote(k, *args)
+
+    def get(self, k, ref):
+        import ray
+        try:
+            return ray.get(ref)
+        except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError) as e:
+            raise RuntimeError(f"the worker of block {k} of {self.part.path.name} died "
+                               f"({type(e).__name__}); the render is abandoned, nothing "
+                               f"written") from None
+
+    def point_ids(self, k):
+        if k not in self._ids:
+            self._ids[k] = self.get(k, self.call(k, "point_ids"))
+        return self._ids[k]
+
+    def accumulate(self, k, grads, into):
+        """Add block ``k``'s gradients into the whole mesh's (``into``):
+        per vertex by their global ids (copies shared by blocks summed)."""
+        ids = self.point_ids(k)
+        for name, g in grads.items():
+            if name in SHARED_PARAMS:
+                into[name] = into.get(name, 0.0) + g.astype(np.float64)
+                continue
+            g = g.reshape(len(ids), -1)
+            total = into.setdefault(name, np.zeros((self.part.vertices, g.shape[1])))
+            np.add.at(total, ids, g)
+
+    @contextlib.contextmanager
+    def attached(self, scene):
+        """The scene's ``tetvr`` integrator rendering this mesh (its
+        ``remote`` medium) inside the block."""
+        integrator = scene.integrator()
+        from mi_tetvr.plugins.tetvr import TetVRIntegrator
+        if not isinstance(integrator, TetVRIntegrator):
+            raise ValueError(f"a partitioned mesh is rendered by the tetvr integrator, the "
+                             f"scene's is {type(integrator).__name__}")
+        blocks = Blocks(self, walk_settings(integrator, scene, self.part))
+        integrator._remote = blocks
+        try:
+            yield blocks
+        finally:
+            integrator._remote = None
+
+    def render(self, scene, sensor=0, seed=0, spp=0):
+        """The image of ``scene`` (its camera, surfaces and lights, its
+        ``tetvr`` integrator) with this mesh in it, as ``mi.render`` returns it."""
+        with self.attached(scene):
+            return scene.integrator().render(scene, sensor, seed, spp)
+
+    def backward(self, scene, grad_image, sensor=0, seed=0, spp=0):
+        """The gradients of ``sum(grad_image * image)`` w.r.t. the mesh's
+        parameters: ``{name: array}``, per vertex of the whole mesh
+        (``vertex_color`` (n, 3), ``vertex_opacity`` (n, 1), ``vertex_positions``
+        (n, 3), ``vertex_scalar`` (n, 1)) or whole (``tf_color``,
+        ``tf_opacity``). Renders the primal again (as Mitsuba's
+        ``render_backward``)."""
+        import mitsuba as mi
+        with self.attached(scene) as blocks:
+            scene.integrator().render_backward(scene, None, mi.TensorXf(grad_image), sensor,
+                                               seed, spp)
+            return blocks.grads
+
+    def peak_memory(self):
+        """Each worker's peak resident memory (bytes)."""
+        import ray
+        return ray.get([a.peak_memory.remote() for a in self.actors])
+
+    def close(self):
+        import ray
+        for a in self.actors:
+            ray.kill(a)
+        self.actors = []
+        if self.started:
+            ray.shutdown()
+            self.started = False
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def render(scene, pvtu, workers=None, shape=None, address=None, sensor=0, seed=0, spp=0):
+    """``mi.render`` of ``scene`` with the partitioned mesh ``pvtu`` in it,
+    rendered by ``workers`` Ray workers (see :class:`PartitionedMesh`)."""
+    with PartitionedMesh(pvtu, workers, shape, address) as mesh:
+        return mesh.render(scene, sensor, seed, spp)
