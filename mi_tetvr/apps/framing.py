@@ -60,25 +60,44 @@ def mesh_scene(settings, mesh, framing):
     framing's bounding sphere (:func:`mesh_framing`). Raises ``ValueError``
     where the settings do not combine for a mesh file."""
     import mi_tetvr
-    from mi_tetvr.camera import framing_distance, orbit_to_world
     s = settings
     s.validate("mesh")
-    lo, hi, radius = framing["lo"], framing["hi"], framing["radius"]
-    tf = s.tf or ("gray" if s.mode != "dvr" else None)
-    if tf:
-        # a file, or a matplotlib colormap's name
-        lo_v, hi_v = s.value_range or framing["value_range"]
-        name = framing["scalar"]
+    props = shape_props(s, framing)
+    if "transfer_function" in props:
+        name = props.pop("scalar_attribute")
         # a point array, or a cell array (dvr: constant in each tet)
         values = ({"scalar": mesh.point_data[name]} if name in mesh.point_data
                   else {"cell_scalar": mesh.cell_data[name]})
-        shape = mi_tetvr.tetmesh_dict(
-            mesh.vertices, mesh.tets, **values,
-            transfer_function=str(Path(tf).resolve()) if Path(tf).exists() else tf,
-            value_min=lo_v, value_max=hi_v, opacity_scale=s.opacity_scale / radius,
-            **({"shade": True} if s.shade else {}))
+        shape = mi_tetvr.tetmesh_dict(mesh.vertices, mesh.tets, **values, **props)
     else:
         shape = mi_tetvr.tetmesh_dict(mesh.vertices, mesh.tets, mesh.color, mesh.opacity)
+    return {**framed_scene(s, framing), "volume": shape}
+
+
+def shape_props(settings, framing):
+    """The ``tetmesh`` properties of a mesh under the :class:`RenderSettings`
+    ``settings`` (``scalar_attribute``, ``transfer_function`` over the
+    framing's range, ``opacity_scale`` per framing radius, ``shade``), none
+    for a mesh shown by its colors."""
+    s = settings
+    tf = s.tf or ("gray" if s.mode != "dvr" else None)
+    if not tf:
+        return {}
+    # a file, or a matplotlib colormap's name
+    lo_v, hi_v = s.value_range or framing["value_range"]
+    return {"scalar_attribute": framing["scalar"],
+            "transfer_function": str(Path(tf).resolve()) if Path(tf).exists() else tf,
+            "value_min": lo_v, "value_max": hi_v,
+            "opacity_scale": s.opacity_scale / framing["radius"],
+            **({"shade": True} if s.shade else {})}
+
+
+def framed_scene(settings, framing):
+    """:func:`mesh_scene` without its mesh: the integrator of the render mode
+    and the camera on the framing."""
+    from mi_tetvr.camera import framing_distance, orbit_to_world
+    s = settings
+    lo, hi, radius = framing["lo"], framing["hi"], framing["radius"]
     width, height = s.res or MESH_RES
     distance = framing_distance(radius, MESH_FOV, (width, height))
     azimuth, elevation = s.azimuth_elevation
@@ -110,8 +129,7 @@ def mesh_scene(settings, mesh, framing):
                        "sampler": {"type": "stratified", "sample_count": s.spp or 1,
                                    "jitter": False},
                        "film": {"type": "hdrfilm", "width": width, "height": height,
-                                "pixel_format": "rgba", "rfilter": {"type": "box"}}},
-            "volume": shape}
+                                "pixel_format": "rgba", "rfilter": {"type": "box"}}}}
 
 
 def mi_scalar_transform(transform):

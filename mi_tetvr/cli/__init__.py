@@ -5,7 +5,7 @@
                     [--tf TF|COLORMAP] [--mode dvr|max|min|mean|slice|iso] [--view AZ,EL]
                     [--iso V,...] [--plane X,Y,Z,NX,NY,NZ] [--surface-opacity A]
                     [--clip X,Y,Z,NX,NY,NZ] [--clip-box X0,Y0,Z0,X1,Y1,Z1] [--orbit N]
-                    [--value-range LO,HI] [--sensor SENSOR.xml]
+                    [--value-range LO,HI] [--sensor SENSOR.xml] [--workers N] [--address A]
     mi-tetvr info MESH [--json]
     mi-tetvr make-scenes [-o DIR]
     mi-tetvr make-dataset VOLUME|MESH (--tf TF | --xray) -o DIR [--views N] [--res WxH]
@@ -16,11 +16,12 @@
     mi-tetvr eval FIT_DIR|MESH DATA [-o METRICS.json]
     mi-tetvr refine MESH --select ARRAY [--fraction F] -o OUT
     mi-tetvr viewpoint MESH -o DIR [--tf TF] [--res WxH]
+    mi-tetvr partition MESH -o OUT.pvtu --blocks N
     mi-tetvr view MESH|SCENE.xml|DATA|FIT_DIR [--tf TF] [--port P] [--host H] [--res N]
 
 One module per command (``render``, ``info``, ``make_scenes``, ``make_dataset``,
 ``make_capture``, ``process_data``, ``fit``, ``view``, ``evaluate`` for ``eval``,
-``refine``, ``viewpoint``), each with its ``NAME``, ``HELP``, ``add_arguments(parser)``
+``refine``, ``viewpoint``, ``partition``), each with its ``NAME``, ``HELP``, ``add_arguments(parser)``
 and ``run(args)``; :mod:`~mi_tetvr.cli.flags` holds the shared options and those
 generated from settings dataclasses (``render``'s from
 :class:`~mi_tetvr.apps.settings.RenderSettings`, ``fit``'s from
@@ -46,7 +47,7 @@ import textwrap
 
 from mi_tetvr.apps.settings import OPACITY_SCALE
 from mi_tetvr.cli import (evaluate, fit, info, make_capture, make_dataset, make_scenes,
-                          process_data, refine, render, view, viewpoint)
+                          partition, process_data, refine, render, view, viewpoint)
 from mi_tetvr.cli.common import CommandError, scene_xml
 from mi_tetvr.cli.fit import fit_config
 from mi_tetvr.cli.flags import (VARIANTS, config_flags, image_size, settings_flags,
@@ -64,7 +65,7 @@ __all__ = ["main", "build_parser", "command_summary", "COMMANDS", "CommandError"
 
 #: The commands, in the order ``mi-tetvr --help`` and the README list them.
 COMMANDS = (render, info, make_scenes, make_dataset, make_capture, process_data, fit, view,
-            evaluate, refine, viewpoint)
+            evaluate, refine, viewpoint, partition)
 
 
 def build_parser():

@@ -24,7 +24,7 @@ __all__ = ["CommandError", "refuse", "set_variant", "write_render", "srgb8", "sc
            "MESH_SUFFIXES"]
 
 IMAGE_SUFFIXES = (".exr", ".png", ".jpg", ".jpeg")
-MESH_SUFFIXES = (".vtu", ".msh", ".mesh", ".vtk")
+MESH_SUFFIXES = (".vtu", ".msh", ".mesh", ".vtk", ".pvtu")
 
 
 class CommandError(Exception):

@@ -28,6 +28,13 @@ def add_arguments(p):
                    "camera and transfer function range for all")
     flags.settings_flags(p, RenderSettings)
     flags.out(p, "output image (.exr: linear RGBA; .png/.jpg: sRGB); repeatable", append=True)
+    p.add_argument("--workers", type=int, default=None,
+                   help="Ray workers: a partitioned mesh (a .pvtu written by `partition`) "
+                   "rendered block by block and composited, or the frames of an orbit or a "
+                   "series spread over them")
+    p.add_argument("--address", default=None,
+                   help="a running Ray cluster for --workers (default: RAY_ADDRESS, else a "
+                   "local one of this machine's processes)")
     flags.variant(p)
 
 
@@ -88,6 +95,11 @@ def run(a):
     if s.orbit and not any(Path(o).suffix.lower() == ".mp4" for o in a.out):
         raise ValueError("--orbit writes a video: give an -o FILE.mp4 (and images for the "
                          "contact sheet)")
+    distributed = a.workers is not None or a.address is not None
+    if a.workers is not None and a.workers < 1:
+        raise ValueError(f"--workers must be at least 1, got {a.workers}")
+    if distributed and not (s.orbit or series):
+        return render_partitioned(s, a, mi, scene_path)
     if s.orbit:
         return render_orbit(s, a.out, mi, scene_path)
     if series:
@@ -184,3 +196,51 @@ def render_series(s, outs, mi, paths):
     print(f"rendered {len(paths)} meshes at {frames.shape[2]}x{frames.shape[1]}"
           + (f", '{framing['scalar']}' over [{rng[0]:.4g}, {rng[1]:.4g}]" if rng else "")
           + f" ({time.time() - t0:.1f} s) -> {', '.join(written)}")
+
+
+def render_partitioned(s, a, mi, path):
+    """``render OUT.pvtu --workers N``: a partitioned mesh rendered by Ray
+    workers, each holding its blocks (:mod:`mi_tetvr.distributed`), with the
+    camera and transfer function of the whole mesh (its bounds and ranges
+    from the partition, the mesh itself never read here)."""
+    from mi_tetvr.apps.framing import framed_scene, mesh_framing, render_rgba, shape_props
+    from mi_tetvr.distributed import PartitionedMesh
+    from mi_tetvr.mesh.io import choose_scalar
+    from mi_tetvr.mesh.partition import blocks_path, read_partition, read_piece
+    from mi_tetvr.mesh.topology import MeshError
+    if path.suffix.lower() != ".pvtu" or not blocks_path(path).is_file():
+        raise ValueError(f"--workers renders a partitioned mesh (a .pvtu written by "
+                         f"`mi-tetvr partition MESH -o OUT.pvtu --blocks N`), or an orbit or a "
+                         f"series; got {path}")
+    if s.mode != "dvr" or s.surface is not None:
+        raise ValueError("a partitioned mesh is rendered in --mode dvr, without --iso or "
+                         "--plane")
+    t0 = time.time()
+    try:
+        part = read_partition(path)
+    except MeshError as e:
+        raise CommandError(str(e)) from None
+    name, rng = None, None
+    if s.classified:
+        _, _, pd, cd, _ = read_piece(part, 0)
+        for k in ("color", "opacity"):
+            pd.pop(k, None)
+        try:
+            name = choose_scalar(pd, s.scalar, str(path), cd, cells=True)
+        except MeshError as e:
+            raise CommandError(str(e)) from None
+        rng = part.point_ranges.get(name) or part.cell_ranges.get(name)
+    framing = mesh_framing([(part.bounds[0], part.bounds[1], name, rng)])
+    scene = load_scene(mi, framed_scene(s, framing), path)
+    with PartitionedMesh(path, a.workers, shape_props(s, framing), a.address) as pm:
+        t1 = time.time()
+        with render_errors(path):
+            img = render_rgba(np.array(pm.render(scene, spp=s.spp or 0)))
+        t2 = time.time()
+        memory = pm.peak_memory()
+    for out in a.out:
+        write_render(out, img[..., :3], img[..., 3])
+    print(f"rendered {path} ({part.tets:,} tets in {len(part.blocks)} blocks) on "
+          f"{len(memory)} workers at {img.shape[1]}x{img.shape[0]} (start and load "
+          f"{t1 - t0:.1f} s, render {t2 - t1:.1f} s; peak memory per worker "
+          f"{max(memory) / 2**20:,.0f} MiB) -> {', '.join(a.out)}")

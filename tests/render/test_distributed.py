@@ -1,0 +1,251 @@
+"""A mesh partitioned into k-d blocks, rendered and differentiated by Ray
+workers and composited sort-last, is the whole mesh rendered in one process
+(``mi.render``, the same sampler, film and filter): the image within 1e-5 per
+pixel and the gradients within 1e-4 of their largest, with rays along a
+plane between blocks, the camera inside the mesh, a post-classified scalar
+and a floor lit by an emitter (Mitsuba's own ``prb`` behind the volume).
+VTK opens the ``.pvtu`` as the mesh once over (its ghost cells dropped)."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+ray = pytest.importorskip("ray")
+
+RES = (33, 25)          # odd width: a column of rays through the image's centre
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    from mi_tetvr.mesh.generate import blob_field, grid_mesh
+    V, T = grid_mesh((7, 6, 5), jitter=0.25, seed=3)
+    color, opacity = blob_field(V, scale=6.0)
+    scalar = opacity / opacity.max() + 0.3 * V[:, 0]
+    return V, T, color, opacity, scalar
+
+
+@pytest.fixture(scope="module")
+def partitions(mesh, tmp_path_factory):
+    from mi_tetvr.mesh.partition import partition_mesh
+    V, T, color, opacity, scalar = mesh
+    root = tmp_path_factory.mktemp("blocks")
+    return {n: partition_mesh(V, T, root / f"m{n}.pvtu", n,
+                              {"color": color, "opacity": opacity, "scalar": scalar})
+            for n in (2, 4, 8)}
+
+
+def scene_dict(origin, target, floor=False, mesh=None):
+    import mitsuba as mi
+    from mi_tetvr.camera import look_at
+    d = {"type": "scene", "integrator": {"type": "tetvr", "min_transmittance": 0.0},
+         "sensor": {"type": "perspective", "fov": 60,
+                    "to_world": mi.ScalarTransform4f(look_at(origin, target, (0, 0, 1))),
+                    "film": {"type": "hdrfilm", "width": RES[0], "height": RES[1],
+                             "rfilter": {"type": "gaussian"}},
+                    "sampler": {"type": "stratified", "sample_count": 1, "jitter": False}}}
+    if floor:
+        d["floor"] = {"type": "rectangle", "bsdf": {"type": "diffuse"},
+                      "to_world": mi.ScalarTransform4f().translate([0, 0, -1.3]).scale(3.0)}
+        d["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": [0.4, 0.5, 0.6]}}
+    if mesh is not None:
+        d["mesh"] = mesh
+    return d
+
+
+def shape_of(mesh, scalar):
+    """The tetmesh properties of the blocks, and the whole mesh's shape."""
+    import mi_tetvr
+    V, T, color, opacity, field = mesh
+    if scalar:
+        props = {"transfer_function": "viridis", "opacity_scale": 4.0}
+        rng = {"value_min": float(field.min()), "value_max": float(field.max())}
+        return ({**props, "scalar_attribute": "scalar"},
+                mi_tetvr.tetmesh_dict(V, T, scalar=field, **props, **rng))
+    return {}, mi_tetvr.tetmesh_dict(V, T, color, opacity)
+
+
+def split_plane(part):
+    """``(axis, value)`` of the first k-d split (shared by 2, 4 and 8 blocks)."""
+    box = part.boxes()[0]
+    axis = int(np.flatnonzero(np.isfinite(box[1]))[0])
+    return axis, float(box[1, axis])
+
+
+def views(partitions):
+    """Three cameras: on the first split plane looking along it, inside the
+    mesh, and above it with a floor."""
+    axis, s = split_plane(partitions[2])
+    origin = np.zeros(3)
+    origin[axis] = s
+    other = (axis + 1) % 3 if (axis + 1) % 3 != 2 else (axis + 2) % 3
+    origin[other] = -3.0
+    target = origin.copy()
+    target[other] = 0.0
+    return {"along the split plane": (origin, target, False),
+            "inside": ((0.1, -0.05, 0.05), (1.0, 0.4, 0.3), False),
+            "floor": ((2.2, -2.6, 1.6), (0.0, 0.0, -0.4), True)}
+
+
+def test_partition_is_the_mesh_once_over(mesh, partitions):
+    """Each block's piece holds every tet touching its box, the boxes tile
+    space, every tet is owned once; VTK reads the ``.pvtu`` (the reference),
+    and without its duplicate cells it is the mesh; the pieces joined again
+    by their global ids are the mesh exactly."""
+    import pyvista as pv
+    from mi_tetvr.mesh.partition import GHOST, assemble, block_members
+    V, T, color, opacity, scalar = mesh
+    for n, part in partitions.items():
+        boxes = part.boxes()
+        assert len(boxes) == n
+        centroids = V[T].mean(1)
+        inside = np.zeros(len(T), int)
+        for box in boxes:
+            inside += np.all(centroids >= box[0], 1) & np.all(centroids < box[1], 1)
+        assert np.all(inside == 1)                      # the boxes tile the centroids' space
+        for k, block in enumerate(part.blocks):
+            touching, owned = block_members(V, T, boxes[k])
+            assert block.tets == touching.sum() and block.owned == owned.sum()
+        grid = pv.read(part.path)
+        assert grid.n_cells == sum(b.tets for b in part.blocks)
+        kept = grid.extract_cells(np.flatnonzero(grid.cell_data[GHOST] == 0))
+        assert kept.n_cells == len(T)
+        got = np.sort(np.sort(kept.points[kept.cells_dict[pv.CellType.TETRA]].sum(1), 1), 0)
+        want = np.sort(np.sort(V[T].sum(1), 1), 0)
+        assert np.allclose(got, want, atol=1e-12)
+        whole = assemble(part)
+        assert np.array_equal(whole.points, V) and np.array_equal(whole.cells[0].data, T)
+        assert np.array_equal(whole.point_data["scalar"], scalar)
+
+
+def test_rays_along_a_block_face_are_in_one_block():
+    from mi_tetvr.distributed import block_intervals
+    inf = np.inf
+    boxes = np.array([[[-inf, -inf, -inf], [0.5, inf, inf]],
+                      [[0.5, -inf, -inf], [inf, inf, inf]]])
+    o = np.array([[0.5, -3.0, 0.0], [0.2, -3.0, 0.0], [0.0, -3.0, 0.0]])
+    d = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.6, 0.8, 0.0]])
+    iv = block_intervals(o, d, np.zeros(3), np.full(3, 10.0), boxes)
+    live = iv[..., 1] > iv[..., 0]
+    assert live.tolist() == [[False, True], [True, False], [True, True]]
+    # a ray crossing the plane: the two intervals meet there
+    assert iv[2, 0, 1] == iv[2, 1, 0] == pytest.approx(0.5 / 0.6)
+
+
+@pytest.mark.parametrize("blocks", [2, 4, 8])
+def test_blocks_render_the_whole_mesh(cluster, mesh, partitions, blocks):
+    import mitsuba as mi
+    from mi_tetvr.distributed import PartitionedMesh
+    props, whole = shape_of(mesh, scalar=False)
+    cams = views(partitions)
+    # the camera on the plane: a column of its rays lies in the plane
+    origin, target, _ = cams["along the split plane"]
+    axis, s = split_plane(partitions[2])
+    sensor = mi.load_dict(scene_dict(origin, target)["sensor"])
+    ray, _ = sensor.sample_ray(0.0, 0.0, mi.Point2f([(16 + 0.5) / RES[0]] * 3, [0.2, 0.5, 0.8]),
+                               mi.Point2f(0.5))
+    assert np.all(np.array(ray.d)[axis] == 0.0) and np.all(np.array(ray.o)[axis] == s)
+    with PartitionedMesh(partitions[blocks].path, workers=2, shape=props) as pm:
+        for name, (o, t, floor) in cams.items():
+            want = np.array(mi.render(mi.load_dict(scene_dict(o, t, floor, whole))))
+            got = np.array(pm.render(mi.load_dict(scene_dict(o, t, floor))))
+            assert want[..., :3].max() > 0.05, name
+            assert np.abs(got - want).max() < 1e-5, (name, np.abs(got - want).max())
+
+
+def test_post_classified_scalar_in_blocks(cluster, mesh, partitions):
+    """The blocks map the scalar over the whole mesh's range (each piece's
+    own range differs) and classify it along the rays as one mesh does."""
+    import mitsuba as mi
+    from mi_tetvr.distributed import PartitionedMesh
+    props, whole = shape_of(mesh, scalar=True)
+    o, t, _ = views(partitions)["floor"]
+    with PartitionedMesh(partitions[4].path, workers=2, shape=props) as pm:
+        want = np.array(mi.render(mi.load_dict(scene_dict(o, t, True, whole))))
+        got = np.array(pm.render(mi.load_dict(scene_dict(o, t, True))))
+    assert want[..., :3].max() > 0.05
+    assert np.abs(got - want).max() < 1e-5
+
+
+@pytest.mark.parametrize("scalar", [False, True], ids=["colors", "scalar"])
+def test_gradients_across_blocks(cluster, mesh, partitions, scalar):
+    """``dr.backward`` of one process and the blocks' adjoints summed over the
+    vertices they share: colors, opacities and positions (a scalar mesh: its
+    scalar, positions and the transfer function's texels)."""
+    import drjit as dr
+    import mitsuba as mi
+    from mi_tetvr.distributed import PartitionedMesh
+    props, whole = shape_of(mesh, scalar)
+    o, t, _ = views(partitions)["floor"]
+    weights = np.random.default_rng(0).normal(size=(RES[1], RES[0], 4)).astype(np.float32)
+    with PartitionedMesh(partitions[4].path, workers=2, shape=props) as pm:
+        got = pm.backward(mi.load_dict(scene_dict(o, t, True)), weights)
+    scene = mi.load_dict(scene_dict(o, t, True, whole))
+    params = mi.traverse(scene)
+    names = (["vertex_scalar", "vertex_positions", "tf_color", "tf_opacity"] if scalar
+             else ["vertex_color", "vertex_opacity", "vertex_positions"])
+    for n in names:
+        dr.enable_grad(params[f"mesh.{n}"])
+    params.update()
+    img = mi.render(scene, params)
+    dr.backward(dr.sum(img * mi.TensorXf(weights), axis=None))
+    n_vertices = len(mesh[0])
+    for n in names:
+        want = np.array(dr.grad(params[f"mesh.{n}"]), np.float64)
+        have = got[n]
+        if n.startswith("vertex_"):
+            want = want.reshape(n_vertices, -1)
+        else:
+            have = have.reshape(want.shape)
+        scale = np.abs(want).max()
+        assert scale > 0, n
+        assert np.abs(have - want).max() < 1e-4 * scale, (n, np.abs(have - want).max() / scale)
+
+
+def test_bad_partitions_and_dead_workers(cluster, mesh, partitions, tmp_path):
+    import shutil
+
+    import mitsuba as mi
+    from mi_tetvr.distributed import PartitionedMesh
+    from mi_tetvr.mesh.partition import MeshError, blocks_path, read_partition
+    part = partitions[2]
+    # a missing piece
+    copy = tmp_path / "c.pvtu"
+    shutil.copy(part.path, copy)
+    shutil.copy(blocks_path(part.path), blocks_path(copy))
+    shutil.copytree(part.path.parent / part.path.stem, tmp_path / "c")
+    for f in (tmp_path / "c").iterdir():
+        f.rename(f.with_name(f.name.replace(part.path.stem + "_", "c_")))
+    (tmp_path / "c" / "c_1.vtu").unlink()
+    text = copy.read_text().replace(f"{part.path.stem}/{part.path.stem}_", "c/c_")
+    copy.write_text(text)
+    side = blocks_path(copy)
+    side.write_text(side.read_text().replace(f"{part.path.stem}/{part.path.stem}_", "c/c_"))
+    with pytest.raises(FileNotFoundError, match=r"1 of 2 pieces missing: .*c_1\.vtu"):
+        read_partition(copy)
+    # a .pvtu of unknown boxes
+    blocks_path(copy).unlink()
+    with pytest.raises(MeshError, match="blocks' boxes are unknown"):
+        read_partition(copy)
+    # a worker that dies between two renders is started again (its piece read anew);
+    # with no retries left the render fails with a message
+    o, t, _ = views(partitions)["inside"]
+    scene = mi.load_dict(scene_dict(o, t))
+    for retries in (1, 0):
+        with PartitionedMesh(part.path, workers=2, retries=retries) as pm:
+            first = np.array(pm.render(scene))
+            pid = ray.get(pm.actors[1].pid.remote())
+            os.kill(pid, 9)
+            if retries:
+                assert np.abs(np.array(pm.render(scene)) - first).max() < 1e-6
+            else:
+                with pytest.raises(RuntimeError, match="worker of block 1 .* died"):
+                    pm.render(scene)
