@@ -95,13 +95,14 @@ class BlockWorker:
             dr.set_thread_count(int(threads))
         self.part = read_partition(pvtu)
         self.shape = dict(shape or {})
-        self.meshes = {}
-        for k in blocks:
-            self.meshes[k] = self._load(k)
-        self.scenes = {}
+        self.blocks = {k: self._load(k) for k in blocks}
+        self.integrators = {}
 
     def _load(self, k):
-        """``(shape dict, global point ids, piece diagonal)`` of block ``k``."""
+        """``(scene, global point ids, piece diagonal)`` of block ``k``: a
+        scene of its piece alone."""
+        import mitsuba as mi
+
         import mi_tetvr
         from mi_tetvr.mesh.io import choose_scalar
         vertices, tets, pd, cd, ids = read_piece(self.part, k)
@@ -120,23 +121,22 @@ class BlockWorker:
             opacity = pd.get(props.pop("opacity_attribute", "opacity"))
             entry = mi_tetvr.tetmesh_dict(vertices, tets, color, opacity, **props)
         diag = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
-        return entry, ids, diag
+        del vertices, tets, pd, cd
+        return mi.load_dict({"type": "scene", "block": entry}), ids, diag
 
-    def _scene(self, k, settings):
-        """Block ``k``'s scene under the driver's walk ``settings`` (kept
-        while they stay the same)."""
+    def _program(self, k, settings):
+        """``(scene, ray program)`` of block ``k`` under the driver's walk
+        ``settings`` (its ``tetvr`` kept while they stay the same)."""
         import mitsuba as mi
+        scene, _, diag = self.blocks[k]
         key = (k, tuple(sorted(settings.items())))
-        if key not in self.scenes:
-            entry, _, diag = self.meshes[k]
+        if key not in self.integrators:
             s = dict(settings)
             # the driver's re-trace offset (absolute) in this block's units
             s["retrace_epsilon"] = s.pop("retrace_offset") / max(diag, 1e-30)
-            self.scenes = {kk: v for kk, v in self.scenes.items() if kk[0] != k}
-            self.scenes[key] = mi.load_dict({"type": "scene", "block": entry,
-                                             "integrator": {"type": "tetvr", "alpha": False,
-                                                            **s}})
-        return self.scenes[key]
+            self.integrators = {kk: v for kk, v in self.integrators.items() if kk[0] != k}
+            self.integrators[key] = mi.load_dict({"type": "tetvr", "alpha": False, **s})
+        return scene, self.integrators[key].program(scene)
 
     @staticmethod
     def _rays(o, d, t0, t1):
@@ -152,8 +152,7 @@ class BlockWorker:
         """``(C (n, 3), T (n,))`` of block ``k`` along the rays ``o + t d``
         over ``[t0, t1]``."""
         import drjit as dr
-        scene = self._scene(k, settings)
-        program = scene.integrator().program(scene)
+        _, program = self._program(k, settings)
         ray, start, active = self._rays(o, d, t0, t1)
         C, T = program.volume(program.media(), ray, start, active)
         dr.eval(C, T)
@@ -167,7 +166,7 @@ class BlockWorker:
         import drjit as dr
         import mitsuba as mi
         from mi_tetvr.render.adjoint import Adjoint, Derivative
-        scene = self._scene(k, settings)
+        scene, program = self._program(k, settings)
         params = mi.traverse(scene)
         keys = [key for key in params.keys() if key.split(".", 1)[-1] in
                 VERTEX_PARAMS + SHARED_PARAMS and dr.is_diff_v(params[key])]
@@ -175,7 +174,6 @@ class BlockWorker:
             dr.enable_grad(params[key])
         params.update()
         try:
-            program = scene.integrator().program(scene)
             ray, start, active = self._rays(o, d, t0, t1)
             zero = mi.Vector3f(0.0)
 
@@ -196,7 +194,7 @@ class BlockWorker:
         return out
 
     def point_ids(self, k):
-        return self.meshes[k][1]
+        return self.blocks[k][1]
 
     def peak_memory(self):
         """This worker process's peak resident memory (bytes)."""
@@ -338,9 +336,14 @@ class PartitionedMesh:
     retries : int
         Times a worker that dies is started again (its blocks read anew) and
         its call run again before the render fails.
+    stagger : bool
+        Start the workers one after the other, each once the previous one
+        has loaded its pieces: the machine's memory then holds one load's
+        peak at a time (workers of one machine on a mesh near its memory).
     """
 
-    def __init__(self, pvtu, workers=None, shape=None, address=None, threads=None, retries=1):
+    def __init__(self, pvtu, workers=None, shape=None, address=None, threads=None, retries=1,
+                 stagger=False):
         import mitsuba as mi
         import ray
         self.part = read_partition(pvtu)
@@ -350,20 +353,7 @@ class PartitionedMesh:
         if self.workers < 1:
             raise ValueError(f"workers must be at least 1, got {workers}")
         self.workers = min(self.workers, nb)
-        self.started = False
-        address = address or os.environ.get("RAY_ADDRESS")
-        if not ray.is_initialized():
-            try:
-                if address:
-                    ray.init(address=address, log_to_driver=False)
-                else:
-                    ray.init(num_cpus=max(os.cpu_count() or 1, self.workers),
-                             include_dashboard=False, log_to_driver=False)
-            except ConnectionError as e:
-                raise ConnectionError(f"no Ray cluster answers at {address!r} ({e}); start one "
-                                      f"with `ray start --head`, or leave the address out for "
-                                      f"a local one") from None
-            self.started = True
+        self.started = connect(self.workers, address)
         cpus = int(ray.available_resources().get("CPU", self.workers))
         threads = threads or max(1, cpus // self.workers)
         remote = ray.remote(num_cpus=0, max_restarts=int(retries),
@@ -372,8 +362,12 @@ class PartitionedMesh:
         self.owner = {k: w for w, ks in enumerate(self.assign) for k in ks}
         variant = mi.variant()
         path = str(Path(pvtu).resolve())
-        self.actors = [remote.remote(path, ks, shape or {}, variant, threads)
-                       for ks in self.assign]
+        self.actors = []
+        for ks in self.assign:
+            self.actors.append(remote.remote(path, ks, shape or {}, variant, threads))
+            if stagger:
+                # (its pieces loaded before the next worker starts: one load's peak at a time)
+                ray.get(self.actors[-1].pid.remote())
         self._ids = {}
 
     def call(self, k, method, *args):
@@ -460,6 +454,61 @@ class PartitionedMesh:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def connect(workers, address=None):
+    """Join the Ray cluster at ``address`` (default ``RAY_ADDRESS``), or start a
+    local one of this machine's cores (at least ``workers`` slots); True
+    where it was started here (the caller shuts it down). A clear
+    ``ConnectionError`` where no cluster answers."""
+    import ray
+    if ray.is_initialized():
+        return False
+    address = address or os.environ.get("RAY_ADDRESS")
+    try:
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(num_cpus=max(os.cpu_count() or 1, int(workers)), include_dashboard=False,
+                     log_to_driver=False)
+    except ConnectionError as e:
+        raise ConnectionError(f"no Ray cluster answers at {address!r} ({e}); start one with "
+                              f"`ray start --head`, or leave the address out for a local "
+                              f"one") from None
+    return True
+
+
+def map_frames(cls, init_args, method, calls, workers, address=None, progress=None):
+    """``[getattr(obj, method)(*call) for call in calls]`` over ``workers`` Ray
+    actors of ``cls`` (each built once with ``init_args``, so that what it
+    loads serves all its frames), in order; ``progress`` is called once per
+    frame done. A worker that dies is started again once."""
+    import ray
+    from ray.util import ActorPool
+    started = connect(workers, address)
+    try:
+        cpus = int(ray.available_resources().get("CPU", workers))
+        remote = ray.remote(num_cpus=0, max_restarts=1, max_task_retries=1)(cls)
+        actors = [remote.remote(*init_args, threads=max(1, cpus // workers))
+                  for _ in range(workers)]
+        pool = ActorPool(actors)
+        out = []
+        try:
+            for frame in pool.map(lambda a, call: getattr(a, method).remote(*call), calls):
+                out.append(frame)
+                if progress is not None:
+                    progress()
+        except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError) as e:
+            raise RuntimeError(f"a worker died twice ({type(e).__name__}): the frames are "
+                               f"abandoned, nothing written") from None
+        finally:
+            for a in actors:
+                ray.kill(a)
+        return out
+    finally:
+        if started:
+            ray.shutdown()
+
 
 
 def render(scene, pvtu, workers=None, shape=None, address=None, sensor=0, seed=0, spp=0):

@@ -17,11 +17,12 @@
     mi-tetvr refine MESH --select ARRAY [--fraction F] -o OUT
     mi-tetvr viewpoint MESH -o DIR [--tf TF] [--res WxH]
     mi-tetvr partition MESH -o OUT.pvtu --blocks N
+    mi-tetvr sweep DATA SWEEP.yaml -o DIR [--workers N] [--address A]
     mi-tetvr view MESH|SCENE.xml|DATA|FIT_DIR [--tf TF] [--port P] [--host H] [--res N]
 
 One module per command (``render``, ``info``, ``make_scenes``, ``make_dataset``,
 ``make_capture``, ``process_data``, ``fit``, ``view``, ``evaluate`` for ``eval``,
-``refine``, ``viewpoint``, ``partition``), each with its ``NAME``, ``HELP``, ``add_arguments(parser)``
+``refine``, ``viewpoint``, ``partition``, ``sweep``), each with its ``NAME``, ``HELP``, ``add_arguments(parser)``
 and ``run(args)``; :mod:`~mi_tetvr.cli.flags` holds the shared options and those
 generated from settings dataclasses (``render``'s from
 :class:`~mi_tetvr.apps.settings.RenderSettings`, ``fit``'s from
@@ -47,7 +48,7 @@ import textwrap
 
 from mi_tetvr.apps.settings import OPACITY_SCALE
 from mi_tetvr.cli import (evaluate, fit, info, make_capture, make_dataset, make_scenes,
-                          partition, process_data, refine, render, view, viewpoint)
+                          partition, process_data, refine, render, sweep, view, viewpoint)
 from mi_tetvr.cli.common import CommandError, scene_xml
 from mi_tetvr.cli.fit import fit_config
 from mi_tetvr.cli.flags import (VARIANTS, config_flags, image_size, settings_flags,
@@ -65,7 +66,7 @@ __all__ = ["main", "build_parser", "command_summary", "COMMANDS", "CommandError"
 
 #: The commands, in the order ``mi-tetvr --help`` and the README list them.
 COMMANDS = (render, info, make_scenes, make_dataset, make_capture, process_data, fit, view,
-            evaluate, refine, viewpoint, partition)
+            evaluate, refine, viewpoint, partition, sweep)
 
 
 def build_parser():

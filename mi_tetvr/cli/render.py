@@ -101,9 +101,9 @@ def run(a):
     if distributed and not (s.orbit or series):
         return render_partitioned(s, a, mi, scene_path)
     if s.orbit:
-        return render_orbit(s, a.out, mi, scene_path)
+        return render_orbit(s, a.out, mi, scene_path, a.workers, a.address)
     if series:
-        return render_series(s, a.out, mi, paths)
+        return render_series(s, a.out, mi, paths, a.workers, a.address)
     t0 = time.time()
     if is_mesh:
         mesh = read_mesh(s, scene_path)
@@ -133,28 +133,67 @@ def run(a):
           f"render {t2 - t1:.1f} s) -> {', '.join(a.out)}")
 
 
-def render_orbit(s, outs, mi, path):
+class FrameRenderer:
+    """The frames of an orbit or a series, rendered in one process: this one,
+    or a Ray worker's (``render --workers``), which loads its orbit's scene
+    once and keeps its kernels for all its frames."""
+
+    def __init__(self, settings, framing, variant, threads=None):
+        self.s, self.framing = settings, framing
+        self.mi = set_variant(variant)
+        if threads:
+            import drjit as dr
+            dr.set_thread_count(int(threads))
+        self.orbit = None
+
+    def orbit_frame(self, path, azimuth):
+        """The RGBA frame of the orbit's mesh ``path`` seen from ``azimuth``."""
+        from mi_tetvr.apps.frames import Frames
+        s = dataclasses.replace(self.s, view=(float(azimuth), self.s.azimuth_elevation[1]))
+        if self.orbit is None or self.orbit[0] != path:
+            mesh = read_mesh(s, path)
+            d = mesh_scene(s, mesh, self.framing)
+            # (one scene, the camera moving: each frame replays the first's kernels)
+            self.orbit = (path, mesh, Frames(load_scene(self.mi, d, path)))
+        _, mesh, recorded = self.orbit
+        d = mesh_scene(s, mesh, self.framing)
+        with render_errors(path):
+            return render_rgba(np.array(recorded.render_dict(d["sensor"])))
+
+    def series_frame(self, path):
+        """The RGBA frame of the series' mesh ``path``."""
+        scene = load_scene(self.mi, mesh_scene(self.s, read_mesh(self.s, path), self.framing),
+                           path)
+        return render_image(self.mi, scene, path, spp=self.s.spp or 0)
+
+
+def render_frames(s, framing, method, calls, workers, address, bar):
+    """The frames ``FrameRenderer.<method>(*call)`` for each call, here or
+    over ``workers`` Ray workers (:func:`mi_tetvr.distributed.map_frames`)."""
+    import mitsuba as mi
+    if workers is None and address is None:
+        r = FrameRenderer(s, framing, mi.variant())
+        return [getattr(r, method)(*c) for c in bar(calls)]
+    from mi_tetvr.distributed import map_frames
+    progress = bar(range(len(calls)))
+    frames = map_frames(FrameRenderer, (s, framing, mi.variant()), method, calls,
+                        workers or 1, address, progress=progress.update)
+    progress.close()
+    return frames
+
+
+def render_orbit(s, outs, mi, path, workers=None, address=None):
     """``render MESH --orbit N`` (:class:`RenderSettings` ``s``): N frames once around
     ``--up`` from ``--view``, written as an MP4 (the ``.mp4`` outputs) and a contact
-    sheet (the image outputs)."""
+    sheet (the image outputs); ``workers``: spread over Ray workers."""
     from mi_tetvr.apps.orbit import contact_sheet, orbit_azimuths
     from mi_tetvr.video import FPS, write_video
-    from mi_tetvr.progress import progress_bar
     t0 = time.time()
-    azimuth, elevation = s.azimuth_elevation
-    mesh = read_mesh(s, path)
-    framing = mesh_framing([mesh_extent(s, mesh, path)])
-    from mi_tetvr.apps.frames import Frames
-    frames = []
-    recorded = None
-    for az in progress_bar(orbit_azimuths(azimuth, s.orbit), desc="orbit", unit="frame"):
-        d = mesh_scene(dataclasses.replace(s, view=(float(az), elevation)), mesh, framing)
-        if recorded is None:
-            # (one scene, the camera moving: each frame replays the first's kernels)
-            recorded = Frames(load_scene(mi, d, path))
-        with render_errors(path):
-            frames.append(render_rgba(np.array(recorded.render_dict(d["sensor"]))))
-    frames = np.stack(frames)
+    framing = mesh_framing([mesh_extent(s, read_mesh(s, path), path)])
+    azimuth, _ = s.azimuth_elevation
+    calls = [(path, float(az)) for az in orbit_azimuths(azimuth, s.orbit)]
+    frames = np.stack(render_frames(s, framing, "orbit_frame", calls, workers, address,
+                                    _bar("orbit")))
     sheet = contact_sheet(frames)
     for out in outs:
         if Path(out).suffix.lower() == ".mp4":
@@ -162,25 +201,36 @@ def render_orbit(s, outs, mi, path):
         else:
             write_render(out, sheet[..., :3], sheet[..., 3] if sheet.shape[-1] > 3 else None)
     print(f"rendered {s.orbit} frames of {path} around {tuple(s.up_axis)} at "
-          f"{frames.shape[2]}x{frames.shape[1]} ({time.time() - t0:.1f} s) -> "
-          f"{', '.join(outs)}")
+          f"{frames.shape[2]}x{frames.shape[1]} ({time.time() - t0:.1f} s"
+          f"{_on(workers, address)}) -> {', '.join(outs)}")
 
 
-def render_series(s, outs, mi, paths):
+def _bar(desc):
+    from mi_tetvr.progress import progress_bar
+
+    def bar(items):
+        return progress_bar(items, desc=desc, unit="frame")
+    return bar
+
+
+def _on(workers, address):
+    if workers is None and address is None:
+        return ""
+    return f" on {workers or 1} Ray worker{'s' if (workers or 1) > 1 else ''}"
+
+
+def render_series(s, outs, mi, paths, workers=None, address=None):
     """``render MESH MESH ...`` (or a ``.pvd``; :class:`RenderSettings` ``s``): every
     mesh with one transfer function range and one camera (:func:`mesh_framing` over
-    all), as an MP4 (the ``.mp4`` outputs) and numbered images (``stem_0000.png``, ...)."""
+    all), as an MP4 (the ``.mp4`` outputs) and numbered images (``stem_0000.png``, ...);
+    ``workers``: the frames spread over Ray workers."""
     from mi_tetvr.video import FPS, write_video
-    from mi_tetvr.progress import progress_bar
     t0 = time.time()
     # the range and the box of all the meshes first (each read again to render: a
     # series need not fit in memory at once)
     framing = mesh_framing([mesh_extent(s, read_mesh(s, p), p) for p in paths])
-    frames = []
-    for path in progress_bar(paths, desc="series", unit="mesh"):
-        scene = load_scene(mi, mesh_scene(s, read_mesh(s, path), framing), path)
-        frames.append(render_image(mi, scene, path, spp=s.spp or 0))
-    frames = np.stack(frames)
+    frames = np.stack(render_frames(s, framing, "series_frame", [(p,) for p in paths],
+                                    workers, address, _bar("series")))
     written = []
     for out in outs:
         out = Path(out)
@@ -195,7 +245,7 @@ def render_series(s, outs, mi, paths):
     rng = framing["value_range"]
     print(f"rendered {len(paths)} meshes at {frames.shape[2]}x{frames.shape[1]}"
           + (f", '{framing['scalar']}' over [{rng[0]:.4g}, {rng[1]:.4g}]" if rng else "")
-          + f" ({time.time() - t0:.1f} s) -> {', '.join(written)}")
+          + f" ({time.time() - t0:.1f} s{_on(workers, address)}) -> {', '.join(written)}")
 
 
 def render_partitioned(s, a, mi, path):

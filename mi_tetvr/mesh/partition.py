@@ -334,3 +334,95 @@ def assemble(part: Partition):
             cell_data.setdefault(n, np.zeros((part.tets,) + v.shape[1:], v.dtype))[cells] = v[own]
     return meshio.Mesh(points, [("tetra", tets)], point_data=point_data,
                        cell_data={n: [v] for n, v in cell_data.items()})
+
+
+def grid_blocks(shape, n):
+    """``n`` k-d blocks of a grid of ``shape`` cells: (n, 2, 3) cell-index
+    ranges ``[c0, c1)``, split as :func:`kd_boxes` splits (the longest axis,
+    ``n // 2`` blocks to the lower part)."""
+    out = []
+
+    def split(c0, c1, k):
+        if k == 1:
+            out.append(np.stack([c0, c1]))
+            return
+        axis = int(np.argmax(c1 - c0))
+        left = k // 2
+        cut = c0[axis] + ((c1[axis] - c0[axis]) * left) // k
+        if not c0[axis] < cut < c1[axis]:
+            raise ValueError(f"cannot split a grid of {tuple(shape)} cells into {n} blocks")
+        lc1, rc0 = c1.copy(), c0.copy()
+        lc1[axis] = cut
+        rc0[axis] = cut
+        split(c0, lc1, left)
+        split(rc0, c1, k - left)
+
+    split(np.zeros(3, np.int64), np.asarray(shape, np.int64), int(n))
+    return np.stack(out)
+
+
+def write_grid_partition(shape, out, blocks: int, fields, lo=(-1.0, -1.0, -1.0),
+                         hi=(1.0, 1.0, 1.0), *, progress=None) -> Partition:
+    """The regular tet grid :func:`~mi_tetvr.mesh.generate.grid_mesh` of
+    ``shape`` cells (6 tets each) partitioned into ``blocks`` as
+    :func:`partition_mesh` would, written block by block: the whole mesh is
+    never held (a mesh larger than memory). ``fields(points)`` gives the point
+    arrays of points (k, 3): a dict of (k, ...) arrays. The boxes are the
+    grid's planes between blocks; each piece holds its cells and the layer of
+    cells around them (whose tets touch its box: ghosts)."""
+    import meshio
+    from mi_tetvr.mesh.generate import KUHN_TETS
+    out = Path(out)
+    if out.suffix.lower() != ".pvtu":
+        raise ValueError(f"a partitioned mesh is written as .pvtu, got {out}")
+    shape = np.asarray(shape, np.int64)
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    h = (hi - lo) / shape
+    ranges = grid_blocks(shape, blocks)
+    folder = out.parent / out.stem
+    folder.mkdir(parents=True, exist_ok=True)
+    npts = shape + 1
+    written, ranges_of = [], {}
+    point_example = None
+    for k, (c0, c1) in enumerate(ranges):
+        a0, a1 = np.maximum(c0 - 1, 0), np.minimum(c1 + 1, shape)    # with the ghost layer
+        # the piece's points: the global grid points of cells a0..a1
+        pidx = [np.arange(a0[i], a1[i] + 1) for i in range(3)]
+        gi, gj, gk = np.meshgrid(*pidx, indexing="ij")
+        ids = ((gi * npts[1] + gj) * npts[2] + gk).ravel()
+        points = np.stack([lo[i] + [gi, gj, gk][i].ravel() * h[i] for i in range(3)], 1)
+        # its cells' tets in the piece's own point numbering (x slowest, as grid_tets)
+        m = a1 - a0
+        local = np.arange(len(ids)).reshape(*(m + 1))
+        corners = np.stack([local[i:i + m[0], j:j + m[1], kk:kk + m[2]].ravel()
+                            for i in (0, 1) for j in (0, 1) for kk in (0, 1)], 1)
+        tets = corners[:, KUHN_TETS].reshape(-1, 4)
+        ci, cj, ck = np.meshgrid(*[np.arange(a0[i], a1[i]) for i in range(3)], indexing="ij")
+        cell = ((ci * shape[1] + cj) * shape[2] + ck).ravel()
+        gcells = (cell[:, None] * 6 + np.arange(6)).ravel()
+        inside = np.all([(c >= c0[i]) & (c < c1[i]) for i, c in
+                         enumerate((ci.ravel(), cj.ravel(), ck.ravel()))], 0)
+        owned = np.repeat(inside, 6)
+        pd = {name: np.asarray(v) for name, v in fields(points).items()}
+        point_example = point_example or pd
+        for name, v in pd.items():
+            r = ranges_of.setdefault(name, [np.inf, -np.inf])
+            r[0], r[1] = min(r[0], float(v.min())), max(r[1], float(v.max()))
+        pd[GLOBAL_POINT_IDS] = ids
+        name = f"{out.stem}/{out.stem}_{k}.vtu"
+        meshio.write(out.parent / name, meshio.Mesh(points, [("tetra", tets)], point_data=pd,
+                                                    cell_data={GLOBAL_CELL_IDS: [gcells],
+                                                               GHOST: [np.where(owned, 0, 1)
+                                                                       .astype(np.uint8)]}),
+                     compression=None)
+        box = np.stack([np.where(c0 > 0, lo + c0 * h, -np.inf),
+                        np.where(c1 < shape, lo + c1 * h, np.inf)])
+        written.append(Block(box[0], box[1], name, len(tets), int(owned.sum()), len(ids)))
+        del points, tets, pd, corners, gcells, owned
+        if progress is not None:
+            progress(k)
+    _write_pvtu(out, [b.piece for b in written], point_example, {})
+    part = Partition(out, written, int(np.prod(npts)), int(6 * np.prod(shape)),
+                     np.stack([lo, hi]), ranges_of, {})
+    _write_blocks(part)
+    return part

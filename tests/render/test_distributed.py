@@ -27,7 +27,7 @@ def cluster():
 @pytest.fixture(scope="module")
 def mesh():
     from mi_tetvr.mesh.generate import blob_field, grid_mesh
-    V, T = grid_mesh((7, 6, 5), jitter=0.25, seed=3)
+    V, T = grid_mesh((7, 6, 5), jitter=0.2, seed=3)
     color, opacity = blob_field(V, scale=6.0)
     scalar = opacity / opacity.max() + 0.3 * V[:, 0]
     return V, T, color, opacity, scalar
