@@ -42,8 +42,26 @@ from mi_tetvr.mesh.partition import Partition, read_partition, read_piece
 
 #: Vertex parameters of a block's shape, by their ``mi.traverse`` names.
 VERTEX_PARAMS = ("vertex_color", "vertex_opacity", "vertex_positions", "vertex_scalar")
+#: What a fit over blocks optimizes (values at the vertices, not their positions).
+FITTED_PARAMS = ("vertex_color", "vertex_opacity", "vertex_scalar")
 #: Parameters every block holds whole (the transfer function's texels).
 SHARED_PARAMS = ("tf_color", "tf_opacity")
+
+
+def floats(a):
+    """A ``mi.Float`` of a 1-D ``a``, or a list of them (the columns of ``a``
+    (n, k)), from 64-byte aligned memory: Dr.Jit wraps numpy's memory as it
+    lies, and its alignment enters the kernel's code (each new array compiled
+    the walk again)."""
+    import mitsuba as mi
+    a = np.asarray(a, np.float32)
+    if a.ndim == 1:
+        buf = np.empty(a.size + 16, np.float32)
+        start = (-buf.ctypes.data % 64) // 4              # (64-byte aligned)
+        out = buf[start:start + a.size]
+        out[:] = a
+        return mi.Float(out)
+    return [floats(a[:, i]) for i in range(a.shape[1])]
 
 
 def block_intervals(o, d, t0, t1, boxes):
@@ -124,6 +142,19 @@ class BlockWorker:
         del vertices, tets, pd, cd
         return mi.load_dict({"type": "scene", "block": entry}), ids, diag
 
+    def write(self, k, path):
+        """Block ``k``'s piece with its present colors and opacities (as point
+        data ``color`` and ``opacity``), written to ``path``."""
+        import meshio
+
+        from mi_tetvr.mesh.io import read_mesh_file
+        m = read_mesh_file(self.part.piece_path(k))
+        for name, array in self.arrays(k, ["vertex_color", "vertex_opacity"]).items():
+            m.point_data[{"vertex_color": "color", "vertex_opacity": "opacity"}[name]] = \
+                array.astype(np.float64).reshape(len(m.points), -1).squeeze()
+        meshio.write(path, m)
+        return True
+
     def _program(self, k, settings):
         """``(scene, ray program)`` of block ``k`` under the driver's walk
         ``settings`` (its ``tetvr`` kept while they stay the same)."""
@@ -142,10 +173,9 @@ class BlockWorker:
     def _rays(o, d, t0, t1):
         import drjit as dr
         import mitsuba as mi
-        ray = mi.Ray3f(mi.Point3f(*(mi.Float(np.ascontiguousarray(o[:, i])) for i in range(3))),
-                       mi.Vector3f(*(mi.Float(np.ascontiguousarray(d[:, i])) for i in range(3))))
-        ray.maxt = mi.Float(np.asarray(t1, np.float32))
-        start = mi.Float(np.asarray(t0, np.float32))
+        ray = mi.Ray3f(mi.Point3f(*floats(o)), mi.Vector3f(*floats(d)))
+        ray.maxt = floats(t1)
+        start = floats(t0)
         return ray, start, ray.maxt > start
 
     def trace(self, k, settings, o, d, t0, t1):
@@ -153,9 +183,10 @@ class BlockWorker:
         over ``[t0, t1]``."""
         import drjit as dr
         _, program = self._program(k, settings)
-        ray, start, active = self._rays(o, d, t0, t1)
-        C, T = program.volume(program.media(), ray, start, active)
-        dr.eval(C, T)
+        with dr.suspend_grad():
+            ray, start, active = self._rays(o, d, t0, t1)
+            C, T = program.volume(program.media(), ray, start, active)
+            dr.eval(C, T)
         return np.array(C, np.float32).reshape(3, -1).T.copy(), np.array(T, np.float32)
 
     def backward(self, k, settings, o, d, t0, t1, L_pix, T_fin, dL, dalpha):
@@ -170,17 +201,18 @@ class BlockWorker:
         params = mi.traverse(scene)
         keys = [key for key in params.keys() if key.split(".", 1)[-1] in
                 VERTEX_PARAMS + SHARED_PARAMS and dr.is_diff_v(params[key])]
-        for key in keys:
+        # (left enabled: enabling them again would rebuild the shape's buffers each call)
+        off = [key for key in keys if not dr.grad_enabled(params[key])]
+        for key in off:
             dr.enable_grad(params[key])
-        params.update()
+        if off:
+            params.update()
         try:
             ray, start, active = self._rays(o, d, t0, t1)
             zero = mi.Vector3f(0.0)
 
-            def color(a):
-                return mi.Color3f(*(mi.Float(np.ascontiguousarray(a[:, i])) for i in range(3)))
-            adj = Adjoint(color(L_pix), mi.Float(T_fin), color(dL), mi.Float(dalpha), zero,
-                          zero)
+            adj = Adjoint(mi.Color3f(*floats(L_pix)), floats(T_fin), mi.Color3f(*floats(dL)),
+                          floats(dalpha), zero, zero)
             media_ad = program.media(differentiable=True)
             with dr.suspend_grad():
                 program.walk([g.detached() for g in media_ad], ray, start, active,
@@ -189,12 +221,52 @@ class BlockWorker:
                    for key in keys}
         finally:
             for key in keys:
-                dr.disable_grad(params[key])
-            params.update()
+                dr.clear_grad(params[key])
         return out
 
     def point_ids(self, k):
         return self.blocks[k][1]
+
+    def _params(self, k):
+        import drjit as dr
+        import mitsuba as mi
+        params = mi.traverse(self.blocks[k][0])
+        return params, {key.split(".", 1)[-1]: key for key in params.keys()
+                        if dr.is_diff_v(params[key])}
+
+    def optimizer(self, k, lr):
+        """Adam (Mitsuba's) over block ``k``'s parameters named in ``lr``
+        (``{name: learning rate}``)."""
+        import mitsuba as mi
+        params, keys = self._params(k)
+        missing = sorted(set(lr) - set(keys))
+        if missing:
+            raise ValueError(f"block {k} has no parameters {missing} (it has {sorted(keys)})")
+        opt = mi.ad.Adam(lr=1.0, params={keys[n]: params[keys[n]] for n in lr})
+        opt.set_learning_rate({keys[n]: float(v) for n, v in lr.items()})
+        self.optimizers = getattr(self, "optimizers", {})
+        self.optimizers[k] = opt
+
+    def apply(self, k, grads):
+        """One Adam step of block ``k`` with the gradients ``{name: (n, c)}`` of
+        its vertices (the whole mesh's, summed over the blocks that share a
+        vertex: every copy of a vertex takes the same step)."""
+        import drjit as dr
+        import mitsuba as mi
+        params, keys = self._params(k)
+        opt = self.optimizers[k]
+        for name, g in grads.items():
+            dr.set_grad(opt[keys[name]], floats(np.ravel(g)))
+        opt.step()
+        params.update(opt)
+        dr.eval()
+        return True
+
+    def arrays(self, k, names):
+        """Block ``k``'s parameters ``{name: (n, c)}`` (per vertex, the piece's order)."""
+        params, keys = self._params(k)
+        ids = self.blocks[k][1]
+        return {n: np.array(params[keys[n]], np.float32).reshape(len(ids), -1) for n in names}
 
     def peak_memory(self):
         """This worker process's peak resident memory (bytes)."""
@@ -266,8 +338,7 @@ class Blocks:
             Tf *= T[k, rows]
         self.kept = (o, d, iv, C, T, order)
         Cs, Tf = Cs.astype(np.float32), Tf.astype(np.float32)
-        out = mi.Color3f(*(mi.Float(np.ascontiguousarray(Cs[:, i])) for i in range(3)))
-        return out, dr.detach(mi.Float(Tf))
+        return mi.Color3f(*floats(Cs)), floats(Tf)
 
     def backward(self, ray, t_start, active, adj, behind):
         import drjit as dr
@@ -435,6 +506,61 @@ class PartitionedMesh:
                                                seed, spp)
             return blocks.grads
 
+    def optimizer(self, lr):
+        """Adam on every block's worker over the parameters named in ``lr``
+        (``{"vertex_color": 0.02, ...}``); :meth:`step` applies it."""
+        bad = sorted(set(lr) - set(FITTED_PARAMS))
+        if bad:
+            raise ValueError(f"a partitioned mesh optimizes {FITTED_PARAMS}, not {bad} (its "
+                             f"blocks hold the tets that touch their boxes where they are: "
+                             f"moved vertices could leave them)")
+        self._wait([self.call(k, "optimizer", lr) for k in range(len(self.part.blocks))])
+        self.optimized = list(lr)
+
+    def step(self, grads):
+        """One optimizer step of every block with the whole mesh's gradients
+        (:meth:`backward`): each block takes its vertices' rows, so the copies
+        of a vertex in several blocks stay equal."""
+        self._wait([self.call(k, "apply", {n: grads[n][self.point_ids(k)]
+                                           for n in self.optimized})
+                    for k in range(len(self.part.blocks))])
+
+    def arrays(self, names):
+        """The whole mesh's parameters ``{name: (n_vertices, c)}`` read back
+        from the blocks (each vertex from the first block that holds it)."""
+        out = {}
+        for k in range(len(self.part.blocks)):
+            got = self.get(k, self.call(k, "arrays", list(names)))
+            ids = self.point_ids(k)
+            for n, a in got.items():
+                out.setdefault(n, np.zeros((self.part.vertices, a.shape[1]), np.float32))[ids] = a
+        return out
+
+    def write(self, out):
+        """The blocks with their present colors and opacities as a new
+        partitioned mesh ``out`` (``.pvtu``; each worker writes its pieces)."""
+        import dataclasses
+
+        from mi_tetvr.mesh.io import read_mesh_file
+        from mi_tetvr.mesh.partition import PIECE_ARRAYS, _write_blocks, _write_pvtu
+        out = Path(out).resolve()
+        if out.suffix.lower() != ".pvtu":
+            raise ValueError(f"a partitioned mesh is written as .pvtu, got {out}")
+        (out.parent / out.stem).mkdir(parents=True, exist_ok=True)
+        pieces = [f"{out.stem}/{out.stem}_{k}.vtu" for k in range(len(self.part.blocks))]
+        self._wait([self.call(k, "write", str(out.parent / p)) for k, p in enumerate(pieces)])
+        first = read_mesh_file(out.parent / pieces[0])
+        _write_pvtu(out, pieces,
+                    {n: v for n, v in first.point_data.items() if n not in PIECE_ARRAYS},
+                    {n: v[0] for n, v in first.cell_data.items() if n not in PIECE_ARRAYS})
+        blocks = [dataclasses.replace(b, piece=p) for b, p in zip(self.part.blocks, pieces)]
+        _write_blocks(dataclasses.replace(self.part, path=out, blocks=blocks))
+        return read_partition(out)
+
+    def _wait(self, refs):
+        for k, ref in enumerate(refs):
+            self.get(k, ref)
+
     def peak_memory(self):
         """Each worker's peak resident memory (bytes)."""
         import ray
@@ -467,6 +593,7 @@ def connect(workers, address=None):
     address = address or os.environ.get("RAY_ADDRESS")
     try:
         if address:
+            _reachable(address)
             ray.init(address=address, log_to_driver=False)
         else:
             ray.init(num_cpus=max(os.cpu_count() or 1, int(workers)), include_dashboard=False,
@@ -476,6 +603,20 @@ def connect(workers, address=None):
                               f"`ray start --head`, or leave the address out for a local "
                               f"one") from None
     return True
+
+
+def _reachable(address, timeout=5.0):
+    """A ``ConnectionError`` now where nothing listens at a ``HOST:PORT``
+    address (Ray itself would retry for minutes); other forms (``auto``,
+    ``ray://...``) are left to Ray."""
+    import socket
+    host, sep, port = str(address).rpartition(":")
+    if not sep or not port.isdigit() or "/" in host:
+        return
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as e:
+        raise ConnectionError(f"nothing answers at {address} ({e})") from None
 
 
 def map_frames(cls, init_args, method, calls, workers, address=None, progress=None):
@@ -516,3 +657,66 @@ def render(scene, pvtu, workers=None, shape=None, address=None, sensor=0, seed=0
     rendered by ``workers`` Ray workers (see :class:`PartitionedMesh`)."""
     with PartitionedMesh(pvtu, workers, shape, address) as mesh:
         return mesh.render(scene, sensor, seed, spp)
+
+
+def fit_blocks(pm: PartitionedMesh, data, out, config, progress=True):
+    """``fit --workers``: Adam on the blocks' colors and opacities (learning
+    rates ``lr_color``, ``lr_opacity``) towards the data set's training views,
+    ``views_per_step`` per step (their gradients summed), for ``iterations``
+    steps or ``time_budget`` minutes; the held-out views scored by
+    :func:`~mi_tetvr.recon.metrics.image_metrics`. Writes ``out/mesh.pvtu``
+    (the blocks' pieces, each written by its worker) and ``out/metrics.json``;
+    returns the metrics."""
+    import json
+    import time
+
+    import mitsuba as mi
+
+    from mi_tetvr.progress import progress_bar
+    from mi_tetvr.recon.metrics import image_metrics
+    cfg = config
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    pm.optimizer({"vertex_color": cfg.lr_color, "vertex_opacity": cfg.lr_opacity})
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetvr", "n_sub": cfg.n_sub}})
+    sensors = {}
+
+    def sensor(view):
+        if view.name not in sensors:
+            sensors[view.name] = mi.load_dict(view.camera.sensor_dict())
+        return sensors[view.name]
+    rng = np.random.default_rng(cfg.seed)
+    t0 = time.time()
+    deadline = t0 + 60 * cfg.time_budget if cfg.time_budget else None
+    steps, losses = 0, []
+    for step in progress_bar(range(cfg.iterations), desc="fit", unit="step",
+                             disable=not progress):
+        if deadline is not None and time.time() > deadline:
+            break
+        picks = rng.choice(len(data.train), min(cfg.views_per_step, len(data.train)),
+                           replace=False)
+        total, loss = None, 0.0
+        for i in picks:
+            view = data.train[i]
+            img = np.array(pm.render(scene, sensor(view), seed=step))
+            r = img - view.image
+            loss += float(np.abs(r).mean() if cfg.loss == "l1" else np.square(r).mean())
+            g = (np.sign(r) if cfg.loss == "l1" else 2 * r) / r.size
+            grads = pm.backward(scene, g.astype(np.float32), sensor(view), seed=step)
+            total = grads if total is None else {n: total[n] + grads[n] for n in grads}
+        pm.step(total)
+        losses.append(loss / len(picks))
+        steps += 1
+    seconds = time.time() - t0
+    views = {}
+    for view in data.test or data.train:
+        img = np.array(pm.render(scene, sensor(view)))
+        views[view.name] = image_metrics(img, view.image, None)
+    mean = {k: float(np.mean([v[k] for v in views.values()])) for k in ("psnr", "ssim")}
+    part = pm.write(out / "mesh.pvtu")
+    metrics = {"views": views, "mean": mean, "step": steps, "seconds": seconds,
+               "tets": part.tets, "vertices": part.vertices, "blocks": len(part.blocks),
+               "workers": pm.workers, "losses": losses,
+               "split": "test" if data.test else "train"}
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float))
+    return metrics

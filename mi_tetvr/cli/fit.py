@@ -30,6 +30,12 @@ def add_arguments(p):
     flags.serve(p)
     p.add_argument("--view-res", type=int, default=384, metavar="N",
                    help="--viewer: the refined image's longer side (default 384)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="fit a partitioned mesh (--init MESH.pvtu written by `partition`) on "
+                   "Ray workers, each holding its blocks: Adam on the colors and opacities "
+                   "(no stages, no refinement)")
+    p.add_argument("--address", default=None, help="a running Ray cluster for --workers "
+                   "(default: RAY_ADDRESS, else a local one)")
     flags.quiet(p)
     flags.variant(p)
     p.set_defaults(config_dests=flags.config_flags(p))
@@ -58,6 +64,8 @@ def run(a):
         raise FileNotFoundError(f"--init {cfg.init}: no such mesh file (or one of "
                                 f"{', '.join(INITS)})")
     set_variant(a.variant)
+    if a.workers is not None or a.address is not None:
+        return run_blocks(a, cfg)
     from mi_tetvr.recon.pipeline import fitted_file, run as run_fit
     data = load_data(a.data, cfg.downscale, a.holdout)
     print(f"{a.data}: {len(data.train)} training and {len(data.test)} test views "
@@ -85,3 +93,26 @@ def run(a):
           f"{len(metrics['views'])} view(s) [{metrics['split']}]; {metrics['tets']:,} tets, "
           f"{metrics['step']:,} steps, {metrics['wall_seconds']:.0f} s -> "
           f"{Path(a.out) / fitted_file(cfg)}")
+
+
+def run_blocks(a, cfg):
+    """``fit --workers N --init MESH.pvtu``: the partitioned mesh's colors and
+    opacities fitted on Ray workers (:func:`mi_tetvr.distributed.fit_blocks`)."""
+    from mi_tetvr.distributed import PartitionedMesh, fit_blocks
+    from mi_tetvr.mesh.partition import blocks_path
+    init = Path(cfg.init)
+    if init.suffix.lower() != ".pvtu" or not blocks_path(init).is_file():
+        raise ValueError("fit --workers fits a partitioned mesh: --init MESH.pvtu (written "
+                         "by `mi-tetvr partition MESH -o MESH.pvtu --blocks N`)")
+    if cfg.stages or cfg.lr_position or cfg.model != "emission" or a.viewer:
+        raise ValueError("fit --workers fits colors and opacities in one stage: no --stages, "
+                         "--lr-position, --model absorption or --viewer")
+    data = load_data(a.data, cfg.downscale, a.holdout)
+    print(f"{a.data}: {len(data.train)} training and {len(data.test)} test views "
+          f"({data.train[0].camera.width}x{data.train[0].camera.height})")
+    with PartitionedMesh(init, a.workers, address=a.address) as pm:
+        m = fit_blocks(pm, data, a.out, cfg, progress=not a.quiet)
+    print(f"test PSNR {m['mean']['psnr']:.2f} dB, SSIM {m['mean']['ssim']:.4f} (sRGB) over "
+          f"{len(m['views'])} view(s) [{m['split']}]; {m['tets']:,} tets in {m['blocks']} "
+          f"blocks on {m['workers']} workers, {m['step']:,} steps, {m['seconds']:.0f} s -> "
+          f"{Path(a.out) / 'mesh.pvtu'}")

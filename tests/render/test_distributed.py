@@ -249,3 +249,57 @@ def test_bad_partitions_and_dead_workers(cluster, mesh, partitions, tmp_path):
             else:
                 with pytest.raises(RuntimeError, match="worker of block 1 .* died"):
                     pm.render(scene)
+
+
+def test_an_address_no_cluster_answers_is_a_clear_error(partitions):
+    import socket
+    import subprocess
+    import sys
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]            # (closed again: nothing listens there)
+    r = subprocess.run([sys.executable, "-m", "mi_tetvr.cli", "render",
+                        str(partitions[2].path), "--workers", "2", "--address",
+                        f"127.0.0.1:{port}", "-o", str(partitions[2].path.with_suffix(".png"))],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1
+    assert f"no Ray cluster answers at '127.0.0.1:{port}'" in r.stderr
+    assert not partitions[2].path.with_suffix(".png").exists()
+
+
+def test_adam_over_blocks_is_adam_on_the_whole_mesh(cluster, mesh, partitions):
+    """Three Adam steps on colors and opacities towards an image: each block
+    steps its vertices with the gradients summed over the blocks (so the
+    copies of a shared vertex stay equal), as Mitsuba's Adam steps the whole
+    mesh in one process."""
+    import drjit as dr
+    import mitsuba as mi
+    from mi_tetvr.distributed import PartitionedMesh
+    props, whole = shape_of(mesh, scalar=False)
+    o, t, _ = views(partitions)["inside"]
+    lr = {"vertex_color": 0.05, "vertex_opacity": 0.2}
+    target = np.zeros((RES[1], RES[0], 4), np.float32)
+    target[..., :3] = 0.3
+    scene = mi.load_dict(scene_dict(o, t))
+    with PartitionedMesh(partitions[4].path, workers=2, shape=props) as pm:
+        pm.optimizer(lr)
+        for _ in range(3):
+            img = np.array(pm.render(scene))
+            pm.step(pm.backward(scene, 2 * (img - target) / img.size))
+        got = pm.arrays(lr)
+    one = mi.load_dict(scene_dict(o, t, mesh=whole))
+    params = mi.traverse(one)
+    opt = mi.ad.Adam(lr=1.0, params={f"mesh.{n}": params[f"mesh.{n}"] for n in lr})
+    opt.set_learning_rate({f"mesh.{n}": v for n, v in lr.items()})
+    start = {n: np.array(params[f"mesh.{n}"]).reshape(len(mesh[0]), -1) for n in lr}
+    for _ in range(3):
+        params.update(opt)
+        img = mi.render(one, params)
+        dr.backward(dr.sum(dr.square(img - mi.TensorXf(target)), axis=None) / dr.width(img))
+        opt.step()
+    params.update(opt)
+    for n in lr:
+        want = np.array(params[f"mesh.{n}"]).reshape(len(mesh[0]), -1)
+        moved = np.abs(want - start[n]).max(1) > 0
+        assert moved.sum() > 50, n
+        assert np.abs(got[n] - want).max() < 1e-4, (n, np.abs(got[n] - want).max())
