@@ -682,9 +682,10 @@ def fit_blocks(pm: PartitionedMesh, data, out, config, progress=True):
     sensors = {}
 
     def sensor(view):
-        if view.name not in sensors:
-            sensors[view.name] = mi.load_dict(view.camera.sensor_dict())
-        return sensors[view.name]
+        # (by the view itself: a training and a test view may share a name)
+        if id(view) not in sensors:
+            sensors[id(view)] = mi.load_dict(view.camera.sensor_dict())
+        return sensors[id(view)]
     rng = np.random.default_rng(cfg.seed)
     t0 = time.time()
     deadline = t0 + 60 * cfg.time_budget if cfg.time_budget else None
