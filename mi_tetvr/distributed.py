@@ -185,7 +185,8 @@ class BlockWorker:
         _, program = self._program(k, settings)
         with dr.suspend_grad():
             ray, start, active = self._rays(o, d, t0, t1)
-            C, T = program.volume(program.media(), ray, start, active)
+            # (entered where the ray meets the piece, not walked back from its far side)
+            C, T = program.volume(program.media(), ray, start, active, t_enter=0.0)
             dr.eval(C, T)
         return np.array(C, np.float32).reshape(3, -1).T.copy(), np.array(T, np.float32)
 
@@ -216,7 +217,7 @@ class BlockWorker:
             media_ad = program.media(differentiable=True)
             with dr.suspend_grad():
                 program.walk([g.detached() for g in media_ad], ray, start, active,
-                             Derivative(dr.ADMode.Backward, media_ad), adj)
+                             Derivative(dr.ADMode.Backward, media_ad), adj, t_enter=0.0)
             out = {key.split(".", 1)[-1]: np.array(dr.grad(params[key]), np.float32)
                    for key in keys}
         finally:

@@ -216,22 +216,24 @@ class VolumeProgram:
             return [tet_scene(g, idx, offsets, n_sub=self.n_sub)
                     for g, (idx, offsets) in zip(groups, self.index_cache(groups))]
 
-    def walk(self, media, ray, t_start, active, deriv=None, adj=None):
+    def walk(self, media, ray, t_start, active, deriv=None, adj=None, t_enter=None):
         """``(C, T, steps, adj)`` of the media along ``ray`` from ``t_start``
         to ``ray.maxt`` (a derivative pass: its context ``deriv`` and the
-        rays' ``adj``; ``media`` then detached)."""
+        rays' ``adj``; ``media`` then detached; ``t_enter``: see
+        :func:`~mi_tetvr.render.walk.trace`)."""
         if self.merged:
             return merged_trace(self.parts.apart(self.tets), media, ray, self.settings, active,
                                 t_start, deriv, adj, n_sub=self.n_sub)
-        return trace(self.walk_scene, media, ray, self.settings, active, t_start, deriv, adj)
+        return trace(self.walk_scene, media, ray, self.settings, active, t_start, deriv, adj,
+                     t_enter)
 
-    def volume(self, media, ray, t_start, active):
+    def volume(self, media, ray, t_start, active, t_enter=None):
         """``(C, T)`` of the media along ``ray`` from ``t_start``."""
         if media is None:
             if self.remote is not None:
                 return self.remote.primal(ray, t_start, active)
             return mi.Color3f(0.0), dr.full(mi.Float, 1.0, dr.width(ray.o))
-        C, T, _, _ = self.walk(media, ray, t_start, active)
+        C, T, _, _ = self.walk(media, ray, t_start, active, t_enter=t_enter)
         return C, T
 
     # -- the ray's parts ------------------------------------------------------

@@ -192,7 +192,7 @@ def walk(ts, tet, f_in, L, T, o, u, v, d, t_begin, t_stop, settings: WalkSetting
 
 @dr.syntax
 def trace(scene, ts, ray, settings: WalkSettings, active, t_start=0.0,
-          deriv: adjoint.Derivative = None, adj: adjoint.Adjoint = None):
+          deriv: adjoint.Derivative = None, adj: adjoint.Adjoint = None, t_enter=None):
     """Emission and transmittance along rays through the tet meshes.
 
     Parameters
@@ -210,6 +210,11 @@ def trace(scene, ts, ray, settings: WalkSettings, active, t_start=0.0,
     deriv : adjoint.Derivative, optional
         A derivative pass's context (its ``scenes`` pair with ``ts``), with
         the rays' adjoint ``adj``.
+    t_enter : float or mi.Float, optional
+        Where the search for the mesh's boundary starts, before ``t_start``
+        (default: at it). A block of a partitioned mesh integrates from
+        inside its piece: entered through the piece's near side, its walk
+        does not have to walk back from the far side to the start point.
 
     Returns
     -------
@@ -228,7 +233,7 @@ def trace(scene, ts, ray, settings: WalkSettings, active, t_start=0.0,
     L = model.start() if isinstance(model, Probe) else mi.Color3f(0.0)
     T = mi.Float(1.0)
     steps = mi.UInt32(0)
-    start = mi.Float(t_start)
+    start = mi.Float(t_start if t_enter is None else t_enter)
     active = mi.Bool(active)
     while dr.hint(active, label="tetvr_trace"):
         si = scene.ray_intersect_preliminary(mi.Ray3f(o + d * start, d, t_max - start),
@@ -240,8 +245,9 @@ def trace(scene, ts, ray, settings: WalkSettings, active, t_start=0.0,
             mine = hit if len(groups) == 1 else hit & g.owns(si)
             tet, f, _ = enter(g.buf, g.boundary_face(si), o, u, v, d, start, settings.max_steps,
                               mine)
-            L, T, t_g, n, adj = walk(g, tet, f, L, T, o, u, v, d, start, t_max, settings, mine,
-                                     deriv, g_ad, adj)
+            t_begin = start if t_enter is None else dr.maximum(start, t_start)
+            L, T, t_g, n, adj = walk(g, tet, f, L, T, o, u, v, d, t_begin, t_max, settings,
+                                     mine, deriv, g_ad, adj)
             t_end = dr.select(mine, t_g, t_end)
             steps += dr.select(mine, n, 0)
         start = dr.maximum(t_end, start) + settings.retrace_eps
