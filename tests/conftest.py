@@ -58,3 +58,19 @@ def collect_after_module():
     (``ad_traverse(): ... outside of the current dr.isolate_grad() scope``)."""
     yield
     gc.collect()
+
+
+@pytest.fixture(scope="module")
+def tiny_data_path(tmp_path_factory):
+    """A tiny data set rendered by the grid ray marcher: 6 training and 2 test
+    views of 16x16 pixels of the default volume (its folder)."""
+    from mi_tetvr.grid import make_volume
+    from mi_tetvr.mesh.scenes import default_volume
+    from mi_tetvr.recon.synthetic import make_dataset
+    from mi_tetvr.transfer import read_transfer_function
+    from tests.helpers import ROOT
+    out = tmp_path_factory.mktemp("data")
+    tf = read_transfer_function(ROOT / "scenes" / "tf_default.json")
+    make_dataset(make_volume(default_volume(16)), tf, views=6, res=16, out_dir=out,
+                 test_views=2, fov=30, progress=False)
+    return out

@@ -11,28 +11,14 @@ import pytest
 pytest.importorskip("ray")
 
 
-@pytest.fixture(scope="module")
-def data_path(tmp_path_factory):
-    from mi_tetvr.grid import make_volume
-    from mi_tetvr.mesh.scenes import default_volume
-    from mi_tetvr.recon.synthetic import make_dataset
-    from mi_tetvr.transfer import read_transfer_function
-    from tests.helpers import ROOT
-    out = tmp_path_factory.mktemp("data")
-    tf = read_transfer_function(ROOT / "scenes" / "tf_default.json")
-    make_dataset(make_volume(default_volume(16)), tf, views=6, res=16, out_dir=out,
-                 test_views=2, fov=30, progress=False)
-    return out
-
-
-def test_sweep_table_is_each_trials_fit(data_path, tmp_path):
+def test_sweep_table_is_each_trials_fit(tiny_data_path, tmp_path):
     from mi_tetvr.cli import main
     spec = tmp_path / "sweep.yaml"
     spec.write_text("base:\n  grid_resolution: 4\n  iterations: 12\n  views_per_step: 2\n"
                     "  n_sub: 2\n  jitter: false\n  checkpoint_every: 4\n  log_every: 4\n"
                     "grid:\n  lr_color: [0.02, 0.08]\n  lr_opacity: [0.3]\n")
     out = tmp_path / "sweep"
-    main(["sweep", str(data_path), str(spec), "-o", str(out), "--workers", "2"])
+    main(["sweep", str(tiny_data_path), str(spec), "-o", str(out), "--workers", "2"])
     rows = list(csv.DictReader(open(out / "sweep.csv")))
     assert sorted(float(r["lr_color"]) for r in rows) == [0.02, 0.08]
     assert float(rows[0]["psnr"]) >= float(rows[1]["psnr"])            # best first

@@ -305,7 +305,7 @@ def test_adam_over_blocks_is_adam_on_the_whole_mesh(cluster, mesh, partitions):
         assert np.abs(got[n] - want).max() < 1e-4, (n, np.abs(got[n] - want).max())
 
 
-def test_fit_over_blocks_writes_the_mesh_it_scores(cluster, tmp_path):
+def test_fit_over_blocks_writes_the_mesh_it_scores(cluster, tiny_data_path, tmp_path):
     """``fit --workers``: the loss falls, and the mesh it writes (its pieces,
     each written by its worker), read whole and rendered in one process,
     scores the held-out PSNR the fit reports."""
@@ -316,19 +316,11 @@ def test_fit_over_blocks_writes_the_mesh_it_scores(cluster, tmp_path):
     import mi_tetvr
     from mi_tetvr import read_tetmesh
     from mi_tetvr.cli import main
-    from mi_tetvr.grid import make_volume
     from mi_tetvr.mesh.generate import grid_mesh
     from mi_tetvr.mesh.partition import partition_mesh
-    from mi_tetvr.mesh.scenes import default_volume
     from mi_tetvr.recon.datasets import load_nerf
     from mi_tetvr.recon.metrics import image_metrics
-    from mi_tetvr.recon.synthetic import make_dataset
-    from mi_tetvr.transfer import read_transfer_function
-    from tests.helpers import ROOT
-    data = tmp_path / "data"
-    tf = read_transfer_function(ROOT / "scenes" / "tf_default.json")
-    make_dataset(make_volume(default_volume(16)), tf, views=6, res=16, out_dir=data,
-                 test_views=2, fov=30, progress=False)
+    data = tiny_data_path
     V, T = grid_mesh(6)
     partition_mesh(V, T, tmp_path / "init.pvtu", 3,
                    {"color": np.full((len(V), 3), 0.5), "opacity": np.full(len(V), 1.0)})
