@@ -168,7 +168,8 @@ def frames(root):
     from mi_tetvr.apps.framing import mesh_extent, mesh_framing
     from mi_tetvr.apps.settings import RenderSettings
     from mi_tetvr.cli.render import FrameRenderer
-    from mi_tetvr.distributed import connect, map_frames
+    from mi_tetvr.cluster import connect
+    from mi_tetvr.distributed import map_frames
     from mi_tetvr.mesh.generate import grid_mesh
     from mi_tetvr.mesh.io import read_tetmesh, write_tetmesh
     from mi_tetvr.mesh.tetmesh import TetMesh

@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_tetvr.cluster import connect
 from mi_tetvr.mesh.partition import Partition, read_partition, read_piece
 
 #: Vertex parameters of a block's shape, by their ``mi.traverse`` names.
@@ -477,8 +478,7 @@ class PartitionedMesh:
         """The scene's ``tetvr`` integrator rendering this mesh (its
         ``remote`` medium) inside the block."""
         integrator = scene.integrator()
-        from mi_tetvr.plugins.tetvr import TetVRIntegrator
-        if not isinstance(integrator, TetVRIntegrator):
+        if not hasattr(integrator, "_remote"):          # (tetvr's: the medium it hands on)
             raise ValueError(f"a partitioned mesh is rendered by the tetvr integrator, the "
                              f"scene's is {type(integrator).__name__}")
         blocks = Blocks(self, walk_settings(integrator, scene, self.part))
@@ -581,43 +581,6 @@ class PartitionedMesh:
 
     def __exit__(self, *exc):
         self.close()
-
-
-def connect(workers, address=None):
-    """Join the Ray cluster at ``address`` (default ``RAY_ADDRESS``), or start a
-    local one of this machine's cores (at least ``workers`` slots); True
-    where it was started here (the caller shuts it down). A clear
-    ``ConnectionError`` where no cluster answers."""
-    import ray
-    if ray.is_initialized():
-        return False
-    address = address or os.environ.get("RAY_ADDRESS")
-    try:
-        if address:
-            _reachable(address)
-            ray.init(address=address, log_to_driver=False)
-        else:
-            ray.init(num_cpus=max(os.cpu_count() or 1, int(workers)), include_dashboard=False,
-                     log_to_driver=False)
-    except ConnectionError as e:
-        raise ConnectionError(f"no Ray cluster answers at {address!r} ({e}); start one with "
-                              f"`ray start --head`, or leave the address out for a local "
-                              f"one") from None
-    return True
-
-
-def _reachable(address, timeout=5.0):
-    """A ``ConnectionError`` now where nothing listens at a ``HOST:PORT``
-    address (Ray itself would retry for minutes); other forms (``auto``,
-    ``ray://...``) are left to Ray."""
-    import socket
-    host, sep, port = str(address).rpartition(":")
-    if not sep or not port.isdigit() or "/" in host:
-        return
-    try:
-        socket.create_connection((host, int(port)), timeout=timeout).close()
-    except OSError as e:
-        raise ConnectionError(f"nothing answers at {address} ({e})") from None
 
 
 def map_frames(cls, init_args, method, calls, workers, address=None, progress=None):

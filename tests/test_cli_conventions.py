@@ -19,11 +19,14 @@ from tests.helpers import ROOT, VARIANT
 POSITIONAL = {"render": ["s.xml"], "info": ["m.vtu"], "make-scenes": [],
               "make-dataset": ["v.npy"], "make-capture": [], "process-data": ["photos"],
               "fit": ["data"], "eval": ["fit", "data"], "refine": ["m.vtu"],
-              "viewpoint": ["m.vtu"], "view": ["m.vtu"]}
-REQUIRED = {"refine": ["--select", "x"]}
+              "viewpoint": ["m.vtu"], "view": ["m.vtu"], "partition": ["m.vtu"],
+              "sweep": ["data", "sweep.yaml"]}
+REQUIRED = {"refine": ["--select", "x"], "partition": ["--blocks", "2"]}
 WRITES = set(POSITIONAL) - {"info"}
-RENDERS = {"render", "make-dataset", "make-capture", "fit", "eval", "viewpoint", "view"}
-SHOWS_PROGRESS = {"make-dataset", "make-capture", "process-data", "fit", "viewpoint"}
+RENDERS = {"render", "make-dataset", "make-capture", "fit", "eval", "viewpoint", "view",
+           "sweep"}
+SHOWS_PROGRESS = {"make-dataset", "make-capture", "process-data", "fit", "viewpoint",
+                  "partition"}
 READS_MESHES = {"render", "info", "make-dataset", "fit", "eval", "refine", "viewpoint", "view"}
 MAKES_IMAGES = {"render", "make-dataset", "make-capture", "viewpoint", "view"}
 

@@ -16,9 +16,9 @@ PACKAGES = ["mi_tetvr", "mi_tetvr.mesh", "mi_tetvr.render", "mi_tetvr.grid", "mi
 #: may import any of mi_tetvr's modules, and none of those imports them (the package's
 #: ``__init__`` registers them).
 LAYERS = [("mi_tetvr.color", "mi_tetvr.transfer", "mi_tetvr.camera", "mi_tetvr.progress",
-           "mi_tetvr.video", "mi_tetvr._lazy"),
+           "mi_tetvr.video", "mi_tetvr._lazy", "mi_tetvr.cluster"),
           ("mi_tetvr.mesh",), ("mi_tetvr.render",), ("mi_tetvr.grid",), ("mi_tetvr.recon",),
-          ("mi_tetvr.apps",), ("mi_tetvr.cli",), ("mi_tetvr.plugins",)]
+          ("mi_tetvr.apps", "mi_tetvr.distributed"), ("mi_tetvr.cli",), ("mi_tetvr.plugins",)]
 
 
 def _layer(module):

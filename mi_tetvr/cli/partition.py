@@ -18,7 +18,7 @@ def add_arguments(p):
     flags.out(p, "the partitioned mesh (.pvtu; its pieces go to a folder of its name "
                  "beside it, its boxes to NAME.blocks.json)")
     p.add_argument("--blocks", type=int, required=True, help="number of blocks (boxes)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    flags.quiet(p)
 
 
 def run(a):

@@ -71,8 +71,8 @@ def run_trial(config):
     import mitsuba as mi
     from ray import tune
 
-    from mi_tetvr.cli.common import load_data
     from mi_tetvr.recon.config import FitConfig
+    from mi_tetvr.recon.datasets import load_dataset
     mi.set_variant(config["variant"])
     import drjit as dr
     dr.set_thread_count(int(config["threads"]))
@@ -81,7 +81,8 @@ def run_trial(config):
     from mi_tetvr.recon.pipeline import run as run_fit
     combo = config["settings"]
     cfg = FitConfig().updated(**{**config["base"], **combo})
-    data = load_data(config["data"], cfg.downscale, config["holdout"])
+    data = load_dataset(config["data"], downscale=cfg.downscale or 1,
+                        holdout=config["holdout"])
     out = Path(config["out"]) / "trials" / trial_name(combo)
     out.mkdir(parents=True, exist_ok=True)
     m = run_fit(data, out, cfg, resume=False, progress=False)
@@ -97,7 +98,7 @@ def sweep(data, sweep_file, out, workers=1, address=None, holdout=8, variant="ll
     import ray
     from ray import tune
 
-    from mi_tetvr.distributed import connect
+    from mi_tetvr.cluster import connect
     base, grid = read_sweep(sweep_file)
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
