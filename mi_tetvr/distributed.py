@@ -315,7 +315,6 @@ class Blocks:
         return o.astype(np.float32), d.astype(np.float32), iv
 
     def primal(self, ray, t_start, active):
-        import drjit as dr
         import mitsuba as mi
         o, d, iv = self._intervals(ray, t_start, active)
         n, nb = iv.shape[:2]
@@ -354,10 +353,11 @@ class Blocks:
         dalpha = np.broadcast_to(np.array(adj.dalpha, np.float64), (n,))
         behind = np.broadcast_to(np.array(behind, np.float64).reshape(3, -1).T, (n, 3)) \
             if behind is not None else np.zeros((n, 3))
-        # transmittance in front of each rank, radiance behind it (back to front)
-        fronts = np.ones((nb + 1, n))
+        # transmittance in front of and behind each rank, radiance behind it
+        fronts, tails = np.ones((nb + 1, n)), np.ones((nb + 1, n))
         for r in range(nb):
             fronts[r + 1] = fronts[r] * T[order[:, r], rows]
+            tails[nb - 1 - r] = tails[nb - r] * T[order[:, nb - 1 - r], rows]
         backs = np.zeros((nb, n, 3))
         B = behind.copy()
         for r in reversed(range(nb)):
@@ -374,12 +374,7 @@ class Blocks:
                 continue
             Tk = T[k, idx].astype(np.float64)
             f = front[idx]
-            # the transmittance of the blocks behind k
-            back_T = np.ones(len(idx))
-            for r in range(nb):
-                j = order[idx, r]
-                after = r > rank[idx]
-                back_T = np.where(after, back_T * T[j, idx], back_T)
+            back_T = tails[rank[idx] + 1, idx]
             L_pix = C[k, idx] + Tk[:, None] * backs[rank[idx], idx]
             jobs[k] = (idx, self.mesh.call(
                 k, "backward", self.settings, o[idx], d[idx], iv[idx, k, 0], iv[idx, k, 1],
