@@ -101,9 +101,9 @@ def run(a):
     if distributed and not (s.orbit or series):
         return render_partitioned(s, a, mi, scene_path)
     if s.orbit:
-        return render_orbit(s, a.out, mi, scene_path, a.workers, a.address)
+        return render_orbit(s, a.out, scene_path, a.workers, a.address)
     if series:
-        return render_series(s, a.out, mi, paths, a.workers, a.address)
+        return render_series(s, a.out, paths, a.workers, a.address)
     t0 = time.time()
     if is_mesh:
         mesh = read_mesh(s, scene_path)
@@ -182,7 +182,7 @@ def render_frames(s, framing, method, calls, workers, address, bar):
     return frames
 
 
-def render_orbit(s, outs, mi, path, workers=None, address=None):
+def render_orbit(s, outs, path, workers=None, address=None):
     """``render MESH --orbit N`` (:class:`RenderSettings` ``s``): N frames once around
     ``--up`` from ``--view``, written as an MP4 (the ``.mp4`` outputs) and a contact
     sheet (the image outputs); ``workers``: spread over Ray workers."""
@@ -219,7 +219,7 @@ def _on(workers, address):
     return f" on {workers or 1} Ray worker{'s' if (workers or 1) > 1 else ''}"
 
 
-def render_series(s, outs, mi, paths, workers=None, address=None):
+def render_series(s, outs, paths, workers=None, address=None):
     """``render MESH MESH ...`` (or a ``.pvd``; :class:`RenderSettings` ``s``): every
     mesh with one transfer function range and one camera (:func:`mesh_framing` over
     all), as an MP4 (the ``.mp4`` outputs) and numbered images (``stem_0000.png``, ...);

@@ -338,3 +338,23 @@ def test_fit_over_blocks_writes_the_mesh_it_scores(cluster, tiny_data_path, tmp_
         img = np.array(mi.render(scene, sensor=mi.load_dict(view.camera.sensor_dict())))
         got = image_metrics(img, view.image, None)["psnr"]
         assert got == pytest.approx(m["views"][view.name]["psnr"], abs=1e-3)
+
+
+def test_a_series_over_workers_is_the_series_rendered_here(cluster, mesh, tmp_path):
+    """``render MESH MESH ... --workers 2``: the frames Ray workers render (each
+    keeping its kernels) are the frames of the loop in this process."""
+    import mitsuba as mi
+    from mi_tetvr.cli import main
+    from mi_tetvr.mesh import TetMesh, write_tetmesh
+    V, T, color, opacity, _ = mesh
+    paths = []
+    for k in range(3):
+        paths.append(str(tmp_path / f"m{k}.vtu"))
+        write_tetmesh(paths[-1], TetMesh(V, T, np.roll(color, k, axis=1), opacity * (1 + k)))
+    for name, extra in (("here", []), ("workers", ["--workers", "2"])):
+        main(["render", *paths, "-o", str(tmp_path / f"{name}.exr"), "--res", "24x16", *extra])
+    for k in range(3):
+        here = np.array(mi.Bitmap(str(tmp_path / f"here_{k:04d}.exr")))
+        there = np.array(mi.Bitmap(str(tmp_path / f"workers_{k:04d}.exr")))
+        assert here[..., :3].max() > 0.05
+        assert np.abs(here - there).max() < 1e-6
