@@ -299,8 +299,8 @@ class Blocks:
     worker, the results composited front to back; the last primal pass's
     per-block results kept for the adjoint."""
 
-    def __init__(self, mesh: "PartitionedMesh", settings):
-        self.mesh, self.settings = mesh, settings
+    def __init__(self, mesh: "PartitionedMesh", settings, reuse=False):
+        self.mesh, self.settings, self.reuse = mesh, settings, reuse
         self.kept = None
         self.grads = {}
 
@@ -318,16 +318,24 @@ class Blocks:
         import mitsuba as mi
         o, d, iv = self._intervals(ray, t_start, active)
         n, nb = iv.shape[:2]
-        C = np.zeros((nb, n, 3), np.float32)
-        T = np.ones((nb, n), np.float32)
-        jobs = {}
-        for k in range(nb):
-            idx = np.flatnonzero(iv[:, k, 1] > iv[:, k, 0])
-            if len(idx):
-                jobs[k] = (idx, self.mesh.call(k, "trace", self.settings, o[idx], d[idx],
-                                               iv[idx, k, 0], iv[idx, k, 1]))
-        for k, (idx, ref) in jobs.items():
-            C[k, idx], T[k, idx] = self.mesh.get(k, ref)
+        last = self.mesh.last if self.reuse else None
+        if last is not None and last[0] == self.settings and all(
+                np.array_equal(a, b) for a, b in zip(last[1:4], (o, d, iv))):
+            # (the same rays through unchanged blocks: render_backward's primal
+            # of the image just rendered)
+            C, T = last[4], last[5]
+        else:
+            C = np.zeros((nb, n, 3), np.float32)
+            T = np.ones((nb, n), np.float32)
+            jobs = {}
+            for k in range(nb):
+                idx = np.flatnonzero(iv[:, k, 1] > iv[:, k, 0])
+                if len(idx):
+                    jobs[k] = (idx, self.mesh.call(k, "trace", self.settings, o[idx], d[idx],
+                                                   iv[idx, k, 0], iv[idx, k, 1]))
+            for k, (idx, ref) in jobs.items():
+                C[k, idx], T[k, idx] = self.mesh.get(k, ref)
+            self.mesh.last = (self.settings, o, d, iv, C, T)
         order = np.argsort(np.where(iv[:, :, 1] > iv[:, :, 0], iv[:, :, 0], np.inf), 1,
                            kind="stable")                                 # (n, B)
         rows = np.arange(n)
@@ -437,6 +445,8 @@ class PartitionedMesh:
                 # (its pieces loaded before the next worker starts: one load's peak at a time)
                 ray.get(self.actors[-1].pid.remote())
         self._ids = {}
+        #: the last primal pass's rays and per-block results (until a step changes the blocks)
+        self.last = None
 
     def call(self, k, method, *args):
         """Block ``k``'s worker's ``method`` (a Ray object reference)."""
@@ -469,14 +479,16 @@ class PartitionedMesh:
             np.add.at(total, ids, g)
 
     @contextlib.contextmanager
-    def attached(self, scene):
+    def attached(self, scene, reuse=False):
         """The scene's ``tetvr`` integrator rendering this mesh (its
-        ``remote`` medium) inside the block."""
+        ``remote`` medium) inside the block; ``reuse``: the last primal
+        pass's per-block results stand for a primal of the same rays (none
+        changed the blocks since: :meth:`step` forgets them)."""
         integrator = scene.integrator()
         if not hasattr(integrator, "_remote"):          # (tetvr's: the medium it hands on)
             raise ValueError(f"a partitioned mesh is rendered by the tetvr integrator, the "
                              f"scene's is {type(integrator).__name__}")
-        blocks = Blocks(self, walk_settings(integrator, scene, self.part))
+        blocks = Blocks(self, walk_settings(integrator, scene, self.part), reuse)
         integrator._remote = blocks
         try:
             yield blocks
@@ -494,10 +506,11 @@ class PartitionedMesh:
         parameters: ``{name: array}``, per vertex of the whole mesh
         (``vertex_color`` (n, 3), ``vertex_opacity`` (n, 1), ``vertex_positions``
         (n, 3), ``vertex_scalar`` (n, 1)) or whole (``tf_color``,
-        ``tf_opacity``). Renders the primal again (as Mitsuba's
-        ``render_backward``)."""
+        ``tf_opacity``). The primal of the same rays is the last render's where
+        nothing changed since (else the workers render it again, as Mitsuba's
+        ``render_backward`` does)."""
         import mitsuba as mi
-        with self.attached(scene) as blocks:
+        with self.attached(scene, reuse=True) as blocks:
             scene.integrator().render_backward(scene, None, mi.TensorXf(grad_image), sensor,
                                                seed, spp)
             return blocks.grads
@@ -517,6 +530,7 @@ class PartitionedMesh:
         """One optimizer step of every block with the whole mesh's gradients
         (:meth:`backward`): each block takes its vertices' rows, so the copies
         of a vertex in several blocks stay equal."""
+        self.last = None
         self._wait([self.call(k, "apply", {n: grads[n][self.point_ids(k)]
                                            for n in self.optimized})
                     for k in range(len(self.part.blocks))])
