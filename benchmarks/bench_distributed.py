@@ -24,6 +24,7 @@ Usage::
 """
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import subprocess
@@ -48,16 +49,11 @@ def parse_args(argv=None):
                    "(default: a temporary folder, removed after)")
     p.add_argument("--skip", choices=["scale", "frames"], action="append", default=[],
                    help="leave a part out")
-    p.add_argument("--limited", help=argparse_hidden())
+    p.add_argument("--limited", help=argparse.SUPPRESS)     # (the child process's part)
     a = p.parse_args(argv)
     if a.quick:
         a.tets, a.frames, a.cells, a.res = 1e5, 6, 10, 64
     return a
-
-
-def argparse_hidden():
-    import argparse
-    return argparse.SUPPRESS
 
 
 def field(points):

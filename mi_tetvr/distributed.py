@@ -293,15 +293,21 @@ def walk_settings(integrator, scene, part: Partition):
             "retrace_offset": float(integrator.retrace_epsilon) * float(np.linalg.norm(hi - lo))}
 
 
+def entry_order(iv):
+    """(n, B) the blocks in the order each ray enters their boxes (``iv``
+    (n, B, 2) its intervals in them; the ones it misses last)."""
+    return np.argsort(np.where(iv[:, :, 1] > iv[:, :, 0], iv[:, :, 0], np.inf), 1,
+                      kind="stable")
+
+
 class Blocks:
     """The partitioned mesh as the driver's ray program sees it (its
     ``remote``): the rays' intervals in each block's box handed to the block's
     worker, the results composited front to back; the last primal pass's
-    per-block results kept for the adjoint."""
+    per-block results (the mesh's ``last``) serve the adjoint."""
 
     def __init__(self, mesh: "PartitionedMesh", settings, reuse=False):
         self.mesh, self.settings, self.reuse = mesh, settings, reuse
-        self.kept = None
         self.grads = {}
 
     def _intervals(self, ray, t_start, active):
@@ -336,8 +342,7 @@ class Blocks:
             for k, (idx, ref) in jobs.items():
                 C[k, idx], T[k, idx] = self.mesh.get(k, ref)
             self.mesh.last = (self.settings, o, d, iv, C, T)
-        order = np.argsort(np.where(iv[:, :, 1] > iv[:, :, 0], iv[:, :, 0], np.inf), 1,
-                           kind="stable")                                 # (n, B)
+        order = entry_order(iv)
         rows = np.arange(n)
         Cs = np.zeros((n, 3), np.float64)
         Tf = np.ones(n, np.float64)
@@ -345,16 +350,17 @@ class Blocks:
             k = order[:, r]
             Cs += Tf[:, None] * C[k, rows]
             Tf *= T[k, rows]
-        self.kept = (o, d, iv, C, T, order)
         Cs, Tf = Cs.astype(np.float32), Tf.astype(np.float32)
         return mi.Color3f(*floats(Cs)), floats(Tf)
 
     def backward(self, ray, t_start, active, adj, behind):
         import drjit as dr
-        if self.kept is None or len(self.kept[0]) != dr.width(adj.dL):
+        last = self.mesh.last
+        if last is None or len(last[1]) != dr.width(adj.dL):
             raise RuntimeError("the partitioned mesh's adjoint runs after its primal pass "
                                "over the same rays")
-        o, d, iv, C, T, order = self.kept
+        _, o, d, iv, C, T = last
+        order = entry_order(iv)
         n, nb = iv.shape[:2]
         rows = np.arange(n)
         dL = np.array(adj.dL, np.float64).reshape(3, -1).T

@@ -22,26 +22,25 @@ def add_arguments(p):
 
 
 def run(a):
-    import numpy as np
+    from pathlib import Path
 
-    from mi_tetvr.mesh.io import read_mesh_file, tets_from_cells
+    from mi_tetvr.mesh.io import read_tetmesh
     from mi_tetvr.mesh.partition import partition_mesh
     from mi_tetvr.mesh.topology import MeshError
     from mi_tetvr.progress import progress_bar
     if a.blocks < 1:
         raise ValueError(f"--blocks must be at least 1, got {a.blocks}")
+    if Path(a.out).suffix.lower() != ".pvtu":
+        raise ValueError(f"a partitioned mesh is written as .pvtu, got {a.out}")
     t0 = time.time()
     try:
-        raw = read_mesh_file(a.mesh)
-        tets = tets_from_cells(raw, a.mesh)
+        # (every array as the file has it: no color or opacity of its own)
+        mesh = read_tetmesh(a.mesh, color=None, opacity=None)
     except MeshError as e:
         raise CommandError(str(e)) from None
-    cells = [i for i, b in enumerate(raw.cells) if b.type == "tetra"]
-    cell_data = {k: np.concatenate([np.asarray(v[i]) for i in cells])
-                 for k, v in raw.cell_data.items()}
     bar = progress_bar(total=a.blocks, desc="pieces", unit="piece", disable=a.quiet)
-    part = partition_mesh(np.asarray(raw.points)[:, :3], tets, a.out, a.blocks,
-                          dict(raw.point_data), cell_data, progress=lambda k: bar.update())
+    part = partition_mesh(mesh.vertices, mesh.tets, a.out, a.blocks, mesh.point_data,
+                          mesh.cell_data, progress=lambda k: bar.update())
     bar.close()
     sizes = [b.tets for b in part.blocks]
     print(f"{a.mesh}: {part.tets:,} tets in {len(sizes)} blocks of {min(sizes):,} to "

@@ -60,22 +60,16 @@ class Block:
     vertices: int = 0
 
     def to_json(self):
-        box = [[_num(x) for x in self.lo], [_num(x) for x in self.hi]]
+        # (JSON has no infinity: an open side is null)
+        box = [[float(x) if np.isfinite(x) else None for x in b] for b in (self.lo, self.hi)]
         return {"piece": self.piece, "box": box, "tets": self.tets, "owned": self.owned,
                 "vertices": self.vertices}
 
     @classmethod
     def from_json(cls, d):
-        lo, hi = (np.array([_val(x) for x in b], np.float64) for b in d["box"])
+        lo, hi = (np.array([sign * np.inf if x is None else float(x) for x in b], np.float64)
+                  for sign, b in zip((-1, 1), d["box"]))
         return cls(lo, hi, d["piece"], int(d["tets"]), int(d["owned"]), int(d["vertices"]))
-
-
-def _num(x):
-    return None if not np.isfinite(x) else float(x)
-
-
-def _val(x):
-    return float(x) if x is not None else np.nan
 
 
 @dataclass
@@ -96,10 +90,7 @@ class Partition:
 
     def boxes(self):
         """(N, 2, 3) the blocks' boxes, +-inf where a box is open."""
-        out = np.stack([np.stack([b.lo, b.hi]) for b in self.blocks])
-        out[:, 0][np.isnan(out[:, 0])] = -np.inf
-        out[:, 1][np.isnan(out[:, 1])] = np.inf
-        return out
+        return np.stack([np.stack([b.lo, b.hi]) for b in self.blocks])
 
 
 def kd_boxes(centroids, n) -> np.ndarray:
@@ -208,12 +199,11 @@ def _ranges(data):
 
 
 def _pdata_array(name, a):
+    """The attributes of a ``PDataArray`` declaring array ``a`` (its name, if any)."""
     a = np.asarray(a)
     comps = 1 if a.ndim == 1 else int(np.prod(a.shape[1:]))
-    attrs = {"type": _VTK_TYPES[a.dtype.name], "NumberOfComponents": str(comps)}
-    if name is not None:
-        attrs = {"type": attrs["type"], "Name": name, "NumberOfComponents": str(comps)}
-    return attrs
+    return {"type": _VTK_TYPES[a.dtype.name], **({"Name": name} if name is not None else {}),
+            "NumberOfComponents": str(comps)}
 
 
 def _write_pvtu(out, pieces, point_data, cell_data):
@@ -286,54 +276,44 @@ def read_partition(pvtu) -> Partition:
     return part
 
 
-def read_piece(part: Partition, k):
+def read_piece(part: Partition, k, *, ghosts=False):
     """``(vertices, tets, point_data, cell_data, global_point_ids)`` of block
-    ``k``'s piece (its own arrays, the partition's taken out)."""
+    ``k``'s piece: its own arrays, the partition's taken out; ``ghosts``:
+    also ``(global cell ids, owned)`` of its tets."""
     from mi_tetvr.mesh.io import read_mesh_file, tets_from_cells
     path = part.piece_path(k)
     m = read_mesh_file(path)
     tets = tets_from_cells(m, path)
     pd = {k_: np.asarray(v) for k_, v in m.point_data.items()}
     cd = {k_: np.concatenate([np.asarray(b) for b in v]) for k_, v in m.cell_data.items()}
-    if GLOBAL_POINT_IDS not in pd:
-        raise MeshError(f"{path}: no '{GLOBAL_POINT_IDS}' point array: not a piece of "
-                        f"{part.path.name}")
+    missing = [n for n, d in ((GLOBAL_POINT_IDS, pd), (GLOBAL_CELL_IDS, cd), (GHOST, cd))
+               if n not in d]
+    if missing:
+        raise MeshError(f"{path}: no {missing} arrays: not a piece of {part.path.name}")
     ids = pd.pop(GLOBAL_POINT_IDS).astype(np.int64).reshape(-1)
-    for name in (GLOBAL_CELL_IDS, GHOST):
-        cd.pop(name, None)
-    return np.asarray(m.points, np.float64)[:, :3], tets, pd, cd, ids
+    cells, owned = cd.pop(GLOBAL_CELL_IDS).astype(np.int64), cd.pop(GHOST) == 0
+    out = (np.asarray(m.points, np.float64)[:, :3], tets, pd, cd, ids)
+    return out + ((cells, owned),) if ghosts else out
 
 
 def assemble(part: Partition):
     """The whole mesh from its pieces (a meshio mesh: the points by their
     global ids, each tet once, in the original order)."""
     import meshio
-    points, tets, point_data, cell_data = None, None, {}, {}
-    from mi_tetvr.mesh.io import read_mesh_file, tets_from_cells
+    points = np.zeros((part.vertices, 3))
+    tets = np.zeros((part.tets, 4), np.int64)
+    point_data, cell_data = {}, {}
     for k in range(len(part.blocks)):
-        path = part.piece_path(k)
-        m = read_mesh_file(path)
-        t = tets_from_cells(m, path)
-        ids = np.asarray(m.point_data[GLOBAL_POINT_IDS], np.int64).reshape(-1)
-        cd = {n: np.concatenate([np.asarray(b) for b in v]) for n, v in m.cell_data.items()}
-        own = cd[GHOST] == 0
-        cells = cd[GLOBAL_CELL_IDS].astype(np.int64)[own]
-        if points is None:
-            points = np.zeros((part.vertices, 3))
-            tets = np.zeros((part.tets, 4), np.int64)
-        points[ids] = np.asarray(m.points, np.float64)[:, :3]
-        tets[cells] = ids[t[own]]
-        for n, v in m.point_data.items():
-            if n in PIECE_ARRAYS:
-                continue
-            v = np.asarray(v)
-            point_data.setdefault(n, np.zeros((part.vertices,) + v.shape[1:], v.dtype))[ids] = v
-        for n, v in cd.items():
-            if n in PIECE_ARRAYS:
-                continue
-            cell_data.setdefault(n, np.zeros((part.tets,) + v.shape[1:], v.dtype))[cells] = v[own]
+        v, t, pd, cd, ids, (cells, own) = read_piece(part, k, ghosts=True)
+        points[ids] = v
+        tets[cells[own]] = ids[t[own]]
+        for n, a in pd.items():
+            point_data.setdefault(n, np.zeros((part.vertices,) + a.shape[1:], a.dtype))[ids] = a
+        for n, a in cd.items():
+            cell_data.setdefault(n, np.zeros((part.tets,) + a.shape[1:], a.dtype))[cells[own]] \
+                = a[own]
     return meshio.Mesh(points, [("tetra", tets)], point_data=point_data,
-                       cell_data={n: [v] for n, v in cell_data.items()})
+                       cell_data={n: [a] for n, a in cell_data.items()})
 
 
 def grid_blocks(shape, n):

@@ -99,7 +99,11 @@ def sweep(data, sweep_file, out, workers=1, address=None, holdout=8, variant="ll
     from ray import tune
 
     from mi_tetvr.cluster import connect
+    from mi_tetvr.recon.config import FitConfig
+    from mi_tetvr.recon.datasets import load_dataset
     base, grid = read_sweep(sweep_file)
+    # the data set read here first: what is wrong with it is said before any trial
+    load_dataset(data, downscale=FitConfig().updated(**base).downscale or 1, holdout=holdout)
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     started = connect(workers, address)
