@@ -50,8 +50,9 @@ _registered_variant = None
 
 #: Modules that bind Mitsuba/Dr.Jit types at import, in dependency order.
 _VARIANT_MODULES = ("render.segment", "render.buffers", "render.geometry", "render.optical",
-                    "render.adjoint", "render.walk", "render", "grid.marcher", "recon.regularizer",
-                    "plugins.tetmesh", "plugins.tetvr", "plugins.tetproj")
+                    "render.adjoint", "render.walk", "render.transport", "render", "grid.marcher",
+                    "recon.regularizer", "plugins.tetmesh", "plugins.tetvr", "plugins.tetproj",
+                    "plugins.tetpath")
 
 
 def register():

@@ -75,6 +75,26 @@
    - |bool|
    - Drop folded, flat and duplicate tets (a warning says which and what it
      did to the boundary) instead of refusing the mesh. (Default: false)
+ * - albedo
+   - |float|, |color| or |tensor|
+   - Makes the mesh a participating medium that scatters light
+     (:class:`~mi_tetvr.render.optical.Scattering`, rendered by the
+     ``tetpath`` integrator): its single-scattering albedo, constant, or
+     (n,) / (n, 3) per vertex, linear RGB in [0, 1]. The opacity is the
+     extinction. (Default: none: emission and absorption only)
+ * - albedo_attribute
+   - |string|
+   - Instead of ``albedo``: the point-data array (n,) or (n, 3) holding it.
+ * - emission, emission_attribute
+   - |float|, |color|, |tensor| or |string|
+   - With an albedo: the medium's emission per unit extinction (as the
+     color of an emission-absorption mesh), constant, per vertex or a
+     point-data array. (Default: 0)
+ * - phase
+   - |phase|
+   - With an albedo: the phase function, a Mitsuba phase plugin as a child
+     (``isotropic``, ``hg``, ``rayleigh``, ...); its parameters are in
+     ``mi.traverse`` under ``<id>.phase.``. (Default: ``isotropic``)
  * - to_world
    - |transform|
    - Applied to the vertex positions at load. Opacity stays per unit length
@@ -90,7 +110,9 @@ bytes per tet); ``shape.oriented_tets()`` reads its tets back, positively
 oriented (e.g. for the quality regularizer).
 
 Differentiable parameters (``mi.traverse``): ``vertex_positions`` (3n),
-``vertex_color`` (3n) and ``vertex_opacity`` (n); post-classified:
+``vertex_color`` (3n) and ``vertex_opacity`` (n); scattering (an
+``albedo``): ``vertex_emission`` (3n) and ``vertex_albedo`` (3n) instead of
+``vertex_color``, and the phase function's (``phase.g``, ...); post-classified:
 ``vertex_positions``, ``vertex_scalar`` (n), ``tf_color`` (3R, linear RGB)
 and ``tf_opacity`` (R, extinction per unit length); with cell data,
 ``cell_scalar`` (m, in the mesh's tet order) instead of ``vertex_scalar``.
@@ -125,7 +147,7 @@ from mi_tetvr.mesh.io import choose_scalar
 from mi_tetvr.mesh.topology import longest_edges
 from mi_tetvr.render.buffers import drjit_index_arrays, owned, shape_index_arrays
 from mi_tetvr.render.optical import (Absorption, CellClassified, EmissionAbsorption,
-                                     PostClassified, PreIntegrated, Shaded)
+                                     PostClassified, PreIntegrated, Scattering, Shaded)
 from mi_tetvr.transfer import TransferFunction, read_transfer_function
 
 CLASSIFICATIONS = ("post", "pre", "preintegrated")
@@ -317,6 +339,63 @@ def post_classification(props, mesh):
     return model, scalar, (lo, hi), color, opacity * float(props.get("opacity_scale", 1.0))
 
 
+def _per_vertex(props, key, attribute, mesh, default: float):
+    """(n, 3) float64 values of a scattering property: constant (a float or
+    a color), a tensor (n,) or (n, 3), or the point-data array named by the
+    property ``attribute``; ``default`` where none is given."""
+    n = len(mesh.vertices)
+    if key in props and attribute in props:
+        raise ValueError(f"tetmesh: give '{key}' or '{attribute}', not both")
+    if attribute in props:
+        name = str(props[attribute])
+        if name not in mesh.point_data:
+            raise ValueError(f"tetmesh: no point-data array '{name}' for {key} (point arrays: "
+                             f"{sorted(mesh.point_data)})")
+        values = np.asarray(mesh.point_data[name], np.float64)
+    elif key in props:
+        kind = props.type(key)
+        if kind == mi.Properties.Type.Float:
+            values = np.full(n, float(props[key]))
+        elif kind == mi.Properties.Type.Color:
+            c = props[key]
+            values = np.tile(np.array([c[0], c[1], c[2]], np.float64), (n, 1))
+        else:
+            values = np.asarray(np.array(props[key]), np.float64)
+    else:
+        return np.full((n, 3), float(default))
+    if values.size == n:
+        values = np.repeat(values.reshape(n, 1), 3, axis=1)
+    if values.size != 3 * n:
+        raise ValueError(f"tetmesh: {key} must be one value, a color, or (n,) or (n, 3) per "
+                         f"vertex for n = {n} vertices, got {values.size} values")
+    values = values.reshape(n, 3)
+    if not np.all(np.isfinite(values)) or values.min() < 0.0:
+        raise ValueError(f"tetmesh: {key} must be finite and >= 0")
+    return values
+
+
+def scattering(props, mesh):
+    """``(albedo (n, 3), emission (n, 3), phase)`` of a scattering ``tetmesh``
+    (one with an ``albedo``), or None; the scattering properties without an
+    albedo are errors."""
+    phases = [k for k in props.keys() if isinstance(props.get(k, None), mi.PhaseFunction)]
+    has = "albedo" in props or "albedo_attribute" in props
+    if not has:
+        for key in ("emission", "emission_attribute", *phases):
+            if key in props:
+                raise ValueError(f"tetmesh: '{key}' belongs to a scattering medium: give the "
+                                 f"mesh an 'albedo'")
+        return None
+    if len(phases) > 1:
+        raise ValueError(f"tetmesh: one phase function, got {len(phases)}")
+    albedo = _per_vertex(props, "albedo", "albedo_attribute", mesh, 0.0)
+    if albedo.max() > 1.0:
+        raise ValueError(f"tetmesh: the albedo must lie in [0, 1], got up to {albedo.max():g}")
+    emission = _per_vertex(props, "emission", "emission_attribute", mesh, 0.0)
+    phase = props[phases[0]] if phases else mi.load_dict({"type": "isotropic"})
+    return albedo, emission, phase
+
+
 class TetMeshShape(mi.Mesh):
     __doc__ = __doc__
     #: The optical model that integrates this shape's vertex attributes.
@@ -332,6 +411,11 @@ class TetMeshShape(mi.Mesh):
             if post is not None or _transfer_function(props) is not None:
                 raise ValueError(f"tetmesh: model '{model}' takes a per-vertex opacity, not a "
                                  f"transfer function")
+        scatter = scattering(props, mesh)
+        if scatter is not None and (model != "emission" or _transfer_function(props) is not None):
+            raise ValueError("tetmesh: an albedo makes a scattering medium of a per-vertex "
+                             "opacity (extinction); it takes no transfer function and no "
+                             "'model'")
         topo = mesh.topology
         super().__init__("tetmesh", len(mesh.vertices), len(topo.boundary_faces),
                          props, False, False)
@@ -343,7 +427,14 @@ class TetMeshShape(mi.Mesh):
         params = mi.traverse(self)
         params["vertex_positions"] = owned(mi.Float, mesh.vertices.astype(np.float32).ravel())
         params["faces"] = owned(mi.UInt32, topo.boundary_faces.astype(np.uint32).ravel())
-        if post is None:
+        #: The phase function of a scattering mesh (else None).
+        self.phase = None
+        if scatter is not None:
+            self.optical_model = Scattering
+            albedo, emission, self.phase = scatter
+            values = {"vertex_emission": emission, "vertex_opacity": mesh.opacity,
+                      "vertex_albedo": albedo}
+        elif post is None:
             values = self.optical_model.vertex_values(mesh)
         else:
             self.optical_model, scalar, self.value_range, color, opacity = post
@@ -389,6 +480,8 @@ class TetMeshShape(mi.Mesh):
             callback.put("tf_opacity", self.tf_opacity, mi.ParamFlags.Differentiable)
         if self.optical_model is CellClassified:
             callback.put("cell_scalar", self.cell_scalar, mi.ParamFlags.Differentiable)
+        if getattr(self, "phase", None) is not None:
+            callback.put("phase", self.phase, mi.ParamFlags.Differentiable)
 
     def model_buffers(self):
         """The differentiable buffers of the optical model besides the

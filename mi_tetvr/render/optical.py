@@ -33,7 +33,8 @@ medium from each model's :meth:`OpticalModel.linear` (color and extinction
 at a piece's ends).
 
 Models here: :class:`EmissionAbsorption` (what ``tetmesh`` shapes use),
-:class:`Absorption` (extinction only), :class:`PostClassified` (a scalar and
+:class:`Scattering` (extinction, albedo and emission: a
+participating medium), :class:`Absorption` (extinction only), :class:`PostClassified` (a scalar and
 a transfer function), :class:`PreIntegrated` (the same by a table),
 :class:`CellClassified` (a scalar per tet and a transfer function) and
 :class:`Shaded` (post-classified and lit by a headlight). To add a model,
@@ -166,6 +167,47 @@ class EmissionAbsorption(OpticalModel):
 
     def linear(self, params, a0, a1, tet):
         return a0.c, a1.c, a0.s, a1.s
+
+
+class Scattering(EmissionAbsorption):
+    """A participating medium: per-vertex extinction ``s`` (the opacity),
+    single-scattering albedo ``a`` (linear RGB) and emission ``c`` (per unit
+    extinction, as :class:`EmissionAbsorption`'s color), all linear inside a
+    tet; the phase function is the shape's (``shape.phase``).
+
+    The path tracer (:mod:`mi_tetvr.render.transport`) samples free-flight
+    distances in it exactly and lights it by the scene's emitters; the
+    emission-absorption walk integrates its emission and extinction as
+    :class:`EmissionAbsorption` does (no scattering)."""
+
+    class Attributes:
+        DRJIT_STRUCT = {"c": mi.Color3f, "s": mi.Float, "a": mi.Color3f}
+
+        def __init__(self, c=None, s=None, a=None):
+            self.c, self.s, self.a = c, s, a
+
+    class Params:
+        DRJIT_STRUCT = {"color": mi.Float, "opacity": mi.Float, "albedo": mi.Float}
+
+        def __init__(self, color=None, opacity=None, albedo=None):
+            self.color, self.opacity, self.albedo = color, opacity, albedo
+
+    vertex_attributes = (("vertex_emission", 3), ("vertex_opacity", 1), ("vertex_albedo", 3))
+
+    @staticmethod
+    def vertex_values(mesh):
+        raise NotImplementedError("a scattering tetmesh reads its albedo and emission from "
+                                  "its properties")
+
+    def read_params(self, shapes):
+        return self.Params(concat([s.attribute_buffer("vertex_emission") for s in shapes]),
+                           concat([s.attribute_buffer("vertex_opacity") for s in shapes]),
+                           concat([s.attribute_buffer("vertex_albedo") for s in shapes]))
+
+    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+        return self.Attributes(dr.gather(mi.Color3f, params.color, i, active, mode=reduce),
+                               dr.gather(mi.Float, params.opacity, i, active, mode=reduce),
+                               dr.gather(mi.Color3f, params.albedo, i, active, mode=reduce))
 
 
 class Absorption(OpticalModel):

@@ -1,0 +1,120 @@
+"""The ``tetpath`` integrator: volumetric path tracing of scattering ``tetmesh``
+shapes (participating media) among the scene's surfaces and emitters.
+
+.. pluginparameters::
+
+ * - max_depth
+   - |int|
+   - Longest path depth, as Mitsuba's ``volpath``: 1 shows what emits
+     (emitters, and the volume's emission), 2 single scattering (direct
+     light at the first collision or surface), -1 no limit. (Default: 6)
+ * - rr_depth
+   - |int|
+   - Depth from which Russian roulette ends paths. (Default: 5)
+ * - max_steps
+   - |int|
+   - Safety bound on tets crossed per walk. (Default: 100000)
+ * - retrace_epsilon
+   - |float|
+   - Offset, relative to the scene's bounding-box diagonal, past a boundary
+     face before tracing for re-entry. (Default: 1e-5)
+
+The scene's ``tetmesh`` shapes with an ``albedo`` (see ``tetmesh``) are the
+medium: per-vertex extinction (``vertex_opacity``), albedo and emission per
+unit extinction, linear in each tet, and a phase function (Mitsuba's phase
+plugins). Free-flight distances are sampled exactly, tet by tet (no
+majorant, no null collisions), shadow rays are attenuated by the exact
+transmittance, and paths scatter in the medium and bounce on the other shapes
+with their BSDFs; next-event estimation reaches every Mitsuba emitter
+(point, spot, directional, area, ``envmap``, ...) with multiple importance
+sampling, as Mitsuba's ``volpath`` and ``prbvolpath``
+(:mod:`mi_tetvr.render.transport`).
+
+Derivatives (``dr.backward`` after ``mi.render``, or forward mode) replay
+each path (constant memory per path) w.r.t. the meshes' ``vertex_opacity``,
+``vertex_albedo``, ``vertex_emission``, ``vertex_positions`` (the
+integrand's derivative: no silhouette terms) and the phase function's
+parameters. The surfaces' BSDFs and the emitters are sampled but not
+differentiated. Meshes must not overlap; surfaces are opaque to shadow rays
+(a ``null`` or transmissive BSDF still blocks them).
+
+.. code-block:: python
+
+    'integrator': {'type': 'tetpath', 'max_depth': 8},
+    'fog': {'type': 'tetmesh', 'filename': 'fog.vtu', 'albedo': 0.8,
+            'phase': {'type': 'hg', 'g': 0.4}},
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from mi_tetvr.render.buffers import index_buffers, model_groups, tet_scene
+from mi_tetvr.render.merged import overlapping
+from mi_tetvr.render.optical import Scattering
+from mi_tetvr.render.program import scaled_settings
+from mi_tetvr.render.surfaces import SceneParts
+from mi_tetvr.render.transport import PathScene, sample
+from mi_tetvr.render.walk import WalkSettings
+
+
+class TetPathIntegrator(mi.ad.integrators.common.RBIntegrator):
+    __doc__ = __doc__
+
+    def __init__(self, props):
+        super().__init__(props)
+        max_steps = int(props.get("max_steps", 100_000))
+        if max_steps < 1:
+            raise ValueError("tetpath: max_steps must be >= 1")
+        self.retrace_epsilon = float(props.get("retrace_epsilon", 1e-5))
+        self.settings = WalkSettings(0.0, max_steps)
+        self.parts = SceneParts()
+        self._empty = None
+        self._index = None
+
+    def path_scene(self, scene) -> PathScene:
+        """What :func:`~mi_tetvr.render.transport.sample` reads of ``scene``;
+        ValueError for a scene it cannot render."""
+        tets, walk_scene, surfaces = self.parts.split(scene)
+        if not tets:
+            raise ValueError("tetpath: the scene has no tetmesh")
+        plain = [s.id() or "tetmesh" for s in tets if s.optical_model is not Scattering]
+        if plain:
+            raise ValueError(f"tetpath: tetmesh {', '.join(plain)} has no albedo; tetpath "
+                             f"renders scattering media (give each tetmesh an 'albedo', or "
+                             f"render emission and absorption with tetvr)")
+        if len(tets) > 1 and overlapping(tets):
+            raise ValueError("tetpath: the scene's tet meshes overlap in space; tetpath walks "
+                             "meshes apart from each other")
+        phases = {id(s.phase): s.phase for s in tets}
+        if len(phases) > 1:
+            raise ValueError("tetpath: the scene's scattering tet meshes must share one phase "
+                             "function (load it once and hand the same object to each)")
+        (group,) = model_groups(tets)
+        key = tuple(id(s.tet_buffers) for s in group)
+        if self._index is None or self._index[0] != key:
+            self._index = (key, index_buffers(group))
+        index, offsets = self._index[1]
+        with dr.resume_grad():
+            ts_ad = tet_scene(group, index, offsets)
+        if surfaces is None:
+            if self._empty is None:
+                self._empty = mi.load_dict({"type": "scene"})
+            surfaces = self._empty
+        settings = scaled_settings(self.settings, self.retrace_epsilon, scene)
+        return PathScene(scene, ts_ad.detached(), ts_ad, walk_scene, surfaces,
+                         next(iter(phases.values())), settings, self.max_depth, self.rr_depth)
+
+    def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
+        if mode != dr.ADMode.Primal and state_in is None:
+            raise ValueError("tetpath: the derivative modes need the primal pass's state_in")
+        L, valid, state = sample(mode, self.path_scene(scene), sampler, ray, δL, state_in,
+                                 active)
+        return L, valid, [], state
+
+    def to_string(self):
+        return (f"TetPathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
+                f"max_steps={self.settings.max_steps}]")
+
+
+mi.register_integrator("tetpath", lambda props: TetPathIntegrator(props))
