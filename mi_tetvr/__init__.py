@@ -95,7 +95,8 @@ def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, cell_sca
     cell_scalar : (m,) float, optional
         Or a scalar per tet (cell data, constant in each tet).
     **props
-        Other plugin properties (e.g. ``to_world``, ``transfer_function``).
+        Other plugin properties (e.g. ``to_world``, ``transfer_function``,
+        ``albedo``); numpy arrays become tensors.
 
     Raises
     ------
@@ -117,7 +118,9 @@ def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, cell_sca
         d["scalar"] = mi.TensorXf(np.asarray(scalar, dtype=np.float32))
     if cell_scalar is not None:
         d["cell_scalar"] = mi.TensorXf(np.asarray(cell_scalar, dtype=np.float32))
-    d.update(props)
+    # (other per-vertex arrays, e.g. a scattering mesh's albedo and emission)
+    d.update({k: mi.TensorXf(np.asarray(v, dtype=np.float32)) if isinstance(v, np.ndarray) else v
+              for k, v in props.items()})
     if scalar is not None or cell_scalar is not None:
         register()
         from .plugins.tetmesh import check_array_scalars

@@ -366,18 +366,22 @@ def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
         collided = active & fl.hit
         p = ray.o + fl.t * ray.d
         a = fl.a
-        if dr.hint(not primal, mode="scalar"):
-            dL = dL - dr.select(active, L * dtau, 0.0)
-            a_ad = attributes_at(ts_ad, fl.tet, p, collided)
-            dL = grad(δL, dL, lambda: L * _ratio(a_ad.s, a.s), collided)
 
         # ---- a collision: emission, then absorption or scattering ----
         emit = collided & (depth < ps.max_depth)
         Le = dr.select(emit, β * a.c, 0.0)
-        L = L + Le if primal else L - Le
         if dr.hint(not primal, mode="scalar"):
-            dL = grad(δL, dL, lambda: β * a_ad.c, emit)
-            dL = grad(δL, dL, lambda: L * _ratio(a_ad.a, a.a), collided)
+            dL = dL - dr.select(active, L * dtau, 0.0)
+
+            # The collision's three terms in one pass over the field at p
+            # (a second pass would find the interpolation's edges cleared):
+            # the extinction's density, the emission, the albedo's weight.
+            def collision_term():
+                a_ad = attributes_at(ts_ad, fl.tet, p, collided)
+                return (L * _ratio(a_ad.s, a.s) + dr.select(emit, β * a_ad.c, 0.0)
+                        + (L - Le) * _ratio(a_ad.a, a.a))
+            dL = grad(δL, dL, collision_term, collided)
+        L = L + Le if primal else L - Le
         β = dr.select(collided, β * a.a, β)
         depth = dr.select(collided, depth + 1, depth)
         valid |= collided

@@ -1,0 +1,359 @@
+"""Light transport in scattering tet media (``tetpath``,
+:mod:`mi_tetvr.render.transport`).
+
+References the project did not write: Mitsuba's own ``volpath`` (a
+``homogeneous`` medium in a ``cube``; a ``heterogeneous`` medium on a
+``gridvolume`` holding a field linear in space, which a tet mesh and a
+trilinear grid both represent exactly) and ``prbvolpath``'s gradients; the
+closed-form optical depth of a linear extinction; finite differences.
+Monte Carlo images are compared by z-tests of their difference (independent
+pixels), block by block.
+"""
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+from scipy import stats
+
+import mi_tetvr
+from mi_tetvr.mesh.generate import grid_mesh
+from mi_tetvr.render.transport import flight, solve_depth
+
+RES = 20
+ALBEDO, G = 0.7, 0.5
+#: The linear field: extinction A + B x over the cube [-1, 1]^3.
+A, B = 1.0, 0.8
+#: Bound on the z-scores of image differences (16 blocks and the image).
+Z = 4.5
+
+
+@pytest.fixture(scope="module")
+def cube():
+    return grid_mesh((4, 4, 4))
+
+
+def camera(spp=64):
+    return {"type": "perspective", "fov": 40,
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0.5, 0.8, 5], target=[0, 0, 0],
+                                                       up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": RES, "height": RES,
+                     "rfilter": {"type": "box"}},
+            "sampler": {"type": "independent", "sample_count": spp}}
+
+
+LIGHTS = {
+    "point": {"type": "point", "position": [2.0, 2.5, 3.0],
+              "intensity": {"type": "rgb", "value": 20.0}},
+    "area": {"type": "rectangle",
+             "to_world": mi.ScalarTransform4f().translate([0, 3, 0]).rotate([1, 0, 0], 90),
+             "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 5.0}}},
+    "envmap": {"type": "envmap", "bitmap": mi.Bitmap(np.concatenate(
+        [np.linspace(0.2, 2.0, 32 * 16).reshape(16, 32, 1) * np.array([1.0, 0.8, 0.6])],
+        axis=2).astype(np.float32))},
+}
+
+
+def linear_grid(n=8):
+    """Mitsuba's ``gridvolume`` of ``A + B x`` on the cube: its samples sit at
+    the voxel centres, so the grid spans half a voxel beyond the cube on each
+    side and its outermost centres lie on the cube's faces."""
+    x = -1.0 + 2.0 * np.arange(n) / (n - 1)
+    data = np.broadcast_to((A + B * x)[None, None, :, None], (n, n, n, 1))
+    h = 2.0 / (n - 1)
+    return {"type": "gridvolume", "data": mi.TensorXf(np.ascontiguousarray(data, np.float32)),
+            "filter_type": "trilinear",
+            "to_world": mi.ScalarTransform4f().translate([-1 - h / 2] * 3).scale([2 + h] * 3)}
+
+
+def scenes(cube, light, field, integrator, max_depth, spp=64, reference="volpath"):
+    """The tet scene and Mitsuba's scene of the same medium."""
+    V, T = cube
+    phase = {"type": "hg", "g": G}
+    if field == "constant":
+        sigma = np.full(len(V), 1.5)
+        medium = {"type": "homogeneous", "sigma_t": 1.5, "albedo": ALBEDO, "phase": phase}
+    else:
+        sigma = A + B * V[:, 0]
+        medium = {"type": "heterogeneous", "sigma_t": linear_grid(), "albedo": ALBEDO,
+                  "phase": phase}
+    common = {"type": "scene", "sensor": camera(spp), "light": LIGHTS[light]}
+    tet = mi.load_dict({**common, "integrator": {"type": integrator, "max_depth": max_depth},
+                        "vol": mi_tetvr.tetmesh_dict(V, T, opacity=sigma, albedo=ALBEDO,
+                                                     phase=phase)})
+    ref = mi.load_dict({**common, "integrator": {"type": reference, "max_depth": max_depth},
+                        "cube": {"type": "cube", "bsdf": {"type": "null"}, "interior": medium}})
+    return tet, ref
+
+
+def z_scores(a, b, block=5):
+    """z-scores of the mean difference of two independent Monte Carlo images,
+    per block of pixels and over the whole image."""
+    d = (np.asarray(a) - np.asarray(b)).mean(axis=2)
+    z = []
+    for blk in [d[i:i + block, j:j + block] for i in range(0, d.shape[0], block)
+                for j in range(0, d.shape[1], block)] + [d]:
+        x = blk.ravel()
+        z.append(x.mean() / (x.std(ddof=1) / np.sqrt(x.size)))
+    return np.abs(np.array(z))
+
+
+# -- the walk's sampling and transmittance against closed forms ---------------
+
+@pytest.fixture(scope="module")
+def linear_walk(cube):
+    V, T = cube
+    scene = mi.load_dict({"type": "scene", "vol": mi_tetvr.tetmesh_dict(
+        V, T, opacity=A + B * V[:, 0], albedo=0.5)})
+    return mi.load_dict({"type": "tetpath"}).path_scene(scene)
+
+
+def optical_depth(o, d, s):
+    """float64 closed form: the optical depth of ``A + B x`` from ``o`` over
+    a distance ``s`` along ``d`` (a linear field: length times the midpoint's value)."""
+    mid = o + d * (s / 2)[:, None]
+    return s * (A + B * mid[:, 0])
+
+
+def test_free_flight_distances_invert_the_optical_depth(linear_walk):
+    """Rays along x through the cube: each sampled distance solves the
+    closed-form optical depth of its target, and the distances follow the
+    free-flight density (Kolmogorov-Smirnov against the closed-form CDF)."""
+    ps = linear_walk
+    n = 20000
+    rng = np.random.default_rng(1)
+    yz = rng.uniform(-0.9, 0.9, (n, 2))
+    o = np.column_stack([np.full(n, -3.0), yz])
+    d = np.tile([1.0, 0.0, 0.0], (n, 1))
+    total = 2.0 * A                                   # the depth of the whole chord
+    u = rng.uniform(0.0, 1.0 - np.exp(-total), n)     # (every sample collides)
+    target = -np.log1p(-u)
+    fl, _ = flight(ps.ts, ps.walk_scene, mi.Point3f(o.T), mi.Vector3f(d.T), mi.Float(10.0),
+                   mi.Float(target), mi.UInt32(0), mi.Bool(False), ps.settings, mi.Bool(True))
+    assert np.all(np.array(fl.hit))
+    s = np.array(fl.t, np.float64) - 2.0               # the distance inside the cube
+    # s solves (A - B) s + B s^2 / 2 = target
+    s_ref = (-(A - B) + np.sqrt((A - B) ** 2 + 2 * B * target)) / B
+    assert np.abs(s - s_ref).max() < 2e-5
+    assert np.abs(np.array(fl.tau) - target).max() < 1e-5
+
+    def cdf(x):
+        return -np.expm1(-((A - B) * x + B * x * x / 2)) / -np.expm1(-total)
+    assert stats.kstest(s, cdf).pvalue > 1e-3
+    # The collision's attributes are the field there.
+    x = -1.0 + s
+    assert np.abs(np.array(fl.a.s) - (A + B * x)).max() < 1e-4
+    # The root of a piece's depth, in the form without cancellation.
+    r = solve_depth(mi.Float(2.0), mi.Float(0.0), mi.Float(1.0), mi.Float(0.75))
+    assert abs(r[0] - 0.5) < 1e-6
+
+
+def test_transmittance_from_outside_and_from_inside_a_tet(linear_walk, cube):
+    """Optical depth to the end of the ray (``target = inf``) against the float64
+    closed form: oblique rays from outside, and rays that start at a point
+    inside a known tet in any direction (a scattered ray: the walk finds the
+    face its line enters the tet by)."""
+    ps = linear_walk
+    V, T = cube
+    rng = np.random.default_rng(2)
+    n = 4000
+    # From outside, through the cube: aim at points inside.
+    target = rng.uniform(-0.8, 0.8, (n, 3))
+    o = target + rng.normal(size=(n, 3)) * 3.0
+    d = target - o
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    fl, _ = flight(ps.ts, ps.walk_scene, mi.Point3f(o.T), mi.Vector3f(d.T), mi.Float(dr.inf),
+                   mi.Float(dr.inf), mi.UInt32(0), mi.Bool(False), ps.settings, mi.Bool(True))
+    t0, t1 = box_chord(o, d)
+    ref = optical_depth(o + d * t0[:, None], d, t1 - t0)
+    assert np.abs(np.array(fl.tau) - ref).max() < 1e-5 * max(1.0, ref.max())
+    # From inside a tet (its tets in the walk's order), to the cube's side.
+    tets = np.asarray(ps.ts.buf.tets).reshape(-1, 4)
+    k = rng.integers(0, len(tets), n)
+    w = rng.dirichlet(np.ones(4), n)
+    p = np.einsum("nk,nkj->nj", w, V[tets[k]])
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    fl, _ = flight(ps.ts, ps.walk_scene, mi.Point3f(p.T), mi.Vector3f(d.T), mi.Float(dr.inf),
+                   mi.Float(dr.inf), mi.UInt32(k), mi.Bool(True), ps.settings, mi.Bool(True))
+    _, t1 = box_chord(p, d)
+    ref = optical_depth(p, d, t1)
+    assert np.abs(np.array(fl.tau) - ref).max() < 1e-5 * max(1.0, ref.max())
+
+
+def box_chord(o, d):
+    """float64 ray parameters where rays enter and leave the cube [-1, 1]^3."""
+    with np.errstate(divide="ignore"):
+        inv = 1.0 / d
+    a, b = (-1.0 - o) * inv, (1.0 - o) * inv
+    return np.maximum(np.minimum(a, b).max(1), 0.0), np.maximum(a, b).min(1)
+
+
+# -- images against Mitsuba's volpath ------------------------------------------
+
+@pytest.mark.parametrize("light, field, max_depth", [
+    ("point", "constant", 2), ("point", "constant", -1),
+    ("area", "constant", 2), ("area", "constant", -1),
+    ("envmap", "constant", 2), ("envmap", "constant", -1),
+    ("area", "linear", -1), ("envmap", "linear", 2), ("point", "linear", -1)])
+def test_matches_mitsuba_volpath(cube, light, field, max_depth):
+    """Single (``max_depth = 2``) and multiple scattering in a constant
+    medium (Mitsuba: ``homogeneous``) and in a medium linear in space
+    (Mitsuba: ``heterogeneous`` on a trilinear ``gridvolume``), lit by a
+    point light, an area light and an environment map."""
+    tet, ref = scenes(cube, light, field, "tetpath", max_depth)
+    a = mi.render(tet, spp=256, seed=1)
+    b = mi.render(ref, spp=256, seed=2)
+    assert np.asarray(b).mean() > 1e-3
+    z = z_scores(a, b)
+    assert z.max() < Z, z
+
+
+# -- derivatives ----------------------------------------------------------------
+
+def weighted_loss(weights):
+    """A loss whose gradient differs per pixel and channel."""
+    def loss(img):
+        return dr.sum(img[:, :, :3] * weights, axis=None) / RES ** 2
+    return loss
+
+
+def backward(scene, keys, loss, spp, seed):
+    """Gradients of ``loss`` w.r.t. the parameters ``keys`` (numpy) of the
+    image rendered with ``seed`` (Mitsuba's derivative pass renders its own
+    primal with ``seed_grad``)."""
+    params = mi.traverse(scene)
+    for k in keys:
+        dr.enable_grad(params[k])
+    params.update()
+    dr.backward(loss(mi.render(scene, params, spp=spp, seed=seed + 1, seed_grad=seed)))
+    out = {k: np.array(dr.grad(params[k]), np.float64) for k in keys}
+    for k in keys:
+        dr.disable_grad(params[k])
+    return out
+
+
+def forward(scene, directions, loss, spp, seed):
+    """The derivative of ``loss`` along ``directions`` (``{key: tangent}``:
+    all at once) of the image rendered with ``seed``, in forward mode."""
+    params = mi.traverse(scene)
+    for key, direction in directions.items():
+        dr.enable_grad(params[key])
+        dr.set_grad(params[key], mi.Float(np.asarray(direction, np.float32)))
+    params.update()
+    out = dr.forward_to(loss(mi.render(scene, params, spp=spp, seed=seed + 1, seed_grad=seed)))
+    for key in directions:
+        dr.disable_grad(params[key])
+    return float(out.array[0])
+
+
+def test_gradients_match_prbvolpath(cube):
+    """Extinction, albedo and the phase function's ``g`` of a constant
+    medium under a point light, multiple scattering: the tet mesh's vertex
+    gradients, summed, against Mitsuba's ``prbvolpath`` on its
+    ``homogeneous`` medium (independent samples: within 5 %)."""
+    tet, ref = scenes(cube, "point", "constant", "tetpath", -1, reference="prbvolpath")
+    rng = np.random.default_rng(3)
+    loss = weighted_loss(mi.TensorXf(rng.uniform(0.5, 1.5, (RES, RES, 3)).astype(np.float32)))
+    mine = backward(tet, ["vol.vertex_opacity", "vol.vertex_albedo", "vol.phase.g"], loss,
+                    1024, 1)
+    theirs = backward(ref, ["cube.interior_medium.sigma_t.value.value",
+                            "cube.interior_medium.albedo.value.value",
+                            "cube.interior_medium.phase_function.g"], loss, 1024, 2)
+    for a, b in zip(mine.values(), theirs.values()):
+        assert abs(a.sum() - b.sum()) < 0.05 * abs(b.sum()), (a.sum(), b.sum())
+
+
+@pytest.fixture(scope="module")
+def scattering(cube):
+    """A scattering mesh with everything per vertex (extinction, albedo,
+    emission) under an area light, and directions in its parameters."""
+    V, T = cube
+    rng = np.random.default_rng(4)
+    scene = mi.load_dict({
+        "type": "scene", "sensor": camera(), "light": LIGHTS["area"],
+        "integrator": {"type": "tetpath", "max_depth": -1},
+        "vol": mi_tetvr.tetmesh_dict(V, T, opacity=0.5 + rng.uniform(0, 1.5, len(V)),
+                                     albedo=rng.uniform(0.3, 0.9, (len(V), 3)),
+                                     emission=rng.uniform(0, 0.3, (len(V), 3)),
+                                     phase={"type": "hg", "g": 0.3})})
+    interior = np.all(np.abs(V) < 0.999, axis=1)
+    directions = {
+        "vol.vertex_opacity": 1.0 + V[:, 0],
+        "vol.vertex_albedo": np.repeat(0.1 * (1.0 - V[:, 1]), 3),
+        "vol.vertex_emission": rng.normal(size=3 * len(V)),
+        "vol.vertex_positions": (np.array([0.2, 0.1, 0.0]) * interior[:, None]).ravel(),
+        "vol.phase.g": np.ones(1)}
+    loss = weighted_loss(mi.TensorXf(rng.uniform(0.5, 1.5, (RES, RES, 3)).astype(np.float32)))
+    return scene, directions, loss
+
+
+def test_backward_equals_forward(scattering):
+    """On the same samples, the reverse-mode gradient along a direction is
+    the forward-mode derivative along it: the vertex positions alone, and
+    every parameter at once."""
+    scene, directions, loss = scattering
+    grads = backward(scene, list(directions), loss, 64, 7)
+    positions = "vol.vertex_positions"
+    for subset in ({positions: directions[positions]}, directions):
+        fwd = forward(scene, subset, loss, 64, 7)
+        bwd = sum(float(grads[k] @ d) for k, d in subset.items())
+        assert abs(fwd - bwd) <= 1e-3 * abs(bwd) + 1e-7, (list(subset), fwd, bwd)
+
+
+def test_gradients_match_finite_differences(scattering):
+    """Extinction, albedo and emission against central differences of the
+    image rendered with the same random numbers (the image is linear in the
+    emission: there the two are equal up to round-off). The step is not
+    small: with the same random numbers, a free flight that reaches a
+    mesh's side at one extinction collides at the other, and those jumps
+    make the differences' noise grow as 1 / step."""
+    scene, directions, loss = scattering
+    keys = ["vol.vertex_opacity", "vol.vertex_albedo", "vol.vertex_emission"]
+    grads = backward(scene, keys, loss, 1024, 9)
+    params = mi.traverse(scene)
+    for key in keys:
+        base = mi.Float(params[key])
+        step = mi.Float(np.asarray(directions[key], np.float32))
+        eps = 0.1
+        values = []
+        for sign in (1, -1):
+            params[key] = base + sign * eps * step
+            params.update()
+            values.append(float(loss(mi.render(scene, spp=1024, seed=9)).array[0]))
+        params[key] = base
+        params.update()
+        fd = (values[0] - values[1]) / (2 * eps)
+        bwd = float(grads[key] @ directions[key])
+        tol = 1e-3 if key == "vol.vertex_emission" else 0.05
+        assert abs(fd - bwd) <= tol * abs(fd), (key, fd, bwd)
+
+
+def test_emission_only_is_tetvr_in_expectation(cube):
+    """With albedo 0 the path tracer is a Monte Carlo estimate of the
+    emission-absorption integral that ``tetvr`` computes exactly: the images
+    agree within their noise, and so do the gradients w.r.t. extinction,
+    emission and (interior) vertex positions."""
+    V, T = cube
+    rng = np.random.default_rng(5)
+    sigma, color = 0.3 + rng.uniform(0, 2.0, len(V)), rng.uniform(0, 1, (len(V), 3))
+    mc = mi.load_dict({"type": "scene", "sensor": camera(),
+                       "integrator": {"type": "tetpath", "max_depth": -1},
+                       "vol": mi_tetvr.tetmesh_dict(V, T, opacity=sigma, albedo=0.0,
+                                                    emission=color)})
+    exact = mi.load_dict({"type": "scene", "sensor": camera(),
+                          "integrator": {"type": "tetvr", "min_transmittance": 0.0},
+                          "vol": mi_tetvr.tetmesh_dict(V, T, color=color, opacity=sigma)})
+    a = np.asarray(mi.render(mc, spp=256, seed=1))
+    b = np.asarray(mi.render(exact, spp=256, seed=2))[..., :3]
+    assert z_scores(a, b).max() < Z
+    interior = np.all(np.abs(V) < 0.999, axis=1)
+    loss = weighted_loss(mi.TensorXf(rng.uniform(0.5, 1.5, (RES, RES, 3)).astype(np.float32)))
+    g_mc = backward(mc, ["vol.vertex_opacity", "vol.vertex_emission", "vol.vertex_positions"],
+                    loss, 4096, 3)
+    g_ex = backward(exact, ["vol.vertex_opacity", "vol.vertex_color", "vol.vertex_positions"],
+                    loss, 64, 4)
+    # Along the exact gradient (moving interior vertices only: the mesh's
+    # sides, where the extinction jumps, stay where they are).
+    g_ex["vol.vertex_positions"] *= np.repeat(interior, 3)
+    for x, y in zip(g_mc.values(), g_ex.values()):
+        assert abs(x @ y - y @ y) < 0.05 * (y @ y), (x @ y, y @ y)
