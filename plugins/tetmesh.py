@@ -76,12 +76,14 @@
    - Drop folded, flat and duplicate tets (a warning says which and what it
      did to the boundary) instead of refusing the mesh. (Default: false)
  * - albedo
-   - |float|, |color| or |tensor|
+   - |float|, |color|, |tensor| or |string|
    - Makes the mesh a participating medium that scatters light
      (:class:`~mi_tetvr.render.optical.Scattering`, rendered by the
      ``tetpath`` integrator): its single-scattering albedo, constant, or
-     (n,) / (n, 3) per vertex, linear RGB in [0, 1]. The opacity is the
-     extinction. (Default: none: emission and absorption only)
+     (n,) / (n, 3) per vertex, linear RGB in [0, 1], or ``color``: the
+     mesh's color is its albedo (its color array, or a transfer function's
+     colors, classified at the vertices: ``classification`` ``pre``). The
+     opacity is the extinction. (Default: none: emission and absorption only)
  * - albedo_attribute
    - |string|
    - Instead of ``albedo``: the point-data array (n,) or (n, 3) holding it.
@@ -388,7 +390,16 @@ def scattering(props, mesh):
         return None
     if len(phases) > 1:
         raise ValueError(f"tetmesh: one phase function, got {len(phases)}")
-    albedo = _per_vertex(props, "albedo", "albedo_attribute", mesh, 0.0)
+    if "albedo" in props and props.type("albedo") == mi.Properties.Type.String:
+        if props["albedo"] != "color" or "albedo_attribute" in props:
+            raise ValueError(f"tetmesh: albedo is a number, a color, a tensor or 'color' (the "
+                             f"mesh's color), got {props['albedo']!r}")
+        if _classification(props) not in (None, "pre"):
+            raise ValueError("tetmesh: a transfer function's colors are an albedo when they "
+                             "are classified at the vertices: give classification 'pre'")
+        albedo = np.clip(np.asarray(mesh.color, np.float64), 0.0, 1.0)
+    else:
+        albedo = _per_vertex(props, "albedo", "albedo_attribute", mesh, 0.0)
     if albedo.max() > 1.0:
         raise ValueError(f"tetmesh: the albedo must lie in [0, 1], got up to {albedo.max():g}")
     emission = _per_vertex(props, "emission", "emission_attribute", mesh, 0.0)
@@ -412,10 +423,10 @@ class TetMeshShape(mi.Mesh):
                 raise ValueError(f"tetmesh: model '{model}' takes a per-vertex opacity, not a "
                                  f"transfer function")
         scatter = scattering(props, mesh)
-        if scatter is not None and (model != "emission" or _transfer_function(props) is not None):
+        if scatter is not None and (model != "emission" or post is not None):
             raise ValueError("tetmesh: an albedo makes a scattering medium of a per-vertex "
-                             "opacity (extinction); it takes no transfer function and no "
-                             "'model'")
+                             "opacity (extinction): it takes no 'model', and a transfer "
+                             "function only classified at the vertices (classification 'pre')")
         topo = mesh.topology
         super().__init__("tetmesh", len(mesh.vertices), len(topo.boundary_faces),
                          props, False, False)

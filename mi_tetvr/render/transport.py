@@ -43,7 +43,7 @@ from mi_tetvr.render.buffers import unpack_link
 from mi_tetvr.render.geometry import (Corner, crossing_at, edge_function, entry_carry,
                                       face_crossing, project, ray_frame, walk_step)
 from mi_tetvr.render.linear import TetFrame
-from mi_tetvr.render.pytree import tree_lerp, tree_select, weighted_sum
+from mi_tetvr.render.pytree import weighted_sum
 from mi_tetvr.render.segment import clip_segment
 from mi_tetvr.render.walk import WalkSettings, enter
 
@@ -94,12 +94,18 @@ class Flight:
 
     tau : the optical depth walked (to the collision, or to the end).
     hit : whether it reached the target depth (a collision).
-    t, tet, a : the collision's ray parameter, tet and the model's
-        attributes there.
+    t, tet, s : the collision's ray parameter, tet and the extinction
+        there (the other attributes: :func:`attributes_at`).
     """
 
-    def __init__(self, tau, hit, t, tet, a):
-        self.tau, self.hit, self.t, self.tet, self.a = tau, hit, t, tet, a
+    def __init__(self, tau, hit, t, tet, s):
+        self.tau, self.hit, self.t, self.tet, self.s = tau, hit, t, tet, s
+
+
+def extinction(params, i, active=True):
+    """The extinction of vertex ``i`` (every scattering and emission model's
+    ``opacity``): all that a free flight reads per vertex."""
+    return dr.gather(mi.Float, params.opacity, i, active)
 
 
 def _piece_depth(ts_ad, st, entry_w, o, u, v, d, t0, t1, t_begin, t_stop, active, geometric):
@@ -107,17 +113,16 @@ def _piece_depth(ts_ad, st, entry_w, o, u, v, d, t0, t1, t_begin, t_stop, active
     ``[t_begin, t_stop]``, attached to the parameters' AD graph (the
     crossings computed again from the attached buffers where vertices move,
     else at the walk's own ray parameters with attached attributes)."""
-    model = ts_ad.model
     with dr.resume_grad():
         if geometric:
             t0, w0 = face_crossing(ts_ad.buf, st.entry, o, u, v, d, active)
             t1, w1 = face_crossing(ts_ad.buf, st.exit, o, u, v, d, active)
         else:
             w0, w1 = entry_w, st.w
-        a0 = model.interpolate(ts_ad.params, st.entry, w0, active)
-        a1 = model.interpolate(ts_ad.params, st.exit, w1, active)
-        length, b0, b1 = clip_segment(t0, a0, t1, a1, t_begin, t_stop)
-        return length * (b0.s + b1.s) * 0.5
+        s0 = weighted_sum(w0, [extinction(ts_ad.params, i, active) for i in st.entry])
+        s1 = weighted_sum(w1, [extinction(ts_ad.params, i, active) for i in st.exit])
+        length, b0, b1 = clip_segment(t0, s0, t1, s1, t_begin, t_stop)
+        return length * (b0 + b1) * 0.5
 
 
 @dr.syntax
@@ -131,12 +136,12 @@ def walk_depth(ts, tet, f_in, o, u, v, d, t_begin, t_stop, tau, target, settings
     ``grad`` (a derivative pass): ``(mode, ts_ad, seed)``; backward mode
     propagates ``seed * tau_walked`` into the parameters, forward mode
     returns the tangent of the walked depth. Returns ``(tau, hit, t_hit,
-    tet_hit, a_hit, t_end, dtau)``.
+    tet_hit, s_hit, t_end, dtau)``. The walk reads only the extinction.
     """
-    buf, model, params = ts.buf, ts.model, ts.params
+    buf, params = ts.buf, ts.params
 
     def gather(i, active):
-        return model.gather(params, i, active)
+        return extinction(params, i, active)
 
     tet = mi.UInt32(tet)
     f_in = mi.UInt32(f_in)
@@ -148,7 +153,7 @@ def walk_depth(ts, tet, f_in, o, u, v, d, t_begin, t_stop, tau, target, settings
     hit = mi.Bool(False)
     t_hit = mi.Float(dr.inf)
     tet_hit = mi.UInt32(tet)
-    a_hit = dr.zeros(model.Attributes, dr.width(tet))
+    s_hit = mi.Float(0.0)
     dtau = mi.Float(0.0)
     steps = mi.UInt32(0)
     derivative = grad is not None
@@ -163,13 +168,13 @@ def walk_depth(ts, tet, f_in, o, u, v, d, t_begin, t_stop, tau, target, settings
         t_out = dr.maximum(st.t, t)
         length, a0, a1 = clip_segment(t, a, t_out, a_out, t_begin, t_stop)
         t0 = dr.clip(t, t_begin, t_stop)
-        tau_seg = length * (a0.s + a1.s) * 0.5
+        tau_seg = length * (a0 + a1) * 0.5
         r = target - tau
         here = active & (tau_seg >= r)
-        x = solve_depth(a0.s, a1.s, length, r)
+        x = solve_depth(a0, a1, length, r)
         t_hit = dr.select(here, t0 + x, t_hit)
         frac = dr.select(length > 0, x * dr.rcp(dr.select(length > 0, length, 1.0)), 0.0)
-        a_hit = tree_select(here, tree_lerp(a0, a1, frac), a_hit)
+        s_hit = dr.select(here, dr.lerp(a0, a1, frac), s_hit)
         tet_hit = dr.select(here, tet, tet_hit)
         if dr.hint(derivative, mode="scalar"):
             stop = dr.select(here, t0 + x, t_stop)
@@ -190,7 +195,7 @@ def walk_depth(ts, tet, f_in, o, u, v, d, t_begin, t_stop, tau, target, settings
         tet, f_in = unpack_link(st.link)
         active &= ~here & (st.link >= 0) & (t_out < t_stop) & (steps < settings.max_steps)
         active &= tau < TAU_STOP
-    return tau, hit, t_hit, tet_hit, a_hit, t, dtau
+    return tau, hit, t_hit, tet_hit, s_hit, t, dtau
 
 
 def carry_w(carry):
@@ -221,7 +226,7 @@ def flight(ts, walk_scene, o, d, t_max, target, tet0, inside, settings: WalkSett
     hit = mi.Bool(False)
     t_hit = mi.Float(dr.inf)
     tet_hit = mi.UInt32(0)
-    a_hit = dr.zeros(ts.model.Attributes, dr.width(o))
+    s_hit = mi.Float(0.0)
     dtau = mi.Float(0.0)
     start = mi.Float(0.0)
     first = mi.Bool(inside) & mi.Bool(active)
@@ -237,17 +242,17 @@ def flight(ts, walk_scene, o, d, t_max, target, tet0, inside, settings: WalkSett
         go = first | found
         tet = dr.select(first, tet0, tet_b)
         f = dr.select(first, f_i, f_b)
-        tau, here, t_g, tet_g, a_g, t_end, dt = walk_depth(ts, tet, f, o, u, v, d, start, t_max,
+        tau, here, t_g, tet_g, s_g, t_end, dt = walk_depth(ts, tet, f, o, u, v, d, start, t_max,
                                                         tau, target, settings, go, grad)
         t_hit = dr.select(here, t_g, t_hit)
         tet_hit = dr.select(here, tet_g, tet_hit)
-        a_hit = tree_select(here, a_g, a_hit)
+        s_hit = dr.select(here, s_g, s_hit)
         hit |= here
         dtau += dt
         start = dr.select(go, dr.maximum(t_end, start), start) + settings.retrace_eps
         first = mi.Bool(False)
         active = go & ~hit & (start < t_max) & (tau < TAU_STOP)
-    return Flight(tau, hit, t_hit, tet_hit, a_hit), dtau
+    return Flight(tau, hit, t_hit, tet_hit, s_hit), dtau
 
 
 def attributes_at(ts_ad, tet, p, active=True):
@@ -365,7 +370,7 @@ def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
                           ps.settings, active, walk_grad)
         collided = active & fl.hit
         p = ray.o + fl.t * ray.d
-        a = fl.a
+        a = attributes_at(ts, fl.tet, p, collided)
 
         # ---- a collision: emission, then absorption or scattering ----
         emit = collided & (depth < ps.max_depth)

@@ -141,7 +141,7 @@ def test_free_flight_distances_invert_the_optical_depth(linear_walk):
     assert stats.kstest(s, cdf).pvalue > 1e-3
     # The collision's attributes are the field there.
     x = -1.0 + s
-    assert np.abs(np.array(fl.a.s) - (A + B * x)).max() < 1e-4
+    assert np.abs(np.array(fl.s) - (A + B * x)).max() < 1e-4
     # The root of a piece's depth, in the form without cancellation.
     r = solve_depth(mi.Float(2.0), mi.Float(0.0), mi.Float(1.0), mi.Float(0.75))
     assert abs(r[0] - 0.5) < 1e-6
