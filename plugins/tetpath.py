@@ -19,6 +19,10 @@ shapes (participating media) among the scene's surfaces and emitters.
    - Offset, relative to the scene's bounding-box diagonal, past a boundary
      face before tracing for re-entry. (Default: 1e-5)
 
+The AOV ``alpha`` is the coverage: 1 for a sample whose camera ray met the
+medium (a collision) or a surface, so that its pixel mean is ``1 - T``
+through the volume alone, as ``tetvr``'s ``alpha``.
+
 The scene's ``tetmesh`` shapes with an ``albedo`` (see ``tetmesh``) are the
 medium: per-vertex extinction (``vertex_opacity``), albedo and emission per
 unit extinction, linear in each tet, and a phase function (Mitsuba's phase
@@ -67,7 +71,12 @@ class TetPathIntegrator(mi.ad.integrators.common.RBIntegrator):
         if max_steps < 1:
             raise ValueError("tetpath: max_steps must be >= 1")
         self.retrace_epsilon = float(props.get("retrace_epsilon", 1e-5))
-        self.settings = WalkSettings(0.0, max_steps)
+        # (plain atomics on the LLVM backend, as tetvr's reduce_mode "auto":
+        # per-thread copies of the gradient buffers are not made inside the
+        # path's loop)
+        llvm = dr.backend_v(mi.Float) == dr.JitBackend.LLVM
+        self.settings = WalkSettings(0.0, max_steps, reduce=dr.ReduceMode.Direct if llvm
+                                     else dr.ReduceMode.Auto)
         self.parts = SceneParts()
         self._empty = None
         self._index = None
@@ -105,12 +114,23 @@ class TetPathIntegrator(mi.ad.integrators.common.RBIntegrator):
         return PathScene(scene, ts_ad.detached(), ts_ad, walk_scene, surfaces,
                          next(iter(phases.values())), settings, self.max_depth, self.rr_depth)
 
+    def aov_names(self):
+        return ["alpha"]
+
+    def sample_rays(self, scene, sensor, sampler):
+        # Mitsuba's forward mode multiplies the AOVs by the sensor weight, a
+        # Spectrum, which makes the alpha AOV a color the image block refuses;
+        # an RGB sensor weights its channels alike: keep one.
+        ray, weight, pos = super().sample_rays(scene, sensor, sampler)
+        return ray, mi.Float(weight[0]), pos
+
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
         if mode != dr.ADMode.Primal and state_in is None:
             raise ValueError("tetpath: the derivative modes need the primal pass's state_in")
-        L, valid, state = sample(mode, self.path_scene(scene), sampler, ray, δL, state_in,
-                                 active)
-        return L, valid, [], state
+        L, valid, alpha, state = sample(mode, self.path_scene(scene), sampler, ray, δL,
+                                        state_in, active)
+        # (alpha has no derivative)
+        return L, valid, [alpha if mode == dr.ADMode.Primal else mi.Float(0.0)], state
 
     def to_string(self):
         return (f"TetPathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "

@@ -14,7 +14,7 @@ from mi_tetvr.mesh.tetmesh import TetMesh
 from mi_tetvr.mesh.scenes import make_scene_meshes
 
 SCENES = ["default", "transfer_function", "nonconvex", "two_meshes", "inside", "on_floor",
-          "embedded", "two_models"]
+          "embedded", "two_models", "lit_fog", "lit_field"]
 
 
 def run(*args):

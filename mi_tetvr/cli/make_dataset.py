@@ -1,6 +1,7 @@
 """``mi-tetvr make-dataset VOLUME -o DIR``: a NeRF-style data set of a scalar grid volume
-(the grid ray marcher) or of a scalar tet mesh (``tetvr``) through a transfer function,
-or X-ray projections of a grid volume (``--xray``)."""
+(the grid ray marcher) or of a scalar tet mesh (``tetvr``; with ``--lights``, a scattering
+medium path traced by ``tetpath`` under known lights) through a transfer function, or X-ray
+projections of a grid volume (``--xray``)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -52,6 +53,12 @@ def add_arguments(p):
     p.add_argument("--detail", type=int, help="X-ray: integrate the volume's cubic B-spline "
                    "K times finer than its samples, a field no reconstruction on them models "
                    "exactly (default 1: its trilinear field)")
+    p.add_argument("--lights", metavar="XML", help="tet mesh: a Mitsuba scene file of known "
+                   "lighting (emitters, surfaces around): the mesh is a scattering medium "
+                   "(the transfer function's colors its albedo, its opacity the extinction, "
+                   "classified at the vertices), path traced by tetpath under those lights "
+                   "(for fit --model scattering --lights XML)")
+    p.add_argument("--spp", type=int, help="--lights: samples per pixel (default 256)")
     flags.mesh_flags(p)
     flags.quiet(p)
     flags.variant(p)
@@ -77,8 +84,14 @@ def check(a, is_mesh, path):
         if is_mesh:
             refuse(a, ("radius",), "to a tet mesh (the cameras frame its bounding sphere "
                    "in --fov)")
+            if a.lights is None:
+                refuse(a, ("spp",), "without --lights (the emission-absorption images are "
+                       "exact through pixel centres)")
         else:
-            refuse(a, ("scalar", "repair", "cell_to_point"), "to a grid volume")
+            refuse(a, ("scalar", "repair", "cell_to_point", "lights", "spp"),
+                   "to a grid volume")
+    if a.xray:
+        refuse(a, ("lights", "spp"), "to X-ray projections")
 
 
 def run(a):
@@ -103,9 +116,11 @@ def run(a):
                                  res=res, scalar=a.scalar, opacity_scale=a.opacity_scale,
                                  fov=40.0 if a.fov is None else a.fov, seed=seed,
                                  value_range=vr, repair=a.repair,
-                                 cell_to_point=a.cell_to_point, progress=not a.quiet)
+                                 cell_to_point=a.cell_to_point, progress=not a.quiet,
+                                 lights=a.lights, spp=a.spp or 256)
+        lit = f" lit by {a.lights}" if a.lights else ""
         print(f"wrote {a.views} training and {a.test_views} test views at {res[0]}x{res[1]} "
-              f"of '{info['scalar']}' to {a.out}")
+              f"of '{info['scalar']}'{lit} to {a.out}")
         return
     volume = load_volume(path, value_range=vr)
     tf = read_transfer_function(a.tf)

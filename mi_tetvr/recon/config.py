@@ -181,8 +181,14 @@ class FitConfig:
         "function)", choices=("volume", "tf", "scalar"))
     model: str = setting(
         "emission", "emission: colors and opacities from images; absorption: an X-ray "
-        "attenuation (point data 'attenuation') from transmittance images",
-        choices=("emission", "absorption"))
+        "attenuation (point data 'attenuation') from transmittance images; scattering: "
+        "extinction and albedo (point data 'opacity', 'albedo') of a participating medium "
+        "from photos under known lighting (--lights), rendered by tetpath",
+        choices=("emission", "absorption", "scattering"))
+    lights: str | None = setting(
+        None, "model scattering: a Mitsuba scene file (.xml) of the known lighting, the same "
+        "for every view: its emitters, and any surfaces around the volume (a floor, walls)",
+        metavar="XML")
     solver: str | None = setting(
         None, "sart (ordered-subset SART on the tets, one view per update, attenuation >= 0), "
         "sirt (all views per update), lsqr (CGLS/LSQR through scipy, then >= 0): model "
@@ -317,6 +323,14 @@ class FitConfig:
         if self.model == "absorption" and (self.optimize != "volume" or self.background):
             raise ValueError("model absorption fits an attenuation from transmittance images: "
                              "no optimize tf/scalar, no background")
+        if (self.model == "scattering") != (self.lights is not None):
+            raise ValueError("model scattering learns a medium lit by known lights: give both "
+                             "--model scattering and --lights XML (the scene of the lights)")
+        if self.model == "scattering" and (self.optimize != "volume" or self.background
+                                           or self.appearance):
+            raise ValueError("model scattering fits extinction and albedo from photos under "
+                             "known lighting: no optimize tf/scalar, no background (the lights' "
+                             "scene holds what lies around), no appearance")
         if self.optimize != "volume" and self.init in INITS:
             raise ValueError(f"optimize {self.optimize} needs the scalar mesh as init (a file)")
         if self.optimize == "scalar" and self.transfer_function is None:

@@ -9,6 +9,9 @@ the checkpoints and the pipeline go through it, so that one loop fits
   and absorption), the default;
 * ``attenuation`` (:class:`AttenuationField`, ``model="absorption"``): a
   per-vertex attenuation from X-ray transmittance images;
+* ``scattering`` (:class:`ScatteringField`, ``model="scattering"``): a
+  participating medium's extinction and albedo from photos under known
+  lights (``tetpath``);
 * ``tf`` (:class:`TransferFunctionField`): the texels of a transfer function
   that post-classifies a fixed scalar field;
 * ``scalar`` (:class:`ScalarField`): the per-vertex scalar under a known
@@ -24,7 +27,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["Field", "VolumeField", "AttenuationField", "TransferFunctionField", "ScalarField",
+__all__ = ["Field", "VolumeField", "ScatteringField", "AttenuationField", "TransferFunctionField",
+           "ScalarField",
            "make_field", "MESH_ID", "key"]
 
 #: The fitted mesh's id in the scene.
@@ -143,6 +147,41 @@ class VolumeField(Field):
             w[key("vertex_color")] = 1.0
         if criterion in ("gradient", "opacity"):
             w[key("vertex_opacity")] = 1.0 / self.h   # per optical depth of a cell
+        return w
+
+
+class ScatteringField(Field):
+    """A participating medium (``model="scattering"``): per-vertex extinction
+    (the opacity) and single-scattering albedo (linear RGB), rendered by
+    ``tetpath`` under the fit's known lights; renders and photos are compared
+    by their RGB (the renders hold the lights' surroundings)."""
+    point_arrays = {"albedo": (key("vertex_albedo"), 3), "opacity": (key("vertex_opacity"), 1)}
+    signal = "rgb"
+    extinction = "opacity"
+
+    def initial(self, n):
+        return {"albedo": np.full((n, 3), self.config.init_color),
+                "opacity": np.full(n, self.config.init_opacity / self.h)}
+
+    def shape(self, vertices, tets, values):
+        import mi_tetvr
+        return mi_tetvr.tetmesh_dict(vertices, tets, opacity=values["opacity"],
+                                     albedo=np.asarray(values["albedo"], np.float64))
+
+    def rates(self):
+        return {key("vertex_albedo"): self.config.lr_color,
+                key("vertex_opacity"): self.config.lr_opacity / self.h}
+
+    def project(self, opt):
+        opt[key("vertex_albedo")] = dr.clip(opt[key("vertex_albedo")], 0.0, 1.0)
+        opt[key("vertex_opacity")] = dr.maximum(opt[key("vertex_opacity")], 0.0)
+
+    def score_weights(self, criterion):
+        w = {}
+        if criterion in ("gradient", "color"):
+            w[key("vertex_albedo")] = 1.0
+        if criterion in ("gradient", "opacity"):
+            w[key("vertex_opacity")] = 1.0 / self.h
         return w
 
 
@@ -303,6 +342,8 @@ def make_field(config, h, values=None, tets=None, radius=1.0) -> Field:
     opacity."""
     if config.model == "absorption":
         return AttenuationField(config, h, values, tets)
+    if config.model == "scattering":
+        return ScatteringField(config, h, values, tets)
     if config.optimize == "scalar":
         return ScalarField(config, h, values, tets, radius)
     return FIELDS[config.optimize](config, h, values, tets)

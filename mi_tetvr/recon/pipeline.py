@@ -332,8 +332,8 @@ def data_warnings(config: FitConfig, dataset):
     """What looks wrong about fitting ``dataset`` with ``config``: photos of a
     scene in its surroundings (no transparent pixel, or cameras inside the
     region fitted) with nothing that models what lies outside the box."""
-    if config.background == "learn":
-        return []
+    if config.background == "learn" or config.model == "scattering":
+        return []       # (a lit medium: the lights' scene holds the surroundings)
     out = []
     if config.background is None and all(float(v.image[..., 3].min()) >= 0.999
                                           for v in dataset.train):

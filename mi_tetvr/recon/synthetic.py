@@ -130,7 +130,7 @@ def make_dataset(volume: Volume, tf: TransferFunction, views: Union[int, Sequenc
 
 def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=256,
                       scalar=None, opacity_scale=1.0, fov=40.0, seed=0, value_range=None,
-                      repair=False, cell_to_point=False, progress=True):
+                      repair=False, cell_to_point=False, progress=True, lights=None, spp=256):
     """Render a scalar tet mesh under a transfer function into a data set.
 
     Parameters
@@ -158,6 +158,13 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
         The scalar range the transfer function spans (default: the scalar's range).
     repair, cell_to_point : bool
         As :func:`~mi_tetvr.mesh.io.read_tetmesh` reads the mesh.
+    lights : path, optional
+        A Mitsuba scene file of known lighting (emitters and surfaces): the
+        mesh is then a scattering medium (the transfer function's colors its
+        albedo, its opacity the extinction, classified at the vertices), path
+        traced by ``tetpath`` with ``spp`` samples per pixel under those
+        lights; the images are opaque (alpha 1: the lights' scene is seen
+        around the volume) and record area-averaged pixels.
 
     Returns
     -------
@@ -180,24 +187,34 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
     lo, hi = mesh.bounds
     extinction = float(opacity_scale) / bounding_radius(mesh.vertices)
     train, test = box_cameras((lo, hi), views, test_views, res, fov, seed)
-    scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetvr"},
-                          "volume": {"type": "tetmesh", "filename": str(mesh_path),
-                                     "scalar_attribute": name,
-                                     "transfer_function": str(tf_path),
-                                     "opacity_scale": extinction, "repair": bool(repair),
-                                     "cell_to_point": bool(cell_to_point),
-                                     **({} if value_range is None else {
-                                         "value_min": float(value_range[0]),
-                                         "value_max": float(value_range[1])})}})
+    volume = {"type": "tetmesh", "filename": str(mesh_path), "scalar_attribute": name,
+              "transfer_function": str(tf_path), "opacity_scale": extinction,
+              "repair": bool(repair), "cell_to_point": bool(cell_to_point),
+              **({} if value_range is None else {"value_min": float(value_range[0]),
+                                                 "value_max": float(value_range[1])})}
+    if lights is None:
+        scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetvr"},
+                              "volume": volume})
+    else:
+        from mi_tetvr.recon.trainer import lights_scene
+        scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetpath"},
+                              "volume": {**volume, "classification": "pre", "albedo": "color"},
+                              **lights_scene(lights)})
     posed = {"train": [], "test": []}
     with tqdm(total=len(train) + len(test), desc="render views", disable=not progress) as bar:
         for split, cams in (("train", train), ("test", test)):
             for i, cam in enumerate(cams):
-                d = cam.sensor_dict(sampler="stratified", jitter=False)
-                image = np.array(mi.render(scene, sensor=mi.load_dict(d), spp=1))
+                if lights is None:
+                    d = cam.sensor_dict(sampler="stratified", jitter=False)
+                    image = np.array(mi.render(scene, sensor=mi.load_dict(d), spp=1))
+                else:
+                    image = np.array(mi.render(scene, sensor=mi.load_dict(cam.sensor_dict(
+                        spp=spp, sampler="independent")), seed=len(posed["train"]) + 1000 * i))
+                    image[..., 3] = 1.0
                 posed[split].append(View(f"r_{i}", cam, image))
                 bar.update(1)
-    write_nerf(Dataset(posed["train"], posed["test"], pixel_sampling="centers"), out_dir,
+    write_nerf(Dataset(posed["train"], posed["test"],
+                       pixel_sampling="centers" if lights is None else "area"), out_dir,
                image_format="exr")
     info = {"mesh": str(mesh_path), "scalar": name,
             "value_range": [float(values.min()), float(values.max())] if value_range is None
@@ -205,7 +222,9 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
             "transfer_function": str(tf_path), "opacity_scale": float(opacity_scale),
             "extinction_scale": extinction,
             "model": "tetvr post-classified emission-absorption, premultiplied linear RGBA "
-                     "over black, through pixel centres",
+                     "over black, through pixel centres" if lights is None else
+                     f"tetpath scattering medium (albedo: the transfer function's colors) lit "
+                     f"by {Path(lights).resolve()}, {spp} samples per pixel, opaque",
             "cameras": {"fov_x_deg": float(fov), "n_train": len(train), "n_test": len(test),
                         "train": "fibonacci sphere", "test": "uniform random", "seed": seed}}
     (Path(out_dir) / "volume_info.json").write_text(json.dumps(info, indent=1) + "\n")

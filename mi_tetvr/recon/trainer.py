@@ -37,6 +37,22 @@ __all__ = ["Trainer", "RunState", "K_POSITION", "K_ENVIRONMENT", "ENVIRONMENT_SI
 MULTISCALE = 4.0
 
 
+def lights_scene(path):
+    """``{name: object}`` of a Mitsuba scene file's emitters and shapes (the
+    known lighting of a scattering fit), for the fit's scene dict."""
+    from mi_tetvr.render.surfaces import split_shapes
+    lights = mi.load_file(str(path))
+    tets, surfaces = split_shapes(lights)
+    if tets:
+        raise ValueError(f"{path}: the lights' scene holds a tetmesh; it is the fitted volume's "
+                         f"surroundings (emitters, surfaces)")
+    emitters = [e for e in lights.emitters()
+                if not mi.has_flag(e.flags(), mi.EmitterFlags.Surface)]
+    if not emitters and not any(s.is_emitter() for s in surfaces):
+        raise ValueError(f"{path}: the lights' scene has no emitter")
+    return {f"_light_{i}": o for i, o in enumerate(surfaces + emitters)}
+
+
 def vertex_cell_sizes(vertices, tets):
     """(n,) mean length of the edges at each vertex."""
     from mi_tetvr.mesh.topology import unique_edges
@@ -134,9 +150,15 @@ class Trainer:
                  state: RunState | None = None, environment=None, appearance=None,
                  topology=None):
         import dataclasses
+        import gc
 
         import mi_tetvr
         from mi_tetvr.mesh.topology import build_topology
+
+        # Free the scenes of earlier trainers that only reference cycles keep:
+        # collected later, in the middle of a render, a scene's objects would
+        # leave Dr.Jit's virtual-call tables of the kernel being traced (a crash).
+        gc.collect()
 
         self.config = config
         self.dataset = dataset
@@ -168,8 +190,13 @@ class Trainer:
         # the shape's tets are the oriented ones: their topology is this one, built once
         shape = mi_tetvr.tetmesh_shape(self.field.shape(vertices, self.tets, values),
                                        topology=dataclasses.replace(topology, n_flipped=0))
-        scene = {"type": "scene", "integrator": {"type": "tetvr", "n_sub": config.n_sub},
-                 MESH_ID: shape}
+        if self.field.signal == "rgb":
+            # a medium lit by the known lights: paths through it and the lights' scene
+            scene = {"type": "scene", "integrator": {"type": "tetpath"}, MESH_ID: shape,
+                     **lights_scene(config.lights)}
+        else:
+            scene = {"type": "scene", "integrator": {"type": "tetvr", "n_sub": config.n_sub},
+                     MESH_ID: shape}
         #: Whether the background is learned: then the renders already hold
         #: it (``C + T * env``) and only their RGB is compared.
         self.learned_background = config.background == "learn"
@@ -255,6 +282,11 @@ class Trainer:
             # the optical depth -log T: linear in the attenuation (a least-squares
             # problem, every ray weighted alike, as in algebraic reconstruction)
             return -dr.log(dr.maximum(1.0 - image[..., 3:4], 1e-6))
+        if self.field.signal == "rgb":
+            # (a lit medium: the render holds everything the photo shows)
+            rgb = image[..., :3]
+            return rgb if self.config.loss_space == "linear" else linear_to_srgb(
+                dr.clip(rgb, 0.0, 1.0))
         bg, rgb_only = self.background, self.config.background is not None
         if self.config.loss_space == "linear":
             return composite(image, bg) if rgb_only else image

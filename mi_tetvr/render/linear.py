@@ -22,11 +22,13 @@ class TetFrame:
     B : Matrix3f with ``(lambda_1, lambda_2, lambda_3)(x) = B (x - X[0])``
     (the inverse of the matrix whose columns are the edges ``X[k] - X[0]``),
     det : Float (six times the signed volume).
+
+    ``reduce`` is the scatter strategy of the position gathers' derivative.
     """
 
-    def __init__(self, buf, tet, active=True):
+    def __init__(self, buf, tet, active=True, reduce=dr.ReduceMode.Auto):
         self.ids = [dr.gather(mi.UInt32, buf.tets, tet * 4 + k, active) for k in range(4)]
-        self.X = [buf.position(i, active) for i in self.ids]
+        self.X = [buf.position(i, active, reduce) for i in self.ids]
         e = [self.X[k] - self.X[0] for k in (1, 2, 3)]
         M = mi.Matrix3f(e[0].x, e[1].x, e[2].x,
                         e[0].y, e[1].y, e[2].y,

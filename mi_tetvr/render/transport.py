@@ -102,25 +102,27 @@ class Flight:
         self.tau, self.hit, self.t, self.tet, self.s = tau, hit, t, tet, s
 
 
-def extinction(params, i, active=True):
+def extinction(params, i, active=True, reduce=dr.ReduceMode.Auto):
     """The extinction of vertex ``i`` (every scattering and emission model's
-    ``opacity``): all that a free flight reads per vertex."""
-    return dr.gather(mi.Float, params.opacity, i, active)
+    ``opacity``): all that a free flight reads per vertex. ``reduce``: the
+    scatter strategy of the gather's derivative."""
+    return dr.gather(mi.Float, params.opacity, i, active, mode=reduce)
 
 
-def _piece_depth(ts_ad, st, entry_w, o, u, v, d, t0, t1, t_begin, t_stop, active, geometric):
+def _piece_depth(ts_ad, st, entry_w, o, u, v, d, t0, t1, t_begin, t_stop, active, geometric,
+                 reduce):
     """The optical depth of the piece of the segment ``st`` crossed over
     ``[t_begin, t_stop]``, attached to the parameters' AD graph (the
     crossings computed again from the attached buffers where vertices move,
     else at the walk's own ray parameters with attached attributes)."""
     with dr.resume_grad():
         if geometric:
-            t0, w0 = face_crossing(ts_ad.buf, st.entry, o, u, v, d, active)
-            t1, w1 = face_crossing(ts_ad.buf, st.exit, o, u, v, d, active)
+            t0, w0 = face_crossing(ts_ad.buf, st.entry, o, u, v, d, active, reduce)
+            t1, w1 = face_crossing(ts_ad.buf, st.exit, o, u, v, d, active, reduce)
         else:
             w0, w1 = entry_w, st.w
-        s0 = weighted_sum(w0, [extinction(ts_ad.params, i, active) for i in st.entry])
-        s1 = weighted_sum(w1, [extinction(ts_ad.params, i, active) for i in st.exit])
+        s0 = weighted_sum(w0, [extinction(ts_ad.params, i, active, reduce) for i in st.entry])
+        s1 = weighted_sum(w1, [extinction(ts_ad.params, i, active, reduce) for i in st.exit])
         length, b0, b1 = clip_segment(t0, s0, t1, s1, t_begin, t_stop)
         return length * (b0 + b1) * 0.5
 
@@ -180,7 +182,7 @@ def walk_depth(ts, tet, f_in, o, u, v, d, t_begin, t_stop, tau, target, settings
             stop = dr.select(here, t0 + x, t_stop)
             with dr.resume_grad():
                 piece = _piece_depth(ts_ad, st, carry_w(carry), o, u, v, d, t, t_out, t_begin,
-                                     stop, active, geometric)
+                                     stop, active, geometric, settings.reduce)
                 flags = dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
                 if dr.hint(backward, mode="scalar"):
                     dr.backward_from(dr.select(active, seed, 0.0) * piece, flags=flags)
@@ -255,14 +257,15 @@ def flight(ts, walk_scene, o, d, t_max, target, tet0, inside, settings: WalkSett
     return Flight(tau, hit, t_hit, tet_hit, s_hit), dtau
 
 
-def attributes_at(ts_ad, tet, p, active=True):
+def attributes_at(ts_ad, tet, p, active=True, reduce=dr.ReduceMode.Auto):
     """The model's attributes at point ``p`` of ``tet`` (barycentric in the
     tet), attached to the parameters' AD graph: the field at a sampled point,
-    moving with the vertices."""
+    moving with the vertices (``reduce``: the gathers' scatter strategy)."""
     with dr.resume_grad():
-        frame = TetFrame(ts_ad.buf, tet, active)
+        frame = TetFrame(ts_ad.buf, tet, active, reduce)
         w = frame.weights(p)
-        return weighted_sum(w, [ts_ad.model.gather(ts_ad.params, i, active) for i in frame.ids])
+        return weighted_sum(w, [ts_ad.model.gather(ts_ad.params, i, active, reduce)
+                                for i in frame.ids])
 
 
 class PathScene:
@@ -328,14 +331,17 @@ class _Grad:
 @dr.syntax
 def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
     """Mitsuba's ``sample`` of the path tracer (see the module docstring):
-    ``(L or its derivative, valid, L)``. ``mode``: ``dr.ADMode``; the
-    derivative modes take the primal radiance ``state_in`` and replay the
-    same paths (``sampler`` seeded as in the primal pass)."""
+    ``(L or its derivative, valid, alpha, L)``; ``alpha`` is 1 where the
+    camera ray's first segment met the medium or a surface (its mean over a
+    pixel's samples is the coverage: ``1 - T`` through the volume alone).
+    ``mode``: ``dr.ADMode``; the derivative modes take the primal radiance
+    ``state_in`` and replay the same paths (``sampler`` seeded as in the
+    primal pass)."""
     primal = mode == dr.ADMode.Primal
     grad = None if primal else _Grad(mode)
     scene, ts, ts_ad = ps.scene, ps.ts, ps.ts_ad
     mis_weight = mi.ad.integrators.common.mis_weight
-    phase = mi.PhaseFunctionPtr(ps.phase)
+    phase = ps.phase          # (one object: called directly, no virtual call)
     ray = mi.Ray3f(ray)
     L = mi.Spectrum(0.0 if primal else state_in)
     δL = mi.Spectrum(δL if δL is not None else 0.0)
@@ -344,6 +350,8 @@ def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
     η = mi.Float(1.0)
     depth = mi.UInt32(0)
     valid = mi.Bool(False)
+    seen = mi.Bool(False)                     # the camera segment met something
+    first = mi.Bool(True)
     in_tet = mi.Bool(False)                   # the ray starts inside tet `tet` (scattered)
     tet = mi.UInt32(0)
     prev = dr.zeros(mi.Interaction3f)         # the last scattering vertex
@@ -382,7 +390,7 @@ def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
             # (a second pass would find the interpolation's edges cleared):
             # the extinction's density, the emission, the albedo's weight.
             def collision_term():
-                a_ad = attributes_at(ts_ad, fl.tet, p, collided)
+                a_ad = attributes_at(ts_ad, fl.tet, p, collided, ps.settings.reduce)
                 return (L * _ratio(a_ad.s, a.s) + dr.select(emit, β * a_ad.c, 0.0)
                         + (L - Le) * _ratio(a_ad.a, a.a))
             dL = grad(δL, dL, collision_term, collided)
@@ -405,6 +413,8 @@ def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
         L = L + Le if primal else L - Le
         surface &= si.is_valid()
         valid |= surface
+        seen |= first & (collided | surface)
+        first = mi.Bool(False)
         bsdf = si.bsdf(ray)
 
         # ---- next-event estimation, from a collision or a surface ----
@@ -464,6 +474,7 @@ def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
         specular = dr.select(surface, mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta), specular)
         in_tet = scatter
         active &= scatter | surface
+    alpha = dr.select(seen, 1.0, 0.0)
     if dr.hint(primal, mode="scalar"):
-        return L, valid, L
-    return (δL if mode == dr.ADMode.Backward else dL), valid, L
+        return L, valid, alpha, L
+    return (δL if mode == dr.ADMode.Backward else dL), valid, alpha, L

@@ -88,7 +88,7 @@ def scenes(cube, light, field, integrator, max_depth, spp=64, reference="volpath
 def z_scores(a, b, block=5):
     """z-scores of the mean difference of two independent Monte Carlo images,
     per block of pixels and over the whole image."""
-    d = (np.asarray(a) - np.asarray(b)).mean(axis=2)
+    d = (np.asarray(a)[..., :3] - np.asarray(b)[..., :3]).mean(axis=2)
     z = []
     for blk in [d[i:i + block, j:j + block] for i in range(0, d.shape[0], block)
                 for j in range(0, d.shape[1], block)] + [d]:
