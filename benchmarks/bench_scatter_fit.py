@@ -163,7 +163,7 @@ def fit(scene, keys, train, targets, a, budget, refine):
             params, opt = adam(scene, keys, a.lr)
         i = step % len(train)
         img = mi.render(scene, params, sensor=train[i], spp=a.spp, seed=step)
-        loss = dr.mean(dr.square(img - targets[i]), axis=None)
+        loss = dr.mean(dr.square(img[..., :3] - targets[i]), axis=None)
         dr.backward(loss)
         opt.step()
         for k in keys:

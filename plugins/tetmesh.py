@@ -380,7 +380,10 @@ def scattering(props, mesh):
     """``(albedo (n, 3), emission (n, 3), phase)`` of a scattering ``tetmesh``
     (one with an ``albedo``), or None; the scattering properties without an
     albedo are errors."""
-    phases = [k for k in props.keys() if isinstance(props.get(k, None), mi.PhaseFunction)]
+    # (objects only: reading a property marks it as read, and Mitsuba refuses
+    # the properties nothing read)
+    phases = [k for k in props.keys() if props.type(k) == mi.Properties.Type.Object
+              and isinstance(props.get(k, None), mi.PhaseFunction)]
     has = "albedo" in props or "albedo_attribute" in props
     if not has:
         for key in ("emission", "emission_attribute", *phases):

@@ -143,6 +143,8 @@ def test_every_fit_setting_is_an_option(field):
         extra = ["--init", "m.vtu"]
     if field == "solver":            # the linear solvers solve X-ray projections
         extra = ["--model", "absorption"]
+    if field == "lights":            # the known lighting of a scattering medium
+        extra = ["--model", "scattering"]
     a = parse("fit", *argv, *extra)
     assert cli.fit_config(a).to_dict()[field] == value
 

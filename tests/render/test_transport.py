@@ -357,3 +357,54 @@ def test_emission_only_is_tetvr_in_expectation(cube):
     g_ex["vol.vertex_positions"] *= np.repeat(interior, 3)
     for x, y in zip(g_mc.values(), g_ex.values()):
         assert abs(x @ y - y @ y) < 0.05 * (y @ y), (x @ y, y @ y)
+
+
+# -- the shape's scattering properties, and what tetpath refuses -----------------
+
+def test_scattering_properties_and_refusals(cube):
+    V, T = cube
+    n = len(V)
+    albedo = np.random.default_rng(6).uniform(0, 1, (n, 3))
+    shape = mi_tetvr.tetmesh_shape(mi_tetvr.tetmesh_dict(V, T, opacity=np.ones(n),
+                                                         albedo=albedo))
+    params = mi.traverse(shape)
+    assert shape.optical_model.__name__ == "Scattering"
+    np.testing.assert_allclose(np.array(params["vertex_albedo"]).reshape(n, 3), albedo,
+                               atol=1e-6)
+    assert np.array(params["vertex_emission"]).max() == 0.0           # no emission by default
+    assert "Isotropic" in str(shape.phase)
+    grey = mi.traverse(mi_tetvr.tetmesh_shape(mi_tetvr.tetmesh_dict(V, T, albedo=0.25)))
+    assert np.all(np.array(grey["vertex_albedo"]) == 0.25)
+    for props, message in [
+            ({"albedo": 1.5}, "albedo must lie in"),
+            ({"albedo": "blue"}, "albedo is a number"),
+            ({"emission": 1.0}, "give the mesh an 'albedo'"),
+            ({"phase": {"type": "hg", "g": 0.2}}, "give the mesh an 'albedo'"),
+            ({"albedo": 0.5, "model": "absorption"}, "takes no 'model'"),
+            ({"albedo": 0.5, "emission": np.ones(n + 1)}, "per vertex"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            mi_tetvr.tetmesh_shape(mi_tetvr.tetmesh_dict(V, T, **props))
+    scalar = V[:, 0]
+    tf = {"tf_color": mi.TensorXf(np.ones((4, 3), np.float32)),
+          "tf_opacity": mi.TensorXf(np.ones(4, np.float32))}
+    with pytest.raises(ValueError, match="classification 'pre'"):
+        mi_tetvr.tetmesh_shape(mi_tetvr.tetmesh_dict(V, T, scalar=scalar, albedo="color", **tf))
+    pre = mi_tetvr.tetmesh_shape(mi_tetvr.tetmesh_dict(V, T, scalar=scalar, albedo="color",
+                                                       classification="pre", **tf))
+    assert pre.optical_model.__name__ == "Scattering"
+    # tetpath renders scattering media; tetvr renders their emission and absorption.
+    plain = {"type": "scene", "sensor": camera(4), "vol": mi_tetvr.tetmesh_dict(V, T)}
+    for scene, message in [({**plain, "integrator": {"type": "tetpath"}}, "has no albedo"),
+                            ({"type": "scene", "sensor": camera(4),
+                              "integrator": {"type": "tetpath"}}, "no tetmesh")]:
+        scene = mi.load_dict(scene)
+        with pytest.raises(ValueError, match=message):
+            scene.integrator().render(scene, scene.sensors()[0])
+    emission = np.random.default_rng(7).uniform(0, 1, (n, 3))
+    plain["integrator"] = {"type": "tetvr"}
+    a = mi.render(mi.load_dict({**plain, "vol": mi_tetvr.tetmesh_dict(
+        V, T, opacity=np.ones(n), albedo=0.5, emission=emission)}), spp=4)
+    b = mi.render(mi.load_dict({**plain, "vol": mi_tetvr.tetmesh_dict(
+        V, T, color=emission, opacity=np.ones(n))}), spp=4)
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
