@@ -13,10 +13,9 @@ loss, coarse to fine:
 
 * tets: a grid of ``--cells``^3 cells, then, at a third and at two thirds of
   the time, its vertices of the largest extinction (``--fraction``) split
-  (:func:`mi_tetvr.mesh.refine.split_vertices`, values interpolated; Adam
+  (:func:`mi_tetvr.mesh.refine.split_vertices`, values interpolated, put
+  into the same shape by ``set_mesh``: no kernel compiled again; Adam
   starts afresh, as Mitsuba's tutorial does when it upsamples its grid);
-  the next stage's scene is built after the last is freed (it then reuses
-  its objects' ids, which Mitsuba's kernels hold as constants);
 * grid: ``N / 2``^3 voxels, upsampled to ``N``^3 at a third of the time,
   where ``N^3`` is the tet mesh's final vertex count (the same unknowns).
 
@@ -32,7 +31,6 @@ Usage::
 """
 from __future__ import annotations
 
-import gc
 import time
 
 from common import header, make_parser, write_json
@@ -150,7 +148,8 @@ def adam(scene, keys, lr):
 def fit(scene, keys, train, targets, a, budget, refine):
     """Adam on ``keys`` of ``scene`` for ``budget`` seconds; at a third and
     at two thirds, ``refine(stage, scene, values)`` (``values``: the
-    parameters as numpy) returns the next stage's ``(scene, keys)``."""
+    parameters as numpy) returns the next stage's ``(scene, keys)`` (Adam
+    then starts afresh)."""
     params, opt = adam(scene, keys, a.lr)
     start, step, stage = time.perf_counter(), 0, 0
     losses = []
@@ -213,19 +212,20 @@ def main(a):
     scene = tet_scene(V, T, np.full(len(V), 0.5), np.full((len(V), 3), 0.5))
 
     def refine(stage, scene, values):
-        # Free the old scene first: the new one then reuses its objects' ids,
-        # which Mitsuba's kernels hold as constants (fewer kernels compiled again).
-        del scene
-        gc.collect()
         sigma = values[keys[0]]
         albedo = values[keys[1]].reshape(-1, 3)
         sel = np.argsort(-sigma)[:max(1, int(a.fraction * len(sigma)))]
         res = split_vertices(mesh["V"], mesh["T"], sel, {"sigma": sigma, "albedo": albedo})
         mesh["V"], mesh["T"] = res.vertices, res.tets
         print(f"  refined: {len(res.vertices):,} vertices, {len(res.tets):,} tets")
-        # (Adam starts afresh, as Mitsuba's tutorial does when it upsamples its grid)
-        return tet_scene(res.vertices, res.tets, res.point_data["sigma"],
-                         res.point_data["albedo"]), keys
+        # the refined mesh in the same shape: the kernels compiled already serve it
+        params = mi.traverse(scene)
+        next(s for s in scene.shapes() if s.id() == "vol").set_mesh(
+            params, res.vertices, res.tets, {"vertex_opacity": res.point_data["sigma"],
+                                             "vertex_albedo": res.point_data["albedo"],
+                                             "vertex_emission": np.zeros((len(res.vertices), 3))})
+        params.update()
+        return scene, keys
 
     scene, steps, losses = fit(scene, keys, train, targets, a, a.budget, refine)
     params = mi.traverse(scene)

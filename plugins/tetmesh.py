@@ -481,6 +481,36 @@ class TetMeshShape(mi.Mesh):
             "order" in arrays and self.optical_model is CellClassified) else None
         self.tet_count = topo.n_tets
 
+    def set_mesh(self, params, vertices, tets, values, topology=None):
+        """Give the shape another mesh in place: new vertices, tets and
+        per-vertex values (``{attribute name: array}``, the names of
+        ``optical_model.vertex_attributes``), written into ``params`` (the
+        scene's ``mi.traverse``, whose ``update()`` then rebuilds the
+        scene's BVH; the caller calls it). The shape object stays, and with
+        it every object id that Mitsuba's kernels hold as constants: a
+        refined mesh renders with the kernels compiled already (a new shape
+        in a new scene compiles them again, seconds on a CPU)."""
+        from mi_tetvr.mesh.topology import build_topology
+        if self.optical_model is CellClassified or issubclass(self.optical_model,
+                                                               PostClassified):
+            raise ValueError("tetmesh: set_mesh replaces per-vertex colors, opacities or "
+                             "albedos; a transfer function's mesh is built anew")
+        vertices = np.asarray(vertices, np.float64)
+        topo = build_topology(vertices, tets) if topology is None else topology
+        prefix = f"{self.id()}."
+        params[prefix + "vertex_positions"] = owned(mi.Float,
+                                                    vertices.astype(np.float32).ravel())
+        params[prefix + "faces"] = owned(mi.UInt32,
+                                         topo.boundary_faces.astype(np.uint32).ravel())
+        for name, channels in self.optical_model.vertex_attributes:
+            a = np.asarray(values[name], np.float32).reshape(-1)
+            if a.size != channels * len(vertices):
+                raise ValueError(f"tetmesh: {name} needs {channels} value(s) per vertex for "
+                                 f"{len(vertices)} vertices, got {a.size}")
+            params[prefix + name] = owned(mi.Float, a)
+        self.tet_buffers = drjit_index_arrays(shape_index_arrays(topo, vertices))
+        self.tet_count = topo.n_tets
+
     def oriented_tets(self) -> np.ndarray:
         """(m, 4) int64: the shape's tets, positively oriented, in the walk's
         order (read from its index buffer), e.g. for

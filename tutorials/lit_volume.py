@@ -30,7 +30,6 @@ Run it with::
 from __future__ import annotations
 
 import argparse
-import gc
 import time
 from pathlib import Path
 
@@ -175,16 +174,16 @@ def main(argv=None):
     error_start = extinction_error(V, T, sigma, probe)
     keys = ["volume.vertex_opacity", "volume.vertex_albedo"]
 
-    def start_fit(V, T, sigma, albedo):
-        scene = make_scene(V, T, sigma, albedo)
-        params = mi.traverse(scene)
+    def adam(params):
         opt = mi.ad.Adam(lr=a.lr)
         for k in keys:
             opt[k] = params[k]
         params.update(opt)
-        return scene, params, opt
+        return opt
 
-    scene, params, opt = start_fit(V, T, sigma, albedo)
+    scene = make_scene(V, T, sigma, albedo)
+    params = mi.traverse(scene)
+    opt = adam(params)
     start = mi.render(scene, sensor=sensors[0], spp=a.target_spp, seed=1)
     history, t0 = [], time.time()
     for it in range(a.iters):
@@ -195,13 +194,15 @@ def main(argv=None):
             top = np.argsort(-sigma)[:max(1, int(a.fraction * len(sigma)))]
             res = split_vertices(V, T, top, {"sigma": sigma, "albedo": albedo})
             V, T = res.vertices, res.tets
-            # Free the old scene first: the new one then reuses its objects'
-            # ids, which Mitsuba's kernels hold as constants, and no kernel
-            # is compiled again.
-            del scene, params, opt
-            gc.collect()
-            scene, params, opt = start_fit(V, T, res.point_data["sigma"],
-                                           res.point_data["albedo"])
+            # The refined mesh goes into the same shape (a new scene would
+            # compile its kernels again); Adam starts afresh on it.
+            volume = next(s for s in scene.shapes() if s.id() == "volume")
+            volume.set_mesh(params, V, T, {
+                "vertex_opacity": res.point_data["sigma"],
+                "vertex_albedo": res.point_data["albedo"],
+                "vertex_emission": np.zeros((len(V), 3))})
+            params.update()
+            opt = adam(params)
             if not a.quiet:
                 print(f"refined: {len(V):,} vertices, {len(T):,} tets")
         i = it % len(sensors)

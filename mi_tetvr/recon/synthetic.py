@@ -208,8 +208,9 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
                     d = cam.sensor_dict(sampler="stratified", jitter=False)
                     image = np.array(mi.render(scene, sensor=mi.load_dict(d), spp=1))
                 else:
+                    # (path traced: a seed of its own per view)
                     image = np.array(mi.render(scene, sensor=mi.load_dict(cam.sensor_dict(
-                        spp=spp, sampler="independent")), seed=len(posed["train"]) + 1000 * i))
+                        spp=spp, sampler="independent")), seed=bar.n))
                     image[..., 3] = 1.0
                 posed[split].append(View(f"r_{i}", cam, image))
                 bar.update(1)

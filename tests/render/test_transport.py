@@ -408,3 +408,33 @@ def test_scattering_properties_and_refusals(cube):
     b = mi.render(mi.load_dict({**plain, "vol": mi_tetvr.tetmesh_dict(
         V, T, color=emission, opacity=np.ones(n))}), spp=4)
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_set_mesh_renders_as_a_new_shape(cube):
+    """A shape given a refined mesh in place (``set_mesh``) renders and
+    differentiates as a shape built from that mesh."""
+    from mi_tetvr.mesh.generate import grid_mesh as grid
+    V, T = cube
+    V2, T2 = grid((5, 5, 5), jitter=0.2, seed=3)
+    rng = np.random.default_rng(8)
+    sigma, albedo = 0.5 + rng.uniform(0, 1, len(V2)), rng.uniform(0.2, 0.9, (len(V2), 3))
+    common = {"type": "scene", "sensor": camera(), "light": LIGHTS["point"],
+              "integrator": {"type": "tetpath", "max_depth": 4}}
+    fresh = mi.load_dict({**common, "vol": mi_tetvr.tetmesh_dict(V2, T2, opacity=sigma,
+                                                                 albedo=albedo)})
+    moved = mi.load_dict({**common, "vol": mi_tetvr.tetmesh_dict(V, T, opacity=np.ones(len(V)),
+                                                                 albedo=0.5)})
+    params = mi.traverse(moved)
+    moved.shapes()[0].set_mesh(params, V2, T2, {"vertex_opacity": sigma, "vertex_albedo": albedo,
+                                                "vertex_emission": np.zeros((len(V2), 3))})
+    params.update()
+    np.testing.assert_allclose(np.asarray(mi.render(moved, spp=8, seed=3)),
+                               np.asarray(mi.render(fresh, spp=8, seed=3)), atol=1e-5)
+    loss = weighted_loss(mi.TensorXf(np.ones((RES, RES, 3), np.float32)))
+    g = [backward(s, ["vol.vertex_opacity"], loss, 8, 5)["vol.vertex_opacity"]
+         for s in (moved, fresh)]
+    np.testing.assert_allclose(g[0], g[1], rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="vertex_albedo needs 3"):
+        moved.shapes()[0].set_mesh(params, V2, T2, {"vertex_opacity": sigma,
+                                                    "vertex_albedo": sigma,
+                                                    "vertex_emission": albedo})
