@@ -23,12 +23,14 @@ class TetFrame:
     (the inverse of the matrix whose columns are the edges ``X[k] - X[0]``),
     det : Float (six times the signed volume).
 
-    ``reduce`` is the scatter strategy of the position gathers' derivative.
+    ``reduce`` is the scatter strategy of the position gathers' derivative
+    (default: the buffers' own).
     """
 
-    def __init__(self, buf, tet, active=True, reduce=dr.ReduceMode.Auto):
+    def __init__(self, buf, tet, active=True, reduce=None):
         self.ids = [dr.gather(mi.UInt32, buf.tets, tet * 4 + k, active) for k in range(4)]
-        self.X = [buf.position(i, active, reduce) for i in self.ids]
+        self.X = [buf.position(i, active) if reduce is None else buf.position(i, active, reduce)
+                  for i in self.ids]
         e = [self.X[k] - self.X[0] for k in (1, 2, 3)]
         M = mi.Matrix3f(e[0].x, e[1].x, e[2].x,
                         e[0].y, e[1].y, e[2].y,

@@ -45,20 +45,21 @@ def test_lit_data_set_is_opaque_and_recorded(lit_data):
 
 
 def test_fit_learns_extinction_and_albedo(lit_data, tmp_path):
-    """Held-out PSNR rises well above the start's, and the written mesh
-    holds the learned extinction (``opacity``) and ``albedo``."""
+    """Held-out PSNR rises well above the start's (measured: +2.6 and +2.7 dB
+    after 100 steps; the gradients' atomics make runs differ a little), and
+    the written mesh holds the learned extinction (``opacity``) and ``albedo``."""
     from mi_tetvr import cli
     data, lights = lit_data
     scores = {}
-    for iters in (1, 60):
+    for iters in (1, 100):
         out = tmp_path / f"fit{iters}"
         cli.main(["fit", str(data), "--out", str(out), "--model", "scattering", "--lights",
                   str(lights), "--grid-resolution", "4", "--iterations", str(iters),
                   "--views-per-step", "2", "--spp", "4", "--lr-opacity", "0.2",
                   "--variant", VARIANT, "--quiet"])
         scores[iters] = json.loads((out / "metrics.json").read_text())["mean"]["psnr"]
-    assert scores[60] > scores[1] + 2.0, scores
-    mesh = meshio.read(tmp_path / "fit60" / "mesh.vtu")
+    assert scores[100] > scores[1] + 2.0, scores
+    mesh = meshio.read(tmp_path / "fit100" / "mesh.vtu")
     albedo = np.asarray(mesh.point_data["albedo"])
     opacity = np.asarray(mesh.point_data["opacity"])
     assert albedo.shape == (len(mesh.points), 3) and albedo.min() >= 0 and albedo.max() <= 1
