@@ -62,6 +62,9 @@ def mesh_scene(settings, mesh, framing):
     import mi_tetvr
     s = settings
     s.validate("mesh")
+    if s.lights is not None:
+        from mi_tetvr.apps.lit import lit_scene
+        return lit_scene(s, mesh, framing)
     props = shape_props(s, framing)
     if "transfer_function" in props:
         name = props.pop("scalar_attribute")

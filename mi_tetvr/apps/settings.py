@@ -138,6 +138,12 @@ class RenderSettings:
     res: tuple | None = setting(
         None, "film size of every sensor, WxH or N (default: the scene's)", metavar="WxH",
         parse=image_size)
+    lights: str | None = setting(
+        None, "a Mitsuba scene file (.xml) of lights and surroundings: the mesh path traced lit "
+        "by them, shadows included: --mode dvr, a scattering medium (tetpath; the transfer "
+        "function's colors its albedo, classified at the vertices), with --iso/--plane its "
+        "surfaces in it; --mode iso|slice, the surfaces alone (Mitsuba's path); surfaces are "
+        "VTK's contour or cut, diffuse in the transfer function's colors", metavar="XML")
     classification: str | None = setting(
         None, "how tetmesh shapes with a transfer function classify their scalar: post (along "
         "each ray, the default) or pre (vertices shaded at load)", choices=("post", "pre"))
@@ -190,6 +196,19 @@ class RenderSettings:
         if self.value_range is not None and mesh and not self.classified:
             raise ValueError("--value-range is the range of a scalar's transfer function: it "
                              "needs --tf (or a projection --mode)")
+        if self.lights is not None:
+            if not mesh:
+                raise ValueError("--lights lights a mesh file; an XML scene has its own emitters")
+            if self.mode not in ("dvr", "iso", "slice") or (self.mode == "dvr" and not self.tf):
+                raise ValueError("--lights path traces a scalar under a transfer function: "
+                                 "--mode dvr with --tf, or --mode iso|slice")
+            lit_off = [f for f, on in (("--shade", self.shade), ("--clip", self.clip),
+                                       ("--clip-box", self.clip_box),
+                                       ("--surface-opacity", self.surface_opacity is not None),
+                                       ("--classification", self.classification is not None))
+                       if on]
+            if lit_off:
+                raise ValueError(f"--lights does not combine with {', '.join(lit_off)}")
         if self.sensor is not None:
             given = [f for f, on in (("--orbit", self.orbit is not None),
                                      ("--res", self.res is not None),

@@ -196,7 +196,7 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
         scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetvr"},
                               "volume": volume})
     else:
-        from mi_tetvr.recon.trainer import lights_scene
+        from mi_tetvr.render.surfaces import lights_scene
         scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetpath"},
                               "volume": {**volume, "classification": "pre", "albedo": "color"},
                               **lights_scene(lights)})

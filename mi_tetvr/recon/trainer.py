@@ -37,22 +37,6 @@ __all__ = ["Trainer", "RunState", "K_POSITION", "K_ENVIRONMENT", "ENVIRONMENT_SI
 MULTISCALE = 4.0
 
 
-def lights_scene(path):
-    """``{name: object}`` of a Mitsuba scene file's emitters and shapes (the
-    known lighting of a scattering fit), for the fit's scene dict."""
-    from mi_tetvr.render.surfaces import split_shapes
-    lights = mi.load_file(str(path))
-    tets, surfaces = split_shapes(lights)
-    if tets:
-        raise ValueError(f"{path}: the lights' scene holds a tetmesh; it is the fitted volume's "
-                         f"surroundings (emitters, surfaces)")
-    emitters = [e for e in lights.emitters()
-                if not mi.has_flag(e.flags(), mi.EmitterFlags.Surface)]
-    if not emitters and not any(s.is_emitter() for s in surfaces):
-        raise ValueError(f"{path}: the lights' scene has no emitter")
-    return {f"_light_{i}": o for i, o in enumerate(surfaces + emitters)}
-
-
 def vertex_cell_sizes(vertices, tets):
     """(n,) mean length of the edges at each vertex."""
     from mi_tetvr.mesh.topology import unique_edges
@@ -192,6 +176,7 @@ class Trainer:
                                        topology=dataclasses.replace(topology, n_flipped=0))
         if self.field.signal == "rgb":
             # a medium lit by the known lights: paths through it and the lights' scene
+            from mi_tetvr.render.surfaces import lights_scene
             scene = {"type": "scene", "integrator": {"type": "tetpath"}, MESH_ID: shape,
                      **lights_scene(config.lights)}
         else:

@@ -108,6 +108,22 @@ class SceneParts:
         return tets, self._walk[1], self._surfaces[1]
 
 
+def lights_scene(path):
+    """``{name: object}`` of a Mitsuba scene file's emitters and shapes (the
+    known lighting of a scattering fit, the lights of a lit render), for a
+    scene dict."""
+    lights = mi.load_file(str(path))
+    tets, surfaces = split_shapes(lights)
+    if tets:
+        raise ValueError(f"{path}: the lights' scene holds a tetmesh; it is the volume's "
+                         f"surroundings (emitters, surfaces)")
+    emitters = [e for e in lights.emitters()
+                if not mi.has_flag(e.flags(), mi.EmitterFlags.Surface)]
+    if not emitters and not any(s.is_emitter() for s in surfaces):
+        raise ValueError(f"{path}: the lights' scene has no emitter")
+    return {f"_light_{i}": o for i, o in enumerate(surfaces + emitters)}
+
+
 #: The nested integrator of a ``tetvr`` without a ``surfaces`` child.
 DEFAULT_SURFACES = {"type": "prb"}
 
