@@ -297,7 +297,8 @@ def main(a):
         out.mkdir(parents=True, exist_ok=True)
         for k, (x, y, z) in enumerate(zip(truth_test, tet_renders, renders_g)):
             row = np.concatenate([np.clip(v, 0, 1) for v in (x, y, z)], axis=1)
-            mi.util.write_bitmap(str(out / f"heldout_{k}.png"), row.astype(np.float32))
+            mi.util.write_bitmap(str(out / f"heldout_{k}.png"), row.astype(np.float32),
+                                 write_async=False)
         print(f"held-out views (truth | tets | grid) in {out}")
     write_json(a, info, results)
 

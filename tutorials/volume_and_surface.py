@@ -131,7 +131,8 @@ def save_outputs(out, history, noise_floor, images, texture, mesh):
     fig.tight_layout()
     fig.savefig(files["comparison"])
     plt.close(fig)
-    mi.util.write_bitmap(str(files["texture"]), np.clip(texture, 0, 1))
+    mi.util.write_bitmap(str(files["texture"]), np.clip(texture, 0, 1),
+                         write_async=False)   # (written when the function returns)
     V, T, color, opacity = mesh
     mi_tetvr.write_tetmesh(str(files["mesh"]), mi_tetvr.TetMesh(V, T, color, opacity))
     return {k: str(v) for k, v in files.items()}

@@ -124,9 +124,11 @@ class VolumeField(Field):
     """Per-vertex color (linear RGB) and opacity (extinction per unit length)."""
     point_arrays = {"color": (key("vertex_color"), 3), "opacity": (key("vertex_opacity"), 1)}
     extinction = "opacity"
+    #: The per-vertex RGB array (its value name): emitted color, or an albedo.
+    rgb = "color"
 
     def initial(self, n):
-        return {"color": np.full((n, 3), self.config.init_color),
+        return {self.rgb: np.full((n, 3), self.config.init_color),
                 "opacity": np.full(n, self.config.init_opacity / self.h)}
 
     def shape(self, vertices, tets, values):
@@ -134,55 +136,37 @@ class VolumeField(Field):
         return mi_tetvr.tetmesh_dict(vertices, tets, values["color"], values["opacity"])
 
     def rates(self):
-        return {key("vertex_color"): self.config.lr_color,
+        return {self.point_arrays[self.rgb][0]: self.config.lr_color,
                 key("vertex_opacity"): self.config.lr_opacity / self.h}
 
     def project(self, opt):
-        opt[key("vertex_color")] = dr.clip(opt[key("vertex_color")], 0.0, 1.0)
+        rgb = self.point_arrays[self.rgb][0]
+        opt[rgb] = dr.clip(opt[rgb], 0.0, 1.0)
         opt[key("vertex_opacity")] = dr.maximum(opt[key("vertex_opacity")], 0.0)
 
     def score_weights(self, criterion):
         w = {}
         if criterion in ("gradient", "color"):
-            w[key("vertex_color")] = 1.0
+            w[self.point_arrays[self.rgb][0]] = 1.0
         if criterion in ("gradient", "opacity"):
             w[key("vertex_opacity")] = 1.0 / self.h   # per optical depth of a cell
         return w
 
 
-class ScatteringField(Field):
+class ScatteringField(VolumeField):
     """A participating medium (``model="scattering"``): per-vertex extinction
-    (the opacity) and single-scattering albedo (linear RGB), rendered by
-    ``tetpath`` under the fit's known lights; renders and photos are compared
-    by their RGB (the renders hold the lights' surroundings)."""
+    (the opacity) and single-scattering albedo (linear RGB, in the place of
+    the color), rendered by ``tetpath`` under the fit's known lights; renders
+    and photos are compared by their RGB (the renders hold the lights'
+    surroundings)."""
     point_arrays = {"albedo": (key("vertex_albedo"), 3), "opacity": (key("vertex_opacity"), 1)}
     signal = "rgb"
-    extinction = "opacity"
-
-    def initial(self, n):
-        return {"albedo": np.full((n, 3), self.config.init_color),
-                "opacity": np.full(n, self.config.init_opacity / self.h)}
+    rgb = "albedo"
 
     def shape(self, vertices, tets, values):
         import mi_tetvr
         return mi_tetvr.tetmesh_dict(vertices, tets, opacity=values["opacity"],
                                      albedo=np.asarray(values["albedo"], np.float64))
-
-    def rates(self):
-        return {key("vertex_albedo"): self.config.lr_color,
-                key("vertex_opacity"): self.config.lr_opacity / self.h}
-
-    def project(self, opt):
-        opt[key("vertex_albedo")] = dr.clip(opt[key("vertex_albedo")], 0.0, 1.0)
-        opt[key("vertex_opacity")] = dr.maximum(opt[key("vertex_opacity")], 0.0)
-
-    def score_weights(self, criterion):
-        w = {}
-        if criterion in ("gradient", "color"):
-            w[key("vertex_albedo")] = 1.0
-        if criterion in ("gradient", "opacity"):
-            w[key("vertex_opacity")] = 1.0 / self.h
-        return w
 
 
 class AttenuationField(Field):
