@@ -63,7 +63,16 @@ def run(a):
     if cfg.init not in INITS and not Path(cfg.init).is_file():
         raise FileNotFoundError(f"--init {cfg.init}: no such mesh file (or one of "
                                 f"{', '.join(INITS)})")
+    if cfg.model == "scattering" and (a.workers is not None or a.address is not None):
+        raise ValueError("--workers fits colors and opacities over blocks; --model scattering "
+                         "runs in one process")
+    if cfg.lights is not None and not Path(cfg.lights).is_file():
+        raise FileNotFoundError(f"--lights {cfg.lights}: no such Mitsuba scene file")
     set_variant(a.variant)
+    if cfg.lights is not None:
+        # (read before the data and the mesh: a wrong file is one line, at once)
+        from mi_tetvr.render.surfaces import lights_scene
+        lights_scene(cfg.lights)
     if a.workers is not None or a.address is not None:
         return run_blocks(a, cfg)
     from mi_tetvr.recon.pipeline import fitted_file, run as run_fit
