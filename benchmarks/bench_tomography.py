@@ -12,10 +12,13 @@ with (no "inverse crime"); ``--flux N``
 makes the training projections Poisson counts of N photons per
 unattenuated pixel (the held-out ones stay noise-free). Methods:
 
-* parallel beam: scikit-image's filtered back-projection (``iradon``, ramp
-  filter) and SART (``iradon_sart``, ``--sart-passes``, values >= 0), each z
-  slice from its sinogram on the detector's pixel grid, whose samples are
-  the volume's;
+* parallel beam (:mod:`mi_tetvr.grid.slices`, each z slice from its sinogram
+  on the detector's pixel grid, whose samples are the volume's):
+  scikit-image's filtered back-projection (``iradon``, ramp filter) and SART
+  (``iradon_sart``, ``--sart-passes``, values >= 0); and, tuned on views held
+  out of the training ones (never on the truth): SART and SIRT (ASTRA's
+  projector) at their best pass counts, FISTA-TV (Beck and Teboulle 2009) at
+  its best pass count and TV weight (``--no-tuned`` leaves these out);
 * cone beam: FDK (:func:`mi_tetvr.grid.xray.fdk`, numpy/scipy) on the
   volume's samples;
 * the tets: the fit's tet grid, one vertex per sample (the cells the
@@ -29,12 +32,20 @@ projected exactly: grids by their trilinear line integrals, the tets by
 their walk) as the mean of the views' PSNRs and over all pixels, the unknowns
 and the time.
 
+``--scan FILE.h5`` scores a real scan instead (Data Exchange HDF5, e.g.
+TomoPy's tooth): ``mi-tetvr process-xray`` makes its data set (every 8th
+angle held out, ``--bin``), there is no truth, so every method is scored by
+its held-out projection PSNR; the rotation centre found is compared with
+the one whose FBP predicts the held-out angles best (a scan of centres).
+
 Usage::
 
     python benchmarks/bench_tomography.py                        # head MR, 64 angles
     python benchmarks/bench_tomography.py --volume engine --flux 1e4 --slices out/engine.png
     python benchmarks/bench_tomography.py --beam cone --json out/cone.json
     python benchmarks/bench_tomography.py --quick                # a 12^3 phantom
+    python benchmarks/bench_tomography.py --scan ../shared/data/tomopy-tooth/tooth.h5 --bin 2 \
+        --slices out/tooth.png
 """
 from __future__ import annotations
 
@@ -75,12 +86,21 @@ def parse_args(argv=None):
     p.add_argument("--tv", type=float, help="the tets' TV steps (default: the fit's)")
     p.add_argument("--time-budget", type=float, default=6.0,
                    help="the fit's --time-budget in minutes (default 6)")
+    p.add_argument("--no-tuned", action="store_true",
+                   help="leave out the held-out-tuned SART, SIRT and FISTA-TV")
+    p.add_argument("--scan", help="a measured scan (Data Exchange HDF5) instead of a volume")
+    p.add_argument("--bin", type=int, default=1, help="--scan: average BxB detector pixels")
     p.add_argument("--slices", help="PNG of the middle z slice: truth | classical | tets")
     p.add_argument("--out", help="folder for the data set and the fit (default: a temp folder)")
     a = p.parse_args(argv)
     if a.quick:
         a.views, a.test_views, a.sart_passes = 16, 4, 3
     return a
+
+
+#: The tuned baselines: method, label, most passes tried.
+TUNED = (("sart", "SART tuned", 30), ("sirt", "SIRT tuned", 300),
+         ("fista_tv", "FISTA-TV tuned", 60))
 
 
 def phantom(n):
@@ -137,7 +157,8 @@ def tet_projections(mesh, views):
 def main(a):
     import mitsuba as mi
     mi.set_variant(a.variant)
-    from mi_tetvr.grid.xray import fdk, reconstruct_slices
+    from mi_tetvr.grid.slices import reconstruct_slices, tuned_slices
+    from mi_tetvr.grid.xray import fdk
     from mi_tetvr.mesh.io import read_tetmesh
     from mi_tetvr.mesh.sample import sample_field
     from mi_tetvr.recon.config import FitConfig
@@ -147,6 +168,8 @@ def main(a):
     from mi_tetvr.recon.synthetic import make_xray_dataset
     info = header("absorption tomography benchmark")
     out = Path(a.out or tempfile.mkdtemp())
+    if a.scan:
+        return main_scan(a, info, out)
     volume, name = load(a)
     made = make_xray_dataset(volume, out / "data", views=a.views, test_views=a.test_views,
                              beam=a.beam, flux=a.flux, detail=a.detail,
@@ -180,6 +203,15 @@ def main(a):
         classical[label] = recon
         score(label, recon, grid_projections(recon, volume, data.test, scale), truth.size,
               seconds)
+    if a.beam == "parallel" and not a.no_tuned:
+        for method, label, most in TUNED:
+            t0 = time.perf_counter()
+            recon, chosen = tuned_slices(volume, data.train, scale, method,
+                                         3 if a.quick else most, flux=a.flux)
+            classical[label] = recon
+            score(label, recon, grid_projections(recon, volume, data.test, scale),
+                  truth.size, time.perf_counter() - t0, passes=chosen["passes"],
+                  tv=chosen["tv"])
     cfg = FitConfig(model="absorption", time_budget=a.time_budget,
                     **{k: getattr(a, k) for k in ("solver", "passes", "tv")
                        if getattr(a, k) is not None})
@@ -218,6 +250,104 @@ def main(a):
     return 0
 
 
+def scan_grid_volume(data_dir):
+    """The reconstruction grid ``process-xray`` recorded (a zero Volume)."""
+    import json
+    from mi_tetvr.grid.volume import Volume
+    g = json.loads((Path(data_dir) / "xray_info.json").read_text())["grid"]
+    nx, ny, nz = g["shape_xyz"]
+    return Volume(np.zeros((nz, ny, nx), np.float32), np.full(3, g["spacing"]),
+                  np.asarray(g["origin"], np.float64))
+
+
+def main_scan(a, info, out):
+    """A measured scan: held-out projection PSNR of every method, the centre found
+    against the centre scan's best."""
+    import json
+    from mi_tetvr.cli import main as cli
+    from mi_tetvr.grid.slices import reconstruct_slices, tuned_slices
+    from mi_tetvr.mesh.io import read_tetmesh
+    from mi_tetvr.recon.config import FitConfig
+    from mi_tetvr.recon.datasets import load_dataset
+    from mi_tetvr.recon.metrics import tomography_scores
+    from mi_tetvr.recon.pipeline import run
+    flags = ["--bin", str(a.bin), "-q"]
+    if cli(["process-xray", a.scan, "-o", str(out / "data"), *flags]) not in (0, None):
+        return 1
+    rec = json.loads((out / "data" / "xray_info.json").read_text())
+    found = rec["center"]
+    data = load_dataset(out / "data")
+    grid = scan_grid_volume(out / "data")
+    targets = [1.0 - v.image[..., 3].astype(np.float64) for v in data.test]
+    print(f"{a.scan}: {len(data.train)} training and {len(data.test)} held-out angles of "
+          f"{rec['detector'][0]}x{rec['detector'][1]} (bin {a.bin}), flux "
+          f"{rec['xray_flux']:.4g} (estimated), centre found at column {found:.2f}")
+    # the centre scan: FBP at each candidate centre, scored on the held-out angles
+    scan_rows = []
+    for c in found + np.arange(-3.0, 3.01, 0.5):
+        d = out / f"centre_{c:.2f}"
+        cli(["process-xray", a.scan, "-o", str(d), "--center", f"{(c + 0.5) * a.bin - 0.5}",
+             *flags])
+        dd = load_dataset(d)
+        fbp = reconstruct_slices(grid, dd.train, 1.0, "fbp")
+        s = tomography_scores(projections=grid_projections(fbp, grid, dd.test, 1.0),
+                              targets=targets)
+        scan_rows.append({"center": float(c), "projection_psnr": s["projection_psnr_views"]})
+    best = max(scan_rows, key=lambda r: r["projection_psnr"])
+    print("centre scan (FBP, held-out projection PSNR): " + ", ".join(
+        f"{r['center']:.1f}: {r['projection_psnr']:.2f}" for r in scan_rows))
+    print(f"centre found {found:.2f}, best by held-out score {best['center']:.2f} "
+          f"(difference {abs(found - best['center']):.2f} px)")
+    rows, panels = [], {}
+
+    def score(label, values, projections, unknowns, seconds, **extra):
+        rows.append(dict(method=label, **tomography_scores(projections=projections,
+                                                           targets=targets),
+                         unknowns=unknowns, seconds=seconds, **extra))
+
+    flux = rec["xray_flux"]
+    for method, label, most in (("fbp", "FBP", 0),) + TUNED:
+        t0 = time.perf_counter()
+        if method == "fbp":
+            recon, extra = reconstruct_slices(grid, data.train, 1.0, "fbp"), {}
+        else:
+            recon, chosen = tuned_slices(grid, data.train, 1.0, method,
+                                         3 if a.quick else most, flux=flux)
+            extra = {"passes": chosen["passes"], "tv": chosen["tv"]}
+        panels[label] = recon
+        score(label, recon, grid_projections(recon, grid, data.test, 1.0), recon.size,
+              time.perf_counter() - t0, **extra)
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        m = run(data, out / "fit", FitConfig(model="absorption", time_budget=a.time_budget),
+                resume=False, progress=not a.quick, log=lambda *x: None)
+    mesh = read_tetmesh(out / "fit" / "attenuation.vtu", opacity="attenuation")
+    from mi_tetvr.mesh.sample import sample_field
+    panels["tets"] = sample_field(mesh.vertices, mesh.tets, mesh.opacity,
+                                  grid.sample_points()).reshape(grid.values.shape)
+    score(f"tets ({m['solver']['method']})", None, tet_projections(mesh, data.test),
+          len(mesh.vertices), time.perf_counter() - t0, passes=m["step"],
+          tuning={k: v for k, v in (m["solver"].get("tuning") or {}).items()
+                  if k != "trials"})
+    print(f"{'method':<18} {'held-out proj. PSNR views':>25} {'pixels':>9} {'unknowns':>9} "
+          f"{'time':>8}")
+    for row in rows:
+        print(f"{row['method']:<18} {row['projection_psnr_views']:22.2f} dB "
+              f"{row['projection_psnr_pixels']:6.2f} dB {row['unknowns']:>9,} "
+              f"{row['seconds']:7.1f} s")
+    if a.slices:
+        top = float(np.percentile(panels["FBP"], 99.9))
+        plot_slices(a.slices, {k: v / top for k, v in panels.items()},
+                    [r["projection_psnr_views"] for r in rows],
+                    f"{Path(a.scan).name}: no truth; held-out projection PSNR")
+        print(f"slices -> {a.slices}")
+    write_json(a, info, {"scan": a.scan, "bin": a.bin, "center_found": found,
+                         "center_best": best["center"], "center_scan": scan_rows,
+                         "rows": rows})
+    return 0
+
+
 def plot_slices(path, panels, psnrs, title):
     """The middle z slice of each volume (z, y, x) beside the truth."""
     from matplotlib.figure import Figure
@@ -228,7 +358,9 @@ def plot_slices(path, panels, psnrs, title):
                   origin="lower")
         ax.set_title(label if p is None else f"{label}\n{p:.2f} dB", fontsize=9)
         ax.axis("off")
-    fig.suptitle(f"{title}: middle z slice (volume PSNR over the whole volume)", fontsize=9)
+    fig.suptitle(f"{title}: middle z slice" + ("" if "held-out" in title else
+                                                " (volume PSNR over the whole volume)"),
+                 fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 

@@ -14,7 +14,7 @@ trilinear field, ``.npy`` transmittance images, orthographic cameras), fit
 the attenuation on a tet grid with one vertex per voxel
 (:func:`mi_tetvr.recon.pipeline.run`), reconstruct the same slices by
 scikit-image's filtered back-projection
-(:func:`mi_tetvr.grid.xray.reconstruct_slices`), and compare both with the
+(:func:`mi_tetvr.grid.slices.reconstruct_slices`), and compare both with the
 truth at the voxels. Writes ``slices.png`` (truth | FBP | tets, the middle
 slice) and the fitted ``fit/mesh.vtu`` (point data ``attenuation``).
 
@@ -58,7 +58,7 @@ def main(argv=None):
     mi.set_variant(a.variant)
     import mi_tetvr
     from mi_tetvr.grid import load_volume, make_volume
-    from mi_tetvr.grid.xray import reconstruct_slices
+    from mi_tetvr.grid.slices import reconstruct_slices
     from mi_tetvr.recon.synthetic import make_xray_dataset
     from mi_tetvr.mesh.sample import sample_field
     from mi_tetvr.mesh.scenes import default_volume

@@ -11,6 +11,7 @@
     mi-tetvr make-dataset VOLUME|MESH (--tf TF | --xray) -o DIR [--views N] [--res WxH]
     mi-tetvr make-capture -o DIR [--views N] [--res WxH] [--spp S]
     mi-tetvr process-data IMAGES_DIR|VIDEO -o DIR [--reference DATA]
+    mi-tetvr process-xray SCAN.h5 -o DIR [--center C|auto] [--hold-out K] [--rings]
     mi-tetvr fit DATA -o DIR [--config FILE] [--print-config] [--time-budget MIN] [--viewer]
                  [...]
     mi-tetvr eval FIT_DIR|MESH DATA [-o METRICS.json]
@@ -21,7 +22,7 @@
     mi-tetvr view MESH|SCENE.xml|DATA|FIT_DIR [--tf TF] [--port P] [--host H] [--res N]
 
 One module per command (``render``, ``info``, ``make_scenes``, ``make_dataset``,
-``make_capture``, ``process_data``, ``fit``, ``view``, ``evaluate`` for ``eval``,
+``make_capture``, ``process_data``, ``process_xray``, ``fit``, ``view``, ``evaluate`` for ``eval``,
 ``refine``, ``viewpoint``, ``partition``, ``sweep``), each with its ``NAME``, ``HELP``, ``add_arguments(parser)``
 and ``run(args)``; :mod:`~mi_tetvr.cli.flags` holds the shared options and those
 generated from settings dataclasses (``render``'s from
@@ -48,7 +49,8 @@ import textwrap
 
 from mi_tetvr.apps.settings import OPACITY_SCALE
 from mi_tetvr.cli import (evaluate, fit, info, make_capture, make_dataset, make_scenes,
-                          partition, process_data, refine, render, sweep, view, viewpoint)
+                          partition, process_data, process_xray, refine, render, sweep, view,
+                          viewpoint)
 from mi_tetvr.cli.common import CommandError, scene_xml
 from mi_tetvr.cli.fit import fit_config
 from mi_tetvr.cli.flags import (VARIANTS, config_flags, image_size, settings_flags,
@@ -65,8 +67,8 @@ __all__ = ["main", "build_parser", "command_summary", "COMMANDS", "CommandError"
            "TEST_VIEWS", "VARIANTS", "_setting_type"]
 
 #: The commands, in the order ``mi-tetvr --help`` and the README list them.
-COMMANDS = (render, info, make_scenes, make_dataset, make_capture, process_data, fit, view,
-            evaluate, refine, viewpoint, partition, sweep)
+COMMANDS = (render, info, make_scenes, make_dataset, make_capture, process_data, process_xray,
+            fit, view, evaluate, refine, viewpoint, partition, sweep)
 
 
 def build_parser():

@@ -22,7 +22,7 @@ from mi_tetvr.camera import Camera
 from mi_tetvr.grid.volume import Volume, trilinear_numpy
 
 __all__ = ["line_integrals", "xray_cameras", "rotation_axis", "project_volume",
-           "parallel_angles", "reconstruct_slices", "fdk", "MAX_DEPTH", "FACE_TOLERANCE"]
+           "parallel_angles", "fdk", "MAX_DEPTH", "FACE_TOLERANCE"]
 
 #: Default largest optical depth of a data set's rays (transmittance e^-2.5 = 8 %):
 #: the attenuation scale is chosen for it.
@@ -156,57 +156,6 @@ def project_volume(volume: Volume, camera: Camera, scale: float = 1.0) -> np.nda
     o, d = camera.rays()
     depth = scale * line_integrals(volume, o, d)
     return np.exp(-depth).reshape(camera.height, camera.width)
-
-
-def reconstruct_slices(grid: Volume, views, scale: float, method: str = "fbp",
-                       passes: int = 10) -> np.ndarray:
-    """Classical tomography on the samples of ``grid``: scikit-image's
-    filtered back-projection (``fbp``, ramp filter) or SART (``sart``,
-    ``passes`` passes, values kept >= 0) of every z slice from its sinogram,
-    i.e. one image row of each parallel-beam view made by :func:`xray_cameras`
-    for ``grid`` (only its geometry is read, not its values).
-
-    Parameters
-    ----------
-    grid : Volume
-        The sampling the views were made for (shape, spacing, bounds).
-    views : list of View
-        Parallel-beam X-ray views (alpha = 1 - transmittance).
-    scale : float
-        Attenuation per world unit of a value 1 (the result is in values).
-
-    Returns
-    -------
-    (nz, ny, nx) float64, values at ``grid``'s samples (FBP may be negative).
-    """
-    from skimage.transform import iradon, iradon_sart
-    cam = views[0].camera
-    w, s = cam.width, cam.pixel_size
-    nx, ny, nz = grid.shape
-    if not cam.is_orthographic or cam.height != nz or abs(s - grid.spacing[0]) > 1e-9 * s:
-        raise ValueError("reconstruct_slices needs the parallel-beam views xray_cameras makes "
-                         "for this grid")
-    # each camera looks at the axis from angle a: forward = -(cos a, sin a, 0)
-    fwd = np.array([v.camera.to_world[:3, 2] for v in views])
-    theta = np.degrees(np.arctan2(-fwd[:, 1], -fwd[:, 0])) + 90.0   # scikit-image's angle
-    depth = np.stack([-np.log(np.clip(1.0 - v.image[..., 3].astype(np.float64), 1e-12, None))
-                      for v in views], -1) / (scale * s)            # (rows, detector, views)
-    # slice pixel (r, c) <-> sample (y, x): c = w//2 + x - nx//2, r = w//2 - (y - ny//2)
-    cols = w // 2 + np.arange(nx) - nx // 2
-    rows = w // 2 - (np.arange(ny) - ny // 2)
-    out = np.empty((nz, ny, nx))
-    for j in range(nz):
-        sino = depth[j]
-        if method == "fbp":
-            img = iradon(sino, theta, output_size=w, filter_name="ramp")
-        elif method == "sart":
-            img = None
-            for _ in range(passes):
-                img = iradon_sart(sino, theta, image=img, clip=(0.0, np.inf))
-        else:
-            raise ValueError(f"method must be fbp or sart, got {method!r}")
-        out[nz - 1 - j] = img[np.ix_(rows, cols)]          # image row j is sample z nz-1-j
-    return out
 
 
 def _ramp(width: int, spacing: float) -> np.ndarray:

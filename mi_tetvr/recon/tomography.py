@@ -36,11 +36,18 @@ import numpy as np
 
 __all__ = ["Projector", "depths", "statistical_weights", "sart", "least_squares",
            "tv_gradient", "aligned_resolution", "detector_cell", "fit_attenuation",
-           "DEFAULT_PASSES", "STALL"]
+           "DEFAULT_PASSES", "STALL", "HeldOut", "MAX_PASSES", "TV_CANDIDATES", "SPARSE_VIEWS"]
 
 #: Passes over the views when the config gives none: the solver's count where
 #: the measured volume PSNR stopped rising (``benchmarks/bench_tomography.py``).
 DEFAULT_PASSES = {"sart": 15, "sirt": 200, "lsqr": 12}
+#: Held-out tuning: the most passes tried (the solve stops earlier once the
+#: held-out views stop improving).
+MAX_PASSES = {"sart": 30, "sirt": 300}
+#: Held-out tuning: the ASD-POCS TV weights tried on noisy or sparse data.
+TV_CANDIDATES = (0.1, 0.3)
+#: Fewer training views than this are sparse: TV weights are tried.
+SPARSE_VIEWS = 48
 #: Noisy data: the passes stop when the weighted residual falls by less than
 #: this fraction in a pass (on the head MR at 10^4 photons the volume PSNR
 #: peaked there, at 6 passes of SART).
@@ -181,9 +188,39 @@ def tv_gradient(x, edges, eps):
     return np.bincount(edges[:, 0], g, len(x)) - np.bincount(edges[:, 1], g, len(x))
 
 
+class HeldOut:
+    """Early stopping on held-out projections: after each pass the mean
+    squared transmittance error of ``views`` (indices into the projector's
+    views, left out of the solve) is measured; the best ``x`` is kept and the
+    solve stops once ``patience`` passes have not improved on it.
+
+    Attributes
+    ----------
+    errors : list of float
+        The error after each pass.
+    best : (float, int, ndarray or None)
+        The least error, its pass (1-based) and its ``x``.
+    """
+
+    def __init__(self, projector, b, views, patience: int = 3):
+        self.projector, self.views, self.patience = projector, list(views), patience
+        self.target = np.exp(-np.asarray(b, np.float64)[projector.rows(self.views)])
+        self.errors = []
+        self.best = (np.inf, 0, None)
+
+    def __call__(self, p, x) -> bool:
+        """Record pass ``p``'s ``x``; True when the solve should stop."""
+        e = float(np.mean((np.exp(-self.projector.forward(x, self.views)) - self.target) ** 2))
+        self.errors.append(e)
+        if e < self.best[0]:
+            self.best = (e, p, x.copy())
+        return p - self.best[1] >= self.patience
+
+
 def sart(projector: Projector, b, passes: int, weights=None, subset_size: int = 1,
          relaxation: float = 1.0, x0=None, tv: float = 0.0, edges=None, tv_steps: int = 5,
-         deadline=None, callback=None):
+         deadline=None, callback=None, views=None, held_out: HeldOut | None = None,
+         stop_at_noise: bool = True):
     """Ordered-subset SART with ``x >= 0`` (``subset_size`` views per update;
     all of them: SIRT), optionally followed in each pass by ``tv_steps``
     total-variation descent steps of ``tv`` times the pass's change (ASD-POCS).
@@ -207,16 +244,24 @@ def sart(projector: Projector, b, passes: int, weights=None, subset_size: int = 
         ``callback(pass_index, x, residual, mse)`` after each pass: ``residual``
         the weighted RMS of ``b - A x`` over the pass's subsets (each before its
         update), ``mse`` the mean squared transmittance error alike.
+    views : list of int, optional
+        The projector's views solved for (default all).
+    held_out : HeldOut, optional
+        Stop when the held-out views stop improving, and return the best
+        ``x`` they saw (instead of the noise rule).
+    stop_at_noise : bool
+        With ``weights``, stop by the discrepancy rule above (default).
 
     Returns
     -------
     (n,) float64
     """
     b = np.asarray(b, np.float64)
-    views = len(projector.sensors)
-    order = np.random.default_rng(0).permutation(views) if subset_size < views else \
-        np.arange(views)
-    subsets = [np.sort(order[k:k + subset_size]) for k in range(0, views, subset_size)]
+    views = np.arange(len(projector.sensors)) if views is None else np.asarray(views)
+    order = views[np.random.default_rng(0).permutation(len(views))] \
+        if subset_size < len(views) else views
+    subsets = [np.sort(order[k:k + subset_size]) for k in range(0, len(views), subset_size)]
+    n_rays = len(projector.rows(views))
     w = np.ones_like(b) if weights is None else np.asarray(weights, np.float64)
     ones = np.ones(projector.n)
     lengths = projector.forward(ones)
@@ -249,16 +294,23 @@ def sart(projector: Projector, b, passes: int, weights=None, subset_size: int = 
                 if norm > 0:
                     x = np.maximum(x - tv * change * g / norm, 0.0)
         if callback is not None:
-            callback(p, x, np.sqrt(sq / max(total, 1e-30)), t_sq / len(b))
+            callback(p, x, np.sqrt(sq / max(total, 1e-30)), t_sq / n_rays)
         if deadline is not None and deadline():
             break
-        chi2 = sq / len(b)
-        if weights is not None and (chi2 <= 1.0 or chi2 > (1.0 - STALL) * last_chi2):
+        if held_out is not None:
+            if held_out(p + 1, x):
+                break
+            continue
+        chi2 = sq / n_rays
+        if weights is not None and stop_at_noise and (chi2 <= 1.0 or
+                                                      chi2 > (1.0 - STALL) * last_chi2):
             # the residual is down to the noise (with counts as weights each ray's
             # weighted squared residual is 1: Morozov's discrepancy principle), or
             # what is left of it is the model's mismatch: further passes fit noise
             break
         last_chi2 = chi2
+    if held_out is not None and held_out.best[2] is not None:
+        return held_out.best[2]
     return x
 
 
@@ -367,8 +419,19 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
     history = {"step": [], "time": [], "loss": [], "psnr": []}
     x, prev = x0, None
     train_begin = now()
-    bar = tqdm(total=passes * len(grids), disable=not progress, unit="pass",
-               desc=f"{solver} ({len(cameras)} views)")
+    # held-out tuning of the passes and the TV weight (on the last grid)
+    tuning = solver in ("sart", "sirt") and config.validation > 0 and len(cameras) >= 6 and \
+        (config.passes is None or config.tv is None)
+    if config.tv is not None:
+        tvs = [config.tv]
+    elif tuning and (flux or len(cameras) < SPARSE_VIEWS):
+        tvs = [0.0, *TV_CANDIDATES]
+    else:
+        tvs = [0.0]
+    max_passes = config.passes or MAX_PASSES[solver] if tuning else passes
+    tuned = None
+    bar = tqdm(total=passes * (len(grids) - 1) + max_passes * (len(tvs) + 1 if tuning else 1),
+               disable=not progress, unit="pass", desc=f"{solver} ({len(cameras)} views)")
     for g in grids:
         v, t = grid_init(box, g)
         topology = build_topology(v, t)
@@ -386,13 +449,46 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
             bar.update(1)
             bar.set_postfix(residual=f"{residual:.3g}")
 
+        edges = unique_edges(topology.tets) if max(tvs) > 0 else None
+        solve = dict(weights=weights, relaxation=config.relaxation, x0=x, edges=edges,
+                     deadline=deadline, callback=record)
+        subset = len(cameras) if solver == "sirt" else 1
         if solver == "lsqr":
             x = least_squares(projector, b, passes, weights, x, record)
+        elif tuning and g == grids[-1]:
+            from mi_tetvr.grid.slices import validation_split
+            fit_views, val_views = validation_split(len(cameras), config.validation)
+            trials, kept = [], {}
+            # the tuning leaves a third of the time budget to the final solve
+            tune_deadline = None if budget is None else \
+                (lambda: now() - t_start > 0.6 * budget)
+            for tv in tvs:
+                held = HeldOut(projector, b, val_views,
+                               patience=max_passes if config.passes else 3)
+                sart(projector, b, max_passes, subset_size=min(subset, len(fit_views)), tv=tv,
+                     views=fit_views, held_out=held, **{**solve, "deadline": tune_deadline})
+                trials.append({"tv": tv, "passes": held.best[1], "held_out_mse": held.best[0],
+                               "errors": held.errors})
+                kept[tv] = held.best[2]
+                if tune_deadline is not None and tune_deadline():
+                    break
+            best = min(trials, key=lambda r: r["held_out_mse"])
+            log(f"held out {len(val_views)} of {len(cameras)} views: " + ", ".join(
+                f"TV {r['tv']:g}: {r['passes']} passes, MSE {r['held_out_mse']:.3g}"
+                for r in trials) + f"; all views with TV {best['tv']:g}, {best['passes']} "
+                f"passes")
+            tuned = {"validation_views": len(val_views), "tv": best["tv"],
+                     "passes": best["passes"], "trials": trials}
+            done = len(history["step"])
+            x = sart(projector, b, best["passes"], subset_size=subset, tv=best["tv"],
+                     stop_at_noise=False, **solve)
+            if len(history["step"]) - done < best["passes"] and kept[best["tv"]] is not None:
+                # out of time before all views were solved as long: the held-out run's best
+                log("time ran out in the final solve: keeping the tuning's best attenuation")
+                tuned["final"] = "time ran out: the tuning's best (without the held-out views)"
+                x = kept[best["tv"]]
         else:
-            x = sart(projector, b, passes, weights, subset_size=(
-                len(cameras) if solver == "sirt" else 1), relaxation=config.relaxation, x0=x,
-                tv=config.tv, edges=unique_edges(topology.tets) if config.tv > 0 else None,
-                deadline=deadline, callback=record)
+            x = sart(projector, b, passes, subset_size=subset, tv=tvs[0], **solve)
         prev = (g, x)
     bar.close()
     optimization = now() - train_begin
@@ -404,7 +500,8 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
     save_checkpoint(trainer, ckpt)
     result = write_outputs(trainer, out)
     result["solver"] = {"method": solver, "passes": len(history["step"]),
-                        "weights": "Poisson counts" if weights is not None else "none"}
+                        "weights": "Poisson counts" if weights is not None else "none",
+                        "tuning": tuned}
     result["optimization_seconds"] = optimization
     result["wall_seconds"] = now() - t_start
     (out / "metrics.json").write_text(json.dumps(result, indent=2))
