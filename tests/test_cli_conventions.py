@@ -18,6 +18,7 @@ from tests.helpers import ROOT, VARIANT
 # positional arguments each command needs to parse
 POSITIONAL = {"render": ["s.xml"], "info": ["m.vtu"], "make-scenes": [],
               "make-dataset": ["v.npy"], "make-capture": [], "process-data": ["photos"],
+              "process-xray": ["scan.h5"],
               "fit": ["data"], "eval": ["fit", "data"], "refine": ["m.vtu"],
               "viewpoint": ["m.vtu"], "view": ["m.vtu"], "partition": ["m.vtu"],
               "sweep": ["data", "sweep.yaml"]}
@@ -25,8 +26,8 @@ REQUIRED = {"refine": ["--select", "x"], "partition": ["--blocks", "2"]}
 WRITES = set(POSITIONAL) - {"info"}
 RENDERS = {"render", "make-dataset", "make-capture", "fit", "eval", "viewpoint", "view",
            "sweep"}
-SHOWS_PROGRESS = {"make-dataset", "make-capture", "process-data", "fit", "viewpoint",
-                  "partition"}
+SHOWS_PROGRESS = {"make-dataset", "make-capture", "process-data", "process-xray", "fit",
+                  "viewpoint", "partition"}
 READS_MESHES = {"render", "info", "make-dataset", "fit", "eval", "refine", "viewpoint", "view"}
 MAKES_IMAGES = {"render", "make-dataset", "make-capture", "viewpoint", "view"}
 
