@@ -92,6 +92,11 @@ def parse_args(argv=None):
     p.add_argument("--bin", type=int, default=1, help="--scan: average BxB detector pixels")
     p.add_argument("--slices", help="PNG of the middle z slice: truth | classical | tets")
     p.add_argument("--out", help="folder for the data set and the fit (default: a temp folder)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the photon noise (default 0)")
+    p.add_argument("--table", metavar="VOLUMES",
+                   help="the table: VOLUMES (comma-separated, or all) at 24 and 64 views, "
+                   "noise-free and at 1e5 and 1e4 photons (noise seeds 0 and 1); goes on "
+                   "from OUT/table.json when an earlier run stopped")
     a = p.parse_args(argv)
     if a.quick:
         a.views, a.test_views, a.sart_passes = 16, 4, 3
@@ -100,7 +105,7 @@ def parse_args(argv=None):
 
 #: The tuned baselines: method, label, most passes tried.
 TUNED = (("sart", "SART tuned", 30), ("sirt", "SIRT tuned", 300),
-         ("fista_tv", "FISTA-TV tuned", 60))
+         ("fista_tv", "FISTA-TV tuned", 100))
 
 
 def phantom(n):
@@ -157,6 +162,39 @@ def tet_projections(mesh, views):
 def main(a):
     import mitsuba as mi
     mi.set_variant(a.variant)
+    info = header("absorption tomography benchmark")
+    out = Path(a.out or tempfile.mkdtemp())
+    if a.scan:
+        return main_scan(a, info, out)
+    if a.table:
+        return main_table(a, info, out)
+    volume, name = load(a)
+    res = run_volume(a, volume, name, a.views, a.flux, a.seed, out)
+    rows = res["rows"]
+    print(f"{'method':<18} {'volume PSNR':>11} {'slice SSIM':>10} {'proj. PSNR views':>16} "
+          f"{'pixels':>8} {'unknowns':>9} {'time':>8}")
+    for row in rows:
+        print(f"{row['method']:<18} {row['volume_psnr']:8.2f} dB {row['slice_ssim']:10.4f} "
+              f"{row['projection_psnr_views']:13.2f} dB {row['projection_psnr_pixels']:5.2f} dB "
+              f"{row['unknowns']:>9,} {row['seconds']:7.1f} s")
+    # the fit scores itself (metrics.json) by the same function: the same number
+    m = res["fit_metrics"]
+    print(f"the fit's own metrics.json: held-out projection PSNR {m['mean']['psnr']:.2f} dB "
+          f"(views), {m['mean']['psnr_all_pixels']:.2f} dB (pixels)")
+    if a.slices:
+        plot_slices(a.slices, res["panels"], [None] + [row["volume_psnr"] for row in rows],
+                    f"{name}, {a.beam} beam, "
+                    + ("noise-free" if a.flux is None else f"{a.flux:g} photons"))
+        print(f"slices -> {a.slices}")
+    write_json(a, info, {k: v for k, v in res.items() if k not in ("panels", "fit_metrics")})
+    return 0
+
+
+def run_volume(a, volume, name, views, flux, seed, out, log=print):
+    """One data set of ``volume`` (``views`` angles, ``flux`` photons or
+    noise-free, noise ``seed``) reconstructed by every method and scored by
+    the one yardstick. Returns ``rows`` (one per method), the middle-slice
+    ``panels`` and what describes the data set."""
     from mi_tetvr.grid.slices import reconstruct_slices, tuned_slices
     from mi_tetvr.grid.xray import fdk
     from mi_tetvr.mesh.io import read_tetmesh
@@ -166,13 +204,8 @@ def main(a):
     from mi_tetvr.recon.metrics import tomography_scores
     from mi_tetvr.recon.pipeline import run
     from mi_tetvr.recon.synthetic import make_xray_dataset
-    info = header("absorption tomography benchmark")
-    out = Path(a.out or tempfile.mkdtemp())
-    if a.scan:
-        return main_scan(a, info, out)
-    volume, name = load(a)
-    made = make_xray_dataset(volume, out / "data", views=a.views, test_views=a.test_views,
-                             beam=a.beam, flux=a.flux, detail=a.detail,
+    made = make_xray_dataset(volume, out / "data", views=views, test_views=a.test_views,
+                             beam=a.beam, flux=flux, detail=a.detail, seed=seed,
                              progress=False)
     volume = made["volume"]                      # what was projected (resampled if need be)
     scale = made["info"]["attenuation_scale"]
@@ -180,10 +213,10 @@ def main(a):
     truth = volume.values.astype(np.float64)
     cam = data.train[0].camera
     targets = [1.0 - v.image[..., 3].astype(np.float64) for v in data.test]
-    print(f"{name} {volume.shape}, {a.views} {a.beam}-beam projections of {cam.width}x"
-          f"{cam.height}, {a.test_views} held out, "
-          f"{'noise-free' if a.flux is None else f'Poisson noise at {a.flux:g} photons'}; "
-          f"{truth.size:,} samples")
+    log(f"{name} {volume.shape}, {views} {a.beam}-beam projections of {cam.width}x"
+        f"{cam.height}, {a.test_views} held out, "
+        f"{'noise-free' if flux is None else f'Poisson noise at {flux:g} photons (seed {seed})'}"
+        f"; {truth.size:,} samples")
     rows = []
 
     def score(label, values, projections, unknowns, seconds, **extra):
@@ -191,7 +224,9 @@ def main(a):
                          unknowns=unknowns, seconds=seconds, **extra))
 
     classical = {}
-    methods = ((("FBP", "fbp", 0), (f"SART ({a.sart_passes} passes)", "sart", a.sart_passes))
+    methods = ((("FBP", "fbp", 0),) + (() if a.table else
+                                       ((f"SART ({a.sart_passes} passes)", "sart",
+                                         a.sart_passes),))
                if a.beam == "parallel" else (("FDK", "fdk", 0),))
     for label, method, passes in methods:
         t0 = time.perf_counter()
@@ -207,7 +242,7 @@ def main(a):
         for method, label, most in TUNED:
             t0 = time.perf_counter()
             recon, chosen = tuned_slices(volume, data.train, scale, method,
-                                         3 if a.quick else most, flux=a.flux)
+                                         3 if a.quick else most, flux=flux)
             classical[label] = recon
             score(label, recon, grid_projections(recon, volume, data.test, scale),
                   truth.size, time.perf_counter() - t0, passes=chosen["passes"],
@@ -218,36 +253,86 @@ def main(a):
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        m = run(data, out / "fit", cfg, resume=False, progress=not a.quick,
+        m = run(data, out / "fit", cfg, resume=False, progress=not (a.quick or a.table),
                 log=lambda *x: None)
     tets_time = time.perf_counter() - t0
     mesh = read_tetmesh(out / "fit" / "attenuation.vtu", opacity="attenuation")
     field = sample_field(mesh.vertices, mesh.tets, mesh.opacity / scale,
                          volume.sample_points()).reshape(truth.shape)
     solver = m.get("solver", {}).get("method", "adam")
-    score(f"tets ({solver})", field, tet_projections(mesh, data.test), len(mesh.vertices),
+    tuning = m.get("solver", {}).get("tuning") or {}
+    score(f"tets ({solver})", field, tet_projections(mesh, data.test), m["unknowns"],
           tets_time, tets=len(mesh.tets), passes=m["step"],
-          fit_metrics_psnr=m["mean"]["psnr"])
-    print(f"{'method':<18} {'volume PSNR':>11} {'slice SSIM':>10} {'proj. PSNR views':>16} "
-          f"{'pixels':>8} {'unknowns':>9} {'time':>8}")
-    for row in rows:
-        print(f"{row['method']:<18} {row['volume_psnr']:8.2f} dB {row['slice_ssim']:10.4f} "
-              f"{row['projection_psnr_views']:13.2f} dB {row['projection_psnr_pixels']:5.2f} dB "
-              f"{row['unknowns']:>9,} {row['seconds']:7.1f} s")
-    # the fit scores itself (metrics.json) by the same function: the same number
-    print(f"the fit's own metrics.json: held-out projection PSNR {m['mean']['psnr']:.2f} dB "
-          f"(views), {m['mean']['psnr_all_pixels']:.2f} dB (pixels)")
-    if a.slices:
-        panels = {"truth": truth, **classical, "tets": field}
-        plot_slices(a.slices, panels, [None] + [row["volume_psnr"] for row in rows],
-                    f"{name}, {a.beam} beam, "
-                    + ("noise-free" if a.flux is None else f"{a.flux:g} photons"))
-        print(f"slices -> {a.slices}")
-    write_json(a, info, {"volume": name, "shape": list(volume.shape), "views": a.views,
-                         "test_views": a.test_views, "beam": a.beam, "flux": a.flux,
-                         "attenuation_scale": scale, "detector": [cam.width, cam.height],
-                         "rows": rows})
+          fit_metrics_psnr=m["mean"]["psnr"],
+          tuning={k: v for k, v in tuning.items() if k != "trials"})
+    return {"volume": name, "shape": list(volume.shape), "views": views,
+            "test_views": a.test_views, "beam": a.beam, "flux": flux, "seed": seed,
+            "attenuation_scale": scale, "detector": [cam.width, cam.height], "rows": rows,
+            "panels": {"truth": truth, **classical, "tets": field}, "fit_metrics": m}
+
+
+def main_table(a, info, out):
+    """Every volume at 24 and 64 views, noise-free and at 10^4 and 10^5
+    photons (two noise seeds each): the mean volume PSNR and slice SSIM of
+    every method, the spread over the seeds, and the tets' margin over the
+    best tuned baseline; a markdown table."""
+    import json
+    volumes = [v for v in a.table.split(",")] if a.table != "all" else list(VOLUMES)
+    fluxes = [None, 1e5, 1e4]
+    results = []
+    path = out / "table.json"
+    if path.is_file():                 # go on where an earlier run of the table stopped
+        results = json.loads(path.read_text())
+    for vol_name in volumes:
+        a.volume = vol_name
+        volume, name = load(a)
+        for views in (24, 64) if not a.quick else (a.views,):
+            for flux in fluxes:
+                for seed in ((0,) if flux is None else (0, 1)):
+                    if any(r["volume"] == name and r["views"] == views and r["flux"] == flux
+                           and r["seed"] == seed for r in results):
+                        continue
+                    d = out / f"{vol_name}_{views}_{flux or 0:g}_{seed}"
+                    res = run_volume(a, volume, name, views, flux, seed, d)
+                    res.pop("panels"), res.pop("fit_metrics")
+                    results.append(res)
+                    path.write_text(json.dumps(results, indent=1))
+                    best = max((r for r in res["rows"] if "tuned" in r["method"]),
+                               key=lambda r: r["volume_psnr"], default=None)
+                    print("  " + ", ".join(f"{r['method']} {r['volume_psnr']:.2f}"
+                                           for r in res["rows"])
+                          + (f"; tets - best tuned {res['rows'][-1]['volume_psnr'] - best['volume_psnr']:+.2f} dB"
+                             if best else ""), flush=True)
+    print(table_markdown(results))
+    write_json(a, info, {"table": results})
     return 0
+
+
+def table_markdown(results):
+    """The table's markdown: one row per volume, views and photons; per method
+    the mean volume PSNR / slice SSIM over the seeds (the spread after +-)."""
+    methods = [r["method"] for r in results[0]["rows"]]
+    head = "| volume | views | photons | " + " | ".join(methods) + " | tets - best tuned |"
+    lines = [head, "|" + "---|" * (len(methods) + 4)]
+    keys = []
+    for r in results:
+        k = (r["volume"], r["views"], r["flux"])
+        if k not in keys:
+            keys.append(k)
+    for k in keys:
+        runs = [r for r in results if (r["volume"], r["views"], r["flux"]) == k]
+        cells, means = [], {}
+        for m in methods:
+            p = [next(x for x in r["rows"] if x["method"] == m)["volume_psnr"] for r in runs]
+            q = [next(x for x in r["rows"] if x["method"] == m)["slice_ssim"] for r in runs]
+            means[m] = float(np.mean(p))
+            spread = f" ±{(max(p) - min(p)) / 2:.2f}" if len(p) > 1 else ""
+            cells.append(f"{np.mean(p):.2f}{spread} / {np.mean(q):.3f}")
+        tuned = [m for m in methods if "tuned" in m]
+        margin = means[methods[-1]] - max(means[m] for m in tuned) if tuned else float("nan")
+        lines.append(f"| {k[0]} | {k[1]} | {'none' if k[2] is None else f'{k[2]:.0e}'} | "
+                     + " | ".join(cells) + f" | {margin:+.2f} dB |")
+    return "\n".join(lines)
 
 
 def scan_grid_volume(data_dir):
@@ -327,7 +412,7 @@ def main_scan(a, info, out):
     panels["tets"] = sample_field(mesh.vertices, mesh.tets, mesh.opacity,
                                   grid.sample_points()).reshape(grid.values.shape)
     score(f"tets ({m['solver']['method']})", None, tet_projections(mesh, data.test),
-          len(mesh.vertices), time.perf_counter() - t0, passes=m["step"],
+          m["unknowns"], time.perf_counter() - t0, passes=m["step"],
           tuning={k: v for k, v in (m["solver"].get("tuning") or {}).items()
                   if k != "trials"})
     print(f"{'method':<18} {'held-out proj. PSNR views':>25} {'pixels':>9} {'unknowns':>9} "

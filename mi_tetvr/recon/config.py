@@ -190,23 +190,28 @@ class FitConfig:
         "for every view: its emitters, and any surfaces around the volume (a floor, walls)",
         metavar="XML")
     solver: str | None = setting(
-        None, "sart (ordered-subset SART on the tets, one view per update, attenuation >= 0), "
-        "sirt (all views per update), lsqr (CGLS/LSQR through scipy, then >= 0): model "
-        "absorption only; adam: the image-loss optimizer; default: sart for model absorption "
-        "(chosen by measurement, benchmarks/bench_tomography.py), else adam",
-        choices=("sart", "sirt", "lsqr", "adam"))
+        None, "pwls (penalized weighted least squares: Poisson-count weights and the tets' "
+        "total variation, its weight chosen on held-out views; ordered subsets with "
+        "separable surrogates), sart (ordered-subset SART on the tets, one view per update, "
+        "attenuation >= 0), sirt (all views per update), lsqr (CGLS/LSQR through scipy, then "
+        ">= 0): model absorption only; adam: the image-loss optimizer; default: pwls for "
+        "model absorption (chosen by measurement, benchmarks/bench_tomography.py), else adam",
+        choices=("pwls", "sart", "sirt", "lsqr", "adam"))
     passes: int | None = setting(
         None, "model absorption, linear solvers: passes over the views (lsqr: iterations); "
-        "default sart 15, sirt 200, lsqr 12, where the measured error stopped falling")
+        "pwls: of the first penalty weight tried, half as many for each other and for the "
+        "final solve (default 24); sart/sirt: default chosen on held-out views (at most 30, "
+        "300; without held-out views 15, 200); lsqr: default 12")
     relaxation: float = setting(1.0, "model absorption, sart/sirt: the update's relaxation")
     tv: float | None = setting(
-        None, "model absorption, sart/sirt: total-variation descent after each pass, in units "
-        "of the pass's change (ASD-POCS; 0: none); default: chosen on held-out views among "
-        "0, 0.1 and 0.3 for noisy or sparse data (photon counts, or under 48 views), else 0")
+        None, "model absorption, pwls: the total-variation penalty's weight, relative to the "
+        "data's curvature (0: none); default: chosen on held-out views (0.1, 0.3, 0.03, then "
+        "on by factors of 3 while the held-out error falls)")
     validation: int = setting(
-        8, "model absorption, sart/sirt: every K-th training view is held out to choose the "
-        "passes (stopping once they stop improving its projections) and the TV weight, then "
-        "all views are solved with them; 0: the fixed passes and the noise rule")
+        8, "model absorption, pwls/sart/sirt: every K-th training view is held out to choose "
+        "the passes (stopping once they stop improving its projections) and pwls's penalty "
+        "weight, then all views are solved with them; 0: the fixed passes (sart: and the noise "
+        "rule)")
     xray_flux: float | None = setting(
         None, "model absorption: photons per pixel of the unattenuated beam: rays weighted by "
         "their counts (Poisson noise); default: what the data set records (none: unweighted)")
@@ -259,11 +264,11 @@ class FitConfig:
 
     @property
     def linear_solver(self):
-        """The linear solver of an absorption fit (``sart``, ``sirt``, ``lsqr``;
-        ``sart`` unless ``solver`` says), or ``None`` (an Adam fit)."""
+        """The linear solver of an absorption fit (``pwls``, ``sart``, ``sirt``,
+        ``lsqr``; ``pwls`` unless ``solver`` says), or ``None`` (an Adam fit)."""
         if self.model != "absorption" or self.solver == "adam":
             return None
-        return self.solver or "sart"
+        return self.solver or "pwls"
 
     def updated(self, **kw):
         """A validated copy with the given settings changed (``None`` values
@@ -317,6 +322,9 @@ class FitConfig:
         if (self.tv is not None and self.tv < 0) or self.validation < 0 or \
                 (self.xray_flux is not None and not self.xray_flux > 0):
             raise ValueError("tv and validation must be >= 0 and xray_flux > 0")
+        if self.tv is not None and self.linear_solver not in (None, "pwls"):
+            raise ValueError(f"tv is the penalty weight of solver pwls; solver "
+                             f"{self.linear_solver} has none")
         if self.solver not in (None, "adam") and self.model != "absorption":
             raise ValueError(f"solver {self.solver} solves model absorption (X-ray "
                              f"projections); fits of images use solver adam")

@@ -8,22 +8,24 @@ walk is ``A`` (``tetvr``'s ``absorption`` model with no early termination,
 adjoint), so the classical algebraic methods run on the mesh as they run on
 voxels:
 
+* :class:`PenalizedLS` (the default, ``solver="pwls"``): penalized weighted
+  least squares, the statistical model of log-transmission data (Poisson
+  counts as weights) plus the exact total variation of the tets' linear
+  field (smoothed by a hyperbola), by ordered subsets with separable
+  quadratic surrogates and momentum; its weight chosen on held-out views;
 * :func:`sart`: (ordered-subset) SART, Andersen and Kak 1984: per subset of
   views ``x += relaxation * (A_s^T W R (b_s - A_s x)) / (A_s^T W 1)`` with
   ``R`` the inverse row sums (each ray's length in the mesh) and ``W`` the
   statistical weights (Poisson counts; 1 without noise), ``x >= 0`` after
   each update. One view per subset is SART as scikit-image's ``iradon_sart``
-  runs it per slice; all views in one subset is SIRT. Optionally a few
-  total-variation descent steps on the mesh's edges after each pass (the
-  ASD-POCS scheme of Sidky and Pan 2008, :func:`tv_gradient`).
+  runs it per slice; all views in one subset is SIRT.
 * :func:`least_squares`: CGLS/LSQR (``scipy.sparse.linalg.lsqr``) on the
   weighted operator :meth:`Projector.operator`, then ``x >= 0``.
 
-The default (``solver="sart"``, one view per subset, no TV) was chosen by
-measurement (``benchmarks/bench_tomography.py``, see ``benchmarks/README.md``).
-:func:`fit_attenuation` is ``mi-tetvr fit --model absorption``'s run: a tet
-grid whose vertices lie on the detector's pixel grid, the solver, and the
-same outputs as every fit.
+The default was chosen by measurement (``benchmarks/bench_tomography.py``,
+see ``benchmarks/README.md``). :func:`fit_attenuation` is ``mi-tetvr fit
+--model absorption``'s run: a tet mesh over the scanned box, the solver, and
+the same outputs as every fit.
 """
 from __future__ import annotations
 
@@ -35,19 +37,16 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["Projector", "depths", "statistical_weights", "sart", "least_squares",
-           "tv_gradient", "aligned_resolution", "detector_cell", "fit_attenuation",
-           "DEFAULT_PASSES", "STALL", "HeldOut", "MAX_PASSES", "TV_CANDIDATES", "SPARSE_VIEWS"]
+           "TetGradient", "PenalizedLS", "tied_unknowns", "aligned_resolution", "detector_cell",
+           "fit_attenuation", "DEFAULT_PASSES", "STALL", "HeldOut", "MAX_PASSES", "EDGE",
+           "LAMBDA_DEFAULT", "LAMBDA_START", "LAMBDA_STEP", "LAMBDA_RANGE"]
 
 #: Passes over the views when the config gives none: the solver's count where
 #: the measured volume PSNR stopped rising (``benchmarks/bench_tomography.py``).
-DEFAULT_PASSES = {"sart": 15, "sirt": 200, "lsqr": 12}
+DEFAULT_PASSES = {"pwls": 24, "sart": 15, "sirt": 200, "lsqr": 12}
 #: Held-out tuning: the most passes tried (the solve stops earlier once the
 #: held-out views stop improving).
 MAX_PASSES = {"sart": 30, "sirt": 300}
-#: Held-out tuning: the ASD-POCS TV weights tried on noisy or sparse data.
-TV_CANDIDATES = (0.1, 0.3)
-#: Fewer training views than this are sparse: TV weights are tried.
-SPARSE_VIEWS = 48
 #: Noisy data: the passes stop when the weighted residual falls by less than
 #: this fraction in a pass (on the head MR at 10^4 photons the volume PSNR
 #: peaked there, at 6 passes of SART).
@@ -85,21 +84,26 @@ class Projector:
     cameras : list of mi_tetvr.camera.Camera
     topology : mi_tetvr.mesh.Topology, optional
         ``build_topology(vertices, tets)`` when the caller has it.
+    unknowns : (n,) int, optional
+        Each vertex's unknown (``x[v] = u[unknowns[v]]``, :func:`tied_unknowns`):
+        ``A`` then acts on the unknowns ``u`` (default: one per vertex).
     """
 
     KEY = "volume.vertex_opacity"
 
-    def __init__(self, vertices, tets, cameras, topology=None):
+    def __init__(self, vertices, tets, cameras, topology=None, unknowns=None):
         import mitsuba as mi
 
         import mi_tetvr
         from mi_tetvr.mesh.topology import build_topology
         if topology is None:
             topology = build_topology(vertices, tets)
-        self.n = len(vertices)
+        self.unknowns = None if unknowns is None else np.asarray(unknowns, np.int64)
+        self.vertices = len(vertices)
+        self.n = len(vertices) if unknowns is None else int(self.unknowns.max()) + 1
         # the shape's tets are the oriented ones: their topology is this one, built once
         shape = mi_tetvr.tetmesh_shape(
-            mi_tetvr.tetmesh_dict(vertices, topology.tets, opacity=np.zeros(self.n),
+            mi_tetvr.tetmesh_dict(vertices, topology.tets, opacity=np.zeros(len(vertices)),
                                   model="absorption"),
             topology=dataclasses.replace(topology, n_flipped=0))
         # no early termination: the depth stays linear however large it gets
@@ -107,6 +111,7 @@ class Projector:
                                    "integrator": {"type": "tetvr", "min_transmittance": 0.0},
                                    "volume": shape})
         self.params = mi.traverse(self.scene)
+        self.cameras = list(cameras)
         self.sensors = []
         for cam in cameras:
             self.sensors.append(mi.load_dict(cam.sensor_dict(sampler="stratified",
@@ -128,8 +133,8 @@ class Projector:
 
     def _set(self, x):
         import mitsuba as mi
-        self.params[self.KEY] = x if isinstance(x, mi.Float) else \
-            mi.Float(np.asarray(x, np.float32).ravel())
+        x = np.asarray(x, np.float32).ravel()
+        self.params[self.KEY] = mi.Float(x if self.unknowns is None else x[self.unknowns])
         self.params.update()
 
     def forward(self, x, views=None) -> np.ndarray:
@@ -156,9 +161,10 @@ class Projector:
         if len(y) != int(self.pixels[views].sum()):
             raise ValueError(f"expected {int(self.pixels[views].sum())} ray values, got "
                              f"{len(y)}")
-        x = dr.zeros(mi.Float, self.n)
+        x = dr.zeros(mi.Float, self.vertices)
         dr.enable_grad(x)
-        self._set(x)
+        self.params[self.KEY] = x
+        self.params.update()
         k = 0
         for i in views:
             image = mi.render(self.scene, self.params, sensor=self.sensors[i], spp=1)
@@ -166,8 +172,10 @@ class Projector:
             k += self.pixels[i]
             dr.backward(dr.sum(-dr.log(1.0 - image[..., 3].array) * w))
         g = np.array(dr.grad(x), np.float64)
-        self._set(dr.detach(x))
-        return g
+        self.params[self.KEY] = dr.detach(x)
+        self.params.update()
+        # E^T: each unknown gathers its vertices' derivatives
+        return g if self.unknowns is None else np.bincount(self.unknowns, g, self.n)
 
     def operator(self, weights=None):
         """``W^(1/2) A`` as a ``scipy.sparse.linalg.LinearOperator`` (``W`` the
@@ -180,12 +188,18 @@ class Projector:
             rmatvec=lambda y: self.adjoint(np.ravel(y) * (1 if s is None else s)))
 
 
-def tv_gradient(x, edges, eps):
-    """Gradient of the smoothed total variation on the mesh's edges,
-    ``sum_e sqrt((x_i - x_j)^2 + eps^2)``."""
-    d = x[edges[:, 0]] - x[edges[:, 1]]
-    g = d / np.sqrt(d * d + eps * eps)
-    return np.bincount(edges[:, 0], g, len(x)) - np.bincount(edges[:, 1], g, len(x))
+def tied_unknowns(vertices, axis: int = 2) -> np.ndarray:
+    """One unknown per line of vertices along ``axis`` (those that share the
+    other two coordinates): the unknowns of a slab one cell thick over a
+    detector with one row, whose rays see only the mean of the slab's two
+    vertex layers (their difference would be unknowns no ray measures).
+    Returns each vertex's unknown, (n,) int."""
+    v = np.asarray(vertices, np.float64)
+    other = np.delete(v, axis, axis=1)
+    scale = max(float(np.ptp(other)), 1e-30)
+    _, inv = np.unique(np.round(other / scale * 1e9).astype(np.int64), axis=0,
+                       return_inverse=True)
+    return inv.ravel().astype(np.int64)
 
 
 class HeldOut:
@@ -218,12 +232,10 @@ class HeldOut:
 
 
 def sart(projector: Projector, b, passes: int, weights=None, subset_size: int = 1,
-         relaxation: float = 1.0, x0=None, tv: float = 0.0, edges=None, tv_steps: int = 5,
-         deadline=None, callback=None, views=None, held_out: HeldOut | None = None,
-         stop_at_noise: bool = True):
+         relaxation: float = 1.0, x0=None, deadline=None, callback=None, views=None,
+         held_out: HeldOut | None = None, stop_at_noise: bool = True):
     """Ordered-subset SART with ``x >= 0`` (``subset_size`` views per update;
-    all of them: SIRT), optionally followed in each pass by ``tv_steps``
-    total-variation descent steps of ``tv`` times the pass's change (ASD-POCS).
+    all of them: SIRT).
 
     Parameters
     ----------
@@ -273,7 +285,6 @@ def sart(projector: Projector, b, passes: int, weights=None, subset_size: int = 
     x = np.zeros(projector.n) if x0 is None else np.maximum(np.asarray(x0, np.float64), 0.0)
     last_chi2 = np.inf
     for p in range(passes):
-        before = x.copy()
         sq, total, t_sq = 0.0, 0.0, 0.0
         for s, c in zip(subsets, cols):
             r = projector.rows(s)
@@ -286,13 +297,6 @@ def sart(projector: Projector, b, passes: int, weights=None, subset_size: int = 
                            0.0)
             if deadline is not None and deadline():
                 break
-        if tv > 0 and edges is not None:
-            change = np.linalg.norm(x - before)
-            for _ in range(tv_steps):
-                g = tv_gradient(x, edges, 1e-3 * max(float(x.max()), 1e-30))
-                norm = np.linalg.norm(g)
-                if norm > 0:
-                    x = np.maximum(x - tv * change * g / norm, 0.0)
         if callback is not None:
             callback(p, x, np.sqrt(sq / max(total, 1e-30)), t_sq / n_rays)
         if deadline is not None and deadline():
@@ -312,6 +316,238 @@ def sart(projector: Projector, b, passes: int, weights=None, subset_size: int = 
     if held_out is not None and held_out.best[2] is not None:
         return held_out.best[2]
     return x
+
+
+class TetGradient:
+    """The gradient of the piecewise-linear field in each tet, ``G`` (3m, n),
+    and the total variation built on it.
+
+    A field linear in each tet has a constant gradient there, ``G_t x`` (the
+    barycentric gradients of its 4 vertices), so its total variation is
+    exactly ``sum_t vol_t |G_t x|``: isotropic, and the same on a graded mesh
+    as on a grid (small tets weigh little). :meth:`penalty` is its smooth
+    (hyperbola) form, ``sum_t vol_t psi(|G_t x|)`` with
+    ``psi(s) = delta^2 (sqrt(1 + (s / delta)^2) - 1)``: quadratic for
+    gradients under ``delta``, linear (total variation) above, so that noise
+    is smoothed and edges kept (an edge-preserving potential of the
+    penalized-likelihood CT literature, e.g. Fessler's).
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    tets : (m, 4) int
+    unknowns : (n,) int, optional
+        Each vertex's unknown, as :class:`Projector`'s: ``G`` then acts on them.
+    """
+
+    def __init__(self, vertices, tets, unknowns=None):
+        from scipy.sparse import csr_matrix
+        v = np.asarray(vertices, np.float64)
+        t = np.asarray(tets, np.int64)
+        edges = v[t[:, 1:]] - v[t[:, :1]]                       # (m, 3, 3), rows: edges
+        det = np.linalg.det(edges)
+        bad = np.abs(det) <= 1e-12 * np.max(np.abs(edges)) ** 3
+        if np.any(bad):
+            raise ValueError(f"{int(bad.sum())} flat tets: the field's gradient is undefined")
+        inv = np.linalg.inv(edges)                              # columns: grad lambda_1..3
+        grads = np.concatenate([-inv.sum(2, keepdims=True), inv], axis=2)   # (m, 3, 4)
+        m, n = len(t), len(v)
+        rows = np.repeat((3 * np.arange(m)[:, None] + np.arange(3))[:, :, None], 4, axis=2)
+        cols = np.broadcast_to(t[:, None, :], (m, 3, 4))
+        self.volumes = np.abs(det) / 6.0
+        if unknowns is not None:
+            cols = np.asarray(unknowns, np.int64)[cols]
+            n = int(np.max(unknowns)) + 1
+        self.G = csr_matrix((grads.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * m, n))
+        self.G_abs = abs(self.G)
+        self._row_abs = np.asarray(self.G_abs.sum(axis=1)).ravel()
+        self._abs_T = self.G_abs.T.tocsr()
+        self._T = self.G.T.tocsr()
+
+    def total_variation(self, x) -> float:
+        """``sum_t vol_t |G_t x|``."""
+        g = (self.G @ np.asarray(x, np.float64)).reshape(-1, 3)
+        return float(np.sum(self.volumes * np.linalg.norm(g, axis=1)))
+
+    def penalty(self, x, delta: float):
+        """The smooth total variation at ``x``: ``(value, gradient (n,),
+        curvature (n,))``, the curvature a diagonal bound of Huber's quadratic
+        majorizer (``G^T diag(vol psi'(s) / s) G``, bounded row by row by
+        ``|G|^T diag(...) |G| 1``): a separable surrogate's denominator."""
+        g = (self.G @ np.asarray(x, np.float64)).reshape(-1, 3)
+        s = np.linalg.norm(g, axis=1)
+        q = np.sqrt(1.0 + (s / delta) ** 2)
+        omega = np.repeat(self.volumes / q, 3)
+        value = float(np.sum(self.volumes * delta * delta * (q - 1.0)))
+        return value, self._T @ (omega * g.ravel()), self._abs_T @ (omega * self._row_abs)
+
+    def curvature_scale(self) -> np.ndarray:
+        """The penalty's curvature where the field is flat (its largest)."""
+        return self._abs_T @ (np.repeat(self.volumes, 3) * self._row_abs)
+
+
+#: The hyperbola's corner ``delta`` of :class:`PenalizedLS`: this fraction of
+#: the unregularized start's 99.5th percentile per cell (measured on the head
+#: MR at 24 views and 10^4 photons: 0.02 gave 31.84 dB, 0.005 and 0.1 at
+#: their best weights 31.2 and 31.0).
+EDGE = 0.02
+#: Held-out tuning of the penalty weight: the first weights tried, and the
+#: factor between neighbours (the search walks on while the held-out error
+#: falls, within ``LAMBDA_RANGE``).
+LAMBDA_START = (0.1, 0.3, 0.03)
+#: The penalty's relative weight without held-out tuning.
+LAMBDA_DEFAULT = 0.1
+LAMBDA_STEP = 3.0
+LAMBDA_RANGE = (1e-3, 10.0)
+
+
+class PenalizedLS:
+    """Penalized weighted least squares on the tets,
+    ``min_{x >= 0} 1/2 sum_i w_i (b_i - [A x]_i)^2 + beta TV_delta(x)``
+    (``TV_delta``: :meth:`TetGradient.penalty`), by ordered subsets of views
+    with separable quadratic surrogates (OS-SQS: Erdogan and Fessler 1999,
+    "Ordered subsets algorithms for transmission tomography"): per subset
+    ``s`` of ``M``
+
+    ``x <- max(0, z - (M A_s^T W_s (A_s z - b_s) + beta grad R(z)) / (d + beta c(z)))``
+
+    with ``d = A^T W A 1`` the data term's separable curvature and ``c`` the
+    penalty's, and Nesterov's momentum from pass to pass (``z``; momentum per
+    subset diverged with 12 subsets, as Kim, Ramani and Fessler 2015 warn).
+    ``W`` are the Poisson counts (:func:`statistical_weights`), the right
+    weights of log-transmission data (Sauer and Bouman 1993); 1 without noise.
+
+    The weight is relative, ``beta = lam * beta0``, ``beta0`` the ratio of
+    the data's mean curvature to the penalty's where the field is flat: at
+    ``lam`` 1 the penalty is as stiff as the data for small gradients.
+    ``delta`` is :data:`EDGE` times the unregularized start's 99.5th
+    percentile per cell (:meth:`start`).
+
+    Parameters
+    ----------
+    projector : Projector
+    b : (rays,) float
+        Optical depths (:func:`depths`).
+    weights : (rays,) float or None
+    gradient : TetGradient
+    views : list of int, optional
+        The projector's views fitted (default all).
+    subsets : int
+        ``M`` (at most the views; each subset interleaves views spread over
+        the scan).
+    """
+
+    def __init__(self, projector: Projector, b, weights, gradient: TetGradient, views=None,
+                 subsets: int = 12):
+        self.projector, self.gradient = projector, gradient
+        self.b = np.asarray(b, np.float64)
+        self.w = np.ones_like(self.b) if weights is None else np.asarray(weights, np.float64)
+        self.views = np.arange(len(projector.sensors)) if views is None else np.asarray(views)
+        m = max(1, min(int(subsets), len(self.views)))
+        self.groups = [np.sort(self.views[k::m]) for k in range(m)]
+        self.order = np.random.default_rng(0).permutation(m)
+        rows = projector.rows(self.views)
+        self.d = projector.adjoint(self.w[rows] * projector.forward(np.ones(projector.n),
+                                                                     self.views), self.views)
+        self.beta0 = float(np.mean(self.d)) / max(float(np.mean(gradient.curvature_scale())),
+                                                  1e-30)
+        cell = float(np.cbrt(6.0 * np.median(gradient.volumes)))   # a Kuhn cube's side
+        self.delta, self.cell = None, cell
+
+    def start(self, passes: int = 2, x0=None, callback=None):
+        """Unregularized passes from ``x0`` (default 0); sets ``delta`` from
+        their result, which it returns."""
+        x = self.solve(0.0, passes, x0, callback=callback)
+        self.delta = EDGE * max(float(np.percentile(x, 99.5)), 1e-12) / self.cell
+        return x
+
+    def solve(self, lam: float, passes: int, x0=None, held_out: HeldOut | None = None,
+              deadline=None, callback=None):
+        """``passes`` passes at relative weight ``lam`` from ``x0`` (default
+        0). ``held_out`` stops once its views stop improving and returns their
+        best ``x``; ``deadline()`` True stops; ``callback`` as :func:`sart`'s."""
+        if lam > 0 and self.delta is None:
+            raise ValueError("call start() first: the penalty's corner comes from its result")
+        pr, b, w, m = self.projector, self.b, self.w, len(self.groups)
+        beta = lam * self.beta0
+        x = np.zeros(pr.n) if x0 is None else np.maximum(np.asarray(x0, np.float64), 0.0)
+        z, t = x.copy(), 1.0
+        n_rays = len(pr.rows(self.views))
+        for p in range(passes):
+            sq, total, t_sq = 0.0, 0.0, 0.0
+            x_pass = x.copy()
+            for k in self.order:
+                s = self.groups[k]
+                r = pr.rows(s)
+                ax = pr.forward(z, s)
+                res = ax - b[r]
+                sq += float(np.sum(w[r] * res * res))
+                total += float(np.sum(w[r]))
+                t_sq += float(np.sum((np.exp(-ax) - np.exp(-b[r])) ** 2))
+                num, den = m * pr.adjoint(w[r] * res, s), self.d
+                if beta > 0:
+                    _, g, c = self.gradient.penalty(z, self.delta)
+                    num, den = num + beta * g, den + beta * c
+                z = x = np.maximum(z - num / np.maximum(den, 1e-30), 0.0)
+                if deadline is not None and deadline():
+                    break
+            t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
+            z = x + ((t - 1.0) / t_new) * (x - x_pass)
+            t = t_new
+            if callback is not None:
+                callback(p, x, np.sqrt(sq / max(total, 1e-30)), t_sq / n_rays)
+            if deadline is not None and deadline():
+                break
+            if held_out is not None and held_out(p + 1, x):
+                break
+        if held_out is not None and held_out.best[2] is not None:
+            return held_out.best[2]
+        return x
+
+    def tune(self, held_out_views, passes: int, x0=None, deadline=None, callback=None,
+             lams=None):
+        """The relative weight whose solution best predicts ``held_out_views``
+        (mean squared transmittance error): :data:`LAMBDA_START` first, then
+        on by :data:`LAMBDA_STEP` from the best while the error falls (only
+        ``lams`` when given). The first trial runs ``passes`` passes from
+        ``x0``, each other half as many from the solution of the nearest
+        weight tried (continuation); each is scored once solved, so that no
+        weight wins by being stopped early. Returns ``(best trial, trials)``:
+        a trial is ``{"lam", "passes", "held_out_mse", "x"}``."""
+        trials = {}
+        target = np.exp(-self.b[self.projector.rows(held_out_views)])
+
+        def trial(lam):
+            near = min(trials.values(), key=lambda r: abs(np.log(r["lam"] / lam)),
+                       default=None)
+            n = passes if near is None else max(1, passes // 2)
+            x = self.solve(lam, n, x0 if near is None else near["x"], deadline=deadline,
+                           callback=callback)
+            err = np.exp(-self.projector.forward(x, held_out_views)) - target
+            trials[lam] = {"lam": lam, "passes": n, "held_out_mse": float(np.mean(err * err)),
+                           "x": x}
+
+        def best():
+            return min(trials.values(), key=lambda r: r["held_out_mse"])
+
+        def out_of_time():
+            return deadline is not None and deadline()
+
+        for lam in LAMBDA_START if lams is None else lams:
+            if trials and out_of_time():
+                break
+            trial(lam)
+        lo, hi = LAMBDA_RANGE
+        while lams is None and not out_of_time():
+            # the best at an end of what was tried: one step beyond it
+            tried, lam = sorted(trials), best()["lam"]
+            if lam == tried[0] and lam / LAMBDA_STEP >= lo:
+                trial(lam / LAMBDA_STEP)
+            elif lam == tried[-1] and lam * LAMBDA_STEP <= hi:
+                trial(lam * LAMBDA_STEP)
+            else:
+                break
+        return best(), sorted(trials.values(), key=lambda r: r["lam"])
 
 
 def least_squares(projector: Projector, b, iterations: int, weights=None, x0=None,
@@ -360,6 +596,38 @@ def aligned_resolution(bounds, cell: float) -> int:
     return max(1, int(round(float(np.max(b[1] - b[0])) / cell)))
 
 
+def _pwls_stage(projector, b, weights, gradient, x0, config, passes, tune, tune_deadline,
+                solve, log):
+    """One mesh's :class:`PenalizedLS` solve for :func:`fit_attenuation`:
+    with ``tune``, the penalty weight (``config.tv``, else searched) chosen
+    on every ``config.validation``-th view held out, then all views from the
+    tuning's solution; else ``config.tv`` (default
+    :data:`LAMBDA_DEFAULT`) for ``passes``. Returns ``(x, tuning record)``."""
+    if not tune:
+        pls = PenalizedLS(projector, b, weights, gradient)
+        start = pls.start(x0=x0, callback=solve["callback"])
+        lam = LAMBDA_DEFAULT if config.tv is None else config.tv
+        return pls.solve(lam, passes, start, **solve), None
+    from mi_tetvr.grid.slices import validation_split
+    fit_views, val_views = validation_split(len(projector.cameras), config.validation)
+    pls = PenalizedLS(projector, b, weights, gradient, views=fit_views)
+    start = pls.start(x0=x0, callback=solve["callback"])
+    best, trials = pls.tune(val_views, passes, start, deadline=tune_deadline,
+                            callback=solve["callback"],
+                            lams=None if config.tv is None else [config.tv])
+    log(f"held out {len(val_views)} of {len(projector.cameras)} views: " + ", ".join(
+        f"weight {r['lam']:g}: MSE {r['held_out_mse']:.4g}" for r in trials)
+        + f"; all views with weight {best['lam']:g}")
+    full = PenalizedLS(projector, b, weights, gradient)
+    full.delta = pls.delta
+    # on from the tuning's solution, with the held-out views back in
+    x = full.solve(best["lam"], max(1, passes // 2), best["x"], **solve)
+    record = {"validation_views": len(val_views), "tv": best["lam"], "delta": pls.delta,
+              "trials": [{k: r[k] for k in ("lam", "passes", "held_out_mse")}
+                         for r in trials]}
+    return x, record
+
+
 def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=print,
                     now=time.perf_counter):
     """``mi-tetvr fit --model absorption`` with a linear solver
@@ -375,9 +643,8 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
     set's weights the rays by their counts. ``config.time_budget`` (minutes)
     bounds the passes.
     """
-    from mi_tetvr.mesh.initial import grid_init, grid_sample
-    from mi_tetvr.mesh.topology import (build_topology, format_summary, geometry_summary,
-                                        unique_edges)
+    from mi_tetvr.mesh.initial import grid_init, grid_sample, grid_shape
+    from mi_tetvr.mesh.topology import build_topology, format_summary, geometry_summary
     from mi_tetvr.progress import progress_bar as tqdm
     from mi_tetvr.recon.checkpoint import load_checkpoint, save_checkpoint
     from mi_tetvr.recon.metrics import psnr
@@ -419,27 +686,34 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
     history = {"step": [], "time": [], "loss": [], "psnr": []}
     x, prev = x0, None
     train_begin = now()
-    # held-out tuning of the passes and the TV weight (on the last grid)
-    tuning = solver in ("sart", "sirt") and config.validation > 0 and len(cameras) >= 6 and \
-        (config.passes is None or config.tv is None)
-    if config.tv is not None:
-        tvs = [config.tv]
-    elif tuning and (flux or len(cameras) < SPARSE_VIEWS):
-        tvs = [0.0, *TV_CANDIDATES]
-    else:
-        tvs = [0.0]
-    max_passes = config.passes or MAX_PASSES[solver] if tuning else passes
+    # held-out tuning (on the last grid) of the passes, and of pwls's penalty weight
+    tuning = config.validation > 0 and len(cameras) >= 6 and (
+        (solver == "pwls" and config.tv is None) or
+        (solver in ("sart", "sirt") and config.passes is None))
+    max_passes = MAX_PASSES[solver] if tuning and solver != "pwls" else passes
+    # the tuning leaves a third of the time budget to the final solve
+    tune_deadline = None if budget is None else (lambda: now() - t_start > 0.6 * budget)
     tuned = None
-    bar = tqdm(total=passes * (len(grids) - 1) + max_passes * (len(tvs) + 1 if tuning else 1),
-               disable=not progress, unit="pass", desc=f"{solver} ({len(cameras)} views)")
+    expected = 2 + passes * (len(LAMBDA_START) + 2) // 2 if solver == "pwls" else \
+        max_passes * (2 if tuning else 1)
+    bar = tqdm(total=passes * (len(grids) - 1) + expected, disable=not progress, unit="pass",
+               desc=f"{solver} ({len(cameras)} views)")
+    one_row = all(c.height == 1 and c.is_orthographic for c in cameras)
     for g in grids:
         v, t = grid_init(box, g)
         topology = build_topology(v, t)
+        # a slab over a one-row detector: one unknown per vertical pair of vertices
+        unknowns = tied_unknowns(v) if one_row and grid_shape(box, g)[2] == 1 else None
         if g == grids[-1]:
             log(format_summary(geometry_summary(v, topology)))
+            if unknowns is not None:
+                log(f"one detector row: {unknowns.max() + 1:,} unknowns, the slab's two vertex "
+                    f"layers alike")
         if prev is not None:
             x = grid_sample(box, *prev, v)
-        projector = Projector(v, t, cameras, topology)
+        if x is not None and unknowns is not None:
+            x = np.bincount(unknowns, x) / np.bincount(unknowns)
+        projector = Projector(v, t, cameras, topology, unknowns)
 
         def record(p, xx, residual, mse):
             history["step"].append(len(history["step"]) + 1)
@@ -449,46 +723,42 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
             bar.update(1)
             bar.set_postfix(residual=f"{residual:.3g}")
 
-        edges = unique_edges(topology.tets) if max(tvs) > 0 else None
-        solve = dict(weights=weights, relaxation=config.relaxation, x0=x, edges=edges,
-                     deadline=deadline, callback=record)
-        subset = len(cameras) if solver == "sirt" else 1
+        solve = dict(deadline=deadline, callback=record)
+        tune = tuning and g == grids[-1]
         if solver == "lsqr":
             x = least_squares(projector, b, passes, weights, x, record)
-        elif tuning and g == grids[-1]:
+        elif solver == "pwls":
+            x, tuned = _pwls_stage(projector, b, weights,
+                                   TetGradient(v, topology.tets, unknowns), x, config, passes,
+                                   tune, tune_deadline, solve, log)
+        elif tune:
             from mi_tetvr.grid.slices import validation_split
             fit_views, val_views = validation_split(len(cameras), config.validation)
-            trials, kept = [], {}
-            # the tuning leaves a third of the time budget to the final solve
-            tune_deadline = None if budget is None else \
-                (lambda: now() - t_start > 0.6 * budget)
-            for tv in tvs:
-                held = HeldOut(projector, b, val_views,
-                               patience=max_passes if config.passes else 3)
-                sart(projector, b, max_passes, subset_size=min(subset, len(fit_views)), tv=tv,
-                     views=fit_views, held_out=held, **{**solve, "deadline": tune_deadline})
-                trials.append({"tv": tv, "passes": held.best[1], "held_out_mse": held.best[0],
-                               "errors": held.errors})
-                kept[tv] = held.best[2]
-                if tune_deadline is not None and tune_deadline():
-                    break
-            best = min(trials, key=lambda r: r["held_out_mse"])
-            log(f"held out {len(val_views)} of {len(cameras)} views: " + ", ".join(
-                f"TV {r['tv']:g}: {r['passes']} passes, MSE {r['held_out_mse']:.3g}"
-                for r in trials) + f"; all views with TV {best['tv']:g}, {best['passes']} "
-                f"passes")
-            tuned = {"validation_views": len(val_views), "tv": best["tv"],
-                     "passes": best["passes"], "trials": trials}
+            subset = len(fit_views) if solver == "sirt" else 1
+            held = HeldOut(projector, b, val_views, patience=3)
+            kept = sart(projector, b, max_passes, weights, subset_size=subset, x0=x,
+                        relaxation=config.relaxation, views=fit_views, held_out=held,
+                        deadline=tune_deadline, callback=record)
+            log(f"held out {len(val_views)} of {len(cameras)} views: {held.best[1]} passes, "
+                f"MSE {held.best[0]:.3g}; all views as long")
+            tuned = {"validation_views": len(val_views), "passes": held.best[1],
+                     "trials": [{"passes": held.best[1], "held_out_mse": held.best[0],
+                                 "errors": held.errors}]}
             done = len(history["step"])
-            x = sart(projector, b, best["passes"], subset_size=subset, tv=best["tv"],
-                     stop_at_noise=False, **solve)
-            if len(history["step"]) - done < best["passes"] and kept[best["tv"]] is not None:
+            x = sart(projector, b, held.best[1], weights,
+                     subset_size=len(cameras) if solver == "sirt" else 1, x0=x,
+                     relaxation=config.relaxation, stop_at_noise=False, **solve)
+            if len(history["step"]) - done < held.best[1]:
                 # out of time before all views were solved as long: the held-out run's best
                 log("time ran out in the final solve: keeping the tuning's best attenuation")
                 tuned["final"] = "time ran out: the tuning's best (without the held-out views)"
-                x = kept[best["tv"]]
+                x = kept
         else:
-            x = sart(projector, b, passes, subset_size=subset, tv=tvs[0], **solve)
+            x = sart(projector, b, passes, weights,
+                     subset_size=len(cameras) if solver == "sirt" else 1, x0=x,
+                     relaxation=config.relaxation, **solve)
+        if unknowns is not None:
+            x = x[unknowns]                   # the vertices' values
         prev = (g, x)
     bar.close()
     optimization = now() - train_begin
@@ -499,6 +769,7 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
                       state=state, topology=topology)
     save_checkpoint(trainer, ckpt)
     result = write_outputs(trainer, out)
+    result["unknowns"] = projector.n
     result["solver"] = {"method": solver, "passes": len(history["step"]),
                         "weights": "Poisson counts" if weights is not None else "none",
                         "tuning": tuned}

@@ -333,9 +333,10 @@ def test_one_yardstick_through_every_path(blob_data):
 
 
 def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path):
-    """The default absorption fit (SART on a tet grid on the detector's pixels)
-    lands on the true attenuation at the samples; SIRT and LSQR too; the
-    coarse-to-fine stages start the fine grid from the coarse one's field."""
+    """The default absorption fit (penalized weighted least squares on a tet
+    grid on the detector's pixels) lands on the true attenuation at the
+    samples; SART, SIRT and LSQR too; the coarse-to-fine stages start the
+    fine grid from the coarse one's field."""
     from mi_tetvr.mesh.sample import sample_field
     from mi_tetvr.recon.metrics import tomography_scores
     vol, made, data = blob_data
@@ -344,17 +345,19 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
     pts = vol.sample_points()
     truth = vol.values.astype(np.float64)
     got = {}
-    for name, kw in (("sart", {}), ("sirt", {"solver": "sirt", "passes": 60}),
+    for name, kw in (("pwls", {}), ("sart", {"solver": "sart"}),
+                     ("sirt", {"solver": "sirt", "passes": 60}),
                      ("lsqr", {"solver": "lsqr"}),
-                     ("c2f", {"stages": [{"iterations": 1, "grid": 4}, {"iterations": 1}]})):
+                     ("c2f", {"solver": "sart",
+                              "stages": [{"iterations": 1, "grid": 4}, {"iterations": 1}]})):
         m = run(data, tmp_path / name, FitConfig(model="absorption", **kw), progress=False,
                 log=lambda *a: None)
         mesh = mi_tetvr.read_tetmesh(tmp_path / name / "attenuation.vtu", opacity="attenuation")
         assert len(mesh.vertices) == truth.size            # one vertex per sample
         field = sample_field(mesh.vertices, mesh.tets, mesh.opacity / scale, pts)
         got[name] = tomography_scores(field.reshape(truth.shape), truth)["volume_psnr"]
-        assert m["solver"]["method"] == kw.get("solver", "sart")
-    assert got["sart"] > 40 and got["sirt"] > 30 and got["lsqr"] > 30, got
+        assert m["solver"]["method"] == kw.get("solver", "pwls")
+    assert got["pwls"] > 40 and got["sart"] > 40 and got["sirt"] > 30 and got["lsqr"] > 30, got
     assert got["c2f"] > 40, got
 
 
