@@ -207,6 +207,10 @@ class FitConfig:
         None, "model absorption, pwls: the total-variation penalty's weight, relative to the "
         "data's curvature (0: none); default: chosen on held-out views (0.1, 0.3, 0.03, then "
         "on by factors of 3 while the held-out error falls)")
+    adapt: bool = setting(
+        False, "model absorption, pwls: solve on a grid of half the cells per axis first, "
+        "then split its vertices where the field changes most back to the fine grid's "
+        "vertices, as many as the fine grid's unknowns allow (flat regions keep coarse cells)")
     validation: int = setting(
         8, "model absorption, pwls/sart/sirt: every K-th training view is held out to choose "
         "the passes (stopping once they stop improving its projections) and pwls's penalty "

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["Projector", "depths", "statistical_weights", "sart", "least_squares",
-           "TetGradient", "PenalizedLS", "tied_unknowns", "aligned_resolution", "detector_cell",
+           "TetGradient", "PenalizedLS", "tied_unknowns", "coarse_grid", "adaptive_mesh", "aligned_resolution", "detector_cell",
            "fit_attenuation", "DEFAULT_PASSES", "STALL", "HeldOut", "MAX_PASSES", "EDGE",
            "LAMBDA_DEFAULT", "LAMBDA_START", "LAMBDA_STEP", "LAMBDA_RANGE"]
 
@@ -505,9 +505,9 @@ class PenalizedLS:
         return x
 
     def tune(self, held_out_views, passes: int, x0=None, deadline=None, callback=None,
-             lams=None):
+             lams=None, first=LAMBDA_START):
         """The relative weight whose solution best predicts ``held_out_views``
-        (mean squared transmittance error): :data:`LAMBDA_START` first, then
+        (mean squared transmittance error): ``first`` (:data:`LAMBDA_START`), then
         on by :data:`LAMBDA_STEP` from the best while the error falls (only
         ``lams`` when given). The first trial runs ``passes`` passes from
         ``x0``, each other half as many from the solution of the nearest
@@ -533,7 +533,7 @@ class PenalizedLS:
         def out_of_time():
             return deadline is not None and deadline()
 
-        for lam in LAMBDA_START if lams is None else lams:
+        for lam in first if lams is None else lams:
             if trials and out_of_time():
                 break
             trial(lam)
@@ -596,13 +596,63 @@ def aligned_resolution(bounds, cell: float) -> int:
     return max(1, int(round(float(np.max(b[1] - b[0])) / cell)))
 
 
+def coarse_grid(box, resolution: int):
+    """A grid of half the cells of ``grid_init(box, resolution)`` per axis
+    whose vertices are every other vertex of that grid (the box extended by
+    one fine cell along an axis with an odd count): what :func:`adaptive_mesh`
+    refines back to the fine grid's vertices where it splits."""
+    from mi_tetvr.mesh.generate import grid_mesh
+    from mi_tetvr.mesh.initial import grid_shape
+    box = np.asarray(box, np.float64)
+    fine = np.asarray(grid_shape(box, resolution))
+    cell = (box[1] - box[0]) / fine
+    half = (fine + 1) // 2
+    v, t = grid_mesh(tuple(int(c) for c in half), box[0], box[0] + 2 * half * cell)
+    return v.astype(np.float64), t.astype(np.int64)
+
+
+def adaptive_mesh(vertices, tets, gradient: TetGradient, x, budget: int):
+    """Unknowns where the field has detail: the vertices of ``tets`` are
+    ranked by the largest change of ``x`` across a tet around them
+    (``|G_t x| h_t``, ``h_t`` the tet's size) and the edges about the
+    top-ranked ones split (:func:`~mi_tetvr.mesh.refine.split_vertices`,
+    conforming), as many as keep the vertex count within ``budget``. On
+    :func:`coarse_grid` the midpoints are the fine grid's vertices: flat
+    regions keep the coarse cells, detailed ones get the fine vertices.
+
+    Returns
+    -------
+    vertices, tets, x (the field at the new vertices, linear: exact), the
+    number of vertices split about.
+    """
+    from mi_tetvr.mesh.refine import split_vertices
+    from mi_tetvr.mesh.topology import unique_edges
+    change = np.linalg.norm((gradient.G @ x).reshape(-1, 3), axis=1) * \
+        np.cbrt(6.0 * gradient.volumes)
+    score = np.zeros(len(vertices))
+    np.maximum.at(score, np.asarray(tets).ravel(), np.repeat(change, 4))
+    order = np.argsort(-score, kind="stable")
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order))
+    # an edge gets a midpoint once either end is among the first k: the vertex count
+    # after splitting about the first k is n + #edges whose first end ranks below k
+    edges = unique_edges(tets)
+    first = np.sort(np.minimum(rank[edges[:, 0]], rank[edges[:, 1]]))
+    k = np.arange(len(order) + 1)
+    count = len(vertices) + np.searchsorted(first, k, side="left")
+    k = int(k[count <= budget].max())
+    res = split_vertices(vertices, tets, order[:k], {"x": x})
+    return res.vertices, res.tets, res.point_data["x"], k
+
+
 def _pwls_stage(projector, b, weights, gradient, x0, config, passes, tune, tune_deadline,
-                solve, log):
+                solve, log, near=None):
     """One mesh's :class:`PenalizedLS` solve for :func:`fit_attenuation`:
     with ``tune``, the penalty weight (``config.tv``, else searched) chosen
     on every ``config.validation``-th view held out, then all views from the
-    tuning's solution; else ``config.tv`` (default
-    :data:`LAMBDA_DEFAULT`) for ``passes``. Returns ``(x, tuning record)``."""
+    tuning's solution (the search starts about ``near``, an earlier mesh's
+    weight, when given); else ``config.tv`` (default :data:`LAMBDA_DEFAULT`)
+    for ``passes``. Returns ``(x, tuning record)``."""
     if not tune:
         pls = PenalizedLS(projector, b, weights, gradient)
         start = pls.start(x0=x0, callback=solve["callback"])
@@ -614,7 +664,9 @@ def _pwls_stage(projector, b, weights, gradient, x0, config, passes, tune, tune_
     start = pls.start(x0=x0, callback=solve["callback"])
     best, trials = pls.tune(val_views, passes, start, deadline=tune_deadline,
                             callback=solve["callback"],
-                            lams=None if config.tv is None else [config.tv])
+                            lams=None if config.tv is None else [config.tv],
+                            first=LAMBDA_START if near is None else
+                            (near, near * LAMBDA_STEP, near / LAMBDA_STEP))
     log(f"held out {len(val_views)} of {len(projector.cameras)} views: " + ", ".join(
         f"weight {r['lam']:g}: MSE {r['held_out_mse']:.4g}" for r in trials)
         + f"; all views with weight {best['lam']:g}")
@@ -643,7 +695,8 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
     set's weights the rays by their counts. ``config.time_budget`` (minutes)
     bounds the passes.
     """
-    from mi_tetvr.mesh.initial import grid_init, grid_sample, grid_shape
+    from mi_tetvr.mesh.initial import grid_init, grid_shape
+    from mi_tetvr.mesh.sample import sample_field
     from mi_tetvr.mesh.topology import build_topology, format_summary, geometry_summary
     from mi_tetvr.progress import progress_bar as tqdm
     from mi_tetvr.recon.checkpoint import load_checkpoint, save_checkpoint
@@ -677,7 +730,8 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
         from mi_tetvr.recon.pipeline import check_resume
         check_resume(config, ckpt)
         saved = load_checkpoint(ckpt, dataset, config)
-        x0 = saved.arrays()[2]["attenuation"]
+        saved_v, saved_t, data = saved.arrays()[:3]
+        x0 = data["attenuation"]
         grids = grids[-1:]
         log(f"resumed from {ckpt}: more passes from its attenuation")
     b = depths(dataset.train, flux)
@@ -696,23 +750,47 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
     tuned = None
     expected = 2 + passes * (len(LAMBDA_START) + 2) // 2 if solver == "pwls" else \
         max_passes * (2 if tuning else 1)
-    bar = tqdm(total=passes * (len(grids) - 1) + expected, disable=not progress, unit="pass",
+    bar = tqdm(total=passes * (len(grids) - 1) + expected * (2 if config.adapt else 1),
+               disable=not progress, unit="pass",
                desc=f"{solver} ({len(cameras)} views)")
     one_row = all(c.height == 1 and c.is_orthographic for c in cameras)
-    for g in grids:
-        v, t = grid_init(box, g)
+    adapt = config.adapt and solver == "pwls" and not one_row and x0 is None
+    if config.adapt and not adapt:
+        log("adapt: " + ("a one-row detector's slab has no cells to coarsen" if one_row else
+                         "the resumed fit goes on on its own mesh" if x0 is not None else
+                         f"solver {solver} solves on the grid"))
+    stages = [("grid", g) for g in grids] if x0 is None else [("saved", resolution)]
+    if adapt:
+        # the last grid's unknowns, spent where a grid of twice its cells finds detail
+        stages[-1:] = [("coarse", resolution), ("adaptive", resolution)]
+        budget_vertices = int(np.prod(np.asarray(grid_shape(box, resolution)) + 1))
+    lam = None
+    for kind, g in stages:
+        last = (kind, g) == stages[-1]
+        if kind == "adaptive":
+            v, t, x, split = adaptive_mesh(v, topology.tets, gradient, x, budget_vertices)
+            log(f"adaptive mesh: split about {split:,} of {len(gradient.volumes) // 6:,} "
+                f"coarse cells' vertices where the field changes most: {len(v):,} vertices "
+                f"(the grid: {budget_vertices:,})")
+        elif kind == "coarse":
+            v, t = coarse_grid(box, resolution)
+        elif kind == "saved":
+            v, t = saved_v, saved_t
+        else:
+            v, t = grid_init(box, g)
         topology = build_topology(v, t)
         # a slab over a one-row detector: one unknown per vertical pair of vertices
         unknowns = tied_unknowns(v) if one_row and grid_shape(box, g)[2] == 1 else None
-        if g == grids[-1]:
+        if last:
             log(format_summary(geometry_summary(v, topology)))
             if unknowns is not None:
                 log(f"one detector row: {unknowns.max() + 1:,} unknowns, the slab's two vertex "
                     f"layers alike")
-        if prev is not None:
-            x = grid_sample(box, *prev, v)
+        if prev is not None and kind != "adaptive":
+            x = sample_field(*prev, v)
         if x is not None and unknowns is not None:
             x = np.bincount(unknowns, x) / np.bincount(unknowns)
+        gradient = TetGradient(v, topology.tets, unknowns) if solver == "pwls" else None
         projector = Projector(v, t, cameras, topology, unknowns)
 
         def record(p, xx, residual, mse):
@@ -724,13 +802,13 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
             bar.set_postfix(residual=f"{residual:.3g}")
 
         solve = dict(deadline=deadline, callback=record)
-        tune = tuning and g == grids[-1]
+        tune = tuning and (last or kind == "coarse")
         if solver == "lsqr":
             x = least_squares(projector, b, passes, weights, x, record)
         elif solver == "pwls":
-            x, tuned = _pwls_stage(projector, b, weights,
-                                   TetGradient(v, topology.tets, unknowns), x, config, passes,
-                                   tune, tune_deadline, solve, log)
+            x, tuned = _pwls_stage(projector, b, weights, gradient, x, config, passes, tune,
+                                   tune_deadline, solve, log, near=lam)
+            lam = None if tuned is None else tuned["tv"]
         elif tune:
             from mi_tetvr.grid.slices import validation_split
             fit_views, val_views = validation_split(len(cameras), config.validation)
@@ -759,7 +837,7 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
                      relaxation=config.relaxation, **solve)
         if unknowns is not None:
             x = x[unknowns]                   # the vertices' values
-        prev = (g, x)
+        prev = (v, topology.tets, x)
     bar.close()
     optimization = now() - train_begin
     (out / "config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2))

@@ -125,3 +125,36 @@ def test_tied_unknowns_make_the_projector_act_on_them(small_problem):
     np.testing.assert_allclose(tied.adjoint(y), E.T @ A.T @ y, rtol=1e-4, atol=1e-5)
     G = TetGradient(V, T).G.toarray()
     np.testing.assert_allclose(TetGradient(V, T, tie).G.toarray(), G @ E, atol=1e-12)
+
+
+def test_adaptive_mesh_puts_the_fine_grid_where_the_field_changes():
+    """On a coarse grid (every other vertex of the fine one, the box grown by a
+    cell along an odd axis) a field with a sharp ramp across x = 0.3: the
+    split vertices are fine-grid vertices, they gather at the ramp, the count
+    stays within the budget, and the field at them is the coarse mesh's
+    (linear interpolation along the split edges: exact for a linear field)."""
+    from mi_tetvr.mesh.initial import grid_shape
+    from mi_tetvr.recon.tomography import adaptive_mesh, coarse_grid
+    box = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 0.4]])
+    fine_v, _ = grid_init(box, 10)
+    shape = np.asarray(grid_shape(box, 10))
+    assert shape.tolist() == [10, 10, 7]
+    v, t = coarse_grid(box, 10)
+    cell = (box[1] - box[0]) / shape
+    lattice = lambda p: np.abs((p - box[0]) / cell - np.round((p - box[0]) / cell))  # noqa: E731
+    assert lattice(v).max() < 1e-9 and len(v) == 6 * 6 * 5
+    assert v[:, 2].max() == pytest.approx(box[0, 2] + 8 * cell[2])    # one cell beyond
+    from mi_tetvr.mesh.topology import build_topology
+    t = build_topology(v, t).tets
+    x = np.clip((v[:, 0] - 0.3) / 0.2, 0, 1)
+    budget = len(fine_v) // 2
+    v2, t2, x2, k = adaptive_mesh(v, t, TetGradient(v, t), x, budget)
+    assert len(v) < len(v2) <= budget and k > 0
+    new = v2[len(v):]
+    assert lattice(new).max() < 1e-9
+    # the new vertices sit by the ramp, and none far from it
+    assert np.all(np.abs(new[:, 0] - 0.4) <= 0.5)
+    linear = 0.2 + v[:, 0] - 0.5 * v[:, 1] + 0.3 * v[:, 2]
+    v3, _, y3, _ = adaptive_mesh(v, t, TetGradient(v, t), linear, budget)
+    np.testing.assert_allclose(y3, 0.2 + v3[:, 0] - 0.5 * v3[:, 1] + 0.3 * v3[:, 2],
+                               atol=1e-12)
