@@ -67,7 +67,7 @@ VOLUMES = {"headmr": ("headmr/HeadMRVolume.mhd", None),
 
 
 def parse_args(argv=None):
-    p = make_parser(__doc__, repeat=None, quick="a 12^3 phantom, 16 angles")
+    p = make_parser(__doc__, repeat=None, quick="a 12^3 phantom, 16 angles, 4 passes of the tets")
     p.add_argument("--volume", choices=tuple(VOLUMES), default="headmr",
                    help="headmr (48x62x42, default), engine (256x256x128 averaged 4x4x4 to "
                    "64x64x32) or phantom (a 48^3 made here: ellipsoids of several densities)")
@@ -100,6 +100,7 @@ def parse_args(argv=None):
     a = p.parse_args(argv)
     if a.quick:
         a.views, a.test_views, a.sart_passes = 16, 4, 3
+        a.passes = a.passes or 4
     return a
 
 
