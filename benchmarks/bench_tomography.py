@@ -83,7 +83,10 @@ def parse_args(argv=None):
     p.add_argument("--sart-passes", type=int, default=30, help="SART passes (default 30)")
     p.add_argument("--solver", help="the tets' solver (default: the fit's)")
     p.add_argument("--passes", type=int, help="the tets' passes (default: the fit's)")
-    p.add_argument("--tv", type=float, help="the tets' TV steps (default: the fit's)")
+    p.add_argument("--tv", type=float,
+                   help="the tets' total-variation weight (default: the fit's choice)")
+    p.add_argument("--adapt", action="store_true",
+                   help="the tets' fit with --adapt (a coarse grid split where it has detail)")
     p.add_argument("--time-budget", type=float, default=6.0,
                    help="the fit's --time-budget in minutes (default 6)")
     p.add_argument("--no-tuned", action="store_true",
@@ -248,7 +251,7 @@ def run_volume(a, volume, name, views, flux, seed, out, log=print):
             score(label, recon, grid_projections(recon, volume, data.test, scale),
                   truth.size, time.perf_counter() - t0, passes=chosen["passes"],
                   tv=chosen["tv"])
-    cfg = FitConfig(model="absorption", time_budget=a.time_budget,
+    cfg = FitConfig(model="absorption", time_budget=a.time_budget, adapt=a.adapt,
                     **{k: getattr(a, k) for k in ("solver", "passes", "tv")
                        if getattr(a, k) is not None})
     t0 = time.perf_counter()
@@ -262,7 +265,8 @@ def run_volume(a, volume, name, views, flux, seed, out, log=print):
                          volume.sample_points()).reshape(truth.shape)
     solver = m.get("solver", {}).get("method", "adam")
     tuning = m.get("solver", {}).get("tuning") or {}
-    score(f"tets ({solver})", field, tet_projections(mesh, data.test), m["unknowns"],
+    label = f"tets ({solver}{', adaptive' if a.adapt else ''})"
+    score(label, field, tet_projections(mesh, data.test), m["unknowns"],
           tets_time, tets=len(mesh.tets), passes=m["step"],
           fit_metrics_psnr=m["mean"]["psnr"],
           tuning={k: v for k, v in tuning.items() if k != "trials"})
@@ -308,9 +312,43 @@ def main_table(a, info, out):
                                            for r in res["rows"])
                           + (f"; tets - best tuned {res['rows'][-1]['volume_psnr'] - best['volume_psnr']:+.2f} dB"
                              if best else ""), flush=True)
-    print(table_markdown(results))
+    md = table_markdown(results)
+    print(md)
+    (out / "table.md").write_text(md + "\n")
+    plot_table(out / "table.png", results)
+    print(f"table -> {out / 'table.md'}, {out / 'table.png'}")
     write_json(a, info, {"table": results})
     return 0
+
+
+def plot_table(path, results):
+    """The table as bars: per volume, views and photons, each method's mean
+    volume PSNR, the seeds' range as error bars."""
+    from matplotlib.figure import Figure
+    methods = [r["method"] for r in results[0]["rows"]]
+    keys = list(dict.fromkeys((r["volume"], r["views"], r["flux"]) for r in results))
+    fig = Figure(figsize=(max(6.0, 0.9 * len(keys) + 2), 3.6))
+    ax = fig.subplots()
+    width = 0.8 / len(methods)
+    for j, m in enumerate(methods):
+        mean, lo, hi = [], [], []
+        for k in keys:
+            p = [next(x for x in r["rows"] if x["method"] == m)["volume_psnr"]
+                 for r in results if (r["volume"], r["views"], r["flux"]) == k]
+            mean.append(np.mean(p))
+            lo.append(np.mean(p) - min(p))
+            hi.append(max(p) - np.mean(p))
+        ax.bar(np.arange(len(keys)) + (j - (len(methods) - 1) / 2) * width, mean, width,
+               yerr=[lo, hi], label=m, capsize=2)
+    ax.set_xticks(np.arange(len(keys)))
+    ax.set_xticklabels([f"{v}\n{n} views\n{'clean' if f is None else f'{f:.0e}'}"
+                        for v, n, f in keys], fontsize=7)
+    ax.set_ylabel("volume PSNR (dB)")
+    lows = [min(x["volume_psnr"] for x in r["rows"] if x["method"] != "FBP") for r in results]
+    ax.set_ylim(min(lows) - 2, None)
+    ax.legend(fontsize=7, ncol=len(methods), loc="lower center", bbox_to_anchor=(0.5, 1.0))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
 
 
 def table_markdown(results):
