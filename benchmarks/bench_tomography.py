@@ -308,10 +308,10 @@ def main_table(a, info, out):
                     path.write_text(json.dumps(results, indent=1))
                     best = max((r for r in res["rows"] if "tuned" in r["method"]),
                                key=lambda r: r["volume_psnr"], default=None)
+                    margin = "" if best is None else f"; tets - best tuned " \
+                        f"{res['rows'][-1]['volume_psnr'] - best['volume_psnr']:+.2f} dB"
                     print("  " + ", ".join(f"{r['method']} {r['volume_psnr']:.2f}"
-                                           for r in res["rows"])
-                          + (f"; tets - best tuned {res['rows'][-1]['volume_psnr'] - best['volume_psnr']:+.2f} dB"
-                             if best else ""), flush=True)
+                                           for r in res["rows"]) + margin, flush=True)
     md = table_markdown(results)
     print(md)
     (out / "table.md").write_text(md + "\n")

@@ -37,9 +37,10 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["Projector", "depths", "statistical_weights", "sart", "least_squares",
-           "TetGradient", "PenalizedLS", "tied_unknowns", "coarse_grid", "adaptive_mesh", "aligned_resolution", "detector_cell",
-           "fit_attenuation", "DEFAULT_PASSES", "STALL", "HeldOut", "MAX_PASSES", "EDGE",
-           "LAMBDA_DEFAULT", "LAMBDA_START", "LAMBDA_STEP", "LAMBDA_RANGE"]
+           "TetGradient", "PenalizedLS", "tied_unknowns", "coarse_grid", "adaptive_mesh",
+           "aligned_resolution", "detector_cell", "fit_attenuation", "DEFAULT_PASSES", "STALL",
+           "HeldOut", "MAX_PASSES", "EDGE", "LAMBDA_DEFAULT", "LAMBDA_START", "LAMBDA_STEP",
+           "LAMBDA_RANGE"]
 
 #: Passes over the views when the config gives none: the solver's count where
 #: the measured volume PSNR stopped rising (``benchmarks/bench_tomography.py``).
@@ -611,7 +612,7 @@ def coarse_grid(box, resolution: int):
     return v.astype(np.float64), t.astype(np.int64)
 
 
-def adaptive_mesh(vertices, tets, gradient: TetGradient, x, budget: int):
+def adaptive_mesh(vertices, tets, x, gradient: TetGradient, budget: int):
     """Unknowns where the field has detail: the vertices of ``tets`` are
     ranked by the largest change of ``x`` across a tet around them
     (``|G_t x| h_t``, ``h_t`` the tet's size) and the edges about the
@@ -768,10 +769,10 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
     for kind, g in stages:
         last = (kind, g) == stages[-1]
         if kind == "adaptive":
-            v, t, x, split = adaptive_mesh(v, topology.tets, gradient, x, budget_vertices)
-            log(f"adaptive mesh: split about {split:,} of {len(gradient.volumes) // 6:,} "
-                f"coarse cells' vertices where the field changes most: {len(v):,} vertices "
-                f"(the grid: {budget_vertices:,})")
+            v, t, x, split = adaptive_mesh(*prev, budget_vertices)
+            log(f"adaptive mesh: split about {split:,} of the coarse grid's {len(prev[0]):,} "
+                f"vertices, where its field changes most: {len(v):,} vertices (the grid: "
+                f"{budget_vertices:,})")
         elif kind == "coarse":
             v, t = coarse_grid(box, resolution)
         elif kind == "saved":
@@ -787,7 +788,7 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
                 log(f"one detector row: {unknowns.max() + 1:,} unknowns, the slab's two vertex "
                     f"layers alike")
         if prev is not None and kind != "adaptive":
-            x = sample_field(*prev, v)
+            x = sample_field(*prev[:3], v)
         if x is not None and unknowns is not None:
             x = np.bincount(unknowns, x) / np.bincount(unknowns)
         gradient = TetGradient(v, topology.tets, unknowns) if solver == "pwls" else None
@@ -837,7 +838,7 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
                      relaxation=config.relaxation, **solve)
         if unknowns is not None:
             x = x[unknowns]                   # the vertices' values
-        prev = (v, topology.tets, x)
+        prev = (v, topology.tets, x, gradient)
     bar.close()
     optimization = now() - train_begin
     (out / "config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2))

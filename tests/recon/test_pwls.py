@@ -148,13 +148,13 @@ def test_adaptive_mesh_puts_the_fine_grid_where_the_field_changes():
     t = build_topology(v, t).tets
     x = np.clip((v[:, 0] - 0.3) / 0.2, 0, 1)
     budget = len(fine_v) // 2
-    v2, t2, x2, k = adaptive_mesh(v, t, TetGradient(v, t), x, budget)
+    v2, t2, x2, k = adaptive_mesh(v, t, x, TetGradient(v, t), budget)
     assert len(v) < len(v2) <= budget and k > 0
     new = v2[len(v):]
     assert lattice(new).max() < 1e-9
     # the new vertices sit by the ramp, and none far from it
     assert np.all(np.abs(new[:, 0] - 0.4) <= 0.5)
     linear = 0.2 + v[:, 0] - 0.5 * v[:, 1] + 0.3 * v[:, 2]
-    v3, _, y3, _ = adaptive_mesh(v, t, TetGradient(v, t), linear, budget)
+    v3, _, y3, _ = adaptive_mesh(v, t, linear, TetGradient(v, t), budget)
     np.testing.assert_allclose(y3, 0.2 + v3[:, 0] - 0.5 * v3[:, 1] + 0.3 * v3[:, 2],
                                atol=1e-12)
