@@ -54,7 +54,7 @@ QUICK_VIEWS = dict(views=6, test_views=2, res=24, fov=40.0)
 
 def parse_args(argv=None):
     p = make_parser(__doc__, repeat=None,
-                    quick="--sets default --budget 0.1, 6 views of 24x24")
+                    quick="--sets default --budget 0.3, 6 views of 24x24")
     p.add_argument("--sets", default="engine,c60,headmr,lego",
                    help=f"comma-separated, of {', '.join(SETS)} (default engine,c60,headmr,lego)")
     p.add_argument("--budget", type=float, default=10.0,
@@ -64,7 +64,7 @@ def parse_args(argv=None):
     p.add_argument("--fit-args", default="", help="extra arguments of every fit command")
     a = p.parse_args(argv)
     if a.quick:
-        a.sets, a.budget = "default", 0.1
+        a.sets, a.budget = "default", 0.3
     a.sets = [s for s in a.sets.split(",") if s]
     bad = [s for s in a.sets if s not in SETS]
     if bad:

@@ -4,7 +4,9 @@ absorption`` reads: flat/dark corrected, rings optionally removed, the rotation 
 found, every k-th angle held out for scoring."""
 from __future__ import annotations
 
+import json
 import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -59,7 +61,7 @@ def add_arguments(p):
 
 def run(a):
     from mi_tetvr.grid.scan import (bin_pixels, estimate_flux, find_center, read_data_exchange,
-                                    remove_rings, transmittance, write_scan_dataset)
+                                    remove_rings, transmittance)
     try:
         scan = read_data_exchange(a.scan, angles=a.angles, normalized=a.normalized)
     except (ValueError, FileNotFoundError) as e:
@@ -118,3 +120,57 @@ def run(a):
           f"centre at column {center_said}, detector shift {info['detector_shift_px']:+.2f} px, "
           f"flux {flux_said}")
     print(f"next: mi-tetvr fit {a.out} --model absorption -o {a.out.rstrip('/')}_fit")
+
+
+def write_scan_dataset(t: np.ndarray, angles, out_dir, *, pixel_size: float, center: float,
+                       hold_out: int = 8, beam: str = "parallel", source_distance=None,
+                       detector_distance=None, flux=None, info=None):
+    """Write transmittance projections ``t`` (angles, rows, columns) as the
+    project's X-ray data set (what ``make-dataset --xray`` writes and ``fit
+    --model absorption`` reads): ``transforms_{train,test}.json`` (every
+    ``hold_out``-th angle in test), ``{train,test}/p_NNN.npy``, the
+    reconstruction grid's box as ``aabb`` and ``xray_info.json``. Returns the
+    info written."""
+    from mi_tetvr.grid.scan import held_out_split, scan_cameras, scan_grid
+    from mi_tetvr.recon.datasets import Dataset, View, write_nerf
+    n, h, w = t.shape
+    cams = scan_cameras(angles, w, h, pixel_size, center, beam, source_distance,
+                        detector_distance)
+    train, test = held_out_split(n, hold_out)
+    shape, origin = scan_grid(w, h, pixel_size, center)
+    lo = origin.copy()
+    hi = origin + (np.array(shape) - 1) * pixel_size
+    if h == 1:
+        # one row: a slab one pixel thick about it
+        lo[2], hi[2] = -0.5 * pixel_size, 0.5 * pixel_size
+    if beam == "cone":
+        # magnified: the detector's pixels are pixel_size * DSO / DSD at the axis
+        cell = pixel_size * source_distance / detector_distance
+        m = int(np.ceil(0.5 * w)) + 1
+        lo = np.array([-m * cell, -m * cell, -0.5 * h * cell])
+        hi = -lo
+    views = {}
+    for split, idx in (("train", train), ("test", test)):
+        views[split] = []
+        for i in idx:
+            img = np.zeros((h, w, 4), np.float32)
+            img[..., 3] = 1.0 - t[i]
+            views[split].append(View(f"p_{i:03d}", cams[i], img))
+    write_nerf(Dataset(views["train"], views["test"], bbox=np.stack([lo, hi]),
+                       pixel_sampling="area", xray_flux=flux,
+                       protocol=f"every {hold_out}-th angle held out"), out_dir,
+               image_format="npy")
+    record = {"beam": beam, "attenuation_scale": 1.0, "detector": [w, h],
+              "pixel_size": float(pixel_size), "center": float(center),
+              "detector_shift_px": float(center - (w - 1) / 2),
+              "source_distance": source_distance, "detector_distance": detector_distance,
+              "angles_train_deg": np.asarray(angles)[train].tolist(),
+              "angles_test_deg": np.asarray(angles)[test].tolist(),
+              "hold_out": int(hold_out), "xray_flux": None if flux is None else float(flux),
+              "grid": {"shape_xyz": [int(s) for s in shape], "spacing": float(pixel_size),
+                       "origin": [float(v) for v in origin]},
+              "model": "absorption: measured transmittance (flat/dark corrected), "
+                       "attenuation per world unit",
+              **(info or {})}
+    (Path(out_dir) / "xray_info.json").write_text(json.dumps(record, indent=1) + "\n")
+    return record

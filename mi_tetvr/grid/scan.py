@@ -7,11 +7,10 @@ is read (:func:`read_data_exchange`), flat/dark corrected to transmittance
 ``T = (data - dark) / (flat - dark)`` (:func:`transmittance`), its rings
 optionally removed (Vo's sorting-based stripe filter, algotom), its rotation
 centre found (Vo's Fourier method, algotom's ``find_center_vo``:
-:func:`find_center`) and written as the data set that ``mi-tetvr make-dataset
---xray`` writes (:func:`write_scan_dataset`): ``.npy`` transmittance per
-angle, the cameras of the geometry (:func:`scan_cameras`), every k-th angle
-held out for scoring, and ``xray_info.json`` with the geometry, the centre,
-the noise estimate and the reconstruction grid on the detector's pixels.
+:func:`find_center`); the cameras of the geometry (:func:`scan_cameras`), the
+held-out angles (:func:`held_out_split`) and the reconstruction grid on the
+detector's pixels (:func:`scan_grid`) are what ``mi-tetvr process-xray``
+writes as the data set that ``make-dataset --xray`` writes.
 
 Geometry, as TIGRE and ASTRA describe a circular scan about the world z axis:
 
@@ -30,7 +29,6 @@ World units: those of ``pixel_size`` (default: the detector is 2 wide).
 from __future__ import annotations
 
 import dataclasses
-import json
 import warnings
 from pathlib import Path
 
@@ -39,7 +37,7 @@ import numpy as np
 from mi_tetvr.camera import Camera, look_at
 
 __all__ = ["Scan", "read_data_exchange", "transmittance", "find_center", "remove_rings",
-           "estimate_flux", "scan_cameras", "scan_grid", "write_scan_dataset", "bin_pixels",
+           "estimate_flux", "scan_cameras", "scan_grid", "bin_pixels",
            "held_out_split"]
 
 
@@ -296,56 +294,3 @@ def held_out_split(n: int, every: int):
                          f"no held-out angle")
     test = idx[every // 2::every]
     return np.setdiff1d(idx, test), test
-
-
-def write_scan_dataset(t: np.ndarray, angles, out_dir, *, pixel_size: float, center: float,
-                       hold_out: int = 8, beam: str = "parallel", source_distance=None,
-                       detector_distance=None, flux=None, info=None):
-    """Write transmittance projections ``t`` (angles, rows, columns) as the
-    project's X-ray data set (what ``make-dataset --xray`` writes and ``fit
-    --model absorption`` reads): ``transforms_{train,test}.json`` (every
-    ``hold_out``-th angle in test), ``{train,test}/p_NNN.npy``, the
-    reconstruction grid's box as ``aabb`` and ``xray_info.json``. Returns the
-    info written."""
-    from mi_tetvr.recon.datasets import Dataset, View, write_nerf
-    n, h, w = t.shape
-    cams = scan_cameras(angles, w, h, pixel_size, center, beam, source_distance,
-                        detector_distance)
-    train, test = held_out_split(n, hold_out)
-    shape, origin = scan_grid(w, h, pixel_size, center)
-    lo = origin.copy()
-    hi = origin + (np.array(shape) - 1) * pixel_size
-    if h == 1:
-        # one row: a slab one pixel thick about it
-        lo[2], hi[2] = -0.5 * pixel_size, 0.5 * pixel_size
-    if beam == "cone":
-        # magnified: the detector's pixels are pixel_size * DSO / DSD at the axis
-        cell = pixel_size * source_distance / detector_distance
-        m = int(np.ceil(0.5 * w)) + 1
-        lo = np.array([-m * cell, -m * cell, -0.5 * h * cell])
-        hi = -lo
-    views = {}
-    for split, idx in (("train", train), ("test", test)):
-        views[split] = []
-        for i in idx:
-            img = np.zeros((h, w, 4), np.float32)
-            img[..., 3] = 1.0 - t[i]
-            views[split].append(View(f"p_{i:03d}", cams[i], img))
-    write_nerf(Dataset(views["train"], views["test"], bbox=np.stack([lo, hi]),
-                       pixel_sampling="area", xray_flux=flux,
-                       protocol=f"every {hold_out}-th angle held out"), out_dir,
-               image_format="npy")
-    record = {"beam": beam, "attenuation_scale": 1.0, "detector": [w, h],
-              "pixel_size": float(pixel_size), "center": float(center),
-              "detector_shift_px": float(center - (w - 1) / 2),
-              "source_distance": source_distance, "detector_distance": detector_distance,
-              "angles_train_deg": np.asarray(angles)[train].tolist(),
-              "angles_test_deg": np.asarray(angles)[test].tolist(),
-              "hold_out": int(hold_out), "xray_flux": None if flux is None else float(flux),
-              "grid": {"shape_xyz": [int(s) for s in shape], "spacing": float(pixel_size),
-                       "origin": [float(v) for v in origin]},
-              "model": "absorption: measured transmittance (flat/dark corrected), "
-                       "attenuation per world unit",
-              **(info or {})}
-    (Path(out_dir) / "xray_info.json").write_text(json.dumps(record, indent=1) + "\n")
-    return record
