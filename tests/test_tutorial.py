@@ -148,14 +148,14 @@ def test_fit_transfer_function_tutorial(tmp_path):
 
 def test_xray_tomography_tutorial(tmp_path):
     """``tutorials/xray_tomography.py`` shrunk (a 10^3 volume, 16
-    projections, 120 steps): one vertex per voxel, and the tets recover the
-    volume about as well as FBP does from the same projections (measured:
-    tets 24.4 dB, FBP 24.1 dB; held-out projections 30.9 dB)."""
-    r = _tutorial("xray_tomography").main(["--size", "10", "--views", "16", "--steps", "120",
+    projections, 8 passes per penalty weight): one vertex per voxel, and the
+    tets recover the volume better than FBP does from the same projections
+    (measured: tets 30.4 dB, FBP 24.1 dB; held-out projections 40.1 dB)."""
+    r = _tutorial("xray_tomography").main(["--size", "10", "--views", "16", "--passes", "8",
                                            "--quiet", "--out", str(tmp_path),
                                            "--variant", VARIANT])
     assert r["vertices"] == r["voxels"] == 1000
-    assert r["psnr_tets"] > r["psnr_fbp"] - 1.0 and r["projection_psnr"] > 28.0, r
+    assert r["psnr_tets"] > r["psnr_fbp"] + 3.0 and r["projection_psnr"] > 35.0, r
     assert Path(r["files"]["slices"]).is_file()
 
 

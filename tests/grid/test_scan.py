@@ -170,11 +170,11 @@ def test_one_row_scan_fits_as_many_unknowns_as_its_slice(tmp_path):
     from mi_tetvr.recon.config import FitConfig
     from mi_tetvr.recon.datasets import load_dataset
     from mi_tetvr.recon.pipeline import run
-    _, vol = make_scan(tmp_path / "s.h5", rows=1)
+    _, vol = make_scan(tmp_path / "s.h5", rows=1, angles=30)
     cli(["process-xray", str(tmp_path / "s.h5"), "-o", str(tmp_path / "d"), "--center",
          str(CENTER), "--pixel-size", str(PIXEL), "--flux", "none", "-q"])
     data = load_dataset(tmp_path / "d")
-    m = run(data, tmp_path / "fit", FitConfig(model="absorption", passes=16, validation=0),
+    m = run(data, tmp_path / "fit", FitConfig(model="absorption", passes=8, validation=0),
             progress=False, log=lambda *a: None)
     nx, ny, nz = vol.shape
     assert nz == 1 and m["unknowns"] == nx * ny

@@ -76,14 +76,32 @@ def small_problem(tmp_path_factory):
     return V, T, proj, A, b, w
 
 
+class MatrixProjector:
+    """The walk's projector written out as the matrix ``A`` (rows per view at
+    ``offsets``): what the solver sees of a projector, without the renders."""
+
+    def __init__(self, A, offsets):
+        self.A, self.offsets, self.n = A, offsets, A.shape[1]
+        self.sensors = [None] * (len(offsets) - 1)
+
+    def rows(self, views):
+        return np.concatenate([np.arange(self.offsets[i], self.offsets[i + 1]) for i in views])
+
+    def forward(self, x, views=None):
+        return self.A[self.rows(range(len(self.sensors)) if views is None else views)] @ x
+
+    def adjoint(self, y, views=None):
+        return self.A[self.rows(range(len(self.sensors)) if views is None else views)].T @ y
+
+
 def test_pwls_reaches_the_minimum_scipy_finds(small_problem):
     """One subset per pass (no ordered-subset approximation): the solver's
     objective reaches the minimum that L-BFGS-B (scipy) finds with x >= 0 on
-    the same objective, the projector as an explicit matrix."""
+    the same objective, the walk's projector as an explicit matrix (for both)."""
     from scipy.optimize import minimize
     V, T, proj, A, b, w = small_problem
     grad = TetGradient(V, T)
-    pls = PenalizedLS(proj, b, w, grad, subsets=1)
+    pls = PenalizedLS(MatrixProjector(A, proj.offsets), b, w, grad, subsets=1)
     start = pls.start(passes=2)
     lam = 0.3
     beta = lam * pls.beta0

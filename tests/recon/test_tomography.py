@@ -346,12 +346,15 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
     pts = vol.sample_points()
     truth = vol.values.astype(np.float64)
     got = {}
-    for name, kw in (("pwls", {}), ("sart", {"solver": "sart"}),
-                     ("sirt", {"solver": "sirt", "passes": 60}),
+    # the default tunes its weight and passes on held-out views; the others, fixed
+    # passes (their tuning is tested on its own below), keep the test short
+    fixed = {"validation": 0}
+    for name, kw in (("pwls", {}), ("sart", {"solver": "sart", "passes": 15, **fixed}),
+                     ("sirt", {"solver": "sirt", "passes": 30, **fixed}),
                      ("lsqr", {"solver": "lsqr"}),
-                     ("c2f", {"solver": "sart",
+                     ("c2f", {"solver": "sart", "passes": 8, **fixed,
                               "stages": [{"iterations": 1, "grid": 4}, {"iterations": 1}]}),
-                     ("adapt", {"adapt": True})):
+                     ("adapt", {"adapt": True, "tv": 0.1, "passes": 12})):
         m = run(data, tmp_path / name, FitConfig(model="absorption", **kw), progress=False,
                 log=lambda *a: None)
         mesh = mi_tetvr.read_tetmesh(tmp_path / name / "attenuation.vtu", opacity="attenuation")
