@@ -358,11 +358,10 @@ def table_markdown(results):
     methods = [r["method"] for r in results[0]["rows"]]
     head = "| volume | views | photons | " + " | ".join(methods) + " | tets - best tuned |"
     lines = [head, "|" + "---|" * (len(methods) + 4)]
-    keys = []
-    for r in results:
-        k = (r["volume"], r["views"], r["flux"])
-        if k not in keys:
-            keys.append(k)
+    # by views, then photons (fewest first, noise-free last), then volume as first met
+    names = list(dict.fromkeys(r["volume"] for r in results))
+    keys = sorted({(r["volume"], r["views"], r["flux"]) for r in results},
+                  key=lambda k: (k[1], k[2] is None, k[2] or 0, names.index(k[0])))
     for k in keys:
         runs = [r for r in results if (r["volume"], r["views"], r["flux"]) == k]
         cells, means = [], {}
@@ -374,7 +373,8 @@ def table_markdown(results):
             cells.append(f"{np.mean(p):.2f}{spread} / {np.mean(q):.3f}")
         tuned = [m for m in methods if "tuned" in m]
         margin = means[methods[-1]] - max(means[m] for m in tuned) if tuned else float("nan")
-        lines.append(f"| {k[0]} | {k[1]} | {'none' if k[2] is None else f'{k[2]:.0e}'} | "
+        photons = "none" if k[2] is None else f"{k[2]:.0e}".replace("e+0", "e")
+        lines.append(f"| {k[0]} | {k[1]} | {photons} | "
                      + " | ".join(cells) + f" | {margin:+.2f} dB |")
     return "\n".join(lines)
 
