@@ -470,9 +470,11 @@ def main_scan(a, info, out):
         # the object's box (where the tuned SART slice exceeds a tenth of its top), a margin
         ref = panels["SART tuned"][len(panels["SART tuned"]) // 2]
         rows_, cols_ = np.nonzero(ref > 0.1 * np.percentile(ref, 99.9))
-        pad = max(4, int(0.1 * max(np.ptp(rows_), np.ptp(cols_))))
-        crop = (slice(None), slice(max(rows_.min() - pad, 0), rows_.max() + pad + 1),
-                slice(max(cols_.min() - pad, 0), cols_.max() + pad + 1))
+        crop = (slice(None),) * 3
+        if rows_.size:                 # else (nothing reconstructed) the whole slice
+            pad = max(4, int(0.1 * max(np.ptp(rows_), np.ptp(cols_))))
+            crop = (slice(None), slice(max(rows_.min() - pad, 0), rows_.max() + pad + 1),
+                    slice(max(cols_.min() - pad, 0), cols_.max() + pad + 1))
         plot_slices(a.slices, {k: v[crop] / top for k, v in panels.items()},
                     [r["projection_psnr_views"] for r in rows],
                     f"{Path(a.scan).name}: no truth; held-out projection PSNR")

@@ -12,9 +12,9 @@ total variation, its weight chosen on views held out of the training ones).
 Steps: project a grid volume into parallel-beam views over 180 degrees
 (:func:`mi_tetvr.grid.xray.make_xray_dataset`: exact line integrals of the
 trilinear field, ``.npy`` transmittance images, orthographic cameras), fit
-the attenuation on a tet grid with one vertex per voxel (the default
-fit on the data set's box, :func:`mi_tetvr.recon.pipeline.run`), reconstruct the same slices by
-scikit-image's filtered back-projection
+the attenuation on a tet grid with one vertex per voxel (the default fit
+on the data set's box, :func:`mi_tetvr.recon.pipeline.run`), reconstruct
+the same slices by scikit-image's filtered back-projection
 (:func:`mi_tetvr.grid.slices.reconstruct_slices`), and compare both with the
 truth at the voxels. Writes ``slices.png`` (truth | FBP | tets, the middle
 slice) and the fitted ``fit/mesh.vtu`` (point data ``attenuation``).
@@ -68,7 +68,10 @@ def main(argv=None):
     from mi_tetvr.recon.datasets import load_dataset
     from mi_tetvr.recon.pipeline import run
     out = Path(a.out)
-    volume = load_volume(a.volume) if a.volume else make_volume(default_volume(a.size))
+    try:
+        volume = load_volume(a.volume) if a.volume else make_volume(default_volume(a.size))
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"xray_tomography.py: {e}") from None
     # 1. X-ray projections (the largest optical depth 2.5 sets the attenuation's scale)
     made = make_xray_dataset(volume, out / "data", views=a.views, test_views=8,
                              progress=not a.quiet)
@@ -77,7 +80,6 @@ def main(argv=None):
     # 2. the tet fit, as `mi-tetvr fit DATA --model absorption` runs it: a grid with a
     #    vertex on every voxel of the data set's box, the penalty's weight and the passes
     #    chosen on training views held out of the solve
-    lo = volume.bounds()[0]
     cfg = FitConfig(model="absorption", passes=a.passes)
     t0 = time.perf_counter()
     with warnings.catch_warnings():
@@ -89,11 +91,8 @@ def main(argv=None):
     # 3. filtered back-projection of the same projections, slice by slice
     fbp = reconstruct_slices(volume, data.train, scale, "fbp")
     # 4. both against the truth at the voxels (values in [0, 1])
-    nx, ny, nz = volume.shape
-    z, y, x = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
-    samples = lo + np.stack([x, y, z], -1).reshape(-1, 3) * volume.spacing
     tets = sample_field(mesh.vertices, mesh.tets, mesh.opacity / scale,
-                        samples).reshape(volume.values.shape)
+                        volume.sample_points()).reshape(volume.values.shape)
     truth = volume.values
 
     def psnr(v):
@@ -111,7 +110,7 @@ def main(argv=None):
     for ax, (label, vol) in zip(axes, (("truth", truth),
                                        (f"FBP {result['psnr_fbp']:.2f} dB", fbp),
                                        (f"tets {result['psnr_tets']:.2f} dB", tets))):
-        ax.imshow(np.clip(vol[nz // 2], 0, 1), cmap="gray", vmin=0, vmax=1, origin="lower")
+        ax.imshow(np.clip(vol[len(vol) // 2], 0, 1), cmap="gray", vmin=0, vmax=1, origin="lower")
         ax.set_title(label, fontsize=9)
         ax.axis("off")
     fig.tight_layout()

@@ -84,8 +84,7 @@ class MatrixProjector:
         self.A, self.offsets, self.n = A, offsets, A.shape[1]
         self.sensors = [None] * (len(offsets) - 1)
 
-    def rows(self, views):
-        return np.concatenate([np.arange(self.offsets[i], self.offsets[i + 1]) for i in views])
+    rows = Projector.rows
 
     def forward(self, x, views=None):
         return self.A[self.rows(range(len(self.sensors)) if views is None else views)] @ x
