@@ -20,8 +20,10 @@ if ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null
         apt-get install -y -qq chromium chromium-driver >/dev/null; } \
         || echo "setup.sh: could not install chromium and chromium-driver" >&2
 fi
-python3 -m pip install -q -e ".[test]"
-python3 -m mi_tetvr.cli make-scenes >/dev/null
+# the package with every extra (rendering alone needs none: pip install mi_tetvr)
+python3 -m pip install -q -e ".[all,test]"
+# the bundled scenes, their meshes and the default volume into scenes/
+python3 -m mi_tetvr.cli make-scenes -o scenes >/dev/null
 if [ "${1:-}" != "--install" ]; then
     mi-tetvr render scenes/default.xml -o out/default.exr -o out/default.png
     mi-tetvr make-dataset scenes/volumes/default.npy --tf scenes/tf_default.json \

@@ -4,7 +4,13 @@ Usage::
 
     import mitsuba as mi
     mi.set_variant("llvm_ad_rgb")   # or "cuda_ad_rgb"
-    import mi_tetvr                 # registers the `tetmesh` shape and `tetvr` integrator
+    import mi_tetvr                 # registers the tetmesh shape and the tetvr,
+                                    # tetproj and tetpath integrators
+
+The plugins are registered with the variant set when ``mi_tetvr`` is imported,
+and again by themselves whenever :func:`mitsuba.set_variant` switches to another
+autodiff RGB variant (``llvm_ad_rgb``, ``cuda_ad_rgb``); :func:`register` does it
+by hand.
 
 Sub-packages (see the README's *Architecture*):
 
@@ -12,72 +18,37 @@ Sub-packages (see the README's *Architecture*):
   refinement, initial meshes (no Mitsuba variant needed);
 * :mod:`mi_tetvr.render` -- the Dr.Jit renderer: the tet walk, optical models,
   the adjoint (needs a variant);
+* :mod:`mi_tetvr.plugins` -- the Mitsuba plugins and their registration;
 * :mod:`mi_tetvr.grid` -- regular-grid volumes and the grid ray marcher;
 * :mod:`mi_tetvr.recon` -- cameras, data sets, the training loop behind
-  ``mi-tetvr fit``, metrics;
+  ``mi-tetvr fit``, metrics (the ``recon`` extra);
 * :mod:`mi_tetvr.transfer` -- transfer functions and their files;
-  :mod:`mi_tetvr.color` -- the sRGB curve.
+  :mod:`mi_tetvr.color` -- the sRGB curve;
+* :mod:`mi_tetvr.extras` -- the optional packages and the extra that brings each.
 
 In a scene dict, :func:`tetmesh_dict` is a ``tetmesh`` entry made from arrays;
-:func:`tetmesh_shape` is the shape itself, built from a ``TetMesh`` (or from an
-entry and the topology of its arrays, built once and handed on).
+:func:`tetmesh_shape` is the shape itself, built now from a ``TetMesh`` (or from
+an entry and the topology of its arrays, built once and handed on).
 
 A plugin that refuses its input raises ``ValueError`` (or :class:`MeshError`);
 Mitsuba's parser passes it on as a ``RuntimeError`` holding the plugin's
 traceback as text. :func:`load_dict`, :func:`load_file` and :func:`load_string`
-are Mitsuba's, raising the plugin's own exception instead
-(:func:`plugin_error` reads it back from such a ``RuntimeError``).
-
-If no variant is set at import, call :func:`register` after
-:func:`mitsuba.set_variant`.
+are Mitsuba's, raising the plugin's own exception instead (:func:`plugin_error`).
 """
 from __future__ import annotations
 
-import builtins
 import contextlib
-import importlib
-import re
-import sys
 
 from .mesh import MeshError, TetMesh, Topology, build_topology, quality, read_tetmesh, write_tetmesh
+from .plugins import register
 from .transfer import TransferFunction, read_transfer_function
 
-__all__ = ["register", "tetmesh_dict", "tetmesh_shape", "load_dict", "load_file", "load_string",
-           "plugin_error", "read_tetmesh", "write_tetmesh", "MeshError", "TetMesh", "Topology", "build_topology", "quality", "TransferFunction",
+__version__ = "0.9.0"
+
+__all__ = ["__version__", "register", "tetmesh_dict", "tetmesh_shape", "load_dict",
+           "load_file", "load_string", "plugin_error", "read_tetmesh", "write_tetmesh",
+           "MeshError", "TetMesh", "Topology", "build_topology", "quality", "TransferFunction",
            "read_transfer_function"]
-
-_registered_variant = None
-
-#: Modules that bind Mitsuba/Dr.Jit types at import, in dependency order.
-_VARIANT_MODULES = ("render.segment", "render.buffers", "render.geometry", "render.optical",
-                    "render.adjoint", "render.walk", "render.transport", "render", "grid.marcher",
-                    "recon.regularizer", "plugins.tetmesh", "plugins.tetvr", "plugins.tetproj",
-                    "plugins.tetpath")
-
-
-def register():
-    """Register the ``tetmesh`` shape and ``tetvr`` integrator with the current
-    Mitsuba variant (again after switching variants)."""
-    global _registered_variant
-    import mitsuba as mi
-    variant = mi.variant()
-    if variant is None:
-        raise RuntimeError("mi_tetvr.register(): call mitsuba.set_variant(...) first "
-                           "(e.g. 'llvm_ad_rgb' or 'cuda_ad_rgb')")
-    if not variant.endswith("_rgb") or "_ad_" not in variant:
-        raise RuntimeError(f"mi_tetvr needs an autodiff RGB variant (llvm_ad_rgb or "
-                           f"cuda_ad_rgb), not '{variant}'")
-    if variant == _registered_variant:
-        return
-    from . import plugins  # noqa: F401
-    # Modules that bind Mitsuba/Dr.Jit types at import are reloaded for a new variant.
-    for name in _VARIANT_MODULES:
-        full = f"{__name__}.{name}"
-        if name.startswith("plugins.") or full in sys.modules:
-            mod = importlib.import_module(full)
-            if _registered_variant is not None:
-                importlib.reload(mod)
-    _registered_variant = variant
 
 
 def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, cell_scalar=None,
@@ -107,6 +78,7 @@ def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, cell_sca
     """
     import mitsuba as mi
     import numpy as np
+    register()
     d = {"type": "tetmesh",
          "vertices": mi.TensorXf(np.asarray(vertices, dtype=np.float32)),
          "tets": mi.TensorXi(np.asarray(tets, dtype=np.int32))}
@@ -122,8 +94,7 @@ def tetmesh_dict(vertices, tets, color=None, opacity=None, scalar=None, cell_sca
     d.update({k: mi.TensorXf(np.asarray(v, dtype=np.float32)) if isinstance(v, np.ndarray) else v
               for k, v in props.items()})
     if scalar is not None or cell_scalar is not None:
-        register()
-        from .plugins.tetmesh import check_array_scalars
+        from .render.properties import check_array_scalars
         check_array_scalars(d)
     return d
 
@@ -150,39 +121,46 @@ def tetmesh_shape(source, topology=None, **props):
     ------
     ValueError
         As the plugin does (:class:`MeshError` for a mesh it refuses), with
-        its own message: a shape built here is not wrapped by Mitsuba's parser.
+        its own message (:func:`load_dict`).
     """
     register()
-    from .plugins.tetmesh import build_shape
+    from .render.properties import drop_topology, hand_topology
     if isinstance(source, TetMesh):
         entry = tetmesh_dict(source.vertices, source.tets, source.color, source.opacity,
                              **props)
         topology = source.topology if topology is None else topology
     else:
-        entry = {**source, **props}
-    return build_shape(entry, topology)
+        entry = {"type": "tetmesh", **source, **props}
+    if topology is not None:
+        if "filename" in entry:
+            raise ValueError("tetmesh: a topology is handed with the tensors 'vertices' and "
+                             "'tets', not with a 'filename'")
+        entry["topology"] = key = hand_topology(topology)
+    try:
+        return load_dict(entry)
+    finally:
+        if topology is not None:
+            drop_topology(key)
 
 
-#: Exception classes of the project a plugin may raise, besides Python's own.
-_PLUGIN_EXCEPTIONS = {"MeshError": MeshError}
+def plugin_error(exc, since=0):
+    """The exception a plugin raised while Mitsuba built a scene, for the
+    ``RuntimeError`` Mitsuba's parser raised for it.
 
-
-def plugin_error(exc):
-    """The exception a plugin raised while Mitsuba built a scene, read back from
-    the ``RuntimeError`` Mitsuba's parser raises for it.
-
-    The parser's message is its own line (``[parser.cpp:...] At dictionary node
-    "volume": failed to instantiate ...``) followed by the plugin's traceback as
-    text; the traceback's last exception is the plugin's. It is returned as that
-    exception again, its message alone: of the same class where it is one of
-    Python's or :class:`MeshError`, else a ``RuntimeError`` saying
-    ``"module.Name: message"``. Where Python allows (3.11), a note says which
-    plugin raised it and where in the scene (``err.__notes__``).
+    Each plugin's constructor keeps what it raises
+    (:func:`mi_tetvr.plugins.raised_in`); Mitsuba's parser passes on only its
+    text. The exception returned is the plugin's own (its class and message, no
+    traceback): of a plugin that built another, the innermost one. Its
+    attribute ``mi_tetvr_plugin`` names the plugin; where Python allows (3.11),
+    a note says which plugin raised it, building what.
 
     Parameters
     ----------
     exc : BaseException
         What ``mi.load_dict``, ``mi.load_file`` or ``mi.load_string`` raised.
+    since : int, optional
+        Only what plugins raised after :func:`mi_tetvr.plugins.mark` returned
+        this.
 
     Returns
     -------
@@ -190,33 +168,17 @@ def plugin_error(exc):
         The plugin's exception, or ``exc`` itself when it does not come from a
         plugin's constructor (Mitsuba's own errors, an unknown plugin type, ...).
     """
-    text = str(exc)
-    marker = "Traceback (most recent call last):"
-    if not isinstance(exc, RuntimeError) or marker not in text:
+    from .plugins import raised_in
+    if not isinstance(exc, RuntimeError):
         return exc
-    head, _, trace = text.rpartition(marker)
-    lines = [line for line in trace.splitlines() if line.strip()]
-    # the frames are indented; the exception starts at the first line that is not
-    first = next((i for i, line in enumerate(lines) if not line[0].isspace()), None)
-    if first is None:
+    found = raised_in(exc, since)
+    if found is None:
         return exc
-    name, sep, message = lines[first].partition(": ")
-    if not re.fullmatch(r"[\w.]+", name):        # not "Name: message" nor "Name"
-        name, message = "", lines[first]
-    message = "\n".join([message] + lines[first + 1:])
-    module, _, short = name.rpartition(".")
-    cls = getattr(builtins, short, None) if module in ("", "builtins") else None
-    if cls is None and (module == "" or module.split(".")[0] == __name__):
-        cls = _PLUGIN_EXCEPTIONS.get(short)
-    if isinstance(cls, type) and issubclass(cls, Exception):
-        err = cls(message)
-    else:
-        err = RuntimeError(f"{name}: {message}" if name else message)
-    # the innermost plugin (one plugin's constructor may load another's scene)
-    where = re.findall(r'At (.*?): failed to instantiate .*?plugin of type "([^"]+)"', head)
-    if where and hasattr(err, "add_note"):
-        err.add_note(f'(raised by the "{where[-1][1]}" plugin while Mitsuba loaded '
-                     f'{where[-1][0]})')
+    err, plugin, where = found
+    err.mi_tetvr_plugin = plugin
+    if hasattr(err, "add_note"):
+        built = f'"{where}"' if where else "an object without an id"
+        err.add_note(f'(raised by the "{plugin}" plugin while Mitsuba built {built})')
     return err
 
 
@@ -224,10 +186,12 @@ def plugin_error(exc):
 def _plugin_errors():
     """Raise a plugin's own exception (:func:`plugin_error`) where Mitsuba's
     parser wraps it in a ``RuntimeError``; others pass unchanged."""
+    from .plugins import mark
+    since = mark()
     try:
         yield
     except RuntimeError as e:
-        err = plugin_error(e)
+        err = plugin_error(e, since)
         if err is e:
             raise
         raise err from None      # (Mitsuba's whole text stays as its __context__)
@@ -258,10 +222,11 @@ def load_string(xml, **kwargs):
 
 
 def _auto_register():
-    try:
-        import mitsuba as mi
-    except ImportError:
-        return
+    """Register the plugins with the variant set now, and with every autodiff RGB
+    variant Mitsuba switches to later."""
+    import mitsuba as mi
+    from .plugins import on_variant_change
+    mi.detail.add_variant_callback(on_variant_change)
     if mi.variant() is not None:
         register()
 

@@ -68,6 +68,8 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from mi_tetvr.extras import needs
+
 
 __all__ = ["Camera", "look_at", "as_rigid", "default_fov", "framing_distance", "FRAMING_MARGIN",
            "fibonacci_cameras", "random_cameras", "fibonacci_sphere", "box_cameras",
@@ -554,7 +556,8 @@ def camera_path(cameras: Sequence[Camera], frames: int) -> List[Camera]:
     (slerp) by the distance travelled (by the index where the cameras do not move), with the
     intrinsics of the cameras' most common image size (the median focal length and principal
     point of those): a fly-through of the capture."""
-    from scipy.spatial.transform import Rotation, Slerp
+    with needs("recon", "a camera path"):
+        from scipy.spatial.transform import Rotation, Slerp
     cameras = list(cameras)
     if len(cameras) < 2 or frames < 2:
         raise ValueError(f"a camera path needs 2 or more cameras and frames, got "

@@ -5,13 +5,16 @@ from __future__ import annotations
 
 import os
 
+from mi_tetvr.extras import needs
+
 
 def connect(workers, address=None):
     """Join the Ray cluster at ``address`` (default ``RAY_ADDRESS``), or start a
     local one of this machine's cores (at least ``workers`` slots); True
     where it was started here (the caller shuts it down). A clear
     ``ConnectionError`` where no cluster answers."""
-    import ray
+    with needs("cluster", "work over Ray workers"):
+        import ray
     if ray.is_initialized():
         return False
     address = address or os.environ.get("RAY_ADDRESS")

@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_tetvr.cluster import connect
+from mi_tetvr.extras import needs
 from mi_tetvr.mesh.partition import Partition, read_partition, read_piece
 
 #: Vertex parameters of a block's shape, by their ``mi.traverse`` names.
@@ -427,7 +428,8 @@ class PartitionedMesh:
     def __init__(self, pvtu, workers=None, shape=None, address=None, threads=None, retries=1,
                  stagger=False):
         import mitsuba as mi
-        import ray
+        with needs("cluster", "rendering over Ray workers"):
+            import ray
         self.part = read_partition(pvtu)
         self.boxes = self.part.boxes()
         nb = len(self.part.blocks)
@@ -459,7 +461,8 @@ class PartitionedMesh:
         return getattr(self.actors[self.owner[k]], method).remote(k, *args)
 
     def get(self, k, ref):
-        import ray
+        with needs("cluster", "rendering over Ray workers"):
+            import ray
         try:
             return ray.get(ref)
         except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError) as e:
@@ -579,11 +582,13 @@ class PartitionedMesh:
 
     def peak_memory(self):
         """Each worker's peak resident memory (bytes)."""
-        import ray
+        with needs("cluster", "rendering over Ray workers"):
+            import ray
         return ray.get([a.peak_memory.remote() for a in self.actors])
 
     def close(self):
-        import ray
+        with needs("cluster", "rendering over Ray workers"):
+            import ray
         for a in self.actors:
             ray.kill(a)
         self.actors = []
@@ -603,8 +608,9 @@ def map_frames(cls, init_args, method, calls, workers, address=None, progress=No
     actors of ``cls`` (each built once with ``init_args``, so that what it
     loads serves all its frames), in order; ``progress`` is called once per
     frame done. A worker that dies is started again once."""
-    import ray
-    from ray.util import ActorPool
+    with needs("cluster", "rendering over Ray workers"):
+        import ray
+        from ray.util import ActorPool
     started = connect(workers, address)
     try:
         cpus = int(ray.available_resources().get("CPU", workers))

@@ -67,9 +67,11 @@ normalised axis ``[0, 1]`` (ParaView too stretches a preset over the data
 range). Without ``Points`` the opacity ramps from 0 to 1 (ParaView's default
 for volumes).
 
-A matplotlib colormap by name (``"viridis"``, ``"coolwarm"``, ...) where no
-file of that name exists: its colors sampled at :data:`COLORMAP_SAMPLES`
-positions, the opacity a ramp from 0 to 1.
+A preset by name where no file of that name exists: the transfer functions
+that ship with the package (:func:`presets`: ``default``, ``engine``,
+``headmr``, ...; ``tf_NAME.json`` in :data:`BUNDLED`). Else a matplotlib
+colormap by name (``"viridis"``, ``"coolwarm"``, ...): its colors sampled at
+:data:`COLORMAP_SAMPLES` positions, the opacity a ramp from 0 to 1.
 
 DiffDVR's JSON settings files (the ``tfEditor`` block) are deliberately *not*
 supported: their colors are CIELAB, interpolated in CIELAB, with a separate
@@ -91,9 +93,14 @@ from typing import Tuple, Union
 import numpy as np
 
 from mi_tetvr.color import srgb_to_linear
+from mi_tetvr.extras import needs
 
 __all__ = ["TransferFunction", "read_transfer_function", "read_difftetvr_xml", "read_json",
-           "read_paraview_json", "colormap", "write_json", "json_dict", "COLORMAP_SAMPLES"]
+           "read_paraview_json", "colormap", "presets", "write_json", "json_dict",
+           "COLORMAP_SAMPLES", "BUNDLED"]
+
+#: The package's bundled scenes and transfer functions: ``tf_NAME.json`` is the preset NAME.
+BUNDLED = Path(__file__).resolve().parent / "scenes"
 
 #: Control points a ParaView preset or a matplotlib colormap is sampled at.
 COLORMAP_SAMPLES = 256
@@ -354,8 +361,9 @@ def read_transfer_function(path: PathType) -> TransferFunction:
         ``.xml`` (DiffTetVR / sgl format, :func:`read_difftetvr_xml`),
         ``.json`` (the project's format, :func:`read_json`, or a ParaView
         colormap preset, :func:`read_paraview_json`); the suffix is matched
-        case-insensitively. A name that is no file but a matplotlib
-        colormap's (``viridis``) gives :func:`colormap`.
+        case-insensitively. A name that is no file is a preset of the
+        package (:func:`presets`: ``default``, ``engine``, ...) or a
+        matplotlib colormap's (``viridis``, :func:`colormap`).
 
     Returns
     -------
@@ -369,6 +377,9 @@ def read_transfer_function(path: PathType) -> TransferFunction:
     """
     suffix = Path(path).suffix.lower()
     if not Path(path).exists() and suffix not in (".xml", ".json"):
+        preset = BUNDLED / f"tf_{path}.json"
+        if preset.is_file():
+            return read_json(preset)
         return colormap(str(path))
     if suffix == ".xml":
         return read_difftetvr_xml(path)
@@ -381,6 +392,12 @@ def read_transfer_function(path: PathType) -> TransferFunction:
     )
 
 
+def presets():
+    """The names of the transfer functions that ship with the package
+    (:func:`read_transfer_function` reads each by its name)."""
+    return sorted(p.stem[3:] for p in BUNDLED.glob("tf_*.json"))
+
+
 def _ramp(n: int) -> np.ndarray:
     return np.linspace(0.0, 1.0, n)
 
@@ -388,12 +405,14 @@ def _ramp(n: int) -> np.ndarray:
 def colormap(name: str, samples: int = COLORMAP_SAMPLES) -> TransferFunction:
     """A matplotlib colormap by name: its sRGB colors sampled at ``samples``
     positions over ``[0, 1]`` (stored linear), the opacity a ramp from 0 to 1."""
-    import matplotlib
+    with needs("vis", "a matplotlib colormap by name"):
+        import matplotlib
     try:
         cmap = matplotlib.colormaps[name]
     except KeyError:
-        raise ValueError(f"{name!r} is no transfer function file and no matplotlib colormap "
-                         f"(e.g. viridis, plasma, coolwarm, gray)") from None
+        raise ValueError(f"{name!r} is no transfer function file, no preset of mi_tetvr "
+                         f"({', '.join(presets())}) and no matplotlib colormap (e.g. "
+                         f"viridis, plasma, coolwarm, gray)") from None
     x = _ramp(samples)
     return TransferFunction(x, srgb_to_linear(np.asarray(cmap(x))[:, :3]), x, x.copy())
 
@@ -413,8 +432,9 @@ def read_paraview_json(path: PathType, samples: int = COLORMAP_SAMPLES) -> Trans
 
 
 def _paraview_preset(preset, where: str, samples: int) -> TransferFunction:
-    from vtkmodules.vtkRenderingCore import vtkColorTransferFunction
-    from vtkmodules.vtkCommonDataModel import vtkPiecewiseFunction
+    with needs("vis", "reading a ParaView colormap preset"):
+        from vtkmodules.vtkRenderingCore import vtkColorTransferFunction
+        from vtkmodules.vtkCommonDataModel import vtkPiecewiseFunction
     if not isinstance(preset, dict):
         raise ValueError(f"{where!r}: the JSON value must be an object (the project's format) "
                          f"or a list of ParaView presets (objects with 'RGBPoints')")

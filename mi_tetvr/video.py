@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_tetvr.extras import needs
+
 __all__ = ["write_video", "FPS"]
 
 #: Frames per second of the project's videos (orbits, series, fly-throughs).
@@ -15,7 +17,8 @@ FPS = 24
 def write_video(path, frames, fps: int = FPS) -> None:
     """Write 8-bit sRGB frames ``(n, h, w, 3)`` as an H.264 MP4 (yuv420p, which
     every player reads; odd sizes are padded by one pixel, black)."""
-    import imageio_ffmpeg
+    with needs("vis", "writing a video"):
+        import imageio_ffmpeg
     frames = np.asarray(frames, np.uint8)
     n, h, w, _ = frames.shape
     H, W = h + h % 2, w + w % 2

@@ -10,7 +10,7 @@ import gc
 
 import pytest
 
-from tests.helpers import DATA, VARIANT, use_variant
+from tests.helpers import DATA, SCENES, VARIANT, use_variant
 
 
 def pytest_addoption(parser):
@@ -26,6 +26,9 @@ def pytest_configure(config):
         use_variant(VARIANT)
     except RuntimeError as e:
         raise pytest.UsageError(str(e)) from None
+    # the bundled scenes, written where the tests, the tutorials and the README read them
+    from mi_tetvr.mesh.scenes import make_scenes
+    make_scenes(SCENES)
 
 
 def pytest_collection_modifyitems(config, items):

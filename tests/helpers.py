@@ -15,6 +15,8 @@ import numpy as np
 #: The repository root and the shared data sets next to it.
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
+#: The bundled scenes as ``mi-tetvr make-scenes`` writes them in the checkout.
+SCENES = ROOT / "scenes"
 
 #: The Mitsuba variant of the test suite (``MI_TETVR_VARIANT``, default ``llvm_ad_rgb``).
 VARIANT = os.environ.get("MI_TETVR_VARIANT", "") or "llvm_ad_rgb"

@@ -11,7 +11,7 @@ from tests.helpers import ROOT, VARIANT
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.io import write_tetmesh
 from mi_tetvr.mesh.tetmesh import TetMesh
-from mi_tetvr.mesh.scenes import make_scene_meshes
+from mi_tetvr.mesh.scenes import make_scenes
 
 SCENES = ["default", "transfer_function", "nonconvex", "two_meshes", "inside", "on_floor",
           "embedded", "two_models", "lit_fog", "lit_field"]
@@ -24,7 +24,7 @@ def run(*args):
 
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory):
-    make_scene_meshes()
+    make_scenes(ROOT / "scenes")
     return ROOT / "scenes"
 
 
@@ -132,7 +132,7 @@ def test_transfer_function_and_xray_commands(tmp_path):
     a scalar mesh, fit --optimize tf writing transfer_function.json (the
     texels as control points); make-dataset --xray, fit --model absorption
     writing an 'attenuation' mesh; clear errors for wrong combinations."""
-    make_scene_meshes()
+    make_scenes(ROOT / "scenes")
     mesh = str(ROOT / "scenes" / "meshes" / "radial_scalar.vtu")
     data, out = tmp_path / "data", tmp_path / "tf"
     r = run("make-dataset", mesh, "--tf", "scenes/tf_radial.json", "--views", "3",
@@ -248,7 +248,7 @@ def test_render_shaded(tmp_path):
     """--shade lights the volume (the colors change, the coverage does not);
     it needs --tf and volume rendering."""
     from mi_tetvr.recon.images import read_image
-    make_scene_meshes()
+    make_scenes(ROOT / "scenes")
     mesh = str(ROOT / "scenes" / "meshes" / "radial_scalar.vtu")
     images = []
     for extra in ([], ["--shade"]):
@@ -294,7 +294,7 @@ def test_render_a_mesh_file(tmp_path):
     pixel min <= mean <= max, and the mesh's coverage the same in all three);
     the mesh-only flags are refused for an XML scene, --mode too."""
     from mi_tetvr.recon.images import read_image
-    make_scene_meshes()
+    make_scenes(ROOT / "scenes")
     mesh = str(ROOT / "scenes" / "meshes" / "radial_scalar.vtu")
     images = {}
     for mode in ("max", "mean", "min", "dvr"):
@@ -376,7 +376,7 @@ def test_render_an_orbit(tmp_path):
     writes at their views."""
     import imageio_ffmpeg
     from mi_tetvr.recon.images import read_image
-    make_scene_meshes()
+    make_scenes(ROOT / "scenes")
     mesh = str(ROOT / "scenes" / "meshes" / "radial_scalar.vtu")
     video, sheet = tmp_path / "orbit.mp4", tmp_path / "orbit.png"
     r = run("render", mesh, "--mode", "max", "--res", "16x12", "--orbit", "4", "-o", str(video),

@@ -28,7 +28,8 @@ RENDERS = {"render", "make-dataset", "make-capture", "fit", "eval", "viewpoint",
            "sweep"}
 SHOWS_PROGRESS = {"make-dataset", "make-capture", "process-data", "process-xray", "fit",
                   "viewpoint", "partition"}
-READS_MESHES = {"render", "info", "make-dataset", "fit", "eval", "refine", "viewpoint", "view"}
+READS_MESHES = {"render", "info", "make-dataset", "fit", "eval", "refine", "viewpoint", "view",
+                "partition"}
 MAKES_IMAGES = {"render", "make-dataset", "make-capture", "viewpoint", "view"}
 
 
@@ -175,7 +176,7 @@ def test_config_file_print_config_and_overrides(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def meshes(tmp_path_factory):
-    """A folded mesh with a scalar, and a colored grid mesh."""
+    """A folded mesh with a scalar, one with colors, and a grid mesh with an attenuation."""
     import meshio
 
     from mi_tetvr.mesh.generate import grid_mesh
@@ -184,6 +185,8 @@ def meshes(tmp_path_factory):
     v, t = folded_grid()
     meshio.write(d / "folded.vtu", meshio.Mesh(v, [("tetra", t)],
                                                point_data={"density": v[:, 0] + 1.0}))
+    meshio.write(d / "folded_colored.vtu", meshio.Mesh(v, [("tetra", t)], point_data={
+        "color": np.full((len(v), 3), 0.5), "opacity": np.ones(len(v))}))
     v, t = grid_mesh(2)
     meshio.write(d / "attenuation.vtu", meshio.Mesh(v, [("tetra", t)],
                                                     point_data={"attenuation": v[:, 0] + 1}))
@@ -241,6 +244,41 @@ def test_folded_meshes_name_the_flag_each_command_has(tmp_path, meshes):
     msg = fails(["fit", str(tmp_path / "d"), "-o", str(tmp_path / "f"), "--init",
                  str(meshes / "folded.vtu"), "--iterations", "1", "-q", "--variant", VARIANT])
     assert "folds over itself" in msg and "--repair" in msg
+
+
+@pytest.mark.parametrize("argv", [
+    ["make-dataset", "{m}", "--tf", "radial", "--scalar", "density", "-o", "{d}/d",
+     "--views", "1", "--test-views", "0", "--res", "4", "-q", "--variant", VARIANT],
+    ["render", "{m}", "-o", "{d}/x.png", "--res", "4", "--variant", VARIANT],
+    ["render", "{m}", "--tf", "radial", "-o", "{d}/x.png", "--res", "4", "--variant", VARIANT],
+    ["fit", "{data}", "-o", "{d}/f", "--init", "{m}", "--iterations", "1", "-q",
+     "--variant", VARIANT],
+    ["view", "{m}", "--seconds", "0", "--variant", VARIANT],
+    ["viewpoint", "{m}", "-o", "{d}/v", "--variant", VARIANT],
+    ["eval", "{c}", "{data}", "--variant", VARIANT],
+    ["partition", "{m}", "-o", "{d}/p.pvtu", "--blocks", "2"],
+    ["refine", "{m}", "--select", "density", "-o", "{d}/r.vtu"],
+    ["info", "{m}"],
+], ids=lambda argv: " ".join(argv[:1] + [a for a in argv[2:] if a == "--tf"]))
+def test_a_folded_mesh_is_one_line_in_every_command(tmp_path, meshes, tiny_data_path, capfd,
+                                                   argv):
+    """Every command that reads a mesh, given one that folds over itself: the mesh
+    is read and its topology built before any plugin sees it, so what is wrong is
+    one line (naming --repair), with nothing of Mitsuba's parser and no traceback."""
+    argv = [a.format(m=meshes / "folded.vtu", c=meshes / "folded_colored.vtu", d=tmp_path,
+                     data=tiny_data_path) for a in argv]
+    from mi_tetvr import cli
+    with pytest.raises(SystemExit) as e:
+        cli.main(argv)
+    msg = e.value.code
+    out, err = capfd.readouterr()
+    if argv[0] == "info":          # info reports the problems it finds, then exits with 1
+        assert msg == 1 and "folds over itself" in out and "Traceback" not in out + err
+        return
+    assert isinstance(msg, str) and msg.startswith("mi-tetvr: ") and "\n" not in msg, msg
+    assert "folds over itself" in msg and "--repair" in msg, msg
+    for text in (msg, out, err):
+        assert "Traceback" not in text and "parser.cpp" not in text, text
 
 
 def test_make_dataset_refuses_options_that_do_not_apply(tmp_path, meshes):

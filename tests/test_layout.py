@@ -12,11 +12,10 @@ PACKAGES = ["mi_tetvr", "mi_tetvr.mesh", "mi_tetvr.render", "mi_tetvr.grid", "mi
             "mi_tetvr.apps"]
 
 #: The layers, lowest first: a module imports only from its own layer and those below.
-#: The plugins (``plugins/``, installed as ``mi_tetvr.plugins``) are the top one: they
-#: may import any of mi_tetvr's modules, and none of those imports them (the package's
-#: ``__init__`` registers them).
+#: The plugins (``mi_tetvr.plugins``) are the top one: they may import any of mi_tetvr's
+#: modules, and none of those imports them (the package's ``__init__`` registers them).
 LAYERS = [("mi_tetvr.color", "mi_tetvr.transfer", "mi_tetvr.camera", "mi_tetvr.progress",
-           "mi_tetvr.video", "mi_tetvr._lazy", "mi_tetvr.cluster"),
+           "mi_tetvr.video", "mi_tetvr._lazy", "mi_tetvr.cluster", "mi_tetvr.extras"),
           ("mi_tetvr.mesh",), ("mi_tetvr.render",), ("mi_tetvr.grid",), ("mi_tetvr.recon",),
           ("mi_tetvr.apps", "mi_tetvr.distributed"), ("mi_tetvr.cli",), ("mi_tetvr.plugins",)]
 
@@ -29,11 +28,8 @@ def _layer(module):
 
 
 def _module_name(path):
-    """The dotted name ``path`` (a file of mi_tetvr/ or plugins/) is imported as."""
-    parts = path.relative_to(ROOT).with_suffix("").parts
-    if parts[0] == "plugins":                  # installed as mi_tetvr.plugins
-        parts = ("mi_tetvr",) + parts
-    return ".".join(parts).removesuffix(".__init__")
+    """The dotted name ``path`` (a file of mi_tetvr/) is imported as."""
+    return ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
 
 
 def _imported_names(path, module):
@@ -67,7 +63,7 @@ def _layer_violations(files):
 
 
 def _package_files():
-    return sorted((ROOT / "mi_tetvr").rglob("*.py")) + sorted((ROOT / "plugins").glob("*.py"))
+    return sorted((ROOT / "mi_tetvr").rglob("*.py"))
 
 
 def test_no_module_imports_a_layer_above_its_own():
@@ -83,8 +79,10 @@ def test_no_module_imports_a_layer_above_its_own():
     ("from ..apps import framing\n", "mi_tetvr/render/x.py", ["mi_tetvr.render.x"]),
     ("from mi_tetvr import plugins\n", "mi_tetvr/cli/x.py", ["mi_tetvr.cli.x"]),
     ("import mi_tetvr.plugins.tetvr\n", "mi_tetvr/apps/x.py", ["mi_tetvr.apps.x"]),
-    ("from mi_tetvr.apps import framing\nfrom .tetmesh import build_shape\n",
-     "plugins/x.py", []),
+    ("from mi_tetvr.apps import framing\nfrom .tetmesh import TetMeshShape\n",
+     "mi_tetvr/plugins/x.py", []),
+    ("def f():\n    from mi_tetvr.plugins.tetmesh import TetMeshShape\n",
+     "mi_tetvr/recon/x.py", ["mi_tetvr.recon.x"]),
     ("from . import walk\nfrom mi_tetvr.mesh import TetMesh\n", "mi_tetvr/render/x.py", []),
 ])
 def test_the_layer_check_sees_an_import_from_above(tmp_path, monkeypatch, source, module,
@@ -133,9 +131,26 @@ def _module_files():
     return {str(p.relative_to(ROOT)) for p in _package_files() if "__pycache__" not in p.parts}
 
 
+def test_only_the_registration_imports_the_plugins():
+    """Nothing in the package imports a plugin module but the package's ``__init__``
+    (the registration) and the plugins themselves (also inside functions)."""
+    said = []
+    for path in _package_files():
+        module = _module_name(path)
+        if module == "mi_tetvr" or module.startswith("mi_tetvr.plugins"):
+            continue
+        said += [f"{module} imports {name}" for name in _imported_names(path, module)
+                 if name == "mi_tetvr.plugins" or name.startswith("mi_tetvr.plugins.")]
+    assert not said, said
+    names = set(_imported_names(ROOT / "mi_tetvr" / "__init__.py", "mi_tetvr"))
+    assert {n for n in names if n.startswith("mi_tetvr.plugins")} <= {
+        "mi_tetvr.plugins.register", "mi_tetvr.plugins.on_variant_change",
+        "mi_tetvr.plugins.mark", "mi_tetvr.plugins.raised_in"}
+
+
 def test_the_readme_names_every_module():
-    """The README's *Architecture* tree names every module of mi_tetvr/ and
-    plugins/ as the tree holds them now, and nothing else."""
+    """The README's *Architecture* tree names every module of mi_tetvr/ as the tree
+    holds them now, and nothing else."""
     named = architecture_entries((ROOT / "README.md").read_text())
     files = _module_files()
     assert not files - named, (f"modules the README's Architecture section does not name "

@@ -71,9 +71,11 @@ def mesh_scene(settings, mesh, framing):
         # a point array, or a cell array (dvr: constant in each tet)
         values = ({"scalar": mesh.point_data[name]} if name in mesh.point_data
                   else {"cell_scalar": mesh.cell_data[name]})
-        shape = mi_tetvr.tetmesh_dict(mesh.vertices, mesh.tets, **values, **props)
+        shape = mi_tetvr.tetmesh_shape(
+            mi_tetvr.tetmesh_dict(mesh.vertices, mesh.tets, **values, **props),
+            topology=mesh.topology)
     else:
-        shape = mi_tetvr.tetmesh_dict(mesh.vertices, mesh.tets, mesh.color, mesh.opacity)
+        shape = mi_tetvr.tetmesh_shape(mesh)
     return {**framed_scene(s, framing), "volume": shape}
 
 

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mi_tetvr.extras import needs
+
 __all__ = ["lit_scene", "surface_meshes"]
 
 #: Samples per pixel of a lit render without ``--spp``.
@@ -55,7 +57,8 @@ def surface_meshes(mesh, scalar, tf, value_range, surface, iso=None, plane=None)
     values ``iso``) or the slice (``"slice"``, ``plane`` = point and normal)
     of the tet mesh's ``scalar`` (point data), colored by the transfer
     function ``tf`` over ``value_range``; ValueError where they are empty."""
-    import pyvista as pv
+    with needs("vis", "lighting a scalar mesh's isosurfaces and slice (VTK)"):
+        import pyvista as pv
     grid = pv.UnstructuredGrid({pv.CellType.TETRA: np.asarray(mesh.tets, np.int64)},
                                np.asarray(mesh.vertices, np.float64))
     values = np.asarray(mesh.point_data[scalar], np.float64)

@@ -43,6 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_tetvr.extras import needs
+
 #: Refinement: the fractions of the resolution rendered one after the other
 #: once the camera stops (the first also while it moves).
 LEVELS = (0.25, 0.5, 1.0)
@@ -92,7 +94,8 @@ def quaternion_matrix(wxyz):
 
 def matrix_quaternion(r):
     """The unit quaternion ``(w, x, y, z)`` of a rotation matrix."""
-    from scipy.spatial.transform import Rotation
+    with needs("viewer", "the live viewer"):
+        from scipy.spatial.transform import Rotation
     x, y, z, w = Rotation.from_matrix(np.asarray(r, np.float64)).as_quat()
     return np.array([w, x, y, z])
 
@@ -631,7 +634,8 @@ class Viewer:
         self.render_seconds = 0.0
         self.server = None
         if server:
-            import viser
+            with needs("viewer", "the live viewer"):
+                import viser
             self.server = viser.ViserServer(host=host, port=port, verbose=False)
             self.server.scene.set_up_direction(tuple(float(v) for v in shown.up))
             self._build_gui()
@@ -964,7 +968,8 @@ class Viewer:
         self.save_dir.mkdir(parents=True, exist_ok=True)
         k = 1 + len(list(self.save_dir.glob("view_*.xml")))
         stem = self.save_dir / f"view_{k:03d}"
-        from PIL import Image
+        with needs("viewer", "the live viewer"):
+            from PIL import Image
         Image.fromarray(srgb8(image, self.background)).save(f"{stem}.png")
         mi.Bitmap(np.ascontiguousarray(image, np.float32),
                   mi.Bitmap.PixelFormat.RGBA).write(f"{stem}.exr")
@@ -982,7 +987,8 @@ class Viewer:
 
 def _thumbnail(image, side=96):
     """An 8-bit image shrunk to at most ``side`` pixels along its longer side."""
-    from PIL import Image
+    with needs("viewer", "the live viewer"):
+        from PIL import Image
     im = Image.fromarray(image)
     im.thumbnail((side, side))
     return np.asarray(im)
@@ -1007,7 +1013,8 @@ class FitViewer(Viewer):
         self.curve = {"step": [], "loss": [], "psnr": []}
         self._plotted = 0.0
         if self.server is not None:
-            import viser.uplot as uplot
+            with needs("viewer", "the live viewer"):
+                import viser.uplot as uplot
             with self.server.gui.add_folder("Fit", order=-1):
                 self._stage_md = self.server.gui.add_markdown("starting")
                 self._plot = self.server.gui.add_uplot(

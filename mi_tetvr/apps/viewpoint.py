@@ -22,6 +22,7 @@ import numpy as np
 
 from mi_tetvr.camera import fibonacci_sphere
 from mi_tetvr.camera import orbit_to_world
+from mi_tetvr.extras import needs
 
 
 def _opaque(x):
@@ -169,7 +170,8 @@ def best_viewpoint(search, starts, iterations=20, samples=256, progress=None):
 def plot_viewpoints(result, path):
     """The sampled entropies over the sphere (longitude, latitude) with the
     ascent paths and the chosen view."""
-    from matplotlib.figure import Figure
+    with needs("vis", "the viewpoint plot"):
+        from matplotlib.figure import Figure
     s = result["samples"]
     fig = Figure(figsize=(8, 4.2))
     ax = fig.subplots()

@@ -39,6 +39,8 @@ picks the Mitsuba variant of the commands that render; ``--quiet`` hides progres
 apply to every mesh a command reads; ``--opacity-scale`` is a transfer function's
 opacity per mesh radius (default 1). Errors are one line, ``mi-tetvr: ...``, exit
 status 2 for bad usage and 1 otherwise; ``MI_TETVR_TRACEBACK=1`` shows the traceback.
+A command that needs an optional package says which extra brings it
+(``pip install "mi_tetvr[viewer]"``) before it starts.
 """
 from __future__ import annotations
 
@@ -60,6 +62,7 @@ from mi_tetvr.cli.info import mesh_report
 from mi_tetvr.cli.make_dataset import TEST_VIEWS
 from mi_tetvr.cli.render import series_paths
 from mi_tetvr.cli.view import fit_dataset, view_shown
+from mi_tetvr.extras import MissingExtra
 
 __all__ = ["main", "build_parser", "command_summary", "COMMANDS", "CommandError", "scene_xml",
            "mesh_report", "fit_config", "fit_dataset", "view_shown", "series_paths",
@@ -74,18 +77,14 @@ COMMANDS = (render, info, make_scenes, make_dataset, make_capture, process_data,
 def build_parser():
     """The ``mi-tetvr`` argument parser: one subparser per command of :data:`COMMANDS`,
     each with its module's options and ``func`` its ``run``."""
-    from importlib.metadata import PackageNotFoundError, version
-    try:
-        ver = version("mi_tetvr")
-    except PackageNotFoundError:
-        ver = "unknown"
+    from mi_tetvr import __version__
     p = argparse.ArgumentParser(
         prog="mi-tetvr", description="Differentiable volume rendering of tetrahedral meshes "
         "in Mitsuba 3.", epilog=textwrap.fill(
             "Conventions: " + __doc__.split("Conventions (every command): ")[1].split("\n\n")[0]
             .replace("\n", " ").replace("%", "%%").replace("``", "'"), 88),
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--version", action="version", version=f"mi-tetvr {ver}")
+    p.add_argument("--version", action="version", version=f"mi-tetvr {__version__}")
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
     for command in COMMANDS:
         c = sub.add_parser(command.NAME, help=command.HELP)
@@ -147,7 +146,7 @@ def main(argv=None):
     try:
         return a.func(a)
     except (CommandError, KeyboardInterrupt, ValueError, KeyError, OSError,
-            RuntimeError) as e:
+            RuntimeError, MissingExtra) as e:
         message = error_message(e)
         if message is None:
             sys.exit(1)

@@ -118,28 +118,37 @@ def scene_xml(path, res=None, shape_props=None, classification=None):
 def load_xml(mi, path, res=None, shape_props=None, classification=None):
     """An XML scene file loaded (:func:`scene_xml`'s text, its folder on the file
     resolver's path), or :class:`CommandError` naming the plugin's error."""
+    import mi_tetvr
     try:
         text = scene_xml(path, res, shape_props, classification)
         mi.file_resolver().prepend(str(Path(path).resolve().parent))
-        return mi.load_string(text)
+        return mi_tetvr.load_string(text)
     except Exception as e:
         raise CommandError(f"cannot load {path}: {plugin_error(e)}") from None
 
 
 def plugin_error(e):
-    """The one line of an error raised in a plugin's constructor, read back from
-    Mitsuba's parser error (:func:`mi_tetvr.plugin_error`): ``Class: message``."""
+    """The one line of an error raised while Mitsuba built a scene: a plugin's own
+    exception (:func:`mi_tetvr.plugin_error`; :func:`mi_tetvr.load_dict` raises it
+    as it is) as ``Class: message``, else the error's text."""
     import mi_tetvr
     err = mi_tetvr.plugin_error(e)
-    if err is e:
+    if err is e and (isinstance(e, RuntimeError) or not _from_plugin(e)):
         return str(e)
     return f"{type(err).__name__}: {err}"
 
 
+def _from_plugin(e):
+    """Whether ``e`` is a plugin's own exception, raised again by :func:`mi_tetvr.load_dict`
+    (:func:`mi_tetvr.plugin_error` names the plugin in its ``mi_tetvr_plugin``)."""
+    return hasattr(e, "mi_tetvr_plugin")
+
+
 def load_scene(mi, scene_dict, path):
     """``mi.load_dict``, or :class:`CommandError` naming the plugin's error."""
+    import mi_tetvr
     try:
-        return mi.load_dict(scene_dict)
+        return mi_tetvr.load_dict(scene_dict)
     except Exception as e:
         raise CommandError(f"cannot load {path}: {plugin_error(e)}") from None
 
@@ -165,7 +174,8 @@ def render_image(mi, scene, path, **kwargs):
 
 def read_mesh(options, path):
     """A mesh file: its color and opacity (defaults where absent) and point arrays,
-    ``options``' ``repair`` and ``cell_to_point`` applied; what is wrong with it as
+    ``options``' ``repair`` and ``cell_to_point`` applied, and its topology, built
+    here, before any plugin sees the mesh; what is wrong with it as
     :class:`CommandError`."""
     import warnings
 
@@ -173,8 +183,10 @@ def read_mesh(options, path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
-            return mi_tetvr.read_tetmesh(path, repair=options.repair,
+            mesh = mi_tetvr.read_tetmesh(path, repair=options.repair,
                                          cell_to_point=options.cell_to_point)
+            mesh.topology        # (a folded or flat mesh is refused here)
+            return mesh
         except (ValueError, FileNotFoundError, KeyError) as e:
             raise CommandError(str(e)) from None
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from mi_tetvr.cli import flags
 from mi_tetvr.cli.common import load_data, set_variant
+from mi_tetvr.extras import require
 
 NAME = "eval"
 HELP = ("PSNR/SSIM of a fit (or a colored mesh) on a data set's views, scored as the fit "
@@ -32,6 +33,7 @@ def add_arguments(p):
 
 
 def run(a):
+    require("recon", "mi-tetvr eval", "scipy", "skimage", "PIL")
     from mi_tetvr.recon.config import parse_background
     result = Path(a.result)
     if not result.exists():

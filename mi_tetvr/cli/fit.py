@@ -9,6 +9,7 @@ from pathlib import Path
 
 from mi_tetvr.cli import flags
 from mi_tetvr.cli.common import CommandError, forwarding, load_data, set_variant
+from mi_tetvr.extras import require
 
 NAME = "fit"
 HELP = "reconstruct a tet-mesh volume from a multi-view data set"
@@ -56,6 +57,11 @@ def run(a):
     if a.print_config:
         print(json.dumps(dataclasses.asdict(cfg), indent=2))
         return
+    require("recon", "mi-tetvr fit", "scipy", "skimage", "PIL", "matplotlib")
+    if a.viewer:
+        require("viewer", "fit --viewer", "viser")
+    if a.workers is not None or a.address is not None:
+        require("cluster", "fit --workers", "ray")
     from mi_tetvr.recon.config import INITS
     if a.viewer and cfg.linear_solver:
         raise ValueError(f"--viewer shows the steps of an Adam fit; --model absorption "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from mi_tetvr.cli import flags
 from mi_tetvr.cli.common import set_variant
+from mi_tetvr.extras import require
 
 NAME = "make-capture"
 HELP = ("path-trace a photo capture of a textured room with objects from cameras inside it "
@@ -21,6 +22,7 @@ def add_arguments(p):
 
 
 def run(a):
+    require("sfm", "mi-tetvr make-capture", "pycolmap", "PIL")
     set_variant(a.variant)
     from mi_tetvr.recon.capture import make_room_capture
     width, height = a.res

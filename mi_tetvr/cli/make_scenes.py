@@ -1,17 +1,21 @@
-"""``mi-tetvr make-scenes``: (re)generate the meshes of the bundled scenes."""
+"""``mi-tetvr make-scenes [-o DIR]``: write the bundled scenes (XML scenes, transfer
+functions) and generate the meshes and volume they use."""
 from __future__ import annotations
 
 from mi_tetvr.cli import flags
 
 NAME = "make-scenes"
-HELP = "(re)generate the meshes of the bundled scenes"
+HELP = "write the bundled scenes and generate the meshes and volume they use"
 
 
 def add_arguments(p):
-    flags.out(p, "folder of the scenes (default: the project's scenes/)", required=False)
+    flags.out(p, "folder of the scenes (default: scenes/ in the current directory)",
+              required=False)
+    p.add_argument("--force", action="store_true",
+                   help="generate the meshes and the volume again where they exist")
 
 
 def run(a):
-    from mi_tetvr.mesh.scenes import make_scene_meshes
-    for p in make_scene_meshes(a.out):
+    from mi_tetvr.mesh.scenes import make_scenes
+    for p in make_scenes(a.out, force=a.force):
         print(f"wrote {p}")

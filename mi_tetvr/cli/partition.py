@@ -18,6 +18,7 @@ def add_arguments(p):
     flags.out(p, "the partitioned mesh (.pvtu; its pieces go to a folder of its name "
                  "beside it, its boxes to NAME.blocks.json)")
     p.add_argument("--blocks", type=int, required=True, help="number of blocks (boxes)")
+    flags.mesh_flags(p)
     flags.quiet(p)
 
 
@@ -35,7 +36,9 @@ def run(a):
     t0 = time.time()
     try:
         # (every array as the file has it: no color or opacity of its own)
-        mesh = read_tetmesh(a.mesh, color=None, opacity=None)
+        mesh = read_tetmesh(a.mesh, color=None, opacity=None, repair=a.repair,
+                            cell_to_point=a.cell_to_point)
+        mesh.topology        # (a mesh the renderer would refuse is refused here)
     except MeshError as e:
         raise CommandError(str(e)) from None
     bar = progress_bar(total=a.blocks, desc="pieces", unit="piece", disable=a.quiet)

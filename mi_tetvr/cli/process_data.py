@@ -7,6 +7,7 @@ from pathlib import Path
 
 from mi_tetvr.cli import flags
 from mi_tetvr.cli.common import CommandError
+from mi_tetvr.extras import require
 
 NAME = "process-data"
 HELP = ("camera poses of photos or a video by structure from motion (COLMAP through "
@@ -39,6 +40,7 @@ _PRIOR = {"exif": "the EXIF focal length", "exif for some photos": "the EXIF foc
 
 
 def run(a):
+    require("sfm", "mi-tetvr process-data", "pycolmap", "PIL")
     from mi_tetvr.recon.sfm import run_sfm
     try:
         s = run_sfm(a.images, a.out, matcher=a.matcher, max_image_size=a.max_image_size,

@@ -12,6 +12,7 @@ import numpy as np
 
 from mi_tetvr.cli import flags
 from mi_tetvr.cli.common import CommandError
+from mi_tetvr.extras import require
 
 NAME = "process-xray"
 HELP = ("measured X-ray projections (Data Exchange HDF5) as an X-ray data set for fit: "
@@ -60,6 +61,7 @@ def add_arguments(p):
 
 
 def run(a):
+    require("tomo", "mi-tetvr process-xray", "h5py", "algotom", "skimage")
     from mi_tetvr.grid.scan import (bin_pixels, estimate_flux, find_center, read_data_exchange,
                                     remove_rings, transmittance)
     try:

@@ -17,6 +17,7 @@ from mi_tetvr.cli import flags
 from mi_tetvr.cli.common import (IMAGE_SUFFIXES, MESH_SUFFIXES, CommandError, is_mesh_file,
                                  load_scene, load_xml, plugin_error, read_mesh, render_errors,
                                  render_image, set_variant, srgb8, write_render)
+from mi_tetvr.extras import require
 
 NAME = "render"
 HELP = "render a Mitsuba XML scene with tetmesh shapes, or a mesh file framed by a camera"
@@ -75,6 +76,10 @@ def check_outputs(outs, video):
 
 
 def run(a):
+    if a.workers is not None or a.address is not None:
+        require("cluster", "render --workers", "ray")
+    if any(Path(o).suffix.lower() == ".mp4" for o in a.out):
+        require("vis", "a video", "imageio_ffmpeg")
     s = flags.settings_of(RenderSettings, a)
     mi = set_variant(a.variant)
     paths = series_paths(a.scene)

@@ -4,6 +4,7 @@ table (:mod:`mi_tetvr.recon.sweep`)."""
 from __future__ import annotations
 
 from mi_tetvr.cli import flags
+from mi_tetvr.extras import require
 
 NAME = "sweep"
 HELP = "fits over a grid of settings (Ray Tune), their held-out scores in one table"
@@ -24,6 +25,7 @@ def add_arguments(p):
 
 
 def run(a):
+    require("cluster", "mi-tetvr sweep", "ray", "yaml")
     from mi_tetvr.cli.common import set_variant
     from mi_tetvr.recon.sweep import format_table, read_sweep, sweep
     if a.workers < 1:

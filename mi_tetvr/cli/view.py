@@ -10,6 +10,7 @@ from mi_tetvr.apps.settings import DEFAULT_UP, numbers
 from mi_tetvr.cli import flags
 from mi_tetvr.cli.common import (MESH_SUFFIXES, forwarding, is_mesh_file, load_data, load_xml,
                                  refuse, set_variant)
+from mi_tetvr.extras import require
 
 NAME = "view"
 HELP = ("a live viewer in the browser of a mesh, an XML scene, a data set's cameras and "
@@ -96,6 +97,7 @@ def view_shown(a):
 
 
 def run(a):
+    require("viewer", "mi-tetvr view", "viser", "scipy", "PIL")
     set_variant(a.variant)
     if a.res is not None and a.res[0] != a.res[1]:
         raise ValueError("--res of the viewer is one number, the image's longer side (the "

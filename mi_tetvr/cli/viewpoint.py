@@ -10,6 +10,7 @@ from pathlib import Path
 from mi_tetvr.apps.settings import OPACITY_SCALE
 from mi_tetvr.cli import flags
 from mi_tetvr.cli.common import CommandError, plugin_error, read_mesh, set_variant, write_render
+from mi_tetvr.extras import require
 
 NAME = "viewpoint"
 HELP = ("the camera position of highest opacity entropy (DiffDVR's best viewpoint), by "
@@ -40,6 +41,7 @@ def add_arguments(p):
 def run(a):
     import warnings
 
+    require("vis", "mi-tetvr viewpoint", "matplotlib")
     set_variant(a.variant)
     from mi_tetvr.apps.viewpoint import (ViewpointSearch, best_viewpoint, default_starts,
                                          orbit_scene, plot_viewpoints)

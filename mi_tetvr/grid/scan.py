@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_tetvr.camera import Camera, look_at
+from mi_tetvr.extras import needs
 
 __all__ = ["Scan", "read_data_exchange", "transmittance", "find_center", "remove_rings",
            "estimate_flux", "scan_cameras", "scan_grid", "bin_pixels",
@@ -96,7 +97,8 @@ def read_data_exchange(path, angles=None, normalized: bool = False) -> Scan:
         ``normalized``), no angles, angles whose count differs from the
         projections', or fields of another detector size.
     """
-    import h5py
+    with needs("tomo", "reading an HDF5 scan"):
+        import h5py
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such file: {path}")
@@ -193,7 +195,8 @@ def remove_rings(depth: np.ndarray, size: int = 21) -> np.ndarray:
     """Ring artefacts removed from optical depths (angles, rows, columns):
     Vo, Atwood and Drakopoulos 2018's sorting-based stripe filter (algotom's
     ``remove_stripe_based_sorting``) on each row's sinogram."""
-    from algotom.prep.removal import remove_stripe_based_sorting
+    with needs("tomo", "ring removal"):
+        from algotom.prep.removal import remove_stripe_based_sorting
     out = np.empty_like(depth)
     for r in range(depth.shape[1]):
         out[:, r, :] = remove_stripe_based_sorting(depth[:, r, :], size=size)
@@ -205,7 +208,8 @@ def find_center(depth: np.ndarray, angles) -> float:
     parallel-beam scan over (about) 180 degrees: Vo, Atwood and Drakopoulos
     2014's Fourier-space metric of each row's sinogram joined with its
     mirror (algotom's ``find_center_vo``), the median over the rows."""
-    from algotom.prep.calculation import find_center_vo
+    with needs("tomo", "finding a scan's rotation centre"):
+        from algotom.prep.calculation import find_center_vo
     span = float(np.ptp(angles))
     if not 150.0 <= span <= 210.0:
         raise ValueError(f"the centre is found on a scan over about 180 degrees; these angles "
@@ -222,7 +226,8 @@ def estimate_flux(t: np.ndarray) -> float:
     scikit-image's ``estimate_sigma`` (the median absolute deviation of the
     finest wavelet coefficients, Donoho and Johnstone), ``var(T) = T / N``,
     so ``N = mean(T) / sigma^2``; the median over the rows."""
-    from skimage.restoration import estimate_sigma
+    with needs("tomo", "estimating a scan's noise"):
+        from skimage.restoration import estimate_sigma
     values = []
     for a in range(t.shape[0]):
         for r in range(t.shape[1]):

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mi_tetvr.extras import needs
 from mi_tetvr.grid.xray import rotation_axis
 
 __all__ = ["slice_sinograms", "reconstruct_slices", "tuned_slices", "validation_split",
@@ -139,7 +140,8 @@ class _Astra:
     W x W slice (unit pixels): the forward projection and its transpose."""
 
     def __init__(self, theta, width):
-        import astra
+        with needs("tomo", "the ASTRA baselines"):
+            import astra
         self.vol = astra.create_vol_geom(width, width)
         self.proj = astra.create_proj_geom("parallel", 1.0, width, np.radians(theta))
         self.id = astra.create_projector("linear", self.proj, self.vol)
@@ -165,7 +167,8 @@ class _Astra:
         return lam
 
     def free(self):
-        import astra
+        with needs("tomo", "the ASTRA baselines"):
+            import astra
         astra.projector.delete(self.id)
 
 
@@ -173,7 +176,8 @@ def _run(method, sino, passes, tv=0.0, every=None):
     """Run ``method`` on the sinograms of :func:`slice_sinograms` (``sino``),
     yielding ``(pass, images)`` after every pass when ``every`` (else after the
     last only): images (nz, W, W) in values, slice order of ``sino``."""
-    from skimage.transform import iradon, iradon_sart
+    with needs("tomo", "the FBP and SART baselines"):
+        from skimage.transform import iradon, iradon_sart
     depth, theta, width = sino["depth"], sino["theta"], sino["width"]
     nz = len(depth)
     if method == "fbp":
@@ -205,7 +209,8 @@ def _run(method, sino, passes, tv=0.0, every=None):
                     yield p + 1, x.copy()
             return
         if method == "fista_tv":
-            from skimage.restoration import denoise_tv_chambolle
+            with needs("tomo", "the FISTA-TV baseline"):
+                from skimage.restoration import denoise_tv_chambolle
             wts = sino["weights"]
             if wts is not None:
                 wts = wts / float(np.mean(wts))

@@ -40,6 +40,8 @@ from typing import Tuple, Union
 
 import numpy as np
 
+from mi_tetvr.extras import needs
+
 __all__ = ["Volume", "make_volume", "load_volume", "write_cvol", "write_mhd", "trilinear_numpy"]
 
 PathType = Union[str, "PathLike[str]"]
@@ -120,7 +122,8 @@ class Volume:
         at the faces) sampled ``factor`` times finer: ``(n - 1) * factor + 1``
         samples per axis, every ``factor``-th one a sample of this volume. Values
         stay >= 0 where these are (the spline's overshoot is clipped)."""
-        from scipy import ndimage
+        with needs("tomo", "refining a volume by its cubic B-spline"):
+            from scipy import ndimage
         factor = int(factor)
         if factor < 1:
             raise ValueError(f"refinement factor {factor} must be a positive integer")
@@ -366,7 +369,8 @@ def write_mhd(path: PathType, values, spacing=(1.0, 1.0, 1.0)) -> None:
 
 
 def _load_vtk_image(path: Path):
-    import pyvista as pv
+    with needs("vis", "reading VTK image data"):
+        import pyvista as pv
     img = pv.read(str(path))
     if not isinstance(img, pv.ImageData):
         raise ValueError(f"{str(path)!r}: not VTK image data (got {type(img).__name__})")

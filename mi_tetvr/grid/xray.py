@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from mi_tetvr.camera import Camera
+from mi_tetvr.extras import needs
 from mi_tetvr.grid.volume import Volume, trilinear_numpy
 
 __all__ = ["line_integrals", "xray_cameras", "rotation_axis", "project_volume",
@@ -190,8 +191,9 @@ def fdk(grid: Volume, views, scale: float) -> np.ndarray:
     -------
     (nz, ny, nx) float64
     """
-    from scipy.ndimage import map_coordinates
-    from scipy.signal import fftconvolve
+    with needs("tomo", "FDK reconstruction"):
+        from scipy.ndimage import map_coordinates
+        from scipy.signal import fftconvolve
     if not views or any(v.camera.is_orthographic for v in views):
         raise ValueError("fdk needs perspective (cone-beam) views")
     axis = rotation_axis(grid)

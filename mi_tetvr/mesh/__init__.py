@@ -27,7 +27,7 @@ Modules
 :mod:`~mi_tetvr.mesh.initial`
     Initial meshes for reconstruction (grid, fTetWild, Delaunay).
 :mod:`~mi_tetvr.mesh.scenes`
-    The meshes and volume of the bundled scenes.
+    The bundled scenes, their meshes and volume.
 """
 from .topology import (EDGES, FACES, FLAT_TOLERANCE, MeshError, Orientation, Topology,
                        bbox_diagonal, build_topology, check_bounds, edge_lengths, face_keys, flip_tets,
@@ -39,7 +39,7 @@ from .generate import KUHN_TETS, blob_field, blob_mesh, grid_mesh, grid_tets
 from .refine import (PruneResult, RefineResult, bisection_order, prune_empty, prune_mesh,
                      refine_mesh, select_by_attribute, select_top_fraction, split_vertices)
 from .initial import delaunay_init, grid_init, orient_and_compact, tetwild_init
-from .scenes import default_volume, make_scene_meshes
+from .scenes import bundled, default_volume, make_scenes
 
 __all__ = [
     # topology: primitives, validation, topology
@@ -59,5 +59,5 @@ __all__ = [
     # initial meshes
     "grid_init", "tetwild_init", "delaunay_init", "orient_and_compact",
     # bundled scenes
-    "make_scene_meshes", "default_volume",
+    "make_scenes", "bundled", "default_volume",
 ]

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_tetvr.extras import needs
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.topology import FLAT_TOLERANCE, MeshError, check_bounds, orient_tets
 
@@ -167,13 +168,15 @@ def box_surface(bounds):
     trimesh.Trimesh
         8 vertices, 12 faces.
     """
-    import trimesh
+    with needs("recon", "reading a surface mesh"):
+        import trimesh
 
     return trimesh.creation.box(bounds=check_bounds(bounds))
 
 
 def _load_surface(surface):
-    import trimesh
+    with needs("recon", "reading a surface mesh"):
+        import trimesh
 
     if isinstance(surface, (str, Path)):
         path = Path(surface)
@@ -248,11 +251,8 @@ def tetwild_init(surface=None, bounds=None, edge_length_fac: float = 0.1,
     if edge_length_abs is not None and not edge_length_abs > 0:
         raise ValueError(f"edge_length_abs must be > 0, got {edge_length_abs}")
     surf = box_surface(bounds) if surface is None else _load_surface(surface)
-    try:
+    with needs("recon", "fTetWild's mesh"):
         import pytetwild  # imports pyvista at import time
-    except ImportError as e:  # pragma: no cover - depends on the environment
-        raise ImportError("tetwild_init needs `pytetwild` (and `pyvista`, which it imports): "
-                          "pip install pytetwild pyvista") from e
     # fTetWild writes `__tracked_surface.stl` into the working directory: run
     # it in a scratch one (the surface is already loaded)
     cwd = os.getcwd()
@@ -293,7 +293,8 @@ def remove_outliers(points, outlier_std: float = 2.0, k_neighbors: int = 8):
     (k,) bool
         True for the points kept.
     """
-    from scipy.spatial import cKDTree
+    with needs("recon", "a Delaunay mesh of points"):
+        from scipy.spatial import cKDTree
 
     p = np.asarray(points, dtype=np.float64)
     k = min(int(k_neighbors), len(p) - 1)
@@ -308,7 +309,8 @@ def _delaunay_tets(p, flat_tol, joggle, seed, caller):
     """Delaunay tets of the points ``p`` (k, 3), the vertices of flat tets joggled and the
     triangulation redone (see :func:`delaunay_init`); returns the (joggled) points and the
     tets without the flat ones still left (warned about)."""
-    from scipy.spatial import Delaunay, QhullError, cKDTree
+    with needs("recon", "a Delaunay mesh of points"):
+        from scipy.spatial import Delaunay, QhullError, cKDTree
     rng = np.random.default_rng(seed)
     nn = None
     for attempt in range(5):
@@ -452,7 +454,8 @@ def shell_points(center, radii, per_shell: int, seed: int = 0):
     -------
     (s * per_shell, 3) float64
     """
-    from scipy.spatial.transform import Rotation
+    with needs("recon", "an initial mesh of an unbounded scene"):
+        from scipy.spatial.transform import Rotation
     i = np.arange(per_shell) + 0.5
     z = 1.0 - 2.0 * i / per_shell
     phi = np.pi * (1.0 + 5 ** 0.5) * i
@@ -528,7 +531,8 @@ def unbounded_init(points, cameras, far: float = 8.0, shells: int = 6,
     is_shell : (n,) bool
         The vertices that are shell points (no point of the scene).
     """
-    from scipy.spatial import cKDTree
+    with needs("recon", "an initial mesh of an unbounded scene"):
+        from scipy.spatial import cKDTree
     p = np.unique(np.asarray(points, np.float64).reshape(-1, 3), axis=0)
     p = p[np.all(np.isfinite(p), axis=1)]
     if outlier_std is not None and len(p) >= 20:

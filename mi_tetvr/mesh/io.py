@@ -26,6 +26,7 @@ from pathlib import Path
 import meshio
 import numpy as np
 
+from mi_tetvr.extras import needs
 from mi_tetvr.mesh.tetmesh import TetMesh
 from mi_tetvr.mesh.topology import MeshError, _preview, repair_tets
 from mi_tetvr.transfer import TransferFunction, read_transfer_function
@@ -94,7 +95,8 @@ class _Quiet(logging.Filter):
 
 def _read_vtk(path) -> meshio.Mesh:
     """VTK's reading (any VTK format), as a meshio mesh."""
-    import pyvista as pv
+    with needs("vis", "reading a VTK file meshio cannot read"):
+        import pyvista as pv
     quiet, root = _Quiet(), logging.getLogger()
     root.addFilter(quiet)
     try:
@@ -168,7 +170,8 @@ def cell_to_point_data(vertices, tets, cell_data):
     """Per-tet arrays averaged onto the vertices (each vertex: the mean over
     the tets around it), as VTK's ``vtkCellDataToPointData`` does (ParaView's
     Cell Data to Point Data). Returns a dict of (n, ...) arrays."""
-    import pyvista as pv
+    with needs("vis", "cell data to point data (VTK)"):
+        import pyvista as pv
     grid = pv.UnstructuredGrid({pv.CellType.TETRA: np.asarray(tets)},
                                np.asarray(vertices, np.float64))
     for k, a in cell_data.items():

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mi_tetvr.extras import needs
+
 __all__ = ["sample_field"]
 
 
@@ -22,7 +24,8 @@ def sample_field(vertices, tets, values, points, outside=0.0):
     -------
     (k,) or (k, c) float64
     """
-    import pyvista as pv
+    with needs("vis", "sampling a mesh at points (VTK's probe filter)"):
+        import pyvista as pv
     v = np.asarray(values, np.float64)
     grid = pv.UnstructuredGrid({pv.CellType.TETRA: np.asarray(tets, np.int64)},
                                np.asarray(vertices, np.float64))

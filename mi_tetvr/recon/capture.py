@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_tetvr.extras import needs
+
 __all__ = ["make_room_capture", "room_cameras", "ROOM"]
 
 #: The room: x, y in [-2, 2], z (up) in [0, 2.5] (world units: metres).
@@ -177,8 +179,9 @@ def make_room_capture(out_dir, views=48, width=400, height=300, fov_x=70.0, spp=
         What ``capture_info.json`` holds.
     """
     import mitsuba as mi
-    import pycolmap
-    from mi_tetvr.progress import progress_bar as tqdm
+    with needs("sfm", "a capture's COLMAP model"):
+        import pycolmap
+        from mi_tetvr.progress import progress_bar as tqdm
 
     from mi_tetvr.color import linear_to_srgb
     out = Path(out_dir)
@@ -194,7 +197,8 @@ def make_room_capture(out_dir, views=48, width=400, height=300, fov_x=70.0, spp=
     exposures = np.exp(rng.normal(0.0, exposure_sigma, views))
     gains = np.exp(rng.normal(0.0, gain_sigma, (views, 3)))
     frames = []
-    from PIL import Image
+    with needs("recon", "writing a capture's photos"):
+        from PIL import Image
     for i, cam in enumerate(tqdm(cams, desc="path trace photos", disable=not progress)):
         dirs = _lens_rays(cam, lens, spp, rng)
         c2w = cam.c2w_opencv[:3, :3]                  # camera axes x right, y down, z forward

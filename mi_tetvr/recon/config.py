@@ -19,6 +19,9 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from mi_tetvr.extras import needs
+
+
 __all__ = ["FitConfig", "coarse_to_fine", "INITS", "RENAMED", "setting", "parse_background"]
 
 #: Settings renamed since: old name -> name (old config files still read).
@@ -252,10 +255,13 @@ class FitConfig:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"config file not found: {path}")
+        yaml_file = path.suffix.lower() in (".yaml", ".yml")
+        if yaml_file:
+            with needs("recon", "a YAML config"):
+                import yaml
         try:
             text = path.read_text()
-            if path.suffix.lower() in (".yaml", ".yml"):
-                import yaml
+            if yaml_file:
                 data = yaml.safe_load(text)
             else:
                 data = json.loads(text)

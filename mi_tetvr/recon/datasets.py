@@ -46,6 +46,7 @@ from typing import Dict, List, Optional, Sequence, Union
 import numpy as np
 
 from mi_tetvr.camera import OPENGL_TO_MITSUBA, Camera, as_rigid
+from mi_tetvr.extras import needs
 from mi_tetvr.recon.hull import frusta_bounds
 from mi_tetvr.recon.images import (check_factor, downscale_image, image_size, read_image,
                                    write_image)
@@ -568,7 +569,8 @@ def load_colmap(path, images=None, downscale: int = 1, holdout: Holdout = 8, *,
         With ``points`` (k, 3), ``point_colors`` (k, 3) uint8, ``point_errors`` (k,) and
         ``point_track_lengths`` (k,) from the sparse points (sorted by point id).
     """
-    import pycolmap
+    with needs("sfm", "reading a COLMAP data set"):
+        import pycolmap
     path = Path(path)
     downscale = check_factor(downscale)
     model = _find_colmap_model(path)

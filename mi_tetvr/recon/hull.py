@@ -16,6 +16,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from mi_tetvr.extras import needs
 from mi_tetvr.mesh.topology import check_bounds
 
 __all__ = ["frusta_bounds", "visual_hull_bounds"]
@@ -42,7 +43,8 @@ def frusta_bounds(cameras: Sequence, far: Optional[float] = None) -> np.ndarray:
     (2, 3) float64
         ``[min, max]``.
     """
-    from scipy.optimize import linprog
+    with needs("recon", "the cameras' common bounds"):
+        from scipy.optimize import linprog
     cameras = list(cameras)
     if not cameras:
         raise ValueError("frusta_bounds needs at least one camera")

@@ -16,6 +16,7 @@ import numpy as np
 from mi_tetvr.color import linear_to_srgb, srgb_to_linear
 
 from mi_tetvr.camera import check_factor
+from mi_tetvr.extras import needs
 
 __all__ = ["read_image", "write_image", "downscale_image", "image_size", "exif_orientation",
            "exif_focal_px", "upright_copy"]
@@ -43,7 +44,8 @@ def exif_orientation(im) -> int:
 
 def image_size(path):
     """``(width, height)`` of an image file as shown upright, without decoding its pixels."""
-    from PIL import Image
+    with needs("recon", "reading images"):
+        from PIL import Image
     with Image.open(path) as im:
         w, h = im.size
         return (h, w) if exif_orientation(im) in _TRANSPOSED else (w, h)
@@ -57,7 +59,8 @@ def exif_focal_px(path):
     from the original picture's width, tag 40962, to this file's). Both are the camera's
     nominal values: a starting guess for structure from motion, which refines it.
     """
-    from PIL import Image
+    with needs("recon", "reading images"):
+        from PIL import Image
     with Image.open(path) as im:
         w, h = im.size
         try:
@@ -93,7 +96,8 @@ def upright_copy(src, dst) -> bool:
     losslessly), with its other EXIF data (camera, focal length) kept and the orientation tag
     dropped. Returns whether it was turned.
     """
-    from PIL import Image, ImageOps
+    with needs("recon", "reading images"):
+        from PIL import Image, ImageOps
     with Image.open(src) as im:
         im.load()
         if exif_orientation(im) == 1:
@@ -187,7 +191,8 @@ def read_image(path, downscale: int = 1) -> np.ndarray:
         img = np.array(bmp, dtype=np.float32).reshape(bmp.height(), bmp.width(), 4)
         return downscale_image(img, downscale)
 
-    from PIL import Image, ImageOps
+    with needs("recon", "reading images"):
+        from PIL import Image, ImageOps
     with Image.open(path) as im:
         im.load()
         if exif_orientation(im) != 1:
@@ -244,7 +249,8 @@ def write_image(path, image: np.ndarray) -> None:
         mi.Bitmap(np.ascontiguousarray(image), pixel_format=mi.Bitmap.PixelFormat.RGBA).write(
             str(path))
         return
-    from PIL import Image
+    with needs("recon", "writing images"):
+        from PIL import Image
     alpha = np.clip(image[..., 3:4], 0.0, 1.0)
     if suffix == ".png":
         with np.errstate(divide="ignore", invalid="ignore"):

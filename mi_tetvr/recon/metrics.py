@@ -14,6 +14,7 @@ import math
 import numpy as np
 
 from mi_tetvr.color import linear_to_srgb
+from mi_tetvr.extras import needs
 
 __all__ = ["composite", "display_rgb", "psnr", "ssim", "image_metrics", "transmittance_metrics",
            "tomography_scores"]
@@ -55,7 +56,8 @@ def psnr(mse):
 def ssim(a, b):
     """Structural similarity of two (h, w, c) images with values in [0, 1]
     (scikit-image's 7x7 window, smaller for images under 7 pixels; NaN under 3)."""
-    from skimage.metrics import structural_similarity
+    with needs("recon", "SSIM"):
+        from skimage.metrics import structural_similarity
     win = min(7, a.shape[0], a.shape[1])
     win -= 1 - win % 2
     if win < 3:

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_tetvr.extras import needs
 from mi_tetvr.recon.checkpoint import load_checkpoint, save_checkpoint
 from mi_tetvr.recon.config import RENAMED, FitConfig
 from mi_tetvr.recon.metrics import display_rgb, psnr
@@ -223,7 +224,8 @@ def unbounded_mesh(config: FitConfig, dataset):
     .unbounded_init` of the data set's sparse points and its cameras), the
     vertices at points starting from the points' colors, the shells' from the
     photos' mean color."""
-    from scipy.spatial import cKDTree
+    with needs("recon", "the fit's mesh from points"):
+        from scipy.spatial import cKDTree
 
     from mi_tetvr.color import srgb_to_linear
     from mi_tetvr.mesh.initial import unbounded_init

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mi_tetvr.extras import needs
 from mi_tetvr.recon.metrics import composite
 
 __all__ = ["save_comparison", "plot_history", "plot_transfer_functions"]
@@ -20,7 +21,8 @@ def save_comparison(path, pred_rgba, target_rgba, background):
     background : None or (3,) float
         Linear RGB (``None``: black).
     """
-    from PIL import Image
+    with needs("recon", "the fit's plots"):
+        from PIL import Image
 
     from mi_tetvr.color import linear_to_srgb
     row = np.concatenate([composite(pred_rgba, background), composite(target_rgba, background)], 1)
@@ -39,7 +41,8 @@ def plot_history(history, path, test_psnr=None):
     test_psnr : float, optional
         Drawn as a horizontal line.
     """
-    from matplotlib.figure import Figure
+    with needs("recon", "the fit's plots"):
+        from matplotlib.figure import Figure
     fig = Figure(figsize=(7, 4))
     ax = fig.subplots()
     t = np.asarray(history["time"]) / 60.0
@@ -78,7 +81,8 @@ def plot_transfer_functions(path, tfs, value_range=(0.0, 1.0), samples=512):
     value_range : (float, float)
         The scalar values the normalised axis [0, 1] spans (axis labels).
     """
-    from matplotlib.figure import Figure
+    with needs("recon", "the fit's plots"):
+        from matplotlib.figure import Figure
 
     from mi_tetvr.color import linear_to_srgb
     t = (np.arange(samples) + 0.5) / samples

@@ -44,6 +44,8 @@ from typing import Callable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from mi_tetvr.extras import MissingExtra, needs
+
 __all__ = ["run_sfm", "triangulate", "align_cameras", "extract_frames", "SMALL_SET",
            "IMAGE_SUFFIXES", "VIDEO_SUFFIXES"]
 
@@ -72,7 +74,8 @@ _WARN_FRACTION = 0.7
 @contextmanager
 def _quiet_colmap(level: int = 1):
     """COLMAP logs every step at INFO level to stderr: keep warnings and errors only."""
-    import pycolmap
+    with needs("sfm", "structure from motion"):
+        import pycolmap
     lg = getattr(pycolmap, "logging", None)
     old = getattr(lg, "minloglevel", None) if lg is not None else None
     if old is not None:
@@ -98,7 +101,8 @@ def _advance(bar, n: int) -> None:
 
 
 def _extraction_options(max_image_size: int, affine: bool):
-    import pycolmap
+    with needs("sfm", "structure from motion"):
+        import pycolmap
     eo = pycolmap.FeatureExtractionOptions()
     eo.max_image_size = int(max_image_size)
     eo.use_gpu = False
@@ -109,7 +113,8 @@ def _extraction_options(max_image_size: int, affine: bool):
 
 
 def _matching_options(seed: int):
-    import pycolmap
+    with needs("sfm", "structure from motion"):
+        import pycolmap
     mo = pycolmap.FeatureMatchingOptions()
     mo.use_gpu = False
     vo = pycolmap.TwoViewGeometryOptions()
@@ -121,7 +126,8 @@ def _extract(database: Path, image_dir: Path, names: Sequence[str], camera_mode,
              extraction, bar, chunk: int) -> None:
     """SIFT of ``names`` in chunks (pycolmap has no progress callback): one bar step per
     image. After the first chunk of a single-camera set the later chunks reuse its camera."""
-    import pycolmap
+    with needs("sfm", "structure from motion"):
+        import pycolmap
     names = list(names)
     for start in range(0, len(names), chunk):
         part = names[start:start + chunk]
@@ -170,8 +176,9 @@ def _copy_photos(given: Sequence[Path], image_dir: Path, log: Callable) -> Tuple
 def _readable_in_place(given: Sequence[Path], log: Callable) -> Tuple[list, dict]:
     """The photos of a folder that is already the data set's image folder: read, not copied
     (a turned one would be seen sideways by COLMAP and upright by the loaders)."""
-    from PIL import Image
-    from mi_tetvr.recon.images import exif_orientation
+    with needs("sfm", "reading photos"):
+        from PIL import Image
+        from mi_tetvr.recon.images import exif_orientation
     files, unreadable = [], {}
     for p in given:
         try:
@@ -201,8 +208,9 @@ def _focal_priors(database: Path, image_dir: Path, log: Callable) -> str:
     with its camera sensor database; where it found none, the photos' own 35 mm equivalent
     (:func:`mi_tetvr.recon.images.exif_focal_px`) is set as the prior in the database. Returns
     ``"exif"``, ``"exif for some photos"`` or ``"guess"`` (1.2 times the longest side)."""
-    import pycolmap
-    from mi_tetvr.recon.images import exif_focal_px
+    with needs("sfm", "structure from motion"):
+        import pycolmap
+        from mi_tetvr.recon.images import exif_focal_px
     db = pycolmap.Database.open(database)
     try:
         by_camera = {}
@@ -232,7 +240,8 @@ def _focal_priors(database: Path, image_dir: Path, log: Callable) -> str:
 def _why_unregistered(database: Path, names: Sequence[str]) -> dict:
     """``{name: why}`` for photos left out of the model, from the database: too few features,
     no verified match with another photo, or matched but not placed by the mapper."""
-    import pycolmap
+    with needs("sfm", "structure from motion"):
+        import pycolmap
     db = pycolmap.Database.open(database)
     try:
         ids = {im.name: int(im.image_id) for im in db.read_all_images()}
@@ -338,7 +347,8 @@ def _video_backend(path: Path):
                 yield np.frombuffer(buf, np.uint8).reshape(h, w, 3)
         return "imageio-ffmpeg", count, frames
     if path.suffix.lower() == ".gif":
-        from PIL import Image, ImageSequence
+        with needs("sfm", "reading a GIF"):
+            from PIL import Image, ImageSequence
 
         def count():
             with Image.open(p) as im:
@@ -349,9 +359,10 @@ def _video_backend(path: Path):
                 for f in ImageSequence.Iterator(im):
                     yield np.asarray(f.convert("RGB"))
         return "Pillow", count, frames
-    raise ValueError(f"reading the video {path} needs a video decoder, and none is installed: "
-                     f"pip install av (or opencv-python-headless, or imageio-ffmpeg), or "
-                     f"extract the frames yourself and pass their folder")
+    raise MissingExtra(f"reading the video {path} needs a video decoder, and none is "
+                       f"installed: pip install \"mi_tetvr[sfm]\" (imageio-ffmpeg; or PyAV or "
+                       f"OpenCV), or extract the frames yourself and pass their folder",
+                       name="imageio_ffmpeg")
 
 
 def extract_frames(video, out_dir, max_frames: int = 100, *, log: Callable = print
@@ -381,7 +392,8 @@ def extract_frames(video, out_dir, max_frames: int = 100, *, log: Callable = pri
     ValueError
         No decoder installed, or no frame in the file.
     """
-    from PIL import Image
+    with needs("sfm", "reading photos"):
+        from PIL import Image
     video, out_dir = Path(video), Path(out_dir)
     if max_frames < 1:
         raise ValueError(f"max_frames must be >= 1, got {max_frames}")
@@ -488,7 +500,8 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
     FileNotFoundError
         ``images`` does not exist.
     """
-    import pycolmap
+    with needs("sfm", "structure from motion"):
+        import pycolmap
     t0 = time.perf_counter()
     src, out_dir = Path(images), Path(out_dir)
     if not src.exists():
@@ -718,8 +731,9 @@ def triangulate(dataset_or_views, work_dir, *, max_image_size: int = 1600,
         Fewer than 2 views, a view without image or an orthographic camera, or fewer than
         ``min_points`` points.
     """
-    import pycolmap
-    from mi_tetvr.recon.images import write_image
+    with needs("sfm", "structure from motion"):
+        import pycolmap
+        from mi_tetvr.recon.images import write_image
     views = list(dataset_or_views.views if hasattr(dataset_or_views, "views")
                  else dataset_or_views)
     if len(views) < 2:
@@ -863,8 +877,9 @@ def align_cameras(estimated: Sequence, reference: Sequence, *, robust: bool = Fa
         Different lengths, fewer than 3 cameras, or a degenerate configuration (no
         similarity found).
     """
-    import pycolmap
-    from mi_tetvr.camera import Camera
+    with needs("sfm", "structure from motion"):
+        import pycolmap
+        from mi_tetvr.camera import Camera
     est, ref = list(estimated), list(reference)
     if len(est) != len(ref):
         raise ValueError(f"align_cameras: {len(est)} estimated and {len(ref)} reference "

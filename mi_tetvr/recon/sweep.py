@@ -20,6 +20,8 @@ import itertools
 import json
 from pathlib import Path
 
+from mi_tetvr.extras import needs
+
 #: The scores of a trial, in the table's order.
 SCORES = ("psnr", "ssim", "tets", "steps", "seconds")
 
@@ -34,7 +36,8 @@ def read_sweep(path):
         raise FileNotFoundError(f"sweep file not found: {path}")
     text = path.read_text()
     if path.suffix.lower() in (".yaml", ".yml"):
-        import yaml
+        with needs("cluster", "a YAML sweep file"):
+            import yaml
         d = yaml.safe_load(text) or {}
     else:
         d = json.loads(text)
@@ -69,7 +72,8 @@ def run_trial(config):
     """One trial (in a Ray worker): the fit of ``config['settings']`` on the data
     set; reports its held-out scores to Tune."""
     import mitsuba as mi
-    from ray import tune
+    with needs("cluster", "a sweep of fits"):
+        from ray import tune
 
     from mi_tetvr.recon.config import FitConfig
     from mi_tetvr.recon.datasets import load_dataset
@@ -95,8 +99,9 @@ def sweep(data, sweep_file, out, workers=1, address=None, holdout=8, variant="ll
     ``workers`` at a time on Ray Tune. Returns the table (a list of dicts:
     the trial's settings and :data:`SCORES`), best PSNR first, also written
     to ``out/sweep.csv`` and ``out/sweep.md``."""
-    import ray
-    from ray import tune
+    with needs("cluster", "a sweep of fits"):
+        import ray
+        from ray import tune
 
     from mi_tetvr.cluster import connect
     from mi_tetvr.recon.config import FitConfig

@@ -172,6 +172,8 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
         What ``volume_info.json`` holds.
     """
     import mitsuba as mi
+
+    import mi_tetvr
     from mi_tetvr.progress import progress_bar as tqdm
 
     from mi_tetvr.mesh.io import choose_scalar, read_tetmesh
@@ -187,19 +189,23 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
     lo, hi = mesh.bounds
     extinction = float(opacity_scale) / bounding_radius(mesh.vertices)
     train, test = box_cameras((lo, hi), views, test_views, res, fov, seed)
-    volume = {"type": "tetmesh", "filename": str(mesh_path), "scalar_attribute": name,
-              "transfer_function": str(tf_path), "opacity_scale": extinction,
-              "repair": bool(repair), "cell_to_point": bool(cell_to_point),
-              **({} if value_range is None else {"value_min": float(value_range[0]),
-                                                 "value_max": float(value_range[1])})}
+    # the shape is built here from the mesh read above, its topology built once (a
+    # mesh the shape refuses raises the shape's own error, before any scene)
+    props = {"transfer_function": str(tf_path), "opacity_scale": extinction,
+             **({} if value_range is None else {"value_min": float(value_range[0]),
+                                                "value_max": float(value_range[1])})}
+    if lights is not None:
+        props.update(classification="pre", albedo="color")
+    volume = mi_tetvr.tetmesh_shape(mi_tetvr.tetmesh_dict(mesh.vertices, mesh.tets,
+                                                          scalar=values, **props),
+                                    topology=mesh.topology)
     if lights is None:
-        scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetvr"},
-                              "volume": volume})
+        scene = mi_tetvr.load_dict({"type": "scene", "integrator": {"type": "tetvr"},
+                                    "volume": volume})
     else:
         from mi_tetvr.render.surfaces import lights_scene
-        scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetpath"},
-                              "volume": {**volume, "classification": "pre", "albedo": "color"},
-                              **lights_scene(lights)})
+        scene = mi_tetvr.load_dict({"type": "scene", "integrator": {"type": "tetpath"},
+                                    "volume": volume, **lights_scene(lights)})
     posed = {"train": [], "test": []}
     with tqdm(total=len(train) + len(test), desc="render views", disable=not progress) as bar:
         for split, cams in (("train", train), ("test", test)):

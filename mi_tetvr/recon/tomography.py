@@ -36,6 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_tetvr.extras import needs
+
 __all__ = ["Projector", "depths", "statistical_weights", "sart", "least_squares",
            "TetGradient", "PenalizedLS", "tied_unknowns", "coarse_grid", "adaptive_mesh",
            "aligned_resolution", "detector_cell", "fit_attenuation", "DEFAULT_PASSES", "STALL",
@@ -181,7 +183,8 @@ class Projector:
     def operator(self, weights=None):
         """``W^(1/2) A`` as a ``scipy.sparse.linalg.LinearOperator`` (``W`` the
         statistical weights, identity by default)."""
-        from scipy.sparse.linalg import LinearOperator
+        with needs("recon", "the absorption fit"):
+            from scipy.sparse.linalg import LinearOperator
         s = None if weights is None else np.sqrt(np.asarray(weights, np.float64))
         return LinearOperator(
             self.shape, dtype=np.float64,
@@ -342,7 +345,8 @@ class TetGradient:
     """
 
     def __init__(self, vertices, tets, unknowns=None):
-        from scipy.sparse import csr_matrix
+        with needs("recon", "the absorption fit"):
+            from scipy.sparse import csr_matrix
         v = np.asarray(vertices, np.float64)
         t = np.asarray(tets, np.int64)
         edges = v[t[:, 1:]] - v[t[:, :1]]                       # (m, 3, 3), rows: edges
@@ -557,7 +561,8 @@ def least_squares(projector: Projector, b, iterations: int, weights=None, x0=Non
     for ``iterations`` iterations (early stopping is its regularization),
     then ``x >= 0``. ``callback(iterations, x, residual, mse)`` once at the end
     (as :func:`sart`'s, of the final ``x``)."""
-    from scipy.sparse.linalg import lsqr
+    with needs("recon", "the absorption fit"):
+        from scipy.sparse.linalg import lsqr
     b = np.asarray(b, np.float64)
     s = np.ones_like(b) if weights is None else np.sqrt(np.asarray(weights, np.float64))
     op = projector.operator(weights)

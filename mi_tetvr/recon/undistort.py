@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mi_tetvr.extras import needs
+
 __all__ = ["Lens", "SQUARE_RTOL", "nerf_lens"]
 
 #: Focal lengths ``fx, fy`` this close (relative) count as square pixels and
@@ -58,13 +60,15 @@ class Lens:
     @classmethod
     def from_params(cls, model, width, height, params):
         """The lens of a COLMAP ``model`` with pycolmap's ``params``."""
-        import pycolmap
+        with needs("sfm", "undistorting photos"):
+            import pycolmap
         return cls(pycolmap.Camera(model=model, width=int(width), height=int(height),
                                    params=[float(p) for p in params]))
 
     def resized(self, width, height):
         """The lens of the same pictures stored at ``width x height``."""
-        import pycolmap
+        with needs("sfm", "undistorting photos"):
+            import pycolmap
         camera = pycolmap.Camera(model=self.camera.model, width=self.width, height=self.height,
                                  params=self.camera.params)
         camera.rescale(int(width), int(height))
@@ -108,7 +112,8 @@ class Lens:
 
     def undistort(self, image):
         """The (h, w, c) image (float) as the pinhole sees it (a copy)."""
-        from scipy.ndimage import map_coordinates
+        with needs("recon", "undistorting photos"):
+            from scipy.ndimage import map_coordinates
         image = np.asarray(image, np.float32)
         h, w = image.shape[:2]
         if (w, h) != (self.width, self.height):

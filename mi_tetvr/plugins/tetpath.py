@@ -53,6 +53,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mi_tetvr.plugins import constructor
 from mi_tetvr.render.buffers import index_buffers, model_groups, tet_scene
 from mi_tetvr.render.merged import overlapping
 from mi_tetvr.render.optical import Scattering
@@ -137,4 +138,4 @@ class TetPathIntegrator(mi.ad.integrators.common.RBIntegrator):
                 f"max_steps={self.settings.max_steps}]")
 
 
-mi.register_integrator("tetpath", lambda props: TetPathIntegrator(props))
+mi.register_integrator("tetpath", constructor(TetPathIntegrator, "tetpath"))

@@ -72,6 +72,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mi_tetvr.plugins import constructor
 from mi_tetvr.render.clipping import Clip, unit_vector
 from mi_tetvr.render.probes import Projection
 from mi_tetvr.render.program import SURFACE_MODES, Probes
@@ -151,4 +152,4 @@ class TetProjIntegrator(mi.ad.integrators.common.RBIntegrator):
         return "TetProjIntegrator[" + repr(self.probes)[len("Probes["):]
 
 
-mi.register_integrator("tetproj", lambda props: TetProjIntegrator(props))
+mi.register_integrator("tetproj", constructor(TetProjIntegrator, "tetproj"))

@@ -98,6 +98,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mi_tetvr.plugins import constructor
 from mi_tetvr.render.buffers import index_buffers, scene_tetmeshes
 from mi_tetvr.render.clipping import Clip
 from mi_tetvr.render.program import VolumeProgram, scaled_settings
@@ -292,4 +293,4 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
                 f"max_steps={s.max_steps}, surfaces={self.surfaces!r}]")
 
 
-mi.register_integrator("tetvr", lambda props: TetVRIntegrator(props))
+mi.register_integrator("tetvr", constructor(TetVRIntegrator, "tetvr"))

@@ -1,0 +1,155 @@
+"""The Mitsuba plugins of mi_tetvr and their registration.
+
+* :mod:`~mi_tetvr.plugins.tetmesh`: the ``tetmesh`` shape;
+* :mod:`~mi_tetvr.plugins.tetvr`: the ``tetvr`` integrator (emission and
+  absorption, probes, surfaces behind and inside the volume);
+* :mod:`~mi_tetvr.plugins.tetproj`: the ``tetproj`` integrator (projections);
+* :mod:`~mi_tetvr.plugins.tetpath`: the ``tetpath`` integrator (light transport).
+
+The plugins are thin: each reads its properties and calls the renderer
+(:mod:`mi_tetvr.render`). Nothing in the package imports them but
+:func:`register`, which ``import mi_tetvr`` calls when a Mitsuba variant is set,
+and which runs by itself whenever ``mi.set_variant`` switches to an autodiff RGB
+variant (``llvm_ad_rgb``, ``cuda_ad_rgb``).
+
+Each plugin module ends with its ``mi.register_*`` call, given the plugin's
+:func:`constructor`: it keeps what the plugin raised, so that
+:func:`mi_tetvr.load_dict` and its siblings raise the plugin's own exception
+(:func:`raised_in`) where Mitsuba's parser passes on only its text.
+"""
+from __future__ import annotations
+
+import collections
+import copy
+import importlib
+import itertools
+import sys
+import threading
+
+__all__ = ["register", "registered_variant", "on_variant_change", "constructor", "mark",
+           "raised_in", "PLUGINS"]
+
+#: The plugin modules, registered in this order.
+PLUGINS = ("tetmesh", "tetvr", "tetproj", "tetpath")
+
+#: Modules that bind Mitsuba/Dr.Jit types at import, in dependency order: reloaded for
+#: a new variant (the plugin modules last).
+_VARIANT_MODULES = ("render.segment", "render.buffers", "render.geometry", "render.optical",
+                    "render.adjoint", "render.walk", "render.transport", "render",
+                    "grid.marcher", "recon.regularizer") + tuple(f"plugins.{p}" for p in PLUGINS)
+
+_registered = None
+
+
+def registered_variant():
+    """The Mitsuba variant the plugins are registered with (None: not yet)."""
+    return _registered
+
+
+def register():
+    """Register the ``tetmesh`` shape and the ``tetvr``, ``tetproj`` and ``tetpath``
+    integrators with the current Mitsuba variant.
+
+    ``import mi_tetvr`` calls it when a variant is set, and it runs by itself
+    after ``mi.set_variant`` switches to an autodiff RGB variant: the modules
+    that bind the variant's types are reloaded for a new one. Calling it again
+    for the same variant does nothing.
+
+    Raises
+    ------
+    RuntimeError
+        Without a variant, or for one that is not an autodiff RGB variant.
+    """
+    global _registered
+    import mitsuba as mi
+    variant = mi.variant()
+    if variant is None:
+        raise RuntimeError("mi_tetvr.register(): call mitsuba.set_variant(...) first "
+                           "(e.g. 'llvm_ad_rgb' or 'cuda_ad_rgb')")
+    if not variant.endswith("_rgb") or "_ad_" not in variant:
+        raise RuntimeError(f"mi_tetvr needs an autodiff RGB variant (llvm_ad_rgb or "
+                           f"cuda_ad_rgb), not '{variant}'")
+    if variant == _registered:
+        return
+    package = __name__.rpartition(".")[0]
+    for name in _VARIANT_MODULES:
+        full = f"{package}.{name}"
+        if name.startswith("plugins.") or full in sys.modules:
+            loaded = full in sys.modules
+            module = importlib.import_module(full)
+            if loaded and _registered is not None:
+                importlib.reload(module)
+    _registered = variant
+
+
+def on_variant_change(old, new):
+    """Mitsuba's variant callback (``mi.detail.add_variant_callback``): register the
+    plugins with each autodiff RGB variant Mitsuba switches to."""
+    if new is not None and new.endswith("_rgb") and "_ad_" in new:
+        register()
+
+
+# -- a plugin's own exception ------------------------------------------------------------
+#: What plugins' constructors raised lately: ``(number, exception, plugin, id)``.
+_raised = collections.deque(maxlen=32)
+_numbers = itertools.count(1)
+_lock = threading.Lock()
+
+
+def constructor(cls, name):
+    """The function Mitsuba calls to build the plugin ``name`` (class ``cls``) from
+    its properties: it keeps a copy of what the constructor raises (see
+    :func:`raised_in`) and lets it through."""
+    def build(props):
+        try:
+            return cls(props)
+        except Exception as e:
+            _keep(e, name, props.id())
+            raise
+    build.__name__ = build.__qualname__ = f"build_{name}"
+    return build
+
+
+def _keep(exc, plugin, where):
+    try:
+        kept = copy.copy(exc)            # (the plugin's frames stay with the original)
+    except Exception:
+        kept = RuntimeError(f"{type(exc).__name__}: {exc}")
+    kept.__traceback__ = kept.__context__ = kept.__cause__ = None
+    kept.__suppress_context__ = False
+    with _lock:
+        _raised.append((next(_numbers), kept, plugin, where))
+
+
+def mark():
+    """The number of the last exception kept: :func:`raised_in` after it."""
+    with _lock:
+        return _raised[-1][0] if _raised else 0
+
+
+def raised_in(error, since=0):
+    """The exception a plugin's constructor raised that Mitsuba passed on in
+    ``error`` (the ``RuntimeError`` of its parser), or None.
+
+    Of the exceptions kept after ``since`` (:func:`mark`), those whose message
+    ``error``'s text holds; of those, the innermost (a plugin that builds
+    another passes the other's error on in its own) and the first raised. Where
+    none is held in the text, the only one kept after ``since``, if just one
+    was. The one returned is forgotten.
+
+    Returns
+    -------
+    (BaseException, str, str) or None
+        The exception (a copy of the one raised, without its traceback), the
+        plugin that raised it and the id of the object it was building.
+    """
+    text = str(error)
+    with _lock:
+        recent = [r for r in _raised if r[0] > since]
+        held = [r for r in recent if str(r[1]) and str(r[1]) in text]
+        inner = [r for r in held if not any(o is not r and str(o[1]) in str(r[1])
+                                            and str(o[1]) != str(r[1]) for o in held)]
+        found = inner[0] if inner else (recent[0] if len(recent) == 1 and since else None)
+        if found is not None:
+            _raised.remove(found)
+    return None if found is None else found[1:]

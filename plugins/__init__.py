@@ -1,1 +1,0 @@
-"""Mitsuba-facing plugins of mi_tetvr (thin wrappers over the engine)."""
