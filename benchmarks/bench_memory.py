@@ -174,7 +174,8 @@ def main(a):
         "mesh": dict(cells=a.cells, tets=len(tets), vertices=len(v)),
         "image": dict(res=a.res, ref_res=a.ref_res),
         "cases": [dict(case=name, tets_per_ray_mean=mt, tets_per_ray_max=xt, adjoint_mb=adj,
-                       recorded_loop_mb=ref, recorded_bytes_per_ray_per_max_step=ref * MB / (n_ref * xt))
+                       recorded_loop_mb=ref,
+                       recorded_bytes_per_ray_per_max_step=ref * MB / (n_ref * xt))
                   for name, mt, xt, adj, ref in rows],
         "adjoint_transparent_minus_opaque_mb": adj0 - adj1,
         "recorded_transparent_over_opaque": ref0 / max(ref1, 1e-9),

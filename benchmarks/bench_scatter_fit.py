@@ -230,7 +230,6 @@ def main(a):
     scene, steps, losses = fit(scene, keys, train, targets, a, a.budget, refine)
     params = mi.traverse(scene)
     sigma_t = np.asarray(params[keys[0]], np.float64)
-    albedo_t = np.asarray(params[keys[1]], np.float64).reshape(-1, 3)
     n_tet = len(mesh["V"])
     print(f"tets: {steps} steps in {a.budget:.0f} s; {n0} -> {n_tet:,} vertices "
           f"({len(mesh['T']):,} tets); last loss {np.mean(losses[-10:]):.3e}")

@@ -36,7 +36,8 @@ from fit_suite import DATA, SETS, load_set_volume  # noqa: E402
 
 
 def parse_args(argv=None):
-    p = make_parser(__doc__, repeat=2, quick="--views 4 --res 32 --grid-resolution 8 --iterations 5")
+    p = make_parser(__doc__, repeat=2,
+                    quick="--views 4 --res 32 --grid-resolution 8 --iterations 5")
     p.add_argument("--code", help="the other checkout (its fit runs with PYTHONPATH=DIR)")
     p.add_argument("--out", default="out/training", help="data and fits (default out/training)")
     p.add_argument("--views", type=int, default=24, help="training views (default 24)")

@@ -9,8 +9,9 @@ camera axes. :func:`fibonacci_cameras` and :func:`random_cameras` place cameras 
 around a target, :func:`box_cameras` around a box (at :func:`framing_distance`, the one
 distance at which a field of view holds a bounding sphere), :func:`fibonacci_sphere` gives the
 spiral's longitudes and latitudes, and :func:`orbit_to_world` a differentiable Dr.Jit pose
-by longitude, latitude and distance (camera gradients through ``mi.render``). Everything but :meth:`Camera.rays_drjit` and :meth:`Camera.sensor_dict` is
-numpy and works without a Mitsuba variant.
+by longitude, latitude and distance (camera gradients through ``mi.render``). Everything but
+:meth:`Camera.rays_drjit` and :meth:`Camera.sensor_dict` is numpy and works without a Mitsuba
+variant.
 
 Conventions
 -----------

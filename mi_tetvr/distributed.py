@@ -173,7 +173,6 @@ class BlockWorker:
 
     @staticmethod
     def _rays(o, d, t0, t1):
-        import drjit as dr
         import mitsuba as mi
         ray = mi.Ray3f(mi.Point3f(*floats(o)), mi.Vector3f(*floats(d)))
         ray.maxt = floats(t1)
@@ -255,7 +254,6 @@ class BlockWorker:
         its vertices (the whole mesh's, summed over the blocks that share a
         vertex: every copy of a vertex takes the same step)."""
         import drjit as dr
-        import mitsuba as mi
         params, keys = self._params(k)
         opt = self.optimizers[k]
         for name, g in grads.items():

@@ -238,11 +238,14 @@ def test_xml_errors_and_warning(tmp_path):
         '<OpacityPoints><OpacityPoint position="0" opacity="1"/></OpacityPoints>'
         '<ColorPoints color_data="float"><ColorPoint position="0" r="1" g="1" b="1"/></ColorPoints>'
     )
-    p = _write(tmp_path, "a.xml", f'<TransferFunction colorspace="sRGB">{good_points}</TransferFunction>')
+    p = _write(tmp_path, "a.xml",
+               f'<TransferFunction colorspace="sRGB">{good_points}</TransferFunction>')
     with pytest.warns(UserWarning, match="interpolation_colorspace"):
         read_difftetvr_xml(p)
 
-    p = _write(tmp_path, "b.xml", f'<TransferFunction colorspace="HSV" interpolation_colorspace="Linear RGB">{good_points}</TransferFunction>')
+    p = _write(tmp_path, "b.xml",
+               '<TransferFunction colorspace="HSV" interpolation_colorspace="Linear RGB">'
+               f'{good_points}</TransferFunction>')
     with pytest.raises(ValueError, match="unknown colorspace"):
         read_difftetvr_xml(p)
 
@@ -258,8 +261,10 @@ def test_xml_errors_and_warning(tmp_path):
         tmp_path,
         "e.xml",
         '<TransferFunction interpolation_colorspace="Linear RGB">'
-        '<OpacityPoints><OpacityPoint position="0.5" opacity="1"/><OpacityPoint position="0.1" opacity="1"/></OpacityPoints>'
-        '<ColorPoints color_data="float"><ColorPoint position="0" r="1" g="1" b="1"/></ColorPoints></TransferFunction>',
+        '<OpacityPoints><OpacityPoint position="0.5" opacity="1"/>'
+        '<OpacityPoint position="0.1" opacity="1"/></OpacityPoints>'
+        '<ColorPoints color_data="float"><ColorPoint position="0" r="1" g="1" b="1"/></ColorPoints>'
+        '</TransferFunction>',
     )
     with pytest.raises(ValueError, match="non-decreasing"):
         read_difftetvr_xml(p)

@@ -25,7 +25,7 @@ def run(argv, **kwargs):
 def dist(tmp_path_factory):
     """The sdist and the wheel ``python -m build`` makes of the checkout."""
     out = tmp_path_factory.mktemp("dist")
-    r = run([sys.executable, "-m", "build", "--no-isolation", "--outdir", out, ROOT])
+    r = run([sys.executable, "-m", "build", "--outdir", out, ROOT])
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     wheel, = out.glob("mi_tetvr-*.whl")
     sdist, = out.glob("mi_tetvr-*.tar.gz")
@@ -87,7 +87,7 @@ key = "volume.vertex_opacity"
 k = int(np.argmin(np.linalg.norm(v - [0.05, 0.05, 0.4], axis=1)))
 
 def loss():
-    return dr.sum(mi.render(scene, params, spp=1), axis=None)
+    return dr.sum(mi.render(scene, params, spp=1).array)
 
 dr.enable_grad(params[key])
 L = loss()

@@ -119,8 +119,8 @@ def main(argv=None):
     if not a.quiet:
         print(f"{volume.shape} voxels, {a.views} projections: volume PSNR tets "
               f"{result['psnr_tets']:.2f} dB ({result['vertices']:,} vertices, {seconds:.0f} s), "
-              f"FBP {result['psnr_fbp']:.2f} dB; held-out projections {result['projection_psnr']:.2f}"
-              f" dB -> {out / 'slices.png'}")
+              f"FBP {result['psnr_fbp']:.2f} dB; held-out projections "
+              f"{result['projection_psnr']:.2f} dB -> {out / 'slices.png'}")
     return result
 
 

@@ -115,8 +115,8 @@ class ViewpointSearch:
 def orbit_scene(shape, bounds, res=128, fov=40.0):
     """A scene to search views of: ``shape`` (a ``tetmesh`` dict), ``tetvr``,
     and a perspective sensor of ``res`` (N for N x N, or (width, height)) pixels
-    through pixel centres with ``fov`` (degrees, horizontal). Returns ``(scene, centre, distance)``: the box
-    ``bounds``' centre and the distance at which its bounding sphere fills the
+    through pixel centres with ``fov`` (degrees, horizontal). Returns ``(scene, centre, distance)``:
+    the box ``bounds``' centre and the distance at which its bounding sphere fills the
     view (what :class:`ViewpointSearch` takes)."""
     from mi_tetvr.camera import framing_distance
     from mi_tetvr.mesh.topology import bounding_radius

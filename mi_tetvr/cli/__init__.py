@@ -23,9 +23,9 @@
 
 One module per command (``render``, ``info``, ``make_scenes``, ``make_dataset``,
 ``make_capture``, ``process_data``, ``process_xray``, ``fit``, ``view``, ``evaluate`` for ``eval``,
-``refine``, ``viewpoint``, ``partition``, ``sweep``), each with its ``NAME``, ``HELP``, ``add_arguments(parser)``
-and ``run(args)``; :mod:`~mi_tetvr.cli.flags` holds the shared options and those
-generated from settings dataclasses (``render``'s from
+``refine``, ``viewpoint``, ``partition``, ``sweep``), each with its ``NAME``, ``HELP``,
+``add_arguments(parser)`` and ``run(args)``; :mod:`~mi_tetvr.cli.flags` holds the shared options
+and those generated from settings dataclasses (``render``'s from
 :class:`~mi_tetvr.apps.settings.RenderSettings`, ``fit``'s from
 :class:`~mi_tetvr.recon.config.FitConfig`), :mod:`~mi_tetvr.cli.common` what the
 commands share at run time. A command raises what it cannot do (``ValueError``,
@@ -118,7 +118,8 @@ def command_summary():
             optional.append("[every FitConfig setting: --time-budget, --scene, --init, ...]")
         lines.append(f"- `{' '.join(words)}` — {helps[name]}")
         if optional:
-            lines.append(f"  options: {', '.join(f'`{o}`' if o.startswith('-') else o for o in optional)}")
+            lines.append(f"  options: "
+                         f"{', '.join(f'`{o}`' if o.startswith('-') else o for o in optional)}")
     return "\n".join(lines)
 
 

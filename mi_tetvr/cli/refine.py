@@ -22,10 +22,11 @@ def add_arguments(p):
 
 
 def run(a):
-    from mi_tetvr.mesh.io import read_tetmesh, write_tetmesh
+    from mi_tetvr.cli.common import read_mesh
+    from mi_tetvr.mesh.io import write_tetmesh
     from mi_tetvr.mesh.refine import refine_mesh
+    mesh = read_mesh(a, a.mesh)
     try:
-        mesh = read_tetmesh(a.mesh, repair=a.repair, cell_to_point=a.cell_to_point)
         out = refine_mesh(mesh, a.select, a.fraction, rank=a.rank)
     except (ValueError, FileNotFoundError, KeyError) as e:
         raise CommandError(str(e)) from None

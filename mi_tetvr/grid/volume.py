@@ -267,7 +267,8 @@ def _load_cvol(path: Path):
     (typ,) = struct.unpack_from("<i", data, 52)
     compressed = data[56]
     if typ not in _CVOL_TYPES:
-        raise ValueError(f"{str(path)!r}: unknown cvol data type {typ} (0 uint8, 1 uint16, 2 float)")
+        raise ValueError(f"{str(path)!r}: unknown cvol data type {typ} "
+                         "(0 uint8, 1 uint16, 2 float)")
     dt = np.dtype(_CVOL_TYPES[typ])
     if compressed:
         # DiffDVR's lz4cpp chunk framing is not verified against a real file: refuse.
@@ -283,7 +284,8 @@ def _load_cvol(path: Path):
 
 
 def write_cvol(path: PathType, values, voxel_size=(1.0, 1.0, 1.0)) -> None:
-    """Write an uncompressed DiffDVR ``.cvol`` (uint8, uint16 or float32 ``values (nz, ny, nx)``)."""
+    """Write an uncompressed DiffDVR ``.cvol`` (uint8, uint16 or float32
+    ``values (nz, ny, nx)``)."""
     v = np.asarray(values)
     typ = {np.dtype(np.uint8): 0, np.dtype(np.uint16): 1, np.dtype(np.float32): 2}.get(v.dtype)
     if typ is None:

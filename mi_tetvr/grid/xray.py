@@ -10,7 +10,8 @@ exp(-integral of mu)``.
 :func:`xray_cameras` places parallel-beam (orthographic) or cone-beam
 (perspective) cameras on a circle around the volume's z axis, the geometry of
 a CT scanner, so that image row ``j`` of a parallel-beam view is the
-projection of one z slice of samples; :func:`mi_tetvr.recon.synthetic.make_xray_dataset` writes a NeRF-style data
+projection of one z slice of samples;
+:func:`mi_tetvr.recon.synthetic.make_xray_dataset` writes a NeRF-style data
 set of such images (``.npy`` transmittance) that ``mi-tetvr fit --model
 absorption`` reads.
 """

@@ -30,9 +30,9 @@ Modules
     The bundled scenes, their meshes and volume.
 """
 from .topology import (EDGES, FACES, FLAT_TOLERANCE, MeshError, Orientation, Topology,
-                       bbox_diagonal, build_topology, check_bounds, edge_lengths, face_keys, flip_tets,
-                       format_summary, geometry_summary, mean_edge_length, orient_tets, quality,
-                       repair_tets, signed_volumes, validate_arrays, validate_attributes)
+                       bbox_diagonal, build_topology, check_bounds, edge_lengths, face_keys,
+                       flip_tets, format_summary, geometry_summary, mean_edge_length, orient_tets,
+                       quality, repair_tets, signed_volumes, validate_arrays, validate_attributes)
 from .tetmesh import DEFAULT_COLOR, DEFAULT_OPACITY, TetMesh
 from .io import read_tetmesh, write_tetmesh
 from .generate import KUHN_TETS, blob_field, blob_mesh, grid_mesh, grid_tets

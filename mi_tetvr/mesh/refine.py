@@ -91,8 +91,9 @@ from mi_tetvr.mesh.tetmesh import TetMesh
 from mi_tetvr.mesh.topology import (EDGES, FACES, MeshError, face_keys, flip_tets, orient_tets,
                                     validate_arrays)
 
-__all__ = ["RefineResult", "PruneResult", "split_vertices", "bisection_order", "select_top_fraction",
-           "select_by_attribute", "prune_empty", "refine_mesh", "prune_mesh"]
+__all__ = ["RefineResult", "PruneResult", "split_vertices", "bisection_order",
+           "select_top_fraction", "select_by_attribute", "prune_empty", "refine_mesh",
+           "prune_mesh"]
 
 #: _TOUCH[s, k]: local edge k (:data:`~mi_tetvr.mesh.EDGES`) has vertex slot s
 #: as an endpoint.

@@ -33,10 +33,12 @@ import warnings
 
 import numpy as np
 
-__all__ = ["FACES", "EDGES", "FLAT_TOLERANCE", "SLIVER_QUALITY", "REPAIR_HINT", "MeshError", "Topology", "Orientation",
-           "check_bounds", "signed_volumes", "bbox_diagonal", "flip_tets", "orient_tets", "face_keys",
-           "edge_lengths", "mean_edge_length", "quality", "validate_arrays",
-           "validate_attributes", "build_topology", "repair_tets", "geometry_summary", "format_summary"]
+__all__ = ["FACES", "EDGES", "FLAT_TOLERANCE", "SLIVER_QUALITY", "REPAIR_HINT", "MeshError",
+           "Topology", "Orientation",
+           "check_bounds", "signed_volumes", "bbox_diagonal", "flip_tets", "orient_tets",
+           "face_keys", "edge_lengths", "mean_edge_length", "quality", "validate_arrays",
+           "validate_attributes", "build_topology", "repair_tets", "geometry_summary",
+           "format_summary"]
 
 #: Local vertex indices of face i (opposite vertex i), outward-oriented.
 FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int64)

@@ -12,8 +12,8 @@ exact. A slice (:class:`~mi_tetvr.render.probes.Slice`) stops each ray
 where it first crosses the plane inside the mesh, the scalar there exact too
 (the plane's signed distance is linear along the ray in a tet); an
 isosurface (:class:`~mi_tetvr.render.probes.Isosurface`) where the scalar
-first crosses one of the isovalues. The pixel is the transfer function's color at the projected value
-(its opacity is not used), alpha 1 where the ray meets the mesh; the film's
+first crosses one of the isovalues. The pixel is the transfer function's color at the projected
+value (its opacity is not used), alpha 1 where the ray meets the mesh; the film's
 ``rgba`` format keeps it. Translucent surfaces (``opacity`` below 1) are
 composited front to back over black (the film's alpha still marks where a
 surface is met). Nested in ``tetvr`` as its ``overlay``, a slice or

@@ -1,8 +1,8 @@
 """A run's checkpoint: everything needed to continue it exactly.
 
 One ``.npz`` file holds the mesh (``vertices``, ``tets``) and the fitted
-values (``value:<name>``, e.g. ``value:color``), the run's state (``step``, ``stage``, ``stage_start``,
-``elapsed``, ``shortened``, the ``history`` and the view-picking ``rng`` as
+values (``value:<name>``, e.g. ``value:color``), the run's state (``step``, ``stage``,
+``stage_start``, ``elapsed``, ``shortened``, the ``history`` and the view-picking ``rng`` as
 JSON), the ``config`` (JSON, for the record), a learned ``environment`` and the
 photos' color transforms (``appearance``) when fitted, the refinement scores gathered in
 the stage (``split_scores``) and Adam's state

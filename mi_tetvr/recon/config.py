@@ -375,7 +375,8 @@ class FitConfig:
                 raise ValueError(f"unknown stage settings {bad}: use {', '.join(STAGE_KEYS)}")
             if int(st.get("downscale", 1)) != st.get("downscale", 1) or st.get("downscale", 1) < 1:
                 raise ValueError(f"bad stage {st}: 'downscale' is an integer >= 1")
-            if st.get("grid") is not None and (self.init not in ("grid", "auto") or int(st["grid"]) < 1):
+            if st.get("grid") is not None and (self.init not in ("grid", "auto")
+                                               or int(st["grid"]) < 1):
                 raise ValueError(f"bad stage {st}: 'grid' needs init 'grid' and a resolution >= 1")
             if int(st.get("iterations", 0)) < 0 or not 0 <= st.get("split", 0) <= 1:
                 raise ValueError(f"bad stage {st}: iterations >= 0, split in [0, 1]")

@@ -199,7 +199,8 @@ def read_image(path, downscale: int = 1) -> np.ndarray:
             im = ImageOps.exif_transpose(im)
         mode = im.mode
         if mode in ("I;16", "I;16B", "I;16L", "I"):
-            g = np.asarray(im, dtype=np.float64) / (65535.0 if mode != "I" or im.getextrema()[1] > 255
+            g = np.asarray(im, dtype=np.float64) / (65535.0
+                                                    if mode != "I" or im.getextrema()[1] > 255
                                                     else 255.0)
             lin = srgb_to_linear(np.clip(g, 0, 1)).astype(np.float32)
             img = np.empty(lin.shape + (4,), np.float32)

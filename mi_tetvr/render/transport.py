@@ -40,7 +40,7 @@ import mitsuba as mi
 
 from mi_tetvr.mesh.topology import FACES
 from mi_tetvr.render.buffers import unpack_link
-from mi_tetvr.render.geometry import (Corner, crossing_at, edge_function, entry_carry,
+from mi_tetvr.render.geometry import (crossing_at, edge_function, entry_carry,
                                       face_crossing, project, ray_frame, walk_step)
 from mi_tetvr.render.linear import TetFrame
 from mi_tetvr.render.pytree import weighted_sum

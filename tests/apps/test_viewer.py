@@ -132,7 +132,7 @@ def test_a_saved_view_renders_again_with_render(mesh_file, tmp_path):
     np.testing.assert_array_equal(before, shown.render(camera))
 
 
-def test_fit_viewer_keeps_to_its_share(data, tmp_path):
+def test_fit_viewer_keeps_to_its_share(data, tmp_path):  # noqa: F811 (the fixture)
     """fit --viewer: between steps the viewer renders the fit from a camera
     that moves after every step, in at most its share of the time (plus one
     render), and records the curve of every step."""
@@ -243,7 +243,8 @@ def test_the_page_in_a_real_browser(mesh_file):
         viewer.stop()
 
 
-def test_the_commands_serve_fits_data_and_meshes(data, mesh_file, tmp_path, capsys):
+def test_the_commands_serve_fits_data_and_meshes(data, mesh_file, tmp_path,  # noqa: F811
+                                                 capsys):
     """``fit --viewer`` serves while it fits and records its data set; ``view``
     opens the fit's folder (its data set found from that record), the data
     set and the mesh; a click on a test camera moves the view there and

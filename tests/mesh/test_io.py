@@ -167,7 +167,8 @@ def test_small_tets_are_not_zero_volume():
 def test_unused_settings_are_errors(tmp_path):
     v, t = grid_mesh(1)
     p = tmp_path / "s.vtu"
-    meshio.write(p, meshio.Mesh(v, [("tetra", t)], point_data={"s": np.arange(len(v), dtype=float)}))
+    meshio.write(p, meshio.Mesh(v, [("tetra", t)],
+                                point_data={"s": np.arange(len(v), dtype=float)}))
     for kw in ({"scalar": "s"}, {"value_range": (0, 1)}, {"opacity_scale": 2.0}):
         with pytest.raises(ValueError, match="no transfer function"):
             read_tetmesh(p, **kw)

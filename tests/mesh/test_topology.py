@@ -199,7 +199,8 @@ def test_edge_lengths():
     lengths = edge_lengths(v, t)
     assert lengths.shape == (len(t), 6)
     for k, (i, j) in enumerate(EDGES):
-        np.testing.assert_array_equal(lengths[:, k], np.linalg.norm(v[t[:, i]] - v[t[:, j]], axis=1))
+        np.testing.assert_array_equal(lengths[:, k],
+                                      np.linalg.norm(v[t[:, i]] - v[t[:, j]], axis=1))
     assert mean_edge_length(v, t) == pytest.approx(lengths.mean())
     # l_rms from the same edges gives quality 1 for the regular tet
     reg = np.array([[1, 1, 1], [-1, 1, -1], [1, -1, -1], [-1, -1, 1]], float)

@@ -132,7 +132,7 @@ def test_next_stage_prunes_splits_and_carries_state(data):
     before = trainer.opt.moments()
     nxt = next_stage(trainer, cfg, log=lambda *a: None)
     Vn, Tn, new = nxt.arrays()
-    Cn, Sn = new["color"], new["opacity"]
+    Sn = new["opacity"]
     empty = (S[trainer.tets] <= 1e-3 / trainer.h).all(1)
     assert empty.any() and nxt.state.stage == 1 and nxt.state.step == 2
     assert nxt.state.stage_start == 2

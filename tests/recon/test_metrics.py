@@ -14,8 +14,10 @@ def srgb(x):
 
 def test_psnr_on_srgb_pictures():
     # Opaque, uniform: linear 0.2 against 0.5 -> sRGB 0.48453 against 0.73536.
-    pred = np.zeros((8, 6, 4)); pred[..., :3], pred[..., 3] = 0.2, 1.0
-    target = np.zeros((8, 6, 4)); target[..., :3], target[..., 3] = 0.5, 1.0
+    pred = np.zeros((8, 6, 4))
+    pred[..., :3], pred[..., 3] = 0.2, 1.0
+    target = np.zeros((8, 6, 4))
+    target[..., :3], target[..., 3] = 0.5, 1.0
     m = image_metrics(pred, target, None)
     d = srgb(0.5) - srgb(0.2)
     assert d == pytest.approx(0.25083, abs=1e-5)
@@ -26,7 +28,8 @@ def test_psnr_on_srgb_pictures():
 
 def test_background_and_alpha():
     # Premultiplied 0.1 with alpha 0.5 over white is 0.6; the target is white.
-    pred = np.zeros((8, 8, 4)); pred[..., :3], pred[..., 3] = 0.1, 0.5
+    pred = np.zeros((8, 8, 4))
+    pred[..., :3], pred[..., 3] = 0.1, 0.5
     target = np.zeros((8, 8, 4))                      # empty: the background
     np.testing.assert_allclose(display_rgb(pred, [1, 1, 1]), srgb(0.6), atol=1e-12)
     m = image_metrics(pred, target, [1.0, 1.0, 1.0])
@@ -36,7 +39,8 @@ def test_background_and_alpha():
     a = display_rgb(pred)
     assert a[0, 0, 0] == pytest.approx(1.0) and a[1, 1, 0] == pytest.approx(srgb(0.1))
     # One half of the pixels off by a constant: PSNR from the mean over all.
-    half = target.copy(); half[:4, ..., :3], half[:4, ..., 3] = 0.5, 1.0
+    half = target.copy()
+    half[:4, ..., :3], half[:4, ..., 3] = 0.5, 1.0
     m = image_metrics(half, target, None)
     assert m["psnr"] == pytest.approx(-10 * math.log10(0.5 * srgb(0.5) ** 2), abs=1e-9)
     assert m["ssim"] < 1.0 and image_metrics(target, target, None)["ssim"] == pytest.approx(1.0)

@@ -142,8 +142,8 @@ def test_absorption_model_refuses_a_transfer_function():
 
 def test_attenuation_fit_recovers_the_volume(tmp_path):
     """From 16 parallel-beam projections of a blob phantom, a coarse-to-fine
-    tet fit by Adam (``solver="adam"``) brings the attenuation much closer to the truth than its start,
-    and its held-out projections match (transmittance PSNR)."""
+    tet fit by Adam (``solver="adam"``) brings the attenuation much closer to the truth than
+    its start, and its held-out projections match (transmittance PSNR)."""
     g = np.linspace(-1, 1, 9)
     z, y, x = np.meshgrid(g, g, g, indexing="ij")
     vol = make_volume(np.exp(-3 * ((x - 0.2) ** 2 + y ** 2 + (z + 0.1) ** 2)))

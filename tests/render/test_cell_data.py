@@ -168,7 +168,8 @@ def test_cell_data_from_a_file_and_refusals(cells, tmp_path):
     for extra in ({"scalar_attribute": "pressure"}, {}):
         scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetvr"},
                               "mesh0": {"type": "tetmesh", "filename": str(path),
-                                        **texels(tf_color, tf_opacity), "value_min": RANGE[0], "value_max": RANGE[1], **extra}})
+                                        **texels(tf_color, tf_opacity), "value_min": RANGE[0],
+                                        "value_max": RANGE[1], **extra}})
         assert np.abs(render_rays(scene, o, d)[0] - want).max() < 1e-6
     with pytest.raises(Exception, match="classification 'post'"):
         scene_of(*cells, classification="preintegrated")

@@ -37,7 +37,8 @@ def surfaces(light=True, env=None, ball=True):
     c, r, rho = SPHERE
     d = {
         "ball": {"type": "sphere", "center": c.tolist(), "radius": r,
-                 "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": rho.tolist()}}},
+                 "bsdf": {"type": "diffuse",
+                          "reflectance": {"type": "rgb", "value": rho.tolist()}}},
         "floor": {"type": "rectangle",
                   "to_world": mi.ScalarTransform4f().translate([0, FLOOR_Y, 0])
                   .rotate([1, 0, 0], -90).scale(FLOOR_HALF),
