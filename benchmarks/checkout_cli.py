@@ -3,10 +3,13 @@
     python benchmarks/checkout_cli.py DIR fit DATA --out OUT ...
     python benchmarks/checkout_cli.py DIR DIR/benchmarks/bench_render.py --res 384
 
-``mi_tetvr`` is imported from ``DIR``, and so is ``mi_tetvr.plugins`` (which
-the package maps to ``DIR/plugins``: an editable install of this checkout
-would otherwise supply its own plugins to the other checkout's package).
-The benchmarks that compare two versions (``--code DIR``) run it.
+``mi_tetvr`` is imported from ``DIR`` (first on ``sys.path``). The benchmarks
+that compare two versions (``--code DIR``) run it.
+
+Revisions from before the plugins moved into the package kept them in
+``DIR/plugins``, which their ``pyproject.toml`` mapped to ``mi_tetvr.plugins``;
+for those alone a finder imports ``mi_tetvr.plugins`` from there (this
+checkout's package has its own).
 """
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ from pathlib import Path
 
 
 class _Plugins(importlib.machinery.PathFinder):
-    """Finds ``mi_tetvr.plugins`` (and its modules) in ``DIR/plugins``."""
+    """Finds ``mi_tetvr.plugins`` (and its modules) in ``DIR/plugins`` (older revisions)."""
     root = None
 
     @classmethod
@@ -37,8 +40,9 @@ def command(code):
 def main():
     code = Path(sys.argv.pop(1)).resolve()
     sys.path.insert(0, str(code))
-    _Plugins.root = code
-    sys.meta_path.insert(0, _Plugins)
+    if (code / "plugins" / "__init__.py").is_file():
+        _Plugins.root = code
+        sys.meta_path.insert(0, _Plugins)
     if sys.argv[1:] and sys.argv[1].endswith(".py"):
         import runpy
         script = Path(sys.argv.pop(1)).resolve()

@@ -70,19 +70,19 @@ else
            tests/render/test_surfaces.py tests/render/test_overlap.py
            tests/render/test_overlay.py tests/render/test_projection.py
            tests/render/test_transport.py tests/test_scenes.py)
-    SIZES=(--cells 64 --res 1024); BIG=(--cells 120 --res 1024); LIMIT_TESTS=240
+    SIZES=(--cells 64 --res 1024); BIG=(--cells 120 --res 1024); LIMIT_TESTS=200
 fi
 step tests "$LIMIT_TESTS" python3 -m pytest -q -p no:cacheprovider -o addopts= \
     --junitxml="$OUT/tests.xml" "${TESTS[@]}"
-step render 90 python3 benchmarks/bench_render.py --variant "$VARIANT" "${SIZES[@]}" \
+step render 75 python3 benchmarks/bench_render.py --variant "$VARIANT" "${SIZES[@]}" \
     --repeat 3 --json "$OUT/render.json"
-step backward 60 python3 benchmarks/bench_backward.py --variant "$VARIANT" "${SIZES[@]}" \
+step backward 55 python3 benchmarks/bench_backward.py --variant "$VARIANT" "${SIZES[@]}" \
     --json "$OUT/backward.json"
 if [ $QUICK -eq 1 ]; then
     step memory 60 python3 benchmarks/bench_memory.py --variant "$VARIANT" --quick \
         --json "$OUT/memory.json"
 else
-    step memory 45 python3 benchmarks/bench_memory.py --variant "$VARIANT" \
+    step memory 40 python3 benchmarks/bench_memory.py --variant "$VARIANT" \
         --json "$OUT/memory.json"
 fi
 step render_10m 90 python3 benchmarks/bench_render.py --variant "$VARIANT" "${BIG[@]}" \

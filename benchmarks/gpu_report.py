@@ -93,11 +93,12 @@ def main(folder):
     if d:
         r = d["results"]
         cases = {c["case"]: c for c in r["cases"]}
-        t = cases.get("transparent")
+        t, o = cases.get("transparent"), cases.get("opaque")
         print(f"| adjoint memory | {r['mesh']['tets']:,} tets, {r['image']['res']}² | "
               f"transparent - opaque: {r['adjoint_transparent_minus_opaque_mb']:+.1f} MB "
-              f"({t['tets_per_ray_mean']:.0f} vs few tets per ray) | recorded loop: "
-              f"{r['recorded_transparent_over_opaque']:.1f}x transparent / opaque |")
+              f"({t['tets_per_ray_mean']:.0f} vs {o['tets_per_ray_mean']:.1f} tets per ray) | "
+              f"recorded loop: {r['recorded_transparent_over_opaque']:.1f}x transparent / "
+              f"opaque |")
     return 0 if all(rc == "0" for _, rc, _ in steps) and not failures else 1
 
 

@@ -26,8 +26,10 @@
      cell array).
  * - transfer_function
    - |string|
-   - DiffTetVR XML or project JSON transfer function; when given, color and
-     opacity come from the scalar field. (Default: none)
+   - DiffTetVR XML or project or ParaView JSON transfer function, or the name
+     of one that ships with mi_tetvr (``default``, ``engine``, ...) or of a
+     matplotlib colormap; when given, color and opacity come from the scalar
+     field. (Default: none)
  * - value_min, value_max
    - |float|
    - Scalar range mapped to [0, 1] by the transfer function. (Default: the
