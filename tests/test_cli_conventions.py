@@ -277,6 +277,36 @@ def test_a_folded_mesh_is_one_line_in_every_command(tmp_path, meshes, tiny_data_
         assert "Traceback" not in text and "parser.cpp" not in text, text
 
 
+def test_a_constant_scalar_and_a_bad_property_are_one_line(tmp_path, capfd):
+    """A mesh whose scalar is constant, under a transfer function with no range, and a
+    scene whose tetmesh has a property no plugin reads: one line each (Mitsuba's own
+    message of two lines joined), no traceback."""
+    import meshio
+
+    from mi_tetvr.mesh.generate import grid_mesh
+    v, t = grid_mesh(2)
+    meshio.write(tmp_path / "flat.vtu", meshio.Mesh(v, [("tetra", t)],
+                                                    point_data={"s": np.full(len(v), 2.0)}))
+    xml = tmp_path / "bad.xml"
+    xml.write_text((ROOT / "scenes" / "default.xml").read_text().replace(
+        'value="meshes/blob.vtu"/>', f'value="{ROOT / "scenes" / "meshes" / "blob.vtu"}"/>'
+        '<float name="opacity_scal" value="2"/>'))
+    flat, out = str(tmp_path / "flat.vtu"), str(tmp_path / "o")
+    for argv, said in [
+            (["make-dataset", flat, "--tf", "default", "-o", out, "--views", "1",
+              "--test-views", "0", "--res", "4", "-q"], "array 's' is constant"),
+            (["render", flat, "--tf", "default", "-o", out + ".png", "--res", "4"],
+             "the scalar 's' is constant"),
+            (["viewpoint", flat, "--tf", "default", "-o", out, "--res", "4"],
+             "array 's' is constant"),
+            (["render", str(xml), "-o", out + ".png", "--res", "4"],
+             'unreferenced property in shape plugin of type "tetmesh": - float "opacity_scal"')]:
+        msg = fails(argv + ["--variant", VARIANT])
+        err = capfd.readouterr().err
+        assert isinstance(msg, str) and "\n" not in msg and said in msg, (argv[0], msg)
+        assert "Traceback" not in msg + err, err
+
+
 def test_make_dataset_refuses_options_that_do_not_apply(tmp_path, meshes):
     vol = tmp_path / "v.npy"
     np.save(vol, np.ones((4, 4, 4), np.float32))

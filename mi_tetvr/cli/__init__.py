@@ -125,16 +125,18 @@ def command_summary():
 
 def error_message(e):
     """The line ``mi-tetvr: ...`` says of an exception a command raised (``None``: it
-    says nothing more; status 1)."""
-    if isinstance(e, CommandError):
-        return str(e) or None
+    says nothing more; status 1): one line, also where a message (Mitsuba's) has
+    several."""
     if isinstance(e, KeyboardInterrupt):
         return "interrupted"
-    # what a command could not do with its input: one line (the library's messages say
-    # what is wrong and the way past it)
+    # what a command could not do with its input (the library's messages say what is
+    # wrong and the way past it)
     text = str(e).strip("'\"") if isinstance(e, KeyError) else str(e)
     if isinstance(e, FileNotFoundError) and e.filename and str(e.filename) not in text:
         text = f"file not found: {e.filename}"
+    text = " ".join(line.strip() for line in text.splitlines() if line.strip())
+    if isinstance(e, CommandError):
+        return text or None
     return text or type(e).__name__
 
 

@@ -196,6 +196,9 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
                                                 "value_max": float(value_range[1])})}
     if lights is not None:
         props.update(classification="pre", albedo="color")
+    else:
+        from mi_tetvr.render.properties import scalar_range
+        scalar_range(values, name, props)      # (refused in the words of the file's array)
     volume = mi_tetvr.tetmesh_shape(mi_tetvr.tetmesh_dict(mesh.vertices, mesh.tets,
                                                           scalar=values, **props),
                                     topology=mesh.topology)
