@@ -156,3 +156,17 @@ def test_the_core_commands_run_and_the_others_name_their_extra(venv, outside):
         assert r.returncode == 1 and "\n" not in said and "Traceback" not in said, said
         assert said.startswith("mi-tetvr: ") and said.endswith(
             f'pip install "mi_tetvr[{extra}]"'), (argv, said)
+
+
+def test_the_version_is_said_once_and_agreed_with():
+    """The version lives in ``mi_tetvr.__version__`` (pyproject.toml reads it); the
+    citation file and the changelog's newest entry name the same."""
+    import re
+
+    import mi_tetvr
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    assert 'dynamic = ["version"]' in pyproject and "mi_tetvr.__version__" in pyproject
+    cff = re.search(r"^version: (\S+)$", (ROOT / "CITATION.cff").read_text(), re.M)
+    assert cff and cff.group(1) == mi_tetvr.__version__
+    newest = re.search(r"^## (\S+) \(", (ROOT / "CHANGELOG.md").read_text(), re.M)
+    assert newest and newest.group(1) == mi_tetvr.__version__
