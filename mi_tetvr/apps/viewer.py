@@ -271,7 +271,7 @@ class MeshShown(Shown):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             self.mesh = mi_tetvr.read_tetmesh(path, repair=repair, cell_to_point=cell_to_point)
-            self.topology = self.mesh.topology        # built once, handed to every load
+            self.mesh.topology      # built once (a folded mesh is refused here), kept by the mesh
         lo, hi = self.mesh.bounds
         super().__init__((lo + hi) / 2, bounding_radius(np.stack([lo, hi])), up)
         self.repair, self.cell_to_point = repair, cell_to_point
@@ -362,12 +362,10 @@ class MeshShown(Shown):
     def load(self):
         """Load the shape (and the integrator) for the current settings."""
         import mitsuba as mi
-
-        import mi_tetvr
         try:
+            # (the shape is built with the mesh's topology, built once; a refusal is a
+            # ValueError)
             d = self._scene_dict()
-            # the shape built here, with the topology built once (a refusal is a ValueError)
-            d["volume"] = mi_tetvr.tetmesh_shape(d["volume"], topology=self.topology)
         except ValueError as e:          # a combination render refuses: say so, keep the last
             self.message = str(e)
             return False

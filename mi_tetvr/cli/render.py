@@ -159,11 +159,12 @@ class FrameRenderer:
             mesh = read_mesh(s, path)
             d = mesh_scene(s, mesh, self.framing)
             # (one scene, the camera moving: each frame replays the first's kernels)
-            self.orbit = (path, mesh, Frames(load_scene(self.mi, d, path)))
-        _, mesh, recorded = self.orbit
-        d = mesh_scene(s, mesh, self.framing)
+            self.orbit = (path, Frames(load_scene(self.mi, d, path)))
+        from mi_tetvr.apps.framing import framed_scene
+        recorded = self.orbit[1]
         with render_errors(path):
-            return render_rgba(np.array(recorded.render_dict(d["sensor"])))
+            return render_rgba(np.array(recorded.render_dict(
+                framed_scene(s, self.framing)["sensor"])))
 
     def series_frame(self, path):
         """The RGBA frame of the series' mesh ``path``."""
