@@ -134,17 +134,26 @@ def test_the_wheel_renders_and_differentiates_outside_the_checkout(venv, outside
 
 
 def test_the_core_commands_run_and_the_others_name_their_extra(venv, outside):
-    """``mi-tetvr`` of the core: the bundled scenes written and one rendered; each
-    command that needs an extra, one line naming it, exit status 1, no traceback."""
+    """``mi-tetvr`` of the core: the bundled scenes written, a scene and a scalar mesh
+    rendered, data sets of a mesh and X-ray projections made; each command that needs an
+    extra, one line naming it, exit status 1, no traceback."""
     cwd, env = outside
     cli = venv / "mi-tetvr"
     r = run([cli, "make-scenes", "-o", "scenes"], cwd=cwd, env=env)
     assert r.returncode == 0 and (cwd / "scenes" / "meshes" / "blob.vtu").is_file(), r.stderr
-    r = run([cli, "render", "scenes/default.xml", "-o", "default.png", "--res", "16",
-             "--variant", VARIANT], cwd=cwd, env=env)
-    assert r.returncode == 0 and (cwd / "default.png").stat().st_size > 0, r.stderr
+    for argv in (["render", "scenes/default.xml", "-o", "default.png", "--res", "16"],
+                 ["render", "scenes/meshes/radial_scalar.vtu", "--tf", "radial", "-o",
+                  "radial.exr", "--res", "16"],
+                 ["make-dataset", "scenes/meshes/radial_scalar.vtu", "--tf", "radial", "-o",
+                  "mesh_data", "--views", "2", "--test-views", "1", "--res", "8", "-q"],
+                 ["make-dataset", "scenes/volumes/default.npy", "--xray", "-o", "xray_data",
+                  "--views", "2", "--test-views", "1", "-q"]):
+        r = run([cli] + argv + ["--variant", VARIANT], cwd=cwd, env=env)
+        assert r.returncode == 0 and (cwd / argv[argv.index("-o") + 1]).exists(), r.stderr
     for extra, argv in [
             ("recon", ["fit", "data", "-o", "fit"]),
+            ("recon", ["make-dataset", "scenes/volumes/default.npy", "--tf", "default", "-o",
+                       "grid_data"]),
             ("sfm", ["process-data", "photos", "-o", "data"]),
             ("tomo", ["process-xray", "scan.h5", "-o", "data"]),
             ("vis", ["render", "scenes/meshes/radial_scalar.vtu", "--tf", "viridis", "-o",

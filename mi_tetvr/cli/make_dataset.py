@@ -9,6 +9,7 @@ from pathlib import Path
 from mi_tetvr.apps.settings import OPACITY_SCALE
 from mi_tetvr.cli import flags
 from mi_tetvr.cli.common import is_mesh_file, refuse, set_variant
+from mi_tetvr.extras import require
 
 NAME = "make-dataset"
 HELP = ("render a scalar volume or tet mesh into a NeRF-style data set, or project a volume "
@@ -102,6 +103,8 @@ def run(a):
     vr = None if a.value_range is None else _numbers(2)(a.value_range)
     is_mesh = is_mesh_file(path)
     check(a, is_mesh, path)
+    if not (a.xray or is_mesh):
+        require("recon", "make-dataset of a grid volume (its PNG images)", "PIL")
     set_variant(a.variant)
     seed = 0 if a.seed is None else a.seed
     if a.xray:
