@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import contextlib
 
-__all__ = ["EXTRAS", "MissingExtra", "needs", "require"]
+__all__ = ["EXTRAS", "PACKAGES", "MissingExtra", "needs", "require"]
 
 #: Each extra and what it is for.
 EXTRAS = {
@@ -32,6 +32,14 @@ EXTRAS = {
     "viewer": "the live viewer in the browser",
     "cluster": "partitioned meshes and sweeps over workers",
 }
+
+#: The optional packages by the name they are imported as: their name on PyPI.
+PACKAGES = {"scipy": "scipy", "trimesh": "trimesh", "pytetwild": "pytetwild",
+            "pyvista": "pyvista", "vtkmodules": "vtk", "skimage": "scikit-image",
+            "matplotlib": "matplotlib", "PIL": "pillow", "yaml": "pyyaml",
+            "imageio_ffmpeg": "imageio-ffmpeg", "pycolmap": "pycolmap", "h5py": "h5py",
+            "algotom": "algotom", "astra": "astra-toolbox", "viser": "viser", "ray": "ray",
+            "av": "av", "cv2": "opencv-python-headless"}
 
 
 class MissingExtra(ModuleNotFoundError):
@@ -65,7 +73,8 @@ def needs(extra: str, what: str):
         name = e.name or ""
         if name.split(".")[0] == "mi_tetvr":        # the project's own module: a bug, not an extra
             raise
-        raise MissingExtra(f"{what} needs the package '{name.split('.')[0]}', which is not "
+        top = name.split(".")[0]
+        raise MissingExtra(f"{what} needs '{PACKAGES.get(top, top)}', which is not "
                            f"installed: pip install \"mi_tetvr[{extra}]\"",
                            name=name) from None
 

@@ -7,22 +7,13 @@ import sys
 
 import pytest
 
+from mi_tetvr.extras import PACKAGES as OPTIONAL
 from tests.helpers import ROOT, VARIANT
 
 try:
     import tomllib
 except ImportError:                      # Python 3.10
     tomllib = None
-
-#: The optional packages, by the name they are imported as, and their PyPI names.
-OPTIONAL = {"scipy": "scipy", "trimesh": "trimesh", "pytetwild": "pytetwild",
-            "pyvista": "pyvista", "vtkmodules": "vtk", "skimage": "scikit-image",
-            "matplotlib": "matplotlib", "PIL": "pillow", "yaml": "pyyaml",
-            "imageio_ffmpeg": "imageio-ffmpeg", "pycolmap": "pycolmap", "h5py": "h5py",
-            "algotom": "algotom", "astra": "astra-toolbox", "viser": "viser", "ray": "ray",
-            "av": "av", "cv2": "opencv-python-headless"}
-#: What the core installs, by import name.
-CORE = {"mitsuba", "drjit", "numpy", "meshio", "tqdm"}
 
 
 def extras_of_pyproject():
@@ -193,7 +184,7 @@ def test_a_command_whose_extra_is_missing_says_which_in_one_line(tmp_path, hide,
     hide(hidden)
     msg = fails([a.format(d=tmp_path) for a in argv])
     assert isinstance(msg, str) and "\n" not in msg, msg
-    assert msg.startswith("mi-tetvr: ") and f"'{hidden}'" in msg, msg
+    assert msg.startswith("mi-tetvr: ") and f"'{OPTIONAL[hidden]}'" in msg, msg
     assert msg.endswith(f'pip install "mi_tetvr[{extra}]"'), msg
 
 
@@ -207,8 +198,8 @@ def test_a_function_whose_extra_is_missing_says_which(hide):
     from mi_tetvr.mesh.initial import tetwild_init
     from mi_tetvr.transfer import colormap, read_transfer_function
     hide("matplotlib", "pytetwild")
-    with pytest.raises(MissingExtra, match=r"^a matplotlib colormap by name needs the "
-                                           r"package 'matplotlib', .*\"mi_tetvr\[vis\]\"$"):
+    with pytest.raises(MissingExtra, match=r"^a matplotlib colormap by name needs "
+                                           r"'matplotlib', .*\"mi_tetvr\[vis\]\"$"):
         colormap("viridis")
     with pytest.raises(ModuleNotFoundError, match=r'mi_tetvr\[recon\]'):
         tetwild_init(bounds=(np.zeros(3), np.ones(3)))
