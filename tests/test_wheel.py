@@ -45,8 +45,8 @@ def venv(dist, tmp_path_factory):
 
 def test_the_wheel_holds_the_package_and_no_more(dist):
     """The plugins inside the package, the bundled scenes and transfer functions, the
-    license; no tests, benchmarks or tutorials. The sdist has the license, the
-    changelog and the citation file."""
+    license; no tests, benchmarks or tutorials. The sdist has the package, the license,
+    the changelog and the citation file, and no tests (they need the repository)."""
     import mi_tetvr
     wheel, sdist = dist
     assert wheel.name.startswith(f"mi_tetvr-{mi_tetvr.__version__}-py3-none-any")
@@ -61,7 +61,9 @@ def test_the_wheel_holds_the_package_and_no_more(dist):
     assert tops == {"mi_tetvr", f"mi_tetvr-{mi_tetvr.__version__}.dist-info"}, tops
     with tarfile.open(sdist) as tar:
         members = {m.split("/", 1)[-1] for m in tar.getnames()}
-    assert {"LICENSE", "CHANGELOG.md", "CITATION.cff", "pyproject.toml"} <= members
+    assert {"LICENSE", "CHANGELOG.md", "CITATION.cff", "pyproject.toml",
+            "mi_tetvr/plugins/tetmesh.py", "mi_tetvr/scenes/default.xml"} <= members
+    assert not any(m.startswith("tests/") for m in members)
 
 
 RENDER = """
