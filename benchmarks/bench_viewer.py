@@ -205,7 +205,7 @@ def main(a):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             shown = MeshShown(path, scalar=scalar)
-        tets = shown.topology.n_tets
+        tets = shown.mesh.topology.n_tets
         if name == "fitted":
             name = f"fitted ({tets / 1e6:.2f}M tets)"
         for size in a.sizes:
