@@ -21,7 +21,7 @@ if ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null
         || echo "setup.sh: could not install chromium and chromium-driver" >&2
 fi
 # the package with every extra (rendering alone needs none: pip install mi_tetvr)
-python3 -m pip install -q -e ".[all,test]"
+python3 -m pip install -q -e ".[all,test,docs]"
 # the bundled scenes, their meshes and the default volume into scenes/
 python3 -m mi_tetvr.cli make-scenes -o scenes >/dev/null
 if [ "${1:-}" != "--install" ]; then

@@ -12,7 +12,7 @@ and again by themselves whenever :func:`mitsuba.set_variant` switches to another
 autodiff RGB variant (``llvm_ad_rgb``, ``cuda_ad_rgb``); :func:`register` does it
 by hand.
 
-Sub-packages (see the README's *Architecture*):
+Sub-packages (see the documentation's *Architecture*):
 
 * :mod:`mi_tetvr.mesh` -- tet meshes in numpy: topology, files, generators,
   refinement, initial meshes (no Mitsuba variant needed);

@@ -13,8 +13,8 @@ by longitude, latitude and distance (camera gradients through ``mi.render``). Ev
 :meth:`Camera.rays_drjit` and :meth:`Camera.sensor_dict` is numpy and works without a Mitsuba
 variant.
 
-Conventions
------------
+.. rubric:: Conventions
+
 Camera frame (Mitsuba)
     The camera looks along **+z**, **+y is up** in the image and **+x is to the image's left**;
     this is the frame ``mi.ScalarTransform4f().look_at`` builds and the one of Mitsuba's

@@ -8,6 +8,7 @@ reference renderer is :mod:`tests.reference`.
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -342,3 +343,25 @@ def grid_field_scene(integrator, transfer_function, size, resolution=64):
                             "pixel_format": "rgb", "rfilter": {"type": "box"}}},
         "m": mi_tetvr.tetmesh_dict(V, T, scalar=scalar, transfer_function=transfer_function,
                                    value_min=-1.0, value_max=1.0, tf_resolution=resolution)})
+
+
+def start_browser(width=900, height=700):
+    """Selenium's Chrome on Debian's headless Chromium (software WebGL), or a
+    skip that says what is missing."""
+    import pytest
+    try:
+        from selenium import webdriver
+        from selenium.webdriver.chrome.service import Service
+    except ImportError:
+        pytest.skip("selenium is not installed (pip install -e '.[test]' installs it)")
+    driver = shutil.which("chromedriver")
+    if shutil.which("chromium") is None or driver is None:
+        pytest.skip("no Chromium here: setup.sh installs Debian's chromium and "
+                    "chromium-driver; where apt cannot install them the browser test "
+                    "cannot run")
+    options = webdriver.ChromeOptions()
+    for a in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage",
+              "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+              f"--window-size={width},{height}"):
+        options.add_argument(a)
+    return webdriver.Chrome(service=Service(driver), options=options)

@@ -94,32 +94,22 @@ def build_parser():
 
 
 def command_summary():
-    """Markdown lines, one per command: its positional arguments, required options and
-    the names of its other options (the fit settings in one group), with its help. The
-    README's command list is this text (a test keeps them equal)."""
+    """Markdown lines, one per command: its positional arguments and required options,
+    with its help. The README's command list is this text (a test keeps them equal);
+    every option is in the documentation's command-line reference, generated from the
+    same parsers."""
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     helps = {c.dest: c.help for c in sub._choices_actions}
     lines = []
     for name, p in sub.choices.items():
-        words, optional = [f"mi-tetvr {name}"], []
+        words = [f"mi-tetvr {name}"]
         for a in p._actions:
-            if isinstance(a, argparse._HelpAction):
-                continue
             if not a.option_strings:
                 words.append(a.dest.upper().replace("-", "_"))
-            elif a.dest.startswith("cfg_"):
-                continue
-            elif a.required:
+            elif a.required and not isinstance(a, argparse._HelpAction):
                 words.append(f"{a.option_strings[0]} {a.dest.upper()}")
-            else:
-                optional.append(max(a.option_strings, key=len))
-        if any(a.dest.startswith("cfg_") for a in p._actions):
-            optional.append("[every FitConfig setting: --time-budget, --scene, --init, ...]")
         lines.append(f"- `{' '.join(words)}` — {helps[name]}")
-        if optional:
-            lines.append(f"  options: "
-                         f"{', '.join(f'`{o}`' if o.startswith('-') else o for o in optional)}")
     return "\n".join(lines)
 
 

@@ -89,6 +89,7 @@
  * - albedo_attribute
    - |string|
    - Instead of ``albedo``: the point-data array (n,) or (n, 3) holding it.
+     (Default: none)
  * - emission, emission_attribute
    - |float|, |color|, |tensor| or |string|
    - With an albedo: the medium's emission per unit extinction (as the

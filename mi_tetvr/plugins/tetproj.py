@@ -24,17 +24,18 @@ or a slice).
 
  * - mode
    - |string|
-   - ``max`` (maximum intensity projection, the default), ``min``, ``mean``
-     (average over the length inside the mesh), ``slice`` or ``iso``.
+   - ``max`` (maximum intensity projection), ``min``, ``mean`` (average over
+     the length inside the mesh), ``slice`` or ``iso``. (Default: ``max``)
  * - iso
    - |string|
    - ``iso``: the isovalue(s) of the scalar, comma-separated (data units); the
      first one a ray meets is shown, shaded by a headlight (Lambert on the
-     normal interpolated from the vertices' gradients).
+     normal interpolated from the vertices' gradients). Required in mode
+     ``iso``. (Default: none)
  * - origin, normal
    - |point|, |vector|
-   - ``slice``: a point of the plane (default: the centre of the scene's
-     bounding box) and its normal (default: +z).
+   - ``slice``: a point of the plane and its normal. (Default: the centre of
+     the scene's bounding box, +z)
  * - opacity
    - |float|
    - ``slice``, ``iso``: the surfaces' opacity in (0, 1]; below 1 a ray
@@ -46,7 +47,7 @@ or a slice).
      ones are not). (Default: 1 when opaque, else 8)
  * - clip_origin, clip_normal, clip_min, clip_max
    - |point|, |vector|
-   - A plane and a box that cut the mesh, as ``tetvr``'s.
+   - A plane and a box that cut the mesh, as ``tetvr``'s. (Default: none)
  * - max_steps
    - |int|
    - Safety bound on tets crossed per walk. (Default: 100000)

@@ -42,9 +42,10 @@ shapes by walking the tet adjacency.
    - |point|, |vector|
    - A plane that cuts the volume: what lies on the side the normal points to
      is cut away (:mod:`mi_tetvr.render.clipping`; surfaces are not cut).
+     (Default: none)
  * - clip_min, clip_max
    - |point|
-   - A box that cuts the volume: what lies outside it is cut away.
+   - A box that cuts the volume: what lies outside it is cut away. (Default: none)
  * - overlay
    - |integrator|
    - A ``tetproj`` integrator (named ``overlay``) in mode ``slice`` or
@@ -53,7 +54,7 @@ shapes by walking the tet adjacency.
      with a slice or a contour (:mod:`mi_tetvr.render.layers`). The scene's
      one tetmesh must be post-classified (a scalar and a transfer function).
      Derivatives as without it, and through the surfaces' colors and depths
-     (not w.r.t. a differentiable camera).
+     (not w.r.t. a differentiable camera). (Default: none)
  * - surfaces
    - |integrator|
    - Child integrator (named ``surfaces``) that renders the scene's other

@@ -3,14 +3,13 @@ formula, its images against ``mi-tetvr render`` of the view it saved, its
 refinement, its share of a fit's time, and the page in a real browser
 (Debian's Chromium driven by Selenium)."""
 import math
-import shutil
 import socket
 import time
 
 import numpy as np
 import pytest
 
-from tests.helpers import ROOT, use_variant
+from tests.helpers import ROOT, start_browser, use_variant
 
 use_variant()
 
@@ -161,27 +160,6 @@ def test_fit_viewer_keeps_to_its_share(data, tmp_path):  # noqa: F811 (the fixtu
     assert v.render_seconds <= 0.1 * wall + v.last["seconds"] + 0.05
 
 
-def _browser():
-    """Selenium's Chrome on Debian's headless Chromium (software WebGL), or a
-    skip that says what is missing."""
-    try:
-        from selenium import webdriver
-        from selenium.webdriver.chrome.service import Service
-    except ImportError:
-        pytest.skip("selenium is not installed (pip install -e '.[test]' installs it)")
-    driver = shutil.which("chromedriver")
-    if shutil.which("chromium") is None or driver is None:
-        pytest.skip("no Chromium here: setup.sh installs Debian's chromium and "
-                    "chromium-driver; where apt cannot install them the browser test "
-                    "cannot run")
-    options = webdriver.ChromeOptions()
-    for a in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage",
-              "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-              "--window-size=900,700"):
-        options.add_argument(a)
-    return webdriver.Chrome(service=Service(driver), options=options)
-
-
 def _free_port():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -200,7 +178,7 @@ def test_the_page_in_a_real_browser(mesh_file):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys
     from mi_tetvr.apps.viewer import PARAVIEW_BACKGROUND
-    browser = _browser()
+    browser = start_browser()
     shown = MeshShown(mesh_file, scalar="bump")
     viewer = Viewer(shown, port=_free_port(), resolution=256).start()
     try:
