@@ -21,22 +21,18 @@ from __future__ import annotations
 
 import collections
 import copy
+import graphlib
 import importlib
 import itertools
 import sys
 import threading
+import types
 
-__all__ = ["register", "registered_variant", "on_variant_change", "constructor", "mark",
-           "raised_in", "PLUGINS"]
+__all__ = ["register", "registered_variant", "on_variant_change", "variant_bound_modules",
+           "rebind", "constructor", "mark", "raised_in", "PLUGINS"]
 
 #: The plugin modules, registered in this order.
 PLUGINS = ("tetmesh", "tetvr", "tetproj", "tetpath")
-
-#: Modules that bind Mitsuba/Dr.Jit types at import, in dependency order: reloaded for
-#: a new variant (the plugin modules last).
-_VARIANT_MODULES = ("render.segment", "render.buffers", "render.geometry", "render.optical",
-                    "render.adjoint", "render.walk", "render.transport", "render",
-                    "grid.marcher", "recon.regularizer") + tuple(f"plugins.{p}" for p in PLUGINS)
 
 _registered = None
 
@@ -52,8 +48,8 @@ def register():
 
     ``import mi_tetvr`` calls it when a variant is set, and it runs by itself
     after ``mi.set_variant`` switches to an autodiff RGB variant: the modules
-    that bind the variant's types are reloaded for a new one. Calling it again
-    for the same variant does nothing.
+    that bind the variant's types are reloaded for a new one (:func:`rebind`).
+    Calling it again for the same variant does nothing.
 
     Raises
     ------
@@ -71,15 +67,63 @@ def register():
                            f"cuda_ad_rgb), not '{variant}'")
     if variant == _registered:
         return
+    if _registered is not None:
+        rebind()                          # what the old variant bound, for the new one
     package = __name__.rpartition(".")[0]
-    for name in _VARIANT_MODULES:
-        full = f"{package}.{name}"
-        if name.startswith("plugins.") or full in sys.modules:
-            loaded = full in sys.modules
-            module = importlib.import_module(full)
-            if loaded and _registered is not None:
-                importlib.reload(module)
+    for name in PLUGINS:                  # each plugin module registers itself on import
+        importlib.import_module(f"{package}.plugins.{name}")
     _registered = variant
+
+
+def variant_bound_modules(package="mi_tetvr"):
+    """The imported modules of ``package`` that hold a Mitsuba variant's types or
+    functions, in an order where each comes after the modules it takes names from.
+
+    A module is bound when its globals hold Mitsuba or Dr.Jit (the modules, their types,
+    functions or values) or names of another bound module (``from .walk import trace``
+    binds the ``trace`` of the variant ``walk`` was imported for). Read from the modules
+    themselves, so that no list of them can miss a new one.
+    """
+    modules = {n: m for n, m in list(sys.modules.items())
+               if isinstance(m, types.ModuleType) and n != __name__   # (its state stays)
+               and (n == package or n.startswith(package + "."))}
+
+    variant, takes = set(), {}
+    for name, module in modules.items():
+        takes[name] = set()
+        for value in list(vars(module).values()):
+            # a module held (``import mitsuba as mi``, ``from . import walk``) is read at
+            # call time, reloaded or not; only Mitsuba and Dr.Jit themselves bind a variant
+            module_held = isinstance(value, types.ModuleType)
+            where = value.__name__ if module_held else getattr(value, "__module__", None)
+            if not isinstance(where, str) or where == name:
+                continue
+            if where.split(".")[0] in ("mitsuba", "drjit"):
+                variant.add(name)
+            elif where in modules and not module_held:
+                takes[name].add(where)
+    bound, grew = set(variant), True
+    while grew:                           # and what takes names from a bound module
+        grew = False
+        for name, sources in takes.items():
+            if name not in bound and sources & bound:
+                bound.add(name)
+                grew = True
+    order = list(modules)                 # import order breaks ties (and any cycle)
+    graph = {n: sorted(takes[n] & bound, key=order.index) for n in sorted(bound, key=order.index)}
+    try:
+        ranked = list(graphlib.TopologicalSorter(graph).static_order())
+    except graphlib.CycleError:
+        ranked = sorted(bound, key=order.index)
+    return [modules[n] for n in ranked]
+
+
+def rebind(package="mi_tetvr"):
+    """Reload the modules bound to the variant (:func:`variant_bound_modules`), each
+    after those it takes names from: the plugin modules among them register
+    themselves again with the variant set now."""
+    for module in variant_bound_modules(package):
+        importlib.reload(module)
 
 
 def on_variant_change(old, new):
