@@ -44,32 +44,12 @@ if _mi.variant() is None:
     raise ImportError("mi_tetvr.render needs a Mitsuba variant: call "
                       "mitsuba.set_variant('llvm_ad_rgb') (or 'cuda_ad_rgb') first")
 
-from mi_tetvr.render.adjoint import Adjoint, Derivative  # noqa: E402
-from mi_tetvr.render.buffers import (MeshBuffers, TetScene, index_buffers,  # noqa: E402
-                                     model_groups, offset_links, pack_links,
-                                     scene_tetmeshes,
-                                     shape_index_arrays, tet_scene, unpack_link)
-from mi_tetvr.render.geometry import (crossing, edge_function, face_crossing,  # noqa: E402
-                                      face_entry, face_weights, project, ray_frame, tet_face,
-                                      walk_step)
+# What clients of the renderer build on: the media and probes to subclass (see the
+# architecture page) and the ray program the integrators call. Everything else is
+# imported from its module.
 from mi_tetvr.render.optical import Absorption, EmissionAbsorption, OpticalModel  # noqa: E402
-from mi_tetvr.render.segment import (clip_segment, interval_terms, merged_integral,  # noqa: E402
-                                     segment_integral)
-from mi_tetvr.render.merged import merged_trace, overlapping  # noqa: E402
-from mi_tetvr.render.surfaces import NestedIntegrator, SceneParts, split_shapes  # noqa: E402
-from mi_tetvr.render.walk import WalkSettings, enter, locate, trace, walk  # noqa: E402
 from mi_tetvr.render.probes import Isosurface, Probe, Projection, Slice  # noqa: E402
-from mi_tetvr.render.program import Probes, VolumeProgram  # noqa: E402
+from mi_tetvr.render.program import VolumeProgram  # noqa: E402
 
-__all__ = [
-    "Adjoint", "Derivative",
-    "MeshBuffers", "TetScene", "index_buffers", "model_groups", "offset_links", "pack_links",
-    "scene_tetmeshes", "shape_index_arrays", "tet_scene", "unpack_link",
-    "crossing", "edge_function", "face_crossing", "face_entry", "face_weights", "project",
-    "ray_frame", "tet_face", "walk_step",
-    "Absorption", "EmissionAbsorption", "OpticalModel",
-    "clip_segment", "interval_terms", "merged_integral", "segment_integral",
-    "merged_trace", "overlapping", "NestedIntegrator", "SceneParts", "split_shapes",
-    "WalkSettings", "enter", "locate", "trace", "walk",
-    "Isosurface", "Probe", "Projection", "Slice", "Probes", "VolumeProgram",
-]
+__all__ = ["OpticalModel", "EmissionAbsorption", "Absorption", "Probe", "Projection", "Slice",
+           "Isosurface", "VolumeProgram"]
