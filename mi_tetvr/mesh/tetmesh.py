@@ -84,9 +84,11 @@ class TetMesh:
     """
 
     def __init__(self, vertices, tets, color=None, opacity=None, point_data=None,
-                 cell_data=None, topology=None):
+                 cell_data=None, topology=None, duplicates=True):
         self._cache = {}
-        self._vertices, self._tets = validate_arrays(vertices, tets)
+        # (duplicate tets: looked for now, or by the face matching of the topology that
+        # the caller builds next, duplicates=False; one sort of the tets less)
+        self._vertices, self._tets = validate_arrays(vertices, tets, duplicates=duplicates)
         if topology is not None:
             # the topology of these very arrays, built before (handed on, not rebuilt)
             if topology.tets.shape != self._tets.shape or not np.array_equal(

@@ -28,6 +28,7 @@ Conventions
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import typing
 import warnings
 
@@ -307,10 +308,16 @@ def _tet_face_keys(tets, n_vertices):
     pairs = None if exact else np.empty((m, 4), np.int64)
     with np.errstate(over="ignore"):
         for i, f in enumerate(faces):
-            a, b, c = (x.astype(np.int64) for x in _sorted3(*f))
-            if exact:
-                keys[:, i] = _pack_triples(a, b, c, *widths)
+            a, b, c = _sorted3(*f)
+            if exact:                     # (the spans in the index type, a in 64 bits)
+                ws = widths[1]
+                k = keys[:, i]
+                np.copyto(k, a, casting="safe")
+                k <<= 2 * ws
+                k |= (b - a).astype(np.int64) << ws
+                k |= c - a
             else:
+                a, b, c = (x.astype(np.int64, copy=False) for x in (a, b, c))
                 pairs[:, i] = (b << 32) | c
                 keys[:, i] = _mix64(_mix64(pairs[:, i].view(np.uint64)) + a.astype(np.uint64)
                                     ).view(np.int64)
@@ -482,8 +489,15 @@ def validate_arrays(vertices, tets, *, strict=True, allow_empty=False, duplicate
         bad = np.flatnonzero(np.any((tets < 0) | (tets >= n), axis=1))
         raise MeshError(f"tet vertex indices out of range [0, {n}) in tets {_preview(bad)}")
     if strict:
-        s = np.sort(tets, axis=1)
-        bad = np.flatnonzero(np.any(s[:, 1:] == s[:, :-1], axis=1))
+        if duplicates:                    # (the rows sorted, for both checks)
+            s = np.sort(tets, axis=1)
+            repeated = np.any(s[:, 1:] == s[:, :-1], axis=1)
+        else:                             # (the six pairs of columns: no sort)
+            cols = [tets[:, k] for k in range(4)]
+            repeated = np.zeros(len(tets), bool)
+            for j, k in itertools.combinations(range(4), 2):
+                repeated |= cols[j] == cols[k]
+        bad = np.flatnonzero(repeated)
         if len(bad):
             raise MeshError(f"tets with a repeated vertex index: {_preview(bad)}; {REPAIR_HINT}")
         if duplicates:
@@ -627,7 +641,9 @@ def _match_faces(tets, n_vertices):
     :class:`MeshError` (duplicate tets first, :func:`_duplicate_tets`)."""
     m = len(tets)
     keys, pairs = _tet_face_keys(tets, n_vertices)
-    order = np.argsort(keys).astype(np.int32 if 4 * m < 2 ** 31 else np.int64)
+    # (stable: Timsort finds the runs that a mesh numbered with locality has, twice as
+    # fast as the default on 50M keys of a grid, and the order is deterministic)
+    order = np.argsort(keys, kind="stable").astype(np.int32 if 4 * m < 2 ** 31 else np.int64)
     sk = keys[order]
     del keys
     eq = sk[1:] == sk[:-1]

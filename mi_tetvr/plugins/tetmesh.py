@@ -185,9 +185,6 @@ class TetMeshShape(mi.Mesh):
                              "its colors (color, or a transfer function): remove its 'area' "
                              "emitter")
         self.optical_model = MODELS[model]
-        params = mi.traverse(self)
-        params["vertex_positions"] = owned(mi.Float, mesh.vertices.astype(np.float32).ravel())
-        params["faces"] = owned(mi.UInt32, topo.boundary_faces.astype(np.uint32).ravel())
         #: The phase function of a scattering mesh (else None).
         self.phase = None
         if scatter is not None:
@@ -214,9 +211,17 @@ class TetMeshShape(mi.Mesh):
             if self.optical_model is CellClassified:
                 #: The scalar per tet, in the mesh's order (cell data).
                 self.cell_scalar = owned(mi.Float, np.asarray(scalar, np.float32))
-        for name, channels in self.optical_model.vertex_attributes:
-            self.add_attribute(name, channels,
-                               owned(mi.Float, np.asarray(values[name], np.float32).ravel()))
+        attributes = self.optical_model.vertex_attributes
+        for name, channels in attributes:
+            # Mitsuba's add_attribute takes a sequence of floats and converts them one by
+            # one (6 s for the colors and opacities of 2M vertices as Dr.Jit arrays): it
+            # gets a list of one shared zero, and the buffer itself is assigned below
+            self.add_attribute(name, channels, [0.0] * (channels * len(mesh.vertices)))
+        params = mi.traverse(self)
+        params["vertex_positions"] = owned(mi.Float, mesh.vertices.astype(np.float32).ravel())
+        params["faces"] = owned(mi.UInt32, topo.boundary_faces.astype(np.uint32).ravel())
+        for name, channels in attributes:
+            params[name] = owned(mi.Float, np.asarray(values[name], np.float32).ravel())
         params.update()
         arrays = shape_index_arrays(topo, mesh.vertices)
         #: Index buffers of the walk (Dr.Jit, local indices; see

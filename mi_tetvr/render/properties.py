@@ -125,7 +125,7 @@ def mesh_from_properties(props) -> TetMesh:
                        None if opacity is None else opacity.reshape(-1),
                        None if scalar is None else {"scalar": scalar.reshape(-1)},
                        None if cells is None else {"scalar": cells.reshape(-1)},
-                       topology=topology)
+                       topology=topology, duplicates=False)   # the shape builds the topology
         tf = transfer_function(props)
         if tf is not None and classification(props) == "pre":
             if scalar is None:
