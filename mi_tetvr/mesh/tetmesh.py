@@ -61,6 +61,10 @@ class TetMesh:
     topology : Topology, optional
         :func:`~mi_tetvr.mesh.build_topology` of these arrays when it was built
         already (a fit hands it on to its ``tetmesh``): kept, not rebuilt.
+    duplicates : bool, optional
+        Look for duplicate tets now (default). False where :attr:`topology` is
+        built next anyway (the ``tetmesh`` shape): its face matching finds and
+        names them, and the tets are not sorted twice.
 
     Attributes
     ----------
@@ -86,8 +90,6 @@ class TetMesh:
     def __init__(self, vertices, tets, color=None, opacity=None, point_data=None,
                  cell_data=None, topology=None, duplicates=True):
         self._cache = {}
-        # (duplicate tets: looked for now, or by the face matching of the topology that
-        # the caller builds next, duplicates=False; one sort of the tets less)
         self._vertices, self._tets = validate_arrays(vertices, tets, duplicates=duplicates)
         if topology is not None:
             # the topology of these very arrays, built before (handed on, not rebuilt)
