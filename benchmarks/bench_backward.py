@@ -130,8 +130,9 @@ def main(a):
               + ", ".join(f"{x:.3f}" for x in al))
     print()
     print(f"render + backward / primal render: {results[best] / p_med:.2f}x "
-          f"(reduce_mode={best}; 'auto' = expand on LLVM when the buffers fit "
-          f"dr.expand_threshold() = {dr.expand_threshold():,} entries)")
+          f"(reduce_mode={best}; tetvr's 'auto' is direct atomics on LLVM and Dr.Jit's "
+          f"own choice on CUDA; 'expand' copies buffers of up to dr.expand_threshold() = "
+          f"{dr.expand_threshold():,} entries per thread)")
     write_json(a, info, {
         "mesh": dict(cells=a.cells, tets=len(tets)), "image": dict(res=a.res, spp=1),
         "rows": [dict(name=name, first_s=f, median_s=m, over_primal=m / p_med, runs_s=al)
