@@ -32,9 +32,6 @@ myst_heading_anchors = 3
 
 html_theme = "furo"
 html_title = f"mi_tetvr {release}"
-html_static_path = []
-# the pictures the pages show are files of docs/images (no download at build time)
-html_logo = None
 
 # autodoc: the public API, numpy-style docstrings, in source order
 autodoc_member_order = "bysource"
@@ -46,4 +43,4 @@ napoleon_numpy_docstring = True
 napoleon_use_ivar = True
 # the renderer's modules need a Mitsuba variant (set before autodoc imports them)
 import mitsuba as mi  # noqa: E402
-mi.set_variant("scalar_rgb" if "llvm_ad_rgb" not in mi.variants() else "llvm_ad_rgb")
+mi.set_variant("llvm_ad_rgb")
