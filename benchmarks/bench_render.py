@@ -71,7 +71,8 @@ mi.set_variant(ARGS.variant)
 import mi_tetvr  # noqa: E402,F401
 from mi_tetvr.mesh.topology import build_topology  # noqa: E402
 from mi_tetvr.render.buffers import MeshBuffers, TetScene, shape_index_arrays  # noqa: E402
-from mi_tetvr.render.walk import WalkSettings, trace  # noqa: E402
+from mi_tetvr.render.cursor import WalkSettings  # noqa: E402
+from mi_tetvr.render.walk import trace  # noqa: E402
 from plain_walk import plain_trace  # noqa: E402
 
 #: n_sub of the reference image (error ~1/n^4: below float precision).

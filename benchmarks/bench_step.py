@@ -49,7 +49,8 @@ import mitsuba as mi  # noqa: E402
 mi.set_variant(ARGS.variant)
 
 import mi_tetvr  # noqa: E402,F401
-from mi_tetvr.render.walk import WalkSettings, trace  # noqa: E402
+from mi_tetvr.render.cursor import WalkSettings  # noqa: E402
+from mi_tetvr.render.walk import trace  # noqa: E402
 from plain_walk import plain_trace  # noqa: E402
 
 #: What the loop's instructions are counted as (LLVM IR).

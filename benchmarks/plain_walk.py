@@ -31,7 +31,7 @@ import mitsuba as mi
 
 from mi_tetvr.mesh.topology import FACES
 from mi_tetvr.render.buffers import unpack_link
-from mi_tetvr.render.geometry import face_entry, ray_frame
+from mi_tetvr.render.geometry import RayFrame, face_entry, ray_frame
 from mi_tetvr.render.pytree import tree_select, weighted_sum
 from mi_tetvr.render.segment import interval_terms
 
@@ -91,7 +91,7 @@ def plain_trace(scene, ts, ray, t_min: float, max_steps: int, integral: str = "m
     si = scene.ray_intersect_preliminary(mi.Ray3f(o, d))
     active = mi.Bool(si.is_valid())
     u, v = ray_frame(d)
-    tet, f_in, outward = face_entry(buf, ts.boundary_face(si), o, u, v, d, active)
+    tet, f_in, outward = face_entry(buf, ts.boundary_face(si), RayFrame(o, d, u, v), active)
     # Attributes where the ray enters: weights of the hit point in the face.
     t = mi.Float(dr.select(active, si.t, 0.0))
     ids = [dr.gather(mi.UInt32, buf.tets, tet * 4 + _local(f_in, j), active) for j in range(3)]

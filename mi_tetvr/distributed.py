@@ -31,7 +31,6 @@ Ray starts a local cluster of processes by default; ``address`` (or
 """
 from __future__ import annotations
 
-import contextlib
 import os
 import resource
 from pathlib import Path
@@ -218,7 +217,7 @@ class BlockWorker:
             media_ad = program.media(differentiable=True)
             with dr.suspend_grad():
                 program.walk([g.detached() for g in media_ad], ray, start, active,
-                             Derivative(dr.ADMode.Backward, media_ad), adj, t_enter=0.0)
+                             (Derivative(dr.ADMode.Backward, media_ad), adj), t_enter=0.0)
             out = {key.split(".", 1)[-1]: np.array(dr.grad(params[key]), np.float32)
                    for key in keys}
         finally:
@@ -485,28 +484,24 @@ class PartitionedMesh:
             total = into.setdefault(name, np.zeros((self.part.vertices, g.shape[1])))
             np.add.at(total, ids, g)
 
-    @contextlib.contextmanager
     def attached(self, scene, reuse=False):
-        """The scene's ``tetvr`` integrator rendering this mesh (its
-        ``remote`` medium) inside the block; ``reuse``: the last primal
+        """``(integrator, blocks)``: the scene's ``tetvr`` integrator rendering
+        this mesh (its ``remote`` medium, :meth:`with_medium`) and the blocks
+        it renders with; ``reuse``: the last primal
         pass's per-block results stand for a primal of the same rays (none
         changed the blocks since: :meth:`step` forgets them)."""
         integrator = scene.integrator()
-        if not hasattr(integrator, "_remote"):          # (tetvr's: the medium it hands on)
+        if not hasattr(integrator, "with_medium"):      # (tetvr's: the medium it hands on)
             raise ValueError(f"a partitioned mesh is rendered by the tetvr integrator, the "
                              f"scene's is {type(integrator).__name__}")
         blocks = Blocks(self, walk_settings(integrator, scene, self.part), reuse)
-        integrator._remote = blocks
-        try:
-            yield blocks
-        finally:
-            integrator._remote = None
+        return integrator.with_medium(blocks), blocks
 
     def render(self, scene, sensor=0, seed=0, spp=0):
         """The image of ``scene`` (its camera, surfaces and lights, its
         ``tetvr`` integrator) with this mesh in it, as ``mi.render`` returns it."""
-        with self.attached(scene):
-            return scene.integrator().render(scene, sensor, seed, spp)
+        integrator, _ = self.attached(scene)
+        return integrator.render(scene, sensor, seed, spp)
 
     def backward(self, scene, grad_image, sensor=0, seed=0, spp=0):
         """The gradients of ``sum(grad_image * image)`` w.r.t. the mesh's
@@ -517,10 +512,9 @@ class PartitionedMesh:
         nothing changed since (else the workers render it again, as Mitsuba's
         ``render_backward`` does)."""
         import mitsuba as mi
-        with self.attached(scene, reuse=True) as blocks:
-            scene.integrator().render_backward(scene, None, mi.TensorXf(grad_image), sensor,
-                                               seed, spp)
-            return blocks.grads
+        integrator, blocks = self.attached(scene, reuse=True)
+        integrator.render_backward(scene, None, mi.TensorXf(grad_image), sensor, seed, spp)
+        return blocks.grads
 
     def optimizer(self, lr):
         """Adam on every block's worker over the parameters named in ``lr``

@@ -60,7 +60,7 @@ from mi_tetvr.render.optical import Scattering
 from mi_tetvr.render.program import scaled_settings
 from mi_tetvr.render.surfaces import SceneParts
 from mi_tetvr.render.transport import PathScene, sample
-from mi_tetvr.render.walk import WalkSettings
+from mi_tetvr.render.cursor import WalkSettings
 
 
 class TetPathIntegrator(mi.ad.integrators.common.RBIntegrator):

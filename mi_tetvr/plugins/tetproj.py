@@ -77,7 +77,7 @@ from mi_tetvr.plugins import constructor
 from mi_tetvr.render.clipping import Clip, unit_vector
 from mi_tetvr.render.probes import Projection
 from mi_tetvr.render.program import SURFACE_MODES, Probes
-from mi_tetvr.render.walk import WalkSettings
+from mi_tetvr.render.cursor import WalkSettings
 
 
 class TetProjIntegrator(mi.ad.integrators.common.RBIntegrator):
@@ -106,7 +106,7 @@ class TetProjIntegrator(mi.ad.integrators.common.RBIntegrator):
             raise ValueError("tetproj: opacity and layers apply to surfaces (mode slice or "
                              f"iso), not to mode {mode!r}")
         #: What this integrator shows (:class:`~mi_tetvr.render.program.Probes`).
-        self.probes = Probes(mode, self.iso, origin, normal, opacity, count,
+        self.probes = Probes(mode, self.iso, (origin, normal), opacity, count,
                              Clip.from_props(props),
                              WalkSettings(0.0, int(props.get("max_steps", 100_000))),
                              float(props.get("retrace_epsilon", 1e-5)))

@@ -100,15 +100,17 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.plugins import constructor
-from mi_tetvr.render.buffers import index_buffers, scene_tetmeshes
+from mi_tetvr.render.buffers import TetScene, index_buffers, scene_tetmeshes
 from mi_tetvr.render.clipping import Clip
-from mi_tetvr.render.program import VolumeProgram, scaled_settings
+from mi_tetvr.render.program import ProgramOptions, VolumeProgram, scaled_settings
 from mi_tetvr.render.replay import CAPACITY, PrimalStates, derivative_seed
 from mi_tetvr.render.surfaces import DEFAULT_SURFACES, NestedIntegrator, SceneParts
-from mi_tetvr.render.walk import WalkSettings
+from mi_tetvr.render.cursor import WalkSettings
+
+RBIntegrator = mi.ad.integrators.common.RBIntegrator
 
 
-class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
+class TetVRIntegrator(RBIntegrator):
     __doc__ = __doc__
 
     def __init__(self, props):
@@ -154,10 +156,9 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
                                          else mi.load_dict(DEFAULT_SURFACES))
         self.parts = SceneParts()
         self._index_cache = None
-        self._states = PrimalStates(int(props.get("kept_primals", CAPACITY)))
-        self._record = None    # (key, inputs) while render() runs with gradients enabled
-        self._replay = None    # the kept primal state while a derivative pass runs
-        self._remote = None    # a partitioned mesh's workers while they render (distributed)
+        #: The primal renders kept for their derivative passes (an explicit
+        #: store: key, validity and lifetime in :mod:`mi_tetvr.render.replay`).
+        self.kept_primals = PrimalStates(int(props.get("kept_primals", CAPACITY)))
 
     def traverse(self, callback):
         if self.overlay is not None:
@@ -167,14 +168,28 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
     def aov_names(self):
         return ["alpha"] if self.alpha else []
 
-    def program(self, scene) -> VolumeProgram:
-        """The ray program of ``scene`` (:mod:`mi_tetvr.render.program`)."""
-        return VolumeProgram(scene, self.parts, self.surfaces, self.settings_for(scene),
-                             self.n_sub, self.clip,
-                             self.overlay.probes if self.overlay is not None else None,
-                             self.index_buffers, self._remote)
+    # What one pass fixes (see Pass): on the integrator itself, nothing.
+    remote = None
+    replayed = None
+    recorder = None
 
-    def index_buffers(self, groups):
+    def program(self, scene: mi.Scene) -> VolumeProgram:
+        """The ray program of ``scene`` (:mod:`mi_tetvr.render.program`): a
+        view built per call from what the integrator and the scene's shapes
+        keep (the split of the scene into parts, each mesh's buffers, the
+        index buffers of its groups)."""
+        return VolumeProgram(scene, ProgramOptions(
+            self.parts, self.surfaces, self.settings, self.retrace_epsilon, self.n_sub, self.clip,
+            self.overlay.probes if self.overlay is not None else None, self.index_buffers,
+            self.remote))
+
+    def with_medium(self, remote) -> Pass:
+        """This integrator rendering ``remote`` (a partitioned mesh's blocks,
+        :mod:`mi_tetvr.distributed`) in place of the scene's tet meshes: an
+        object with the integrator's ``render`` and ``render_backward``."""
+        return Pass(self, remote=remote)
+
+    def index_buffers(self, groups: list) -> list:
         """The index buffers of each group of shapes that one walk renders,
         kept while the groups hold the same shapes' buffers."""
         key = tuple(tuple(id(s.tet_buffers) for s in g) for g in groups)
@@ -182,19 +197,19 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
             self._index_cache = (key, [index_buffers(g) for g in groups])
         return self._index_cache[1]
 
-    def tet_scenes(self, scene):
+    def tet_scenes(self, scene: mi.Scene) -> list:
         """The :class:`~mi_tetvr.render.buffers.TetScene` of each group of
         tet meshes that one walk renders (:meth:`VolumeProgram.media`)."""
         return self.program(scene).media()
 
-    def tet_scene(self, scene):
+    def tet_scene(self, scene: mi.Scene) -> TetScene:
         """The one :class:`~mi_tetvr.render.buffers.TetScene` of a scene whose
         tet meshes share one walk (see :meth:`tet_scenes`)."""
         (ts,) = self.tet_scenes(scene)
         return ts
 
     @staticmethod
-    def differentiable_inputs(scene):
+    def differentiable_inputs(scene: mi.Scene) -> list:
         """The scene's arrays that the image depends on differentiably:
         vertex positions, the optical models' vertex buffers and the
         environment's parameters."""
@@ -209,9 +224,11 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         return out
 
     # The derivative passes reuse the primal render's rays and per-ray
-    # results instead of rendering it again (see mi_tetvr.render.replay).
+    # results instead of rendering it again (see mi_tetvr.render.replay):
+    # Mitsuba's passes run on a Pass that records or replays them.
 
-    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+    def render(self, scene: mi.Scene, sensor=0, seed=0, spp=0, develop=True,
+               evaluate=True) -> mi.TensorXf:
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
         with dr.resume_grad():
@@ -220,33 +237,34 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
             # pass renders its own primal with its own seed, as Mitsuba does)
             tracked = (any(dr.grad_enabled(x) for x in inputs)
                        and self.program(scene).keeps_primal())
+        run = self
         if tracked:
-            self._record = (PrimalStates.key(scene, sensor, derivative_seed(seed), spp),
-                            int(seed), [dr.detach(x) for x in inputs])
-        try:
-            return super().render(scene, sensor, seed, spp, develop, evaluate)
-        finally:
-            self._record = None
+            key = PrimalStates.key(scene, sensor, derivative_seed(seed), spp)
+            kept = [dr.detach(x) for x in inputs]
+            run = Pass(self, self.remote, recorder=lambda state: self.kept_primals.put(
+                key, int(seed), state, kept))
+        return RBIntegrator.render(run, scene, sensor, seed, spp, develop, evaluate)
 
     def _derivative_pass(self, base, scene, params, sensor, seed, spp, *grad_in):
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
-        kept = self._states.take(PrimalStates.key(scene, sensor, seed, spp),
-                                 [dr.detach(x) for x in self.differentiable_inputs(scene)])
+        kept = self.kept_primals.take(PrimalStates.key(scene, sensor, seed, spp),
+                                      [dr.detach(x) for x in self.differentiable_inputs(scene)])
         if kept is None:
-            return base(scene, params, *grad_in, sensor, seed, spp)
-        primal_seed, self._replay = kept
-        try:
-            return base(scene, params, *grad_in, sensor, primal_seed, spp)
-        finally:
-            self._replay = None
+            return base(self, scene, params, *grad_in, sensor, seed, spp)
+        primal_seed, state = kept
+        return base(Pass(self, self.remote, replayed=state), scene, params, *grad_in, sensor,
+                    primal_seed, spp)
 
-    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
-        return self._derivative_pass(super().render_backward, scene, params, sensor, seed, spp,
-                                     grad_in)
+    def render_backward(self, scene: mi.Scene, params, grad_in: mi.TensorXf, sensor=0, seed=0,
+                        spp=0) -> None:
+        return self._derivative_pass(RBIntegrator.render_backward, scene, params, sensor, seed,
+                                     spp, grad_in)
 
-    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
-        return self._derivative_pass(super().render_forward, scene, params, sensor, seed, spp)
+    def render_forward(self, scene: mi.Scene, params, sensor=0, seed=0,
+                       spp=0) -> mi.TensorXf:
+        return self._derivative_pass(RBIntegrator.render_forward, scene, params, sensor, seed,
+                                     spp)
 
     def sample_rays(self, scene, sensor, sampler):
         # The sensor weight is a Spectrum; Mitsuba's render_backward and
@@ -259,23 +277,24 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
             ray, weight, pos = super().sample_rays(scene, sensor, sampler)
         return ray, mi.Float(dr.detach(weight)[0]), dr.detach(pos)
 
-    def settings_for(self, scene):
+    def settings_for(self, scene: mi.Scene) -> WalkSettings:
         """Walk settings with the re-trace offset scaled to the scene."""
         return scaled_settings(self.settings, self.retrace_epsilon, scene)
 
-    def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
+    def sample(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
+               δL: mi.Spectrum | None, state_in, active: mi.Bool, **kwargs):
+        """Mitsuba's ``sample``: a function of its arguments (a :class:`Pass`
+        fixes what it replays or records)."""
         program = self.program(scene)
         if mode == dr.ADMode.Primal:
-            kept = self._replay
-            if kept is not None and dr.width(kept[1]) == dr.width(ray):
+            if self.replayed is not None:
                 # (the derivative pass of a kept primal: its pixel values)
-                L, T = kept
+                L, T = self.replayed
                 hit, state = mi.Bool(False), (L, T, None, None, None)
             else:
                 L, T, hit, state = program.primal(ray, sampler, active)
-                if program.keeps_primal() and self._record is not None:
-                    key, primal_seed, inputs = self._record
-                    self._states.put(key, primal_seed, (L, T), inputs)
+                if self.recorder is not None:
+                    self.recorder((L, T))
             alpha = dr.select(hit, 1.0, 1.0 - T)
             return L, mi.Bool(True), [alpha] if self.alpha else [], state
         if state_in is None:
@@ -292,6 +311,33 @@ class TetVRIntegrator(mi.ad.integrators.common.RBIntegrator):
         s = self.settings
         return (f"TetVRIntegrator[n_sub={self.n_sub}, min_transmittance={s.t_min}, "
                 f"max_steps={s.max_steps}, surfaces={self.surfaces!r}]")
+
+
+
+
+class Pass:
+    """One pass of a ``tetvr`` integrator as Mitsuba's ``RBIntegrator`` runs
+    it (``render``, ``render_forward``, ``render_backward``): the integrator
+    itself (every other attribute is the integrator's), with what this pass
+    fixes: the medium rendered in place of the scene's tet meshes
+    (``remote``), the kept primal per-ray state whose pixels the primal
+    pass returns (``replayed``), or where the primal pass hands its per-ray
+    state to be kept (``recorder``). The integrator keeps none of these
+    between calls."""
+
+    def __init__(self, integrator: TetVRIntegrator, remote=None, replayed=None, recorder=None):
+        self.integrator = integrator
+        self.remote, self.replayed, self.recorder = remote, replayed, recorder
+
+    def __getattr__(self, name):
+        return getattr(self.integrator, name)
+
+    sample = TetVRIntegrator.sample
+    program = TetVRIntegrator.program
+    render = TetVRIntegrator.render
+    render_backward = TetVRIntegrator.render_backward
+    render_forward = TetVRIntegrator.render_forward
+    _derivative_pass = TetVRIntegrator._derivative_pass
 
 
 mi.register_integrator("tetvr", constructor(TetVRIntegrator, "tetvr"))

@@ -20,10 +20,13 @@ Modules, from the bottom up:
   how a piece is integrated);
 * :mod:`~mi_tetvr.render.probes`: the probes (projections, slices,
   isosurfaces: what picks one value along a ray);
+* :mod:`~mi_tetvr.render.cursor`: the one traversal (boundary entry, the
+  walk, re-entry, a start point inside a mesh), each piece handed to a
+  client;
 * :mod:`~mi_tetvr.render.adjoint`: the derivative passes' context and the
   piece adjoint (the inversion trick, written once);
-* :mod:`~mi_tetvr.render.walk`: the traversal (boundary entry, the walk,
-  re-entry, a start point inside a mesh);
+* :mod:`~mi_tetvr.render.walk`: ``tetvr``'s clients of the cursor
+  (emission-absorption and probes, and their derivatives);
 * :mod:`~mi_tetvr.render.merged`: meshes that overlap in space, one cursor
   each, walked together as one medium;
 * :mod:`~mi_tetvr.render.layers`: surfaces inside the volume, composited

@@ -45,7 +45,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_tetvr.render.geometry import crossing_vjp, face_crossing, face_weights, ray_frame
+from mi_tetvr.render.geometry import RayFrame, crossing_vjp, face_crossing, face_weights
 from mi_tetvr.render.pytree import tree_add, tree_copy, tree_dot, tree_lerp, tree_map, tree_select
 from mi_tetvr.render.segment import clip_segment
 
@@ -116,7 +116,7 @@ def vertex_grad_type(model):
     return _VERTEX_GRAD_TYPES[A]
 
 
-def start(deriv, ts_ad, entry_ids, o, u, v, d, active):
+def start(deriv: Derivative, ts_ad, entry_ids, fr: RayFrame, active):
     """The derivative modes' loop state besides the ray's adjoint, at the
     walk's entry face: ``(e, pend)``.
 
@@ -127,7 +127,7 @@ def start(deriv, ts_ad, entry_ids, o, u, v, d, active):
     model = ts_ad.model
     e = (mi.Float(0.0), dr.zeros(model.Attributes))
     if not deriv.backward:
-        e = tangent(deriv, ts_ad, entry_ids, o, u, v, d, active)
+        e = tangent(deriv, ts_ad, entry_ids, fr, active)
     G = vertex_grad_type(model)
     pend = tuple(dr.zeros(G) for _ in range(3))
     if model.cuts:
@@ -154,12 +154,12 @@ def ray_grads(adj, r, g, mask):
     return adj
 
 
-def camera_grads(adj, carry, vg, u, v, d, mask):
+def camera_grads(adj: Adjoint, carry, vg, fr: RayFrame, mask) -> Adjoint:
     """:func:`ray_grads` of one crossing's vertex-position gradients ``vg``
     (of the corners ``carry``); a corner's offset from the origin is ``p.x u
     + p.y v + z d``."""
     for c, g in zip(carry[0], vg):
-        adj = ray_grads(adj, c.p.x * u + c.p.y * v + c.z * d, g.p, mask)
+        adj = ray_grads(adj, c.p.x * fr.u + c.p.y * fr.v + c.z * fr.d, g.p, mask)
     return adj
 
 
@@ -184,7 +184,7 @@ def inversion(deriv, adj, L, T, C_seg, C_d, tau):
     return adj
 
 
-def crossing_grads(deriv, ts_ad, carry, g, u, v, d):
+def crossing_grads(deriv: Derivative, ts_ad, carry, g, fr: RayFrame):
     """Gradient of ``g . (t, attributes)`` of the ray's crossing of the face
     the walk carries (``carry``: corners, their attributes, edge functions)
     w.r.t. each corner's position and attributes
@@ -196,7 +196,7 @@ def crossing_grads(deriv, ts_ad, carry, g, u, v, d):
     if not deriv.geometric(ts_ad):
         w = face_weights(*edges)
         return [G(mi.Vector3f(0.0), tree_map(lambda x: w[j] * x, g[1])) for j in range(3)]
-    return [G(dp.x * u + dp.y * v + dz * d, da)
+    return [G(dp.x * fr.u + dp.y * fr.v + dz * fr.d, da)
             for dp, dz, da in crossing_vjp(corners, edges, values, g[0], g[1])]
 
 
@@ -212,17 +212,17 @@ def scatter(ts_ad, i, g, active, reduce):
         dr.backward_from(y, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
 
 
-def tangent(deriv, ts_ad, ids, o, u, v, d, active):
+def tangent(deriv: Derivative, ts_ad, ids, fr: RayFrame, active):
     """Forward mode: the tangent of a face crossing's ``(t, attributes)``
     (with a moving camera, ``deriv.ray_tangent``, the ray's tangent too)."""
     with dr.resume_grad():
         if deriv.ray_tangent is not None:
-            o, d = mi.Point3f(o), mi.Vector3f(d)
+            o, d = mi.Point3f(fr.o), mi.Vector3f(fr.d)
             dr.enable_grad(o, d)
             dr.set_grad(o, deriv.ray_tangent[0])
             dr.set_grad(d, deriv.ray_tangent[1])
-            u, v = ray_frame(d)
-        t, w = face_crossing(ts_ad.buf, ids, o, u, v, d, active)
+            fr = RayFrame.of(o, d)
+        t, w = face_crossing(ts_ad.buf, ids, fr, active)
         a = ts_ad.model.interpolate(ts_ad.params, ids, w, active)
         # AllowNoGrad: the tangents may all be elsewhere (e.g. the environment's)
         return dr.forward_to(t, a, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
@@ -232,67 +232,71 @@ def _scaled(g, w):
     return tree_map(lambda x: x * w, g)
 
 
-def segment(deriv, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj, pending,
-            o, u, v, d, active, reduce, stay=None, f=None, tet=None):
-    """One segment in a derivative mode.
+def segment(deriv: Derivative, walker, p, acc, span, fr: RayFrame, active):
+    """One segment (or piece) ``p`` (a :class:`~mi_tetvr.render.cursor.Piece`)
+    in a derivative mode, walked by ``walker`` (its buffers ``ts``, detached,
+    and ``ts_ad``, attached; its scatter strategy ``reduce``); ``acc`` holds
+    what lies in front (``L, T``), the rays' ``adj`` and the ``pending``
+    gradients (:func:`start`).
 
-    ``entry`` and ``exit`` are the ``(t, attributes)`` of the segment's
-    crossings, ``st`` the walk step that found the exit, ``carry`` the
-    entry face as the walk carried it into the step, ``L, T`` what lies in
-    front. Returns ``(C_seg, T_seg, adj, pending)``: the segment's emission
-    and transmittance (as the primal computes them), the adjoint with this
+    ``p.cur`` is the entry crossing ``(t, a)`` with the entry face as the walk
+    carried it into the step ``p.st``, ``(p.t1, p.a1)`` the exit crossing.
+    Returns ``(C_seg, T_seg, adj, pending)``: the segment's emission and
+    transmittance (as the primal computes them), the adjoint with this
     segment's tangent added (forward mode), and the pending gradients moved
     one crossing on (backward mode: the entry crossing's gradient is
     complete and goes to the entry face's corners; the corner the apex
     replaces is scattered).
 
-    A model that cuts tets into pieces (``model.cuts``) passes ``stay`` and
-    ``f``: the piece ends ``f`` of the way to the tet's exit crossing and the
-    walk stays in the tet. A piece's ends are then fixed blends of the tet's
-    entry and exit crossings (the cut points are constants: the integral of
-    a continuous integrand does not change where it is split), so their
+    A model that cuts tets into pieces (``model.cuts``) ends a piece ``p.f``
+    of the way to the tet's exit crossing where ``p.stay`` (the walk stays
+    in the tet). A piece's ends are then fixed blends of the tet's entry and
+    exit crossings (the cut points are constants: the integral of a
+    continuous integrand does not change where it is split), so their
     gradients go to both crossings, and the tet's entry crossing is complete
-    when the walk leaves the tet. ``tet`` is the segment's tet (for models
-    that take it, ``model.per_tet``).
+    when the walk leaves the tet.
     """
     backward = deriv.backward
+    ts, ts_ad = walker.ts, walker.ts_ad
     model = ts.model
     cuts = model.cuts
+    carry, st, tet = p.cur.carry, p.st, p.cur.tet
+    pending = acc.pending
     if cuts:
         e, e_x, F, pend = pending
-        F_end = dr.select(stay, F + (1.0 - F) * f, 1.0)
+        F_end = dr.select(p.stay, F + (1.0 - F) * p.f, 1.0)
     else:
         e, pend = pending
     with dr.resume_grad():
-        x = tree_copy((entry, exit))
+        x = tree_copy(((p.cur.t, p.cur.a), (p.t1, p.a1)))
         # The crossings' ray parameters matter only when vertices move.
         dr.enable_grad(x if deriv.geometric(ts_ad) else (x[0][1], x[1][1]))
         if dr.hint(not backward, mode="scalar"):
-            x_t = tangent(deriv, ts_ad, st.exit, o, u, v, d, active)
+            x_t = tangent(deriv, ts_ad, st.exit, fr, active)
             dr.set_grad(x, (tree_lerp(e, x_t, F), tree_lerp(e, x_t, F_end)) if cuts
                         else (e, x_t))
         (t0, a0), (t1, a1) = x
-        length, b0, b1 = clip_segment(t0, a0, t1, a1, t_begin, t_stop)
+        length, b0, b1 = clip_segment(t0, a0, t1, a1, span.begin, span.end)
         C_d, T_d, tau = model.segment(ts_ad.params, length, b0, b1,
                                       *((tet,) if model.per_tet else ()))
         C_seg = dr.detach(C_d)
         T_seg = dr.detach(T_d)
-        adj = inversion(deriv, adj, L, T, C_seg, C_d, tau)
+        adj = inversion(deriv, acc.adj, acc.L, acc.T, C_seg, C_d, tau)
         if dr.hint(backward, mode="scalar"):
             g_entry, g_exit = dr.grad(x)
     if dr.hint(not backward, mode="scalar"):
         if cuts:
-            return C_seg, T_seg, adj, (tree_select(stay, e, x_t), e_x,
-                                       dr.select(stay, F_end, 0.0), pend)
+            return C_seg, T_seg, adj, (tree_select(p.stay, e, x_t), e_x,
+                                       dr.select(p.stay, F_end, 0.0), pend)
         return C_seg, T_seg, adj, (x_t, pend)
-    advance = ~stay if cuts else True
+    advance = ~p.stay if cuts else True
     if dr.hint(cuts, mode="scalar"):
         e = tree_add(e, tree_add(_scaled(g_entry, 1.0 - F), _scaled(g_exit, 1.0 - F_end)))
         e_x = tree_add(e_x, tree_add(_scaled(g_entry, F), _scaled(g_exit, F_end)))
         g_entry = None
-    vg = crossing_grads(deriv, ts_ad, carry, e if cuts else tree_add(e, g_entry), u, v, d)
+    vg = crossing_grads(deriv, ts_ad, carry, e if cuts else tree_add(e, g_entry), fr)
     if deriv.camera:
-        adj = camera_grads(adj, carry, vg, u, v, d, active & advance)
+        adj = camera_grads(adj, carry, vg, fr, active & advance)
     G = vertex_grad_type(model)
     pend = [tree_add(pend[j], vg[j]) for j in range(3)]
     # The corner the apex replaces is complete: scatter it, start afresh.
@@ -300,7 +304,7 @@ def segment(deriv, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj
     replaced = st.slot
     drop = dr.select(replaced[0], ids[0], dr.select(replaced[1], ids[1], ids[2]))
     drop_g = tree_select(replaced[0], pend[0], tree_select(replaced[1], pend[1], pend[2]))
-    scatter(ts_ad, drop, drop_g, active & advance, reduce)
+    scatter(ts_ad, drop, drop_g, active & advance, walker.reduce)
     new_pend = tuple(tree_select(replaced[j], dr.zeros(G), pend[j]) for j in range(3))
     if dr.hint(not cuts, mode="scalar"):
         return C_seg, T_seg, adj, (g_exit, new_pend)
@@ -312,29 +316,31 @@ def segment(deriv, ts, ts_ad, st, carry, entry, exit, L, T, t_begin, t_stop, adj
                                dr.select(advance, 0.0, F_end), new_pend)
 
 
-def finish(deriv, ts_ad, pending, carry, walked, u, v, d, reduce, adj, exit_carry=None,
-           inside=None):
+def finish(deriv: Derivative, walker, acc, carry, walked, fr: RayFrame, exit_face=None):
     """Backward mode, after the walk: the last exit crossing's gradient and
     the pending ones of its corners (``carry``: the face the walk left by;
     ``walked``: the rays that integrated at least one segment or piece);
-    returns ``adj`` (with the camera's gradients).
-    A model that cuts tets may have stopped inside one (``inside``): then
-    ``carry`` is that tet's entry face, and its exit face ``exit_carry``
-    takes the exit crossing's gradient so far."""
+    returns ``acc.adj`` (with the camera's gradients).
+    A model that cuts tets may have stopped inside one: then ``carry`` is
+    that tet's entry face, and ``exit_face = (exit_carry, inside)`` the
+    tet's exit face, which takes the exit crossing's gradient so far where
+    ``inside``."""
+    ts_ad, reduce, adj = walker.ts_ad, walker.reduce, acc.adj
     if ts_ad.model.cuts:
-        e, e_x, _, pend = pending
+        e, e_x, _, pend = acc.pending
     else:
-        e, pend = pending
+        e, pend = acc.pending
     camera = deriv.camera
-    vg = crossing_grads(deriv, ts_ad, carry, e, u, v, d)
+    vg = crossing_grads(deriv, ts_ad, carry, e, fr)
     if camera:
-        adj = camera_grads(adj, carry, vg, u, v, d, walked)
+        adj = camera_grads(adj, carry, vg, fr, walked)
     for j in range(3):
         scatter(ts_ad, carry[0][j].i, tree_add(pend[j], vg[j]), walked, reduce)
-    if exit_carry is not None:
-        vg = crossing_grads(deriv, ts_ad, exit_carry, e_x, u, v, d)
+    if exit_face is not None:
+        exit_carry, inside = exit_face
+        vg = crossing_grads(deriv, ts_ad, exit_carry, e_x, fr)
         if camera:
-            adj = camera_grads(adj, exit_carry, vg, u, v, d, inside)
+            adj = camera_grads(adj, exit_carry, vg, fr, inside)
         for j in range(3):
             scatter(ts_ad, exit_carry[0][j].i, vg[j], inside, reduce)
     return adj

@@ -8,6 +8,8 @@ and can be differentiated by Dr.Jit's AD.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import drjit as dr
 import mitsuba as mi
 
@@ -67,6 +69,34 @@ def ray_frame(d):
     return u, dr.cross(d, u)
 
 
+@dataclass
+class RayFrame:
+    """A ray and its 2D frame, the walk's view of a ray: origin ``o``,
+    normalized direction ``d`` and ``u, v`` (:func:`ray_frame`). Every
+    vertex is seen as its projection ``((P - o) . u, (P - o) . v)`` and its
+    depth ``(P - o) . d``."""
+    o: mi.Point3f
+    d: mi.Vector3f
+    u: mi.Vector3f
+    v: mi.Vector3f
+
+    @staticmethod
+    def of(o, d) -> RayFrame:
+        """The frame of the ray from ``o`` along the normalized ``d``."""
+        d = mi.Vector3f(d)
+        u, v = ray_frame(d)
+        return RayFrame(mi.Point3f(o), d, u, v)
+
+    def reversed(self) -> RayFrame:
+        """The reversed ray in the mirrored frame ``(u, -v)``, whose
+        parameter is ``-t`` (``u x -v = -d``)."""
+        return RayFrame(self.o, -self.d, self.u, -self.v)
+
+    def at(self, t):
+        """The point at ray parameter ``t``."""
+        return self.o + self.d * t
+
+
 def face_weights(e_a, e_b, e_c):
     """Barycentric weights of the ray's crossing point in a triangle from the
     three edge functions opposite each vertex (any common sign); degenerate
@@ -100,9 +130,9 @@ class Corner:
         self.i, self.p, self.z = i, p, z
 
 
-def corner(i, P, o, u, v, d):
+def corner(i, P, fr: RayFrame) -> Corner:
     """The :class:`Corner` of vertex ``i`` at position ``P``."""
-    return Corner(i, project(P, o, u, v), dr.dot(P - o, d))
+    return Corner(i, project(P, fr.o, fr.u, fr.v), dr.dot(P - fr.o, fr.d))
 
 
 def face_edges(c):
@@ -164,15 +194,15 @@ def crossing(ids, P, p, o, d):
     return crossing_at(tuple(Corner(i, pi, dr.dot(Pi - o, d)) for i, Pi, pi in zip(ids, P, p)))
 
 
-def face_corners(buf, ids, o, u, v, d, active=True, reduce=dr.ReduceMode.Auto):
+def face_corners(buf, ids, fr: RayFrame, active=True, reduce=dr.ReduceMode.Auto):
     """The :class:`Corner` s of the vertices ``ids``, gathered
     (differentiably, when AD is enabled on the buffers)."""
-    return tuple(corner(i, buf.position(i, active, reduce), o, u, v, d) for i in ids)
+    return tuple(corner(i, buf.position(i, active, reduce), fr) for i in ids)
 
 
-def face_crossing(buf, ids, o, u, v, d, active=True, reduce=dr.ReduceMode.Auto):
+def face_crossing(buf, ids, fr: RayFrame, active=True, reduce=dr.ReduceMode.Auto):
     """``(t, w)`` where the ray crosses the triangle ``ids`` (gathered)."""
-    return crossing_at(face_corners(buf, ids, o, u, v, d, active, reduce))
+    return crossing_at(face_corners(buf, ids, fr, active, reduce))
 
 
 def _pick(f, x):
@@ -195,10 +225,10 @@ def tet_face(buf, tet, f, active=True):
     return (_pick(f, r), *(_pick(lj, r) for lj in local))
 
 
-def _boundary_corners(buf, face, o, u, v, active):
+def _boundary_corners(buf, face, fr: RayFrame, active):
     ids = tuple(dr.gather(mi.UInt32, buf.faces, face * 3 + j, active) for j in range(3))
     P = tuple(buf.position(i, active) for i in ids)
-    return ids, P, tuple(project(Pi, o, u, v) for Pi in P)
+    return ids, P, tuple(project(Pi, fr.o, fr.u, fr.v) for Pi in P)
 
 
 #: Steps of the walk over the boundary surface in :func:`face_entry`. The
@@ -209,7 +239,7 @@ def _boundary_corners(buf, face, o, u, v, active):
 BOUNDARY_WALK_STEPS = 8
 
 
-def face_entry(buf, face, o, u, v, d, active):
+def face_entry(buf, face, fr: RayFrame, active):
     """The tet behind the boundary face a ray hits.
 
     The face found by Mitsuba's ray tracer is first moved, over the boundary
@@ -232,7 +262,7 @@ def face_entry(buf, face, o, u, v, d, active):
     """
     face = mi.UInt32(face)
     for _ in range(BOUNDARY_WALK_STEPS):
-        (ia, ib, ic), _, (pa, pb, pc) = _boundary_corners(buf, face, o, u, v, active)
+        (ia, ib, ic), _, (pa, pb, pc) = _boundary_corners(buf, face, fr, active)
         e_bc, s_bc = edge_function(ib, pb, ic, pc)
         e_ca, s_ca = edge_function(ic, pc, ia, pa)
         e_ab, s_ab = edge_function(ia, pa, ib, pb)
@@ -243,40 +273,39 @@ def face_entry(buf, face, o, u, v, d, active):
         move = active & ((s_bc != back) | (s_ca != back) | (s_ab != back))
         nxt = dr.gather(mi.Int32, buf.face_adj, face * 3 + adj, move)
         face = dr.select(move & (nxt >= 0), mi.UInt32(nxt), face)
-    _, (Pa, Pb, Pc), _ = _boundary_corners(buf, face, o, u, v, active)
+    _, (Pa, Pb, Pc), _ = _boundary_corners(buf, face, fr, active)
     code = dr.gather(mi.UInt32, buf.boundary, face, active)
-    outward = dr.dot(dr.cross(Pb - Pa, Pc - Pa), d) > 0
+    outward = dr.dot(dr.cross(Pb - Pa, Pc - Pa), fr.d) > 0
     tet, f = unpack_link(code)
     return tet, f, outward
 
 
+@dataclass
 class Step:
     """Result of :func:`walk_step`: the exit crossing and the faces involved."""
-
-    def __init__(self, t, w, link, f_out, entry, exit, apex, slot, carry):
-        self.t = t            # ray parameter of the exit crossing
-        self.w = w            # its barycentric weights in the exit face (order of ``exit``)
-        self.link = link      # the next tet and its entry face (a link), -1 when leaving the mesh
-        self.f_out = f_out    # local index of the exit face
-        self.entry = entry    # global vertex ids of the entry face
-        self.exit = exit      # global vertex ids of the exit face
-        self.apex = apex      # the vertex the exit face has and the entry face has not
-        self.slot = slot      # per corner of the entry face: is it the one the apex replaces
-        self.carry = carry    # the exit face for the next step (see walk_step)
+    t: mi.Float           # ray parameter of the exit crossing
+    w: tuple              # its barycentric weights in the exit face (order of ``exit``)
+    link: mi.Int32        # the next tet and its entry face (a link), -1 when leaving the mesh
+    f_out: mi.UInt32      # local index of the exit face
+    entry: tuple          # global vertex ids of the entry face
+    exit: tuple           # global vertex ids of the exit face
+    apex: mi.UInt32       # the vertex the exit face has and the entry face has not
+    slot: tuple           # per corner of the entry face: is it the one the apex replaces
+    carry: tuple          # the exit face for the next step (see walk_step)
 
 
-def entry_carry(buf, tet, f_in, o, u, v, d, active, gather=None):
+def entry_carry(buf, tet, f_in, fr: RayFrame, active, gather=None):
     """What :func:`walk_step` carries, for the face ``f_in`` of ``tet`` read
     from the buffers: the three :class:`Corner` s in the outward order of
     ``tet``, their values ``gather(i, active)`` and the face's edge
     functions (:func:`face_edges`)."""
     ids = tet_face(buf, tet, f_in, active)[1:]
-    corners = face_corners(buf, ids, o, u, v, d, active)
+    corners = face_corners(buf, ids, fr, active)
     values = tuple(gather(i, active) for i in ids) if gather else ((), (), ())
     return corners, values, face_edges(corners)
 
 
-def walk_step(buf, tet, f_in, o, u, v, d, active, carry=None, gather=None):
+def walk_step(buf, tet, f_in, fr: RayFrame, active, carry=None, gather=None) -> Step:
     """Cross one tet: find the exit face of a ray entering ``tet`` through its
     local face ``f_in``, and the exit crossing (a :class:`Step`).
 
@@ -291,13 +320,13 @@ def walk_step(buf, tet, f_in, o, u, v, d, active, carry=None, gather=None):
     consistently), so ``st.carry`` serves the next step as it is.
     """
     if carry is None:
-        carry = entry_carry(buf, tet, f_in, o, u, v, d, active, gather)
+        carry = entry_carry(buf, tet, f_in, fr, active, gather)
     (ca, cb, cc), (xa, xb, xc), (Ea, Eb, Ec) = carry
     ia, ib, ic = ca.i, cb.i, cc.i
     rec = dr.gather(mi.Array4u, buf.tets, tet, active)
     # The apex: the one index of the tet's record not on the entry face.
     ik = rec.x ^ rec.y ^ rec.z ^ rec.w ^ ia ^ ib ^ ic
-    ck = corner(ik, buf.position(ik, active), o, u, v, d)
+    ck = corner(ik, buf.position(ik, active), fr)
     xk = gather(ik, active) if gather else ()
     pk = ck.p
     ea, sa = edge_function(ik, pk, ia, ca.p)
@@ -335,3 +364,29 @@ def walk_step(buf, tet, f_in, o, u, v, d, active, carry=None, gather=None):
     link = dr.gather(mi.Int32, buf.nbr, tet * 4 + lz, active)
     return Step(t_out, w, link, lz, (ia, ib, ic), tuple(c.i for c in exit_c), ik,
                 (opp_a, opp_b, opp_c), (exit_c, exit_x, exit_e))
+
+
+def inside_face(buf, tet, fr: RayFrame, active=True):
+    """The local face through which the line of a ray from ``o`` (a point of
+    ``tet``) in direction ``d`` enters ``tet``: the face the line passes
+    through (its three canonical edge functions agree) that faces the ray
+    (projected clockwise in the ray frame: an outward normal against ``d``).
+    Where round-off puts ``o`` just outside and the line misses the tet, the
+    face closest to being crossed."""
+    rec = dr.gather(mi.Array4u, buf.tets, tet, active)
+    ids = (rec.x, rec.y, rec.z, rec.w)
+    p = [project(buf.position(i, active), fr.o, fr.u, fr.v) for i in ids]
+    best = mi.UInt32(0)
+    best_score = mi.Float(-dr.inf)
+    for f in range(4):
+        a, b, c = (int(k) for k in FACES[f])
+        e_bc, s_bc = edge_function(ids[b], p[b], ids[c], p[c])
+        e_ca, s_ca = edge_function(ids[c], p[c], ids[a], p[a])
+        e_ab, s_ab = edge_function(ids[a], p[a], ids[b], p[b])
+        entry = ~s_bc & ~s_ca & ~s_ab
+        # How far from passing through it as an entry face (0 or more when it does).
+        score = dr.select(entry, dr.inf, -dr.maximum(dr.maximum(e_bc, e_ca), e_ab))
+        take = score > best_score
+        best = dr.select(take, f, best)
+        best_score = dr.select(take, score, best_score)
+    return best

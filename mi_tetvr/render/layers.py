@@ -29,6 +29,8 @@ gained and the surface's share of what lies behind).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import drjit as dr
 import mitsuba as mi
 
@@ -91,17 +93,26 @@ def own_kernel(*values):
         dr.eval(*values)
 
 
-def composite(find, volume, ray, t_start, active, alpha: float, count: int, eps: float,
-              t_min: float = 1e-4) -> Layered:
-    """Front to back through at most ``count`` surfaces along ``ray`` (unit
-    directions) from ``t_start`` to ``ray.maxt``.
+@dataclass
+class Drawing:
+    """How surfaces are drawn: with opacity ``alpha``, at most ``count`` of
+    them along a ray, the next searched ``eps`` past one, a ray going on
+    past a surface while its transmittance exceeds ``t_min``."""
+    alpha: float
+    count: int
+    eps: float
+    t_min: float = 1e-4
+
+
+def composite(find, volume, ray: mi.Ray3f, t_start, active, drawing: Drawing) -> Layered:
+    """Front to back through at most ``drawing.count`` surfaces along
+    ``ray`` (unit directions) from ``t_start`` to ``ray.maxt``.
 
     ``find(ray, start, active)`` gives ``(met, color, pick, t)`` of the first
     surface after ``start``; ``volume(ray, start, active)`` the ``(C, T)`` of
-    the volume over ``[start, ray.maxt]`` (None: no volume). A ray goes on
-    past a surface while its transmittance exceeds ``t_min``; the next
-    search starts ``eps`` past it.
+    the volume over ``[start, ray.maxt]`` (None: no volume).
     """
+    alpha, count, eps, t_min = drawing.alpha, drawing.count, drawing.eps, drawing.t_min
     start = mi.Float(t_start)
     t_end = mi.Float(ray.maxt)
     go = mi.Bool(active)

@@ -17,7 +17,7 @@ found). Each iteration integrates the piece up to the nearest event of any
 cursor (the exit of its tet, a knot, or entering its mesh) and moves on the
 cursor whose event it is. A ray that starts inside a mesh (a camera inside,
 or a first face it leaves by) is located in it by walking back
-(:func:`~mi_tetvr.render.walk.locate`).
+(:func:`~mi_tetvr.render.cursor.locate`).
 
 Derivatives use the same inversion as the single walk
 (:mod:`mi_tetvr.render.adjoint`): the radiance behind each piece is
@@ -34,13 +34,16 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from dataclasses import dataclass
+
 from mi_tetvr.render import adjoint
 from mi_tetvr.render.buffers import unpack_link
-from mi_tetvr.render.geometry import (corner, crossing_at, entry_carry, face_crossing,
-                                      face_entry, ray_frame, walk_step)
+from mi_tetvr.render.cursor import WalkSettings, enter
+from mi_tetvr.render.geometry import (RayFrame, corner, crossing_at, entry_carry,
+                                      face_crossing, face_entry, walk_step)
 from mi_tetvr.render.pytree import tree_lerp, tree_select, weighted_sum
 from mi_tetvr.render.segment import merged_integral
-from mi_tetvr.render.walk import WalkSettings, enter
+from mi_tetvr.render.walk import Radiance
 
 #: Most meshes one merged walk takes (each is a cursor in every iteration).
 MAX_MESHES = 8
@@ -69,10 +72,9 @@ def _check(tss):
                          f"{len(tss)}; merge some of them into one mesh")
 
 
-def _carry_like(ts, o, u, v, d):
+def _carry_like(ts, fr):
     """A cursor's carry, zero (its structure and types)."""
-    return entry_carry(ts.buf, mi.UInt32(0), mi.UInt32(0), o, u, v, d, mi.Bool(False),
-                       _gather(ts))
+    return entry_carry(ts.buf, mi.UInt32(0), mi.UInt32(0), fr, mi.Bool(False), _gather(ts))
 
 
 def _gather(ts):
@@ -80,29 +82,29 @@ def _gather(ts):
 
 
 @dr.syntax
-def merged_trace(scenes, tss, ray, settings: WalkSettings, active, t_start=0.0,
-                 deriv: adjoint.Derivative = None, adj: adjoint.Adjoint = None, n_sub: int = 4):
+def merged_trace(scenes: list, tss: list, ray: mi.Ray3f, settings: WalkSettings, active,
+                 t_start=0.0, grad: tuple = None, n_sub: int = 4):
     """Emission and transmittance along rays through tet meshes that may
     overlap: per mesh a scene of it alone (``scenes``, whose boundary faces
     are traced) and its :class:`~mi_tetvr.render.buffers.TetScene` (``tss``;
-    a derivative pass's ``deriv.scenes`` the same attached to the AD graph).
+    a derivative pass, ``grad = (deriv, adj)``: its context, whose ``deriv.scenes``
+    are the same attached to the AD graph, and the rays' adjoint).
     Same results as :func:`~mi_tetvr.render.walk.trace`; pieces are
     integrated with ``2 n_sub`` sub-intervals (the merged integral's error at
     ``2 n`` is about the single medium's at ``n``); the integral starts at
     ``t_start`` (a clip)."""
     _check(tss)
-    primal = deriv is None
+    primal = grad is None
+    deriv, adj = (None, None) if primal else grad
     tss_ad = None if primal else deriv.scenes
     K = len(tss)
-    o = mi.Point3f(ray.o)
-    d = mi.Vector3f(ray.d)
+    fr = RayFrame.of(ray.o, ray.d)
     t_max = mi.Float(ray.maxt)
-    u, v = ray_frame(d)
     active = mi.Bool(active)
     inside = [mi.Bool(False) for _ in range(K)]
     tet = [mi.UInt32(0) for _ in range(K)]
     f_in = [mi.UInt32(0) for _ in range(K)]
-    carry = [_carry_like(ts, o, u, v, d) for ts in tss]
+    carry = [_carry_like(ts, fr) for ts in tss]
     # Outside a mesh: where to trace its boundary from, and its next face.
     need = [mi.Bool(active) for _ in range(K)]
     t_trace = [mi.Float(t_start) for _ in range(K)]
@@ -134,12 +136,11 @@ def merged_trace(scenes, tss, ray, settings: WalkSettings, active, t_start=0.0,
             if need_k:
                 # (a branch: most iterations trace nothing)
                 si = scenes[k].ray_intersect_preliminary(
-                    mi.Ray3f(o + d * t_trace[k], d, t_max - t_trace[k]), active=need_k)
+                    mi.Ray3f(fr.at(t_trace[k]), fr.d, t_max - t_trace[k]), active=need_k)
                 hit = need_k & si.is_valid()
-                tt, ff, out = enter(tss[k].buf, si.prim_index, o, u, v, d, t,
-                                    settings.max_steps, hit)
+                tt, ff, out = enter(tss[k].buf, si.prim_index, fr, t, settings.max_steps, hit)
                 here = hit & out
-                c_k = tree_select(here, entry_carry(tss[k].buf, tt, ff, o, u, v, d, here,
+                c_k = tree_select(here, entry_carry(tss[k].buf, tt, ff, fr, here,
                                                     _gather(tss[k])), c_k)
                 tet_k = dr.select(here, tt, tet_k)
                 f_k = dr.select(here, ff, f_k)
@@ -155,8 +156,7 @@ def merged_trace(scenes, tss, ray, settings: WalkSettings, active, t_start=0.0,
         t_ev = mi.Float(t_max)
         for k in range(K):
             ts = tss[k]
-            st = walk_step(ts.buf, tet[k], f_in[k], o, u, v, d, inside[k], carry[k],
-                           _gather(ts))
+            st = walk_step(ts.buf, tet[k], f_in[k], fr, inside[k], carry[k], _gather(ts))
             te, we = crossing_at(carry[k][0], carry[k][2])
             ae = weighted_sum(we, carry[k][1])
             tx = dr.maximum(st.t, te)
@@ -209,9 +209,10 @@ def merged_trace(scenes, tss, ray, settings: WalkSettings, active, t_start=0.0,
             # The piece ends where the ray enters or leaves mesh k.
             to_bnd = [go[k] & (~inside[k] | (~knots[k][0] & (sts[k].link < 0)))
                       for k in range(K)]
-            adj = _piece_derivative(deriv, tss, carry, tet, sts, ends, inside, t, t_end,
-                                    length, C_seg, L, T, adj, settings.reduce, n_sub,
-                                    (from_bnd, to_bnd, f_next) if geo else None, o, d)
+            adj = _piece_derivative(deriv, Cursors(carry, tet, sts, ends, inside),
+                                    MergedPiece(t, t_end, length, C_seg), Radiance(L, T, adj),
+                                    (from_bnd, to_bnd, f_next) if geo else None, fr,
+                                    settings.reduce, n_sub)
         L += T * C_seg
         T *= T_seg
         for k in range(K):
@@ -233,8 +234,8 @@ def merged_trace(scenes, tss, ray, settings: WalkSettings, active, t_start=0.0,
             entering = go[k] & ~inside[k] & ~left
             c_k, tet_k, f_k = carry[k], tet[k], f_in[k]
             if entering:
-                tt, ff, _ = face_entry(ts.buf, f_next[k], o, u, v, d, entering)
-                c_k = entry_carry(ts.buf, tt, ff, o, u, v, d, entering, _gather(ts))
+                tt, ff, _ = face_entry(ts.buf, f_next[k], fr, entering)
+                c_k = entry_carry(ts.buf, tt, ff, fr, entering, _gather(ts))
                 tet_k, f_k = tt, ff
             carry[k], tet[k], f_in[k] = c_k, tet_k, f_k
             inside[k] = inside[k] | entering
@@ -250,8 +251,31 @@ def merged_trace(scenes, tss, ray, settings: WalkSettings, active, t_start=0.0,
     return L, T, steps, adj
 
 
-def _piece_derivative(deriv, tss, carry, tets, sts, ends, inside, t, t_ev, length, C_seg,
-                      L, T, adj, reduce, n_sub, geo, o, d):
+@dataclass
+class Cursors:
+    """The merged walk's cursors, per mesh, at one piece: the carried entry
+    faces, tets, the steps that found their exits, the ends of their
+    segments (``(t, weights, attributes)`` at entry, exit ``(t,
+    attributes)``, ``1 / span``) and whether the ray is inside."""
+    carry: list
+    tet: list
+    st: list
+    ends: list
+    inside: list
+
+
+@dataclass
+class MergedPiece:
+    """A piece ``[t0, t1]`` of the merged walk, its ``length`` and its
+    emission ``C_seg`` as the primal computed it."""
+    t0: mi.Float
+    t1: mi.Float
+    length: mi.Float
+    C_seg: mi.Color3f
+
+
+def _piece_derivative(deriv: adjoint.Derivative, cur: Cursors, piece: MergedPiece,
+                      acc: Radiance, geo, fr: RayFrame, reduce, n_sub: int):
     """One piece in a derivative mode: its emission and optical depth
     recomputed with the AD graph through the gathers of each mesh's entry
     and exit face vertices, and ``d L_pix = T dC - R dtau`` with ``R`` the
@@ -267,9 +291,10 @@ def _piece_derivative(deriv, tss, carry, tets, sts, ends, inside, t, t_ev, lengt
     for the camera, from leaf copies of them)."""
     backward = deriv.backward
     tss_ad = deriv.scenes
+    carry, tets, sts, ends, inside = cur.carry, cur.tet, cur.st, cur.ends, cur.inside
+    length, o, d = piece.length, fr.o, fr.d
     with dr.resume_grad():
-        u, v = ray_frame(d)
-        t0, t1 = mi.Float(t), mi.Float(t_ev)
+        t0, t1 = mi.Float(piece.t0), mi.Float(piece.t1)
         camera = geo is not None and deriv.camera
         moved = []          # (the camera) each corner's mesh, index, mask, leaf position
 
@@ -281,7 +306,7 @@ def _piece_derivative(deriv, tss, carry, tets, sts, ends, inside, t, t_ev, lengt
             :func:`~mi_tetvr.render.adjoint.camera_grads`) and, where the
             positions are differentiated too, into them."""
             if not camera:
-                return face_crossing(ts.buf, ids, o, u, v, d, act, reduce)
+                return face_crossing(ts.buf, ids, fr, act, reduce)
             corners = []
             for i in ids:
                 P = mi.Point3f(dr.detach(ts.buf.position(i, act)))
@@ -298,7 +323,7 @@ def _piece_derivative(deriv, tss, carry, tets, sts, ends, inside, t, t_ev, lengt
                                                 flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
                     dr.set_grad(P, dP)
                 moved.append((ts, i, act, P))
-                corners.append(corner(i, P, o, u, v, d))
+                corners.append(corner(i, P, fr))
             return crossing_at(tuple(corners))
         crossings = []
         for k, ts in enumerate(tss_ad):
@@ -341,7 +366,7 @@ def _piece_derivative(deriv, tss, carry, tets, sts, ends, inside, t, t_ev, lengt
             media.append(lin)
             tau += length * (lin[2] + lin[3]) * 0.5
         C_d, _ = merged_integral(length, media, 2 * n_sub)
-        adj = adjoint.inversion(deriv, adj, L, T, C_seg, C_d, tau)
+        adj = adjoint.inversion(deriv, acc.adj, acc.L, acc.T, piece.C_seg, C_d, tau)
         if backward:
             for ts, i, act, P in moved:
                 # (a corner that is not there has no gradient: zero, not the NaN that a

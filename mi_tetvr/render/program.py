@@ -27,6 +27,9 @@ isosurfaces) and what ``tetvr`` draws inside its volume (its ``overlay``).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import drjit as dr
 import mitsuba as mi
 
@@ -37,7 +40,8 @@ from mi_tetvr.render.buffers import (MeshBuffers, TetScene, index_buffers, model
 from mi_tetvr.render.merged import merged_trace, overlapping
 from mi_tetvr.render.optical import CellClassified, PostClassified
 from mi_tetvr.render.probes import Isosurface, Projection, Slice, VertexGradients
-from mi_tetvr.render.walk import WalkSettings, trace
+from mi_tetvr.render.cursor import WalkSettings
+from mi_tetvr.render.walk import trace
 
 #: Probe modes that show surfaces (and so layers: slices and isosurfaces).
 SURFACE_MODES = ("slice", "iso")
@@ -64,7 +68,7 @@ class Probes:
     """What a ``tetproj`` picks along rays through a scene's one
     post-classified tet mesh: the maximum, minimum or mean of its scalar
     (``mode`` ``max``, ``min``, ``mean``), the scalar on a plane (``slice``:
-    ``origin``, ``normal``) or the first of its isosurfaces (``iso``:
+    ``plane = (origin, normal)``) or the first of its isosurfaces (``iso``:
     ``iso``, the values, a differentiable ``Float``). Surfaces are drawn with
     ``opacity``, at most ``count`` of them along a ray (:mod:`~mi_tetvr.render.layers`);
     ``clip`` cuts the mesh."""
@@ -73,9 +77,9 @@ class Probes:
     #: vertex gradients)
     DRJIT_STRUCT = {"iso": mi.Float, "gradients": VertexGradients}
 
-    def __init__(self, mode, iso, origin, normal, opacity, count, clip, settings: WalkSettings,
-                 retrace_epsilon: float):
-        self.mode, self.iso, self.origin, self.normal = mode, iso, origin, normal
+    def __init__(self, mode: str, iso: mi.Float, plane: tuple, opacity: float, count: int,
+                 clip, settings: WalkSettings, retrace_epsilon: float):
+        self.mode, self.iso, (self.origin, self.normal) = mode, iso, plane
         self.opacity, self.count, self.clip = opacity, count, clip
         self.settings, self.retrace_epsilon = settings, retrace_epsilon
         #: The isosurfaces' vertex gradients, kept between renders.
@@ -145,7 +149,7 @@ class Probes:
             (color, met, _), L = self.walk(scene, ts, r, start, go)
             return met, color, L, dr.dot(L.p - r.o, r.d)
         return layers.composite(find, volume, ray, dr.maximum(t_start, t_clip), active,
-                                self.opacity, self.count, eps, t_min)
+                                layers.Drawing(self.opacity, self.count, eps, t_min))
 
     def replay(self, scene, state, o, d):
         """A pixel's color recomputed with the parameters' AD graph from the
@@ -162,18 +166,17 @@ class Probes:
         return f"Probes[mode={self.mode}{plane}, max_steps={self.settings.max_steps}]"
 
 
-class VolumeProgram:
-    """``tetvr``'s ray program for one scene (see the module docstring).
+@dataclass
+class ProgramOptions:
+    """What a ``tetvr`` integrator builds its ray programs from.
 
-    Parameters
-    ----------
-    scene : mi.Scene
     parts : mi_tetvr.render.surfaces.SceneParts
         The plugin's split of scenes into tet meshes and surfaces (cached).
     nested : mi_tetvr.render.surfaces.NestedIntegrator
         Renders the surfaces.
     settings : WalkSettings
-        Scaled to the scene (:func:`scaled_settings`).
+        The walk's settings; ``retrace_epsilon`` is scaled to each scene
+        (:func:`scaled_settings`).
     n_sub : int
         The segment integrals' sub-intervals.
     clip : mi_tetvr.render.clipping.Clip or None
@@ -187,15 +190,29 @@ class VolumeProgram:
         ``primal(ray, t_start, active) -> (C, T)`` and ``backward(ray,
         t_start, active, adj, behind)``.
     """
+    parts: Any
+    nested: Any
+    settings: WalkSettings
+    retrace_epsilon: float
+    n_sub: int
+    clip: Any
+    probes: Any
+    index_cache: Any
+    remote: Any = None
 
-    def __init__(self, scene, parts, nested, settings, n_sub, clip, probes, index_cache,
-                 remote=None):
+
+class VolumeProgram:
+    """``tetvr``'s ray program for one scene (see the module docstring),
+    built from the integrator's :class:`ProgramOptions`."""
+
+    def __init__(self, scene: mi.Scene, options: ProgramOptions):
         self.scene = scene
-        self.tets, self.walk_scene, self.surfaces = parts.split(scene)
-        self.parts, self.nested, self.settings, self.n_sub = parts, nested, settings, n_sub
-        self.clip, self.probes, self.index_cache = clip, probes, index_cache
-        self.remote = remote
-        if remote is not None and (self.tets or probes is not None):
+        self.tets, self.walk_scene, self.surfaces = options.parts.split(scene)
+        self.parts, self.nested, self.n_sub = options.parts, options.nested, options.n_sub
+        self.settings = scaled_settings(options.settings, options.retrace_epsilon, scene)
+        self.clip, self.probes = options.clip, options.probes
+        self.index_cache, self.remote = options.index_cache, options.remote
+        if self.remote is not None and (self.tets or self.probes is not None):
             raise ValueError("tetvr: a partitioned mesh is rendered alone (no other tet mesh "
                              "in the scene, no overlay)")
         #: Meshes that overlap in space take the merged walk.
@@ -216,16 +233,15 @@ class VolumeProgram:
             return [tet_scene(g, idx, offsets, n_sub=self.n_sub)
                     for g, (idx, offsets) in zip(groups, self.index_cache(groups))]
 
-    def walk(self, media, ray, t_start, active, deriv=None, adj=None, t_enter=None):
+    def walk(self, media, ray, t_start, active, grad=None, t_enter=None):
         """``(C, T, steps, adj)`` of the media along ``ray`` from ``t_start``
-        to ``ray.maxt`` (a derivative pass: its context ``deriv`` and the
-        rays' ``adj``; ``media`` then detached; ``t_enter``: see
-        :func:`~mi_tetvr.render.walk.trace`)."""
+        to ``ray.maxt`` (a derivative pass: ``grad = (deriv, adj)``, its
+        context and the rays' adjoint; ``media`` then detached; ``t_enter``:
+        see :func:`~mi_tetvr.render.walk.trace`)."""
         if self.merged:
             return merged_trace(self.parts.apart(self.tets), media, ray, self.settings, active,
-                                t_start, deriv, adj, n_sub=self.n_sub)
-        return trace(self.walk_scene, media, ray, self.settings, active, t_start, deriv, adj,
-                     t_enter)
+                                t_start, grad, n_sub=self.n_sub)
+        return trace(self.walk_scene, media, ray, self.settings, active, t_start, grad, t_enter)
 
     def volume(self, media, ray, t_start, active, t_enter=None):
         """``(C, T)`` of the media along ``ray`` from ``t_start``."""
@@ -337,7 +353,7 @@ class VolumeProgram:
                 layers.own_kernel(tangent)          # (the pose's code out of the walk)
             deriv = Derivative(mode, media_ad, camera, tangent)
             _, _, _, adj = self.walk([g.detached() for g in media_ad], ray, t_start, walking,
-                                     deriv, adj)
+                                     (deriv, adj))
         elif self.remote is not None:
             if camera or not backward:
                 raise ValueError("tetvr: a partitioned mesh has reverse-mode derivatives "
@@ -415,8 +431,8 @@ class VolumeProgram:
             seg.maxt = layer.end
             adj = (Adjoint(R_k, layered.W, mi.Color3f(δL) * W, δalpha, zero, zero) if backward
                    else Adjoint(R_k, layered.W, mi.Color3f(0.0), mi.Float(0.0), zero, zero))
-            _, _, _, adj = self.walk(detached, seg, layer.start, active & layer.active, deriv,
-                                     adj)
+            _, _, _, adj = self.walk(detached, seg, layer.start, active & layer.active,
+                                     (deriv, adj))
             if not backward:
                 dL += W * adj.dL
                 dalpha += adj.dalpha

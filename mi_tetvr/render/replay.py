@@ -22,6 +22,19 @@ At most :data:`CAPACITY` renders are kept (the ``tetvr`` property
 ``kept_primals``; oldest dropped first): a derivative pass whose primal was
 dropped renders it again, with a warning (the same gradients, one more
 render's time).
+
+The store is an explicit object, :class:`PrimalStates`, the integrator's
+``kept_primals``. Its key is what the derivative pass is called with,
+``(scene, sensor, seed, spp)``; an entry lives from the primal render that
+puts it until the derivative pass that takes it (or until it is dropped).
+The integrator's ``sample()`` keeps nothing: its ``render`` runs Mitsuba's
+own pass on a ``Pass`` that hands the primal's per-ray state to the store,
+and ``render_backward`` and ``render_forward`` run Mitsuba's on a ``Pass``
+that returns the kept state as its primal
+(:class:`mi_tetvr.plugins.tetvr.Pass`). (Mitsuba's scenes hold no Python
+state and take no weak references, so a store per scene would keep scenes
+alive or be fooled by a reused ``id``; this one holds the very input arrays
+it was rendered with and compares them, so a reused ``id`` never matches.)
 """
 from __future__ import annotations
 

@@ -35,17 +35,17 @@ integrand (the crossings move, the field at a sampled point moves); like
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import drjit as dr
 import mitsuba as mi
 
-from mi_tetvr.mesh.topology import FACES
-from mi_tetvr.render.buffers import unpack_link
-from mi_tetvr.render.geometry import (crossing_at, edge_function, entry_carry,
-                                      face_crossing, project, ray_frame, walk_step)
+from mi_tetvr.render.buffers import TetScene
+from mi_tetvr.render.cursor import Entry, Span, WalkSettings, traverse
+from mi_tetvr.render.geometry import RayFrame, crossing_at, face_crossing
 from mi_tetvr.render.linear import TetFrame
 from mi_tetvr.render.pytree import weighted_sum
 from mi_tetvr.render.segment import clip_segment
-from mi_tetvr.render.walk import WalkSettings, enter
 
 #: A walk for transmittance stops at this optical depth (T < 1e-13).
 TAU_STOP = 30.0
@@ -63,32 +63,6 @@ def solve_depth(s0, s1, length, r):
     return dr.clip(x, 0.0, length)
 
 
-def inside_face(buf, tet, o, u, v, d, active=True):
-    """The local face through which the line of a ray from ``o`` (a point of
-    ``tet``) in direction ``d`` enters ``tet``: the face the line passes
-    through (its three canonical edge functions agree) that faces the ray
-    (projected clockwise in the ray frame: an outward normal against ``d``).
-    Where round-off puts ``o`` just outside and the line misses the tet, the
-    face closest to being crossed."""
-    rec = dr.gather(mi.Array4u, buf.tets, tet, active)
-    ids = (rec.x, rec.y, rec.z, rec.w)
-    p = [project(buf.position(i, active), o, u, v) for i in ids]
-    best = mi.UInt32(0)
-    best_score = mi.Float(-dr.inf)
-    for f in range(4):
-        a, b, c = (int(k) for k in FACES[f])
-        e_bc, s_bc = edge_function(ids[b], p[b], ids[c], p[c])
-        e_ca, s_ca = edge_function(ids[c], p[c], ids[a], p[a])
-        e_ab, s_ab = edge_function(ids[a], p[a], ids[b], p[b])
-        entry = ~s_bc & ~s_ca & ~s_ab
-        # How far from passing through it as an entry face (0 or more when it does).
-        score = dr.select(entry, dr.inf, -dr.maximum(dr.maximum(e_bc, e_ca), e_ab))
-        take = score > best_score
-        best = dr.select(take, f, best)
-        best_score = dr.select(take, score, best_score)
-    return best
-
-
 class Flight:
     """What a walk along a ray found (:func:`flight`).
 
@@ -96,10 +70,13 @@ class Flight:
     hit : whether it reached the target depth (a collision).
     t, tet, s : the collision's ray parameter, tet and the extinction
         there (the other attributes: :func:`attributes_at`).
+    dtau : (forward mode) the walked depth's tangent, else 0.
     """
+    DRJIT_STRUCT = {"tau": mi.Float, "hit": mi.Bool, "t": mi.Float, "tet": mi.UInt32,
+                    "s": mi.Float, "dtau": mi.Float}
 
-    def __init__(self, tau, hit, t, tet, s):
-        self.tau, self.hit, self.t, self.tet, self.s = tau, hit, t, tet, s
+    def __init__(self, tau=None, hit=None, t=None, tet=None, s=None, dtau=None):
+        self.tau, self.hit, self.t, self.tet, self.s, self.dtau = tau, hit, t, tet, s, dtau
 
 
 def extinction(params, i, active=True, reduce=dr.ReduceMode.Auto):
@@ -109,152 +86,102 @@ def extinction(params, i, active=True, reduce=dr.ReduceMode.Auto):
     return dr.gather(mi.Float, params.opacity, i, active, mode=reduce)
 
 
-def _piece_depth(ts_ad, st, entry_w, o, u, v, d, t0, t1, t_begin, t_stop, active, geometric,
-                 reduce):
-    """The optical depth of the piece of the segment ``st`` crossed over
-    ``[t_begin, t_stop]``, attached to the parameters' AD graph (the
-    crossings computed again from the attached buffers where vertices move,
-    else at the walk's own ray parameters with attached attributes)."""
-    with dr.resume_grad():
-        if geometric:
-            t0, w0 = face_crossing(ts_ad.buf, st.entry, o, u, v, d, active, reduce)
-            t1, w1 = face_crossing(ts_ad.buf, st.exit, o, u, v, d, active, reduce)
-        else:
-            w0, w1 = entry_w, st.w
-        s0 = weighted_sum(w0, [extinction(ts_ad.params, i, active, reduce) for i in st.entry])
-        s1 = weighted_sum(w1, [extinction(ts_ad.params, i, active, reduce) for i in st.exit])
-        length, b0, b1 = clip_segment(t0, s0, t1, s1, t_begin, t_stop)
-        return length * (b0 + b1) * 0.5
-
-
-@dr.syntax
-def walk_depth(ts, tet, f_in, o, u, v, d, t_begin, t_stop, tau, target, settings: WalkSettings,
-               active, grad=None):
-    """Walk from ``tet`` (entered through its local face ``f_in``) over
-    ``[t_begin, t_stop]``, adding each piece's optical depth to ``tau``,
-    until it reaches ``target`` (a collision), the ray leaves the mesh, or
-    ``t_stop``.
+class Depth:
+    """The cursor's client that adds up the optical depth along rays through
+    the meshes of ``ts`` until it reaches ``target`` (a collision), reading
+    only the extinction (:class:`Flight` is its state).
 
     ``grad`` (a derivative pass): ``(mode, ts_ad, seed)``; backward mode
-    propagates ``seed * tau_walked`` into the parameters, forward mode
-    returns the tangent of the walked depth. Returns ``(tau, hit, t_hit,
-    tet_hit, s_hit, t_end, dtau)``. The walk reads only the extinction.
-    """
-    buf, params = ts.buf, ts.params
+    propagates ``seed * tau_walked`` into the parameters, forward mode adds
+    up the tangent of the walked depth (``dtau``)."""
+    label = "tetpath_depth"
+    cuts = False
 
-    def gather(i, active):
-        return extinction(params, i, active)
+    def __init__(self, ts, target, grad, reduce):
+        self.ts, self.params, self.target, self.grad = ts, ts.params, target, grad
+        self.reduce = reduce
+        if grad is not None:
+            with dr.resume_grad():
+                self.geometric = dr.grad_enabled(grad[1].buf.positions)
 
-    tet = mi.UInt32(tet)
-    f_in = mi.UInt32(f_in)
-    tau = mi.Float(tau)
-    active = mi.Bool(active)
-    carry = entry_carry(buf, tet, f_in, o, u, v, d, active, gather)
-    t, w = crossing_at(carry[0], carry[2])
-    a = weighted_sum(w, carry[1])
-    hit = mi.Bool(False)
-    t_hit = mi.Float(dr.inf)
-    tet_hit = mi.UInt32(tet)
-    s_hit = mi.Float(0.0)
-    dtau = mi.Float(0.0)
-    steps = mi.UInt32(0)
-    derivative = grad is not None
-    if dr.hint(derivative, mode="scalar"):
-        mode, ts_ad, seed = grad
-        backward = mode == dr.ADMode.Backward
-        with dr.resume_grad():
-            geometric = dr.grad_enabled(ts_ad.buf.positions)
-    while dr.hint(active, label="tetpath_depth"):
-        st = walk_step(buf, tet, f_in, o, u, v, d, active, carry, gather)
-        a_out = weighted_sum(st.w, st.carry[1])
-        t_out = dr.maximum(st.t, t)
-        length, a0, a1 = clip_segment(t, a, t_out, a_out, t_begin, t_stop)
-        t0 = dr.clip(t, t_begin, t_stop)
+    def gather(self, i, active):
+        return extinction(self.params, i, active)
+
+    def begin(self, acc: Flight, cur, fr: RayFrame, active) -> Flight:
+        return acc
+
+    def end(self, acc: Flight, cur, stay, walked, fr: RayFrame) -> Flight:
+        return acc
+
+    def alive(self, acc: Flight):
+        return ~acc.hit & (acc.tau < TAU_STOP)
+
+    def piece(self, acc: Flight, p, span: Span, fr: RayFrame, active):
+        t, a, t_out, a_out = p.cur.t, p.cur.a, p.t1, p.a1
+        length, a0, a1 = clip_segment(t, a, t_out, a_out, span.begin, span.end)
+        t0 = dr.clip(t, span.begin, span.end)
         tau_seg = length * (a0 + a1) * 0.5
-        r = target - tau
+        r = self.target - acc.tau
         here = active & (tau_seg >= r)
         x = solve_depth(a0, a1, length, r)
-        t_hit = dr.select(here, t0 + x, t_hit)
         frac = dr.select(length > 0, x * dr.rcp(dr.select(length > 0, length, 1.0)), 0.0)
-        s_hit = dr.select(here, dr.lerp(a0, a1, frac), s_hit)
-        tet_hit = dr.select(here, tet, tet_hit)
-        if dr.hint(derivative, mode="scalar"):
-            stop = dr.select(here, t0 + x, t_stop)
+        dtau = acc.dtau
+        if self.grad is not None:
+            mode, _, seed = self.grad
+            piece = self._depth(p, Span(span.begin, dr.select(here, t0 + x, span.end)), fr,
+                                active)
+            flags = dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
             with dr.resume_grad():
-                piece = _piece_depth(ts_ad, st, carry_w(carry), o, u, v, d, t, t_out, t_begin,
-                                     stop, active, geometric, settings.reduce)
-                flags = dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
-                if dr.hint(backward, mode="scalar"):
+                if mode == dr.ADMode.Backward:
                     dr.backward_from(dr.select(active, seed, 0.0) * piece, flags=flags)
                 else:
-                    dtau += dr.select(active, dr.forward_to(piece, flags=flags), 0.0)
-        tau = dr.select(here, target, tau + tau_seg)
-        hit |= here
-        carry = st.carry
-        t = t_out
-        a = a_out
-        steps += 1
-        tet, f_in = unpack_link(st.link)
-        active &= ~here & (st.link >= 0) & (t_out < t_stop) & (steps < settings.max_steps)
-        active &= tau < TAU_STOP
-    return tau, hit, t_hit, tet_hit, s_hit, t, dtau
+                    dtau = dtau + dr.select(active, dr.forward_to(piece, flags=flags), 0.0)
+        tau = dr.select(here, self.target, acc.tau + tau_seg)
+        out = Flight(tau, acc.hit | here, dr.select(here, t0 + x, acc.t),
+                     dr.select(here, p.cur.tet, acc.tet),
+                     dr.select(here, dr.lerp(a0, a1, frac), acc.s), dtau)
+        return out, ~here & (tau < TAU_STOP)
+
+    def _depth(self, p, span: Span, fr: RayFrame, active):
+        """The optical depth of the piece ``p`` over ``span``, attached to
+        the parameters' AD graph (the crossings computed again from the
+        attached buffers where vertices move, else at the walk's own ray
+        parameters with attached attributes)."""
+        ts_ad, reduce, st = self.grad[1], self.reduce, p.st
+        with dr.resume_grad():
+            if self.geometric:
+                t0, w0 = face_crossing(ts_ad.buf, st.entry, fr, active, reduce)
+                t1, w1 = face_crossing(ts_ad.buf, st.exit, fr, active, reduce)
+            else:
+                t0, t1 = p.cur.t, p.t1
+                w0, w1 = crossing_at(p.cur.carry[0], p.cur.carry[2])[1], st.w
+            s0 = weighted_sum(w0, [extinction(ts_ad.params, i, active, reduce)
+                                   for i in st.entry])
+            s1 = weighted_sum(w1, [extinction(ts_ad.params, i, active, reduce)
+                                   for i in st.exit])
+            length, b0, b1 = clip_segment(t0, s0, t1, s1, span.begin, span.end)
+            return length * (b0 + b1) * 0.5
 
 
-def carry_w(carry):
-    """The barycentric weights of the crossing of the face a walk carries."""
-    return crossing_at(carry[0], carry[2])[1]
+def flight(ps: PathScene, ray: mi.Ray3f, target, entry: Entry, active, grad=None) -> Flight:
+    """Walk a ray (from ``ray.o`` along the normalized ``ray.d`` up to
+    ``ray.maxt``) through the scattering meshes of ``ps`` until the optical
+    depth reaches ``target`` (``inf``: the transmittance ``exp(-tau)`` of
+    the whole ray).
 
-
-@dr.syntax
-def flight(ts, walk_scene, o, d, t_max, target, tet0, inside, settings: WalkSettings, active,
-           grad=None):
-    """Walk a ray through the tet meshes (all of ``ts``, one group) up to
-    ``t_max``, until the optical depth reaches ``target`` (``inf``: the
-    transmittance ``exp(-tau)`` of the whole ray).
-
-    The ray starts at ``o``: inside the tet ``tet0`` where ``inside`` (a
+    The ray starts inside the tet ``entry.tet`` where ``entry.inside`` (a
     scattered ray), else wherever Mitsuba's ray tracer finds the meshes'
     boundary (entering, or leaving when ``o`` lies inside: the start tet is
     then found by walking back). Leaving a mesh, it traces again for
-    re-entry. ``grad``: see :func:`walk_depth`. Returns a :class:`Flight`
-    and the walked depth's tangent (forward mode, else 0).
+    re-entry. ``grad``: see :class:`Depth`.
     """
-    buf = ts.buf
-    o = mi.Point3f(o)
-    d = mi.Vector3f(d)
-    t_max = mi.Float(t_max)
-    u, v = ray_frame(d)
-    tau = mi.Float(0.0)
-    hit = mi.Bool(False)
-    t_hit = mi.Float(dr.inf)
-    tet_hit = mi.UInt32(0)
-    s_hit = mi.Float(0.0)
-    dtau = mi.Float(0.0)
-    start = mi.Float(0.0)
-    first = mi.Bool(inside) & mi.Bool(active)
-    active = mi.Bool(active)
-    while dr.hint(active, label="tetpath_flight"):
-        trace = active & ~first
-        si = walk_scene.ray_intersect_preliminary(mi.Ray3f(o + d * start, d, t_max - start),
-                                                  active=trace)
-        found = trace & si.is_valid()
-        tet_b, f_b, _ = enter(buf, ts.boundary_face(si), o, u, v, d, start, settings.max_steps,
-                              found)
-        f_i = inside_face(buf, tet0, o, u, v, d, first)
-        go = first | found
-        tet = dr.select(first, tet0, tet_b)
-        f = dr.select(first, f_i, f_b)
-        tau, here, t_g, tet_g, s_g, t_end, dt = walk_depth(ts, tet, f, o, u, v, d, start, t_max,
-                                                        tau, target, settings, go, grad)
-        t_hit = dr.select(here, t_g, t_hit)
-        tet_hit = dr.select(here, tet_g, tet_hit)
-        s_hit = dr.select(here, s_g, s_hit)
-        hit |= here
-        dtau += dt
-        start = dr.select(go, dr.maximum(t_end, start), start) + settings.retrace_eps
-        first = mi.Bool(False)
-        active = go & ~hit & (start < t_max) & (tau < TAU_STOP)
-    return Flight(tau, hit, t_hit, tet_hit, s_hit), dtau
+    fr = RayFrame.of(ray.o, ray.d)
+    zero = mi.Float(0.0)
+    acc = Flight(zero, mi.Bool(False), mi.Float(dr.inf), mi.UInt32(0), zero, zero)
+    client = Depth(ps.ts, mi.Float(target), grad, ps.settings.reduce)
+    acc, _ = traverse(ps.walk_scene, [client], fr, acc, Span(zero, mi.Float(ray.maxt)),
+                      ps.settings, active, entry)
+    return acc
 
 
 def attributes_at(ts_ad, tet, p, active=True, reduce=dr.ReduceMode.Auto):
@@ -268,24 +195,18 @@ def attributes_at(ts_ad, tet, p, active=True, reduce=dr.ReduceMode.Auto):
                                 for i in frame.ids])
 
 
+@dataclass
 class PathScene:
-    """What the path tracer reads for one scene.
-
-    scene : mi.Scene            the user's scene (its emitters)
-    ts : TetScene                the scattering meshes, detached (the walk reads these)
-    ts_ad : TetScene             the same, attached to the parameters' AD graph
-    walk_scene : mi.Scene        the meshes' boundaries (the walk traces these)
-    surfaces : mi.Scene          the other shapes (an empty scene without any)
-    phase : mi.PhaseFunction     the meshes' phase function
-    settings : WalkSettings
-    max_depth, rr_depth : int    as Mitsuba's ``volpath``
-    """
-
-    def __init__(self, scene, ts, ts_ad, walk_scene, surfaces, phase, settings, max_depth,
-                 rr_depth):
-        self.scene, self.ts, self.ts_ad = scene, ts, ts_ad
-        self.walk_scene, self.surfaces, self.phase = walk_scene, surfaces, phase
-        self.settings, self.max_depth, self.rr_depth = settings, max_depth, rr_depth
+    """What the path tracer reads for one scene."""
+    scene: mi.Scene              # the user's scene (its emitters)
+    ts: TetScene                 # the scattering meshes, detached (the walk reads these)
+    ts_ad: TetScene              # the same, attached to the parameters' AD graph
+    walk_scene: mi.Scene         # the meshes' boundaries (the walk traces these)
+    surfaces: mi.Scene           # the other shapes (an empty scene without any)
+    phase: mi.PhaseFunction      # the meshes' phase function
+    settings: WalkSettings
+    max_depth: int               # as Mitsuba's ``volpath``
+    rr_depth: int
 
 
 def _medium_interaction(p, t, d, ray):
@@ -374,8 +295,9 @@ def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
         walk_grad = None
         if dr.hint(not primal, mode="scalar"):
             walk_grad = (mode, ts_ad, -dr.sum(δL * L))
-        fl, dtau = flight(ts, ps.walk_scene, ray.o, ray.d, t_surf, target, tet, in_tet,
-                          ps.settings, active, walk_grad)
+        fl = flight(ps, mi.Ray3f(ray.o, ray.d, t_surf), target, Entry(tet=tet, inside=in_tet),
+                    active, walk_grad)
+        dtau = fl.dtau
         collided = active & fl.hit
         p = ray.o + fl.t * ray.d
         a = attributes_at(ts, fl.tet, p, collided)
@@ -429,8 +351,8 @@ def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
         nee &= ds.pdf != 0.0
         shadow = ref.spawn_ray_to(ds.p)
         nee &= ~ps.surfaces.ray_test(shadow, nee)
-        sh, _ = flight(ts, ps.walk_scene, shadow.o, shadow.d, shadow.maxt, dr.inf, fl.tet,
-                       scatter, ps.settings, nee)
+        shadow_entry = Entry(tet=fl.tet, inside=scatter)
+        sh = flight(ps, shadow, dr.inf, shadow_entry, nee)
         ph_val, ph_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, scatter & nee)
         bsdf_val, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, si.to_local(ds.d), nee_surface & nee)
         f = dr.select(scatter, mi.Spectrum(ph_val), bsdf_val)
@@ -439,8 +361,8 @@ def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
         C = dr.select(nee, C, 0.0)
         L = L + C if primal else L - C
         if dr.hint(not primal, mode="scalar"):
-            _, dtau_sh = flight(ts, ps.walk_scene, shadow.o, shadow.d, shadow.maxt, dr.inf,
-                                fl.tet, scatter, ps.settings, nee, (mode, ts_ad, -dr.sum(δL * C)))
+            dtau_sh = flight(ps, shadow, dr.inf, shadow_entry, nee,
+                             (mode, ts_ad, -dr.sum(δL * C))).dtau
             dL = dL - dr.select(nee, C * dtau_sh, 0.0)
             dL = grad(δL, dL, lambda: C * _ratio(
                 phase.eval_pdf(phase_ctx, mei, ds.d, scatter & nee)[0], ph_val), scatter & nee)

@@ -123,7 +123,7 @@ def test_next_stage_prunes_splits_and_carries_state(data):
     for _ in range(2):
         trainer.step()
     # Every view's derivative pass used its primal render's kept state.
-    assert len(trainer.scene.integrator()._states) == 0
+    assert len(trainer.scene.integrator().kept_primals) == 0
     # Empty the half x < 0 (opacity zero there).
     S = np.array(trainer.opt["volume.vertex_opacity"])
     S[V[:, 0] < -1e-9] = 0.0

@@ -17,8 +17,9 @@ What the tests assume of the kernels' interfaces:
   ``ray_frame(d) -> (u, v)``, ``project(p, o, u, v) -> Point2f``;
 * ``clip_segment(t0, x0, t1, x1, t_begin, t_end) -> (length, x_begin, x_end)``
   with ``x`` any structure of Dr.Jit arrays (a tuple here), see :func:`clip`;
-* ``face_entry(buf, face, o, u, v, d, active) -> (tet, f, outward)`` and
-  ``walk_step(buf, tet, f_in, o, u, v, d, active)`` with the fields ``t, w,
+* ``RayFrame.of(o, d)``, the frame of rays;
+* ``face_entry(buf, face, frame, active) -> (tet, f, outward)`` and
+  ``walk_step(buf, tet, f_in, frame, active)`` with the fields ``t, w,
   link, f_out, exit`` (a link is ``< 0`` on the boundary and decoded by
   :func:`mi_tetvr.render.buffers.unpack_link`); the buffers come from
   :func:`mesh_buffers`, the only place that builds them; the twin of
@@ -36,7 +37,7 @@ from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.topology import FACES, build_topology
 from mi_tetvr.render.buffers import (MeshBuffers, far_links, morton_order, shape_index_arrays,
                                      unpack_link)
-from mi_tetvr.render.geometry import (BOUNDARY_WALK_STEPS, crossing, edge_function,
+from mi_tetvr.render.geometry import (BOUNDARY_WALK_STEPS, RayFrame, crossing, edge_function,
                                       face_entry, face_weights, project, ray_frame, walk_step)
 from mi_tetvr.render.segment import clip_segment
 from tests.helpers import rays_at
@@ -715,8 +716,7 @@ def test_clip_segment_gradient():
 # ----------------------------------------------------------------------------
 
 def run_face_entry(buf, face, o, d):
-    u, v = ray_frame(v3(d))
-    tet, f, outward = face_entry(buf, u32(face), p3(o), u, v, v3(d), mi.Bool(True))
+    tet, f, outward = face_entry(buf, u32(face), RayFrame.of(p3(o), v3(d)), mi.Bool(True))
     return (np.asarray(tet, np.int64), np.asarray(f, np.int64), np.asarray(outward, bool))
 
 
@@ -862,8 +862,7 @@ def check_walk_step(buf, mesh, o, d, exact):
     lanes = hit[lanes]
     t_np, w_np, nt, nf, lz, ids = walk_step_np(mesh, tets, fins, o[lanes], u[lanes], v[lanes],
                                                d[lanes])
-    u_dr, v_dr = ray_frame(v3(d[lanes]))
-    st = walk_step(buf, u32(tets), u32(fins), p3(o[lanes]), u_dr, v_dr, v3(d[lanes]),
+    st = walk_step(buf, u32(tets), u32(fins), RayFrame.of(p3(o[lanes]), v3(d[lanes])),
                    mi.Bool(True))
     link = np.asarray(st.link, np.int64)
     n_tet, n_face = (np.asarray(x, np.int64) for x in unpack_link(st.link))

@@ -311,7 +311,7 @@ def test_derivative_pass_reuses_the_primal_render():
         return loss_difference(params, key, direction, lambda: loss(seed))
 
     replayed = reverse(7)
-    assert len(integrator._states) == 0            # kept once, used once
+    assert len(integrator.kept_primals) == 0            # kept once, used once
     exact = fd(7)
     assert abs(replayed - exact) < 0.01 * abs(exact), (replayed, exact)
     # Mitsuba's own derivative pass (any explicit seed_grad) renders other
@@ -332,12 +332,12 @@ def test_derivative_pass_reuses_the_primal_render():
     from mi_tetvr.render.replay import derivative_seed
     dr.enable_grad(params[key])
     image = loss(7)
-    assert len(integrator._states) == 1
+    assert len(integrator.kept_primals) == 1
     params[key] = mi.Float(base * 1.5)
     dr.enable_grad(params[key])
     params.update()
     dr.backward(image)
-    assert len(integrator._states) == 0
+    assert len(integrator.kept_primals) == 0
     after_update = np.array(dr.grad(params[key]), np.float64)
     dr.disable_grad(params[key])
     dr.enable_grad(params[key])

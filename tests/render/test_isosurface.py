@@ -97,7 +97,8 @@ def _lambert(scene, o, d):
     with dr.suspend_grad():
         integrator = scene.integrator()
         ts = integrator.tet_scene(scene)
-        from mi_tetvr.render.walk import WalkSettings, trace
+        from mi_tetvr.render.cursor import WalkSettings
+        from mi_tetvr.render.walk import trace
         L, _, _, _ = trace(scene, ts, make_rays(o, d),
                            WalkSettings(0.0, 100_000, 1e-5), True)
         n = np.array(L.n, np.float64).reshape(3, -1).T

@@ -68,8 +68,8 @@ def test_absorption_adjoint_matches_finite_differences(problem):
         _, Tr, _, _ = trace(scene, ts.detached(), ray, settings, True)
     adj = Adjoint(mi.Color3f(0.0), mi.Float(Tr), mi.Color3f(0.0),
                   mi.Float(weights.astype(np.float32)))
-    trace(scene, ts.detached(), ray, settings, True, deriv=Derivative(dr.ADMode.Backward, [ts]),
-          adj=adj)
+    trace(scene, ts.detached(), ray, settings, True, grad=(Derivative(dr.ADMode.Backward, [ts]),
+                                                           adj))
     grad = np.asarray(dr.grad(opacity), np.float64)
 
     def loss(s):

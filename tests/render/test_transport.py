@@ -17,6 +17,7 @@ from scipy import stats
 
 import mi_tetvr
 from mi_tetvr.mesh.generate import grid_mesh
+from mi_tetvr.render.cursor import Entry
 from mi_tetvr.render.transport import flight, solve_depth
 
 RES = 20
@@ -127,8 +128,8 @@ def test_free_flight_distances_invert_the_optical_depth(linear_walk):
     total = 2.0 * A                                   # the depth of the whole chord
     u = rng.uniform(0.0, 1.0 - np.exp(-total), n)     # (every sample collides)
     target = -np.log1p(-u)
-    fl, _ = flight(ps.ts, ps.walk_scene, mi.Point3f(o.T), mi.Vector3f(d.T), mi.Float(10.0),
-                   mi.Float(target), mi.UInt32(0), mi.Bool(False), ps.settings, mi.Bool(True))
+    fl = flight(ps, mi.Ray3f(mi.Point3f(o.T), mi.Vector3f(d.T), 10.0), mi.Float(target), None,
+                mi.Bool(True))
     assert np.all(np.array(fl.hit))
     s = np.array(fl.t, np.float64) - 2.0               # the distance inside the cube
     # s solves (A - B) s + B s^2 / 2 = target
@@ -161,8 +162,8 @@ def test_transmittance_from_outside_and_from_inside_a_tet(linear_walk, cube):
     o = target + rng.normal(size=(n, 3)) * 3.0
     d = target - o
     d /= np.linalg.norm(d, axis=1)[:, None]
-    fl, _ = flight(ps.ts, ps.walk_scene, mi.Point3f(o.T), mi.Vector3f(d.T), mi.Float(dr.inf),
-                   mi.Float(dr.inf), mi.UInt32(0), mi.Bool(False), ps.settings, mi.Bool(True))
+    fl = flight(ps, mi.Ray3f(mi.Point3f(o.T), mi.Vector3f(d.T), dr.inf), mi.Float(dr.inf), None,
+                mi.Bool(True))
     t0, t1 = box_chord(o, d)
     ref = optical_depth(o + d * t0[:, None], d, t1 - t0)
     assert np.abs(np.array(fl.tau) - ref).max() < 1e-5 * max(1.0, ref.max())
@@ -173,8 +174,8 @@ def test_transmittance_from_outside_and_from_inside_a_tet(linear_walk, cube):
     p = np.einsum("nk,nkj->nj", w, V[tets[k]])
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1)[:, None]
-    fl, _ = flight(ps.ts, ps.walk_scene, mi.Point3f(p.T), mi.Vector3f(d.T), mi.Float(dr.inf),
-                   mi.Float(dr.inf), mi.UInt32(k), mi.Bool(True), ps.settings, mi.Bool(True))
+    fl = flight(ps, mi.Ray3f(mi.Point3f(p.T), mi.Vector3f(d.T), dr.inf), mi.Float(dr.inf),
+                Entry(tet=mi.UInt32(k), inside=mi.Bool(True)), mi.Bool(True))
     _, t1 = box_chord(p, d)
     ref = optical_depth(p, d, t1)
     assert np.abs(np.array(fl.tau) - ref).max() < 1e-5 * max(1.0, ref.max())

@@ -1,0 +1,268 @@
+"""The ray cursor: the one traversal of tet meshes, written once.
+
+For each ray, repeat from ``start`` (the span's beginning, or where a block
+enters its piece):
+
+1. Mitsuba's ray tracer (its BVH over the meshes' boundary faces) finds the
+   next boundary face after ``start``.
+2. If the ray *enters* through it, the walk starts in the tet behind it. If
+   the ray *leaves* through it, the point at ``start`` is inside a mesh (a
+   camera inside, or just past a seam of coincident but unconnected faces):
+   :func:`locate` walks back from that face along the reversed ray to the tet
+   containing the start point (point location by walking, Aman et al.
+   Sec. 4.2). A ray that starts inside a known tet (a path's scattered ray)
+   starts there, through the face its line enters by.
+3. :func:`walk` goes front to back, tet to tet through the neighbour links,
+   handing each piece (clipped by the client to the span) to a *client*,
+   until the ray leaves the mesh, reaches the span's end, or the client is
+   done; then ``start`` moves just past the exit face and the loop traces
+   again (non-convex meshes, disjoint parts, several meshes).
+
+The cursor knows nothing of what a vertex carries or what a piece adds up
+to. A *client* says it (:class:`Client`): what a crossing interpolates
+(``gather``), where a piece ends inside a tet (``cut``, for models that
+classify a scalar nonlinearly), and what to do with each piece. Its clients
+are ``tetvr``'s emission-absorption and probes
+(:mod:`~mi_tetvr.render.walk`), their adjoint
+(:mod:`~mi_tetvr.render.adjoint`), and ``tetpath``'s optical depth up to a
+target (free flights, shadow transmittance:
+:mod:`~mi_tetvr.render.transport`). Meshes that overlap in space are walked
+with one cursor each (:mod:`~mi_tetvr.render.merged`), through the same
+:func:`enter`, :func:`locate` and :func:`~mi_tetvr.render.geometry.walk_step`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import drjit as dr
+import mitsuba as mi
+
+from mi_tetvr.render.buffers import MeshBuffers, TetScene, unpack_link
+from mi_tetvr.render.geometry import (RayFrame, Step, crossing_at, entry_carry, face_entry,
+                                      inside_face, walk_step)
+from mi_tetvr.render.pytree import tree_lerp, tree_select, weighted_sum
+
+
+class WalkSettings:
+    """Python-level settings of the walk (not traced).
+
+    ``t_min``: a ray stops when its transmittance falls below it;
+    ``max_steps``: the most tets (or pieces) one walk crosses;
+    ``retrace_eps``: how far past a mesh's exit face the ray tracer looks for
+    the next boundary; ``reduce``: the scatter strategy (``dr.ReduceMode``)
+    of the gradient accumulation into shared vertices (``Auto`` expands the
+    gradient buffers per CPU thread on the LLVM backend, without atomics,
+    up to ``dr.expand_threshold()`` entries, and uses atomics on CUDA).
+    """
+
+    def __init__(self, t_min: float = 1e-4, max_steps: int = 100_000,
+                 retrace_eps: float = 1e-5, reduce=dr.ReduceMode.Auto):
+        self.t_min = float(t_min)
+        self.max_steps = int(max_steps)
+        self.retrace_eps = float(retrace_eps)
+        self.reduce = reduce
+
+
+@dataclass
+class Span:
+    """The interval ``[begin, end]`` of ray parameters a walk integrates."""
+    begin: mi.Float
+    end: mi.Float
+
+
+@dataclass
+class Entry:
+    """Where a traversal starts, when not at its span's beginning: ``t``,
+    where the search for the meshes' boundary starts (a block of a
+    partitioned mesh enters its piece before the span); ``tet``, the tet a
+    ray starts inside of, where ``inside`` (a scattered ray)."""
+    t: Any = None
+    tet: mi.UInt32 = None
+    inside: mi.Bool = None
+
+
+@dataclass
+class Cursor:
+    """Where a walk stands: in ``tet``, entered through its local face
+    ``f_in``, whose corners, their values and edge functions are ``carry``
+    (:func:`~mi_tetvr.render.geometry.entry_carry`), at the ray parameter
+    ``t`` with the values ``a`` interpolated there."""
+    tet: mi.UInt32
+    f_in: mi.UInt32
+    carry: tuple
+    t: mi.Float
+    a: Any
+
+    @staticmethod
+    def at(client: Client, tet, f_in, fr: RayFrame, active) -> Cursor:
+        """The cursor entering ``tet`` through its face ``f_in``."""
+        tet, f_in = mi.UInt32(tet), mi.UInt32(f_in)
+        carry = entry_carry(client.ts.buf, tet, f_in, fr, active, client.gather)
+        t, w = crossing_at(carry[0], carry[2])
+        return Cursor(tet, f_in, carry, t, weighted_sum(w, carry[1]))
+
+
+@dataclass
+class Piece:
+    """What a walk hands its client per step: the piece of the ray in
+    ``cur.tet`` from the cursor (``cur.t``, ``cur.a``) to ``(t1, a1)``,
+    found by the step ``st``; ``stay``: the piece ends inside the tet, ``f``
+    of the way to its exit crossing (models that cut tets)."""
+    cur: Cursor
+    st: Step
+    t1: mi.Float
+    a1: Any
+    stay: mi.Bool
+    f: mi.Float = None
+
+
+class Client(Protocol):
+    """What a walk does along a ray (see the module docstring). ``acc`` is
+    the client's per-ray state, carried through the walk's loop."""
+    ts: TetScene          # the buffers walked (``ts.buf``) and the optical model
+    cuts: bool            # whether pieces end inside tets (``cut``)
+    label: str            # the walk loop's name in Dr.Jit's kernels
+
+    def gather(self, i, active): ...
+    def cut(self, a0, a1): ...
+    def begin(self, acc, cur: Cursor, fr: RayFrame, active): ...
+    def piece(self, acc, p: Piece, span: Span, fr: RayFrame, active): ...
+    def end(self, acc, cur: Cursor, stay, walked, fr: RayFrame): ...
+    def alive(self, acc): ...
+
+
+@dr.syntax
+def locate(buf: MeshBuffers, tet, f_out, fr: RayFrame, t_start, max_steps: int, active):
+    """Walk back from the boundary face ``f_out`` of ``tet`` (where the ray
+    leaves a mesh) along the reversed ray to the tet that contains the point
+    at ``t_start``.
+
+    Returns ``(tet, f_in)``: the tet and the face through which the forward
+    ray enters it (at or before ``t_start``; after it when the reversed ray
+    left the mesh first).
+    """
+    back = fr.reversed()
+    tet = mi.UInt32(tet)
+    f_in = mi.UInt32(f_out)
+    steps = mi.UInt32(0)
+    active = mi.Bool(active)
+    while dr.hint(active, label="tetvr_locate"):
+        st = walk_step(buf, tet, f_in, back, active)
+        found = -st.t <= t_start
+        f_in = mi.UInt32(st.f_out)
+        go = ~found & (st.link >= 0)
+        nxt_tet, nxt_f = unpack_link(st.link)
+        tet = dr.select(go, nxt_tet, tet)
+        f_in = dr.select(go, nxt_f, f_in)
+        steps += 1
+        active &= go & (steps < max_steps)
+    return tet, f_in
+
+
+def enter(buf: MeshBuffers, face, fr: RayFrame, t_start, max_steps: int, active):
+    """Where a ray that hits the boundary face ``face`` (global index, from
+    Mitsuba's ray tracer) walks from: ``(tet, f_in, outward)``. A ray that
+    enters through the face starts in the tet behind it; one that leaves
+    through it (``outward``) is inside the mesh at ``t_start`` and is
+    :func:`locate` d there."""
+    tet, f, outward = face_entry(buf, face, fr, active)
+    tet, f = locate(buf, tet, f, fr, t_start, max_steps, active & outward)
+    return tet, f, outward
+
+
+@dr.syntax
+def walk(client: Client, fr: RayFrame, cur: Cursor, acc, span: Span, settings: WalkSettings,
+         active):
+    """Walk front to back from the cursor ``cur``, handing each piece to
+    ``client``, until the ray leaves the mesh, reaches ``span.end``, crosses
+    ``settings.max_steps`` tets (pieces), or the client says stop.
+
+    Returns ``(acc, t, steps)``: the client's state, where the walk ended
+    and the number of tets crossed.
+    """
+    buf = client.ts.buf
+    cuts = client.cuts
+    active = mi.Bool(active)
+    acc = client.begin(acc, cur, fr, active)
+    steps = mi.UInt32(0)
+    pieces = mi.UInt32(0)
+    stay = mi.Bool(False)     # (clients that cut tets) the last piece ended inside its tet
+    while dr.hint(active, label=client.label):
+        st = walk_step(buf, cur.tet, cur.f_in, fr, active, cur.carry, client.gather)
+        a1 = weighted_sum(st.w, st.carry[1])
+        t1 = dr.maximum(st.t, cur.t)
+        stay = mi.Bool(False)
+        f = None
+        if dr.hint(cuts, mode="scalar"):
+            # The client's nonlinearity: end the piece at the next knot.
+            f = client.cut(cur.a, a1)
+            stay = f < 1.0
+            t1 = dr.select(stay, dr.lerp(cur.t, t1, f), t1)
+            a1 = tree_select(stay, tree_lerp(cur.a, a1, f), a1)
+        acc, go = client.piece(acc, Piece(cur, st, t1, a1, stay, f), span, fr, active)
+        nxt_tet, nxt_f = unpack_link(st.link)
+        if dr.hint(cuts, mode="scalar"):
+            # Stay in the tet for the next piece, else move on.
+            cur = Cursor(dr.select(stay, cur.tet, nxt_tet), dr.select(stay, cur.f_in, nxt_f),
+                         tree_select(stay, cur.carry, st.carry), t1, a1)
+            steps += dr.select(stay, 0, 1)
+            pieces += 1
+            active &= (stay | (st.link >= 0)) & (t1 < span.end) & (pieces < settings.max_steps)
+        else:
+            cur = Cursor(nxt_tet, nxt_f, st.carry, t1, a1)
+            steps += 1
+            active &= (st.link >= 0) & (t1 < span.end) & (steps < settings.max_steps)
+        active &= go
+    # (a walk that stopped inside its first tet left none: count its pieces)
+    acc = client.end(acc, cur, stay, (pieces > 0) if cuts else (steps > 0), fr)
+    return acc, cur.t, steps
+
+
+@dr.syntax
+def traverse(scene: mi.Scene, clients: list, fr: RayFrame, acc, span: Span,
+             settings: WalkSettings, active, entry: Entry = None):
+    """Walk rays through the tet meshes whose boundaries are ``scene``'s
+    shapes, over ``span`` (see the module docstring).
+
+    ``clients`` has one :class:`Client` per group of shapes that one walk
+    renders (their :class:`~mi_tetvr.render.buffers.TetScene`): each
+    boundary hit is walked by its own group's client, all sharing ``acc``;
+    the first client's ``alive(acc)`` says whether a ray goes on.
+    ``entry``: where to start, when not at ``span.begin`` (:class:`Entry`).
+
+    Returns ``(acc, steps)``: the clients' state and the tets crossed.
+    """
+    entry = entry if entry is not None else Entry()
+    inside = entry.tet is not None
+    if inside and len(clients) != 1:
+        raise ValueError("a ray that starts inside a tet walks one group of meshes")
+    t_max = mi.Float(span.end)
+    start = mi.Float(span.begin if entry.t is None else entry.t)
+    active = mi.Bool(active)
+    first = mi.Bool(entry.inside) & active if inside else mi.Bool(False)
+    steps = mi.UInt32(0)
+    while dr.hint(active, label=clients[0].label + "_trace"):
+        tracing = active & ~first
+        si = scene.ray_intersect_preliminary(mi.Ray3f(fr.at(start), fr.d, t_max - start),
+                                             active=tracing)
+        hit = tracing & si.is_valid()
+        t_end = mi.Float(start)
+        for c in clients:
+            # The hit face's own group walks it (all of them with one group).
+            mine = hit if len(clients) == 1 else hit & c.ts.owns(si)
+            tet, f, _ = enter(c.ts.buf, c.ts.boundary_face(si), fr, start, settings.max_steps,
+                              mine)
+            if dr.hint(inside, mode="scalar"):
+                tet = dr.select(first, entry.tet, tet)
+                f = dr.select(first, inside_face(c.ts.buf, entry.tet, fr, first), f)
+                mine = mine | first
+            cur = Cursor.at(c, tet, f, fr, mine)
+            acc, t_c, n = walk(c, fr, cur, acc, Span(dr.maximum(start, span.begin), t_max),
+                               settings, mine)
+            t_end = dr.select(mine, t_c, t_end)
+            steps += dr.select(mine, n, 0)
+        start = dr.maximum(t_end, start) + settings.retrace_eps
+        active = (hit | first) & clients[0].alive(acc) & (start < t_max)
+        first = mi.Bool(False)
+    return acc, steps
