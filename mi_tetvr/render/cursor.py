@@ -244,8 +244,9 @@ def traverse(scene: mi.Scene, clients: list, fr: RayFrame, acc, span: Span,
     steps = mi.UInt32(0)
     while dr.hint(active, label=clients[0].label + "_trace"):
         tracing = active & ~first
-        si = scene.ray_intersect_preliminary(mi.Ray3f(fr.at(start), fr.d, t_max - start),
-                                             active=tracing)
+        # (unbounded: a ray that starts inside a mesh finds the face it
+        # leaves by even past the span's end, and walks back to its start)
+        si = scene.ray_intersect_preliminary(mi.Ray3f(fr.at(start), fr.d), active=tracing)
         hit = tracing & si.is_valid()
         t_end = mi.Float(start)
         for c in clients:
@@ -265,4 +266,205 @@ def traverse(scene: mi.Scene, clients: list, fr: RayFrame, acc, span: Span,
         start = dr.maximum(t_end, start) + settings.retrace_eps
         active = (hit | first) & clients[0].alive(acc) & (start < t_max)
         first = mi.Bool(False)
+    return acc, steps
+
+
+# ----------------------------------------------------------------------------
+# Several meshes that overlap in space: one cursor per mesh
+# ----------------------------------------------------------------------------
+
+@dataclass
+class Pieces:
+    """What the walk over overlapping meshes (:func:`traverse_merged`) hands
+    its client per piece ``[t0, t1]`` (``length``): per mesh ``k``, whether
+    the ray is ``inside[k]`` it, its tet, the mesh's values at the piece's
+    ends (``a0[k]``, ``a1[k]``), its cursor's carried face and step, the
+    ends of its segment in its tet (``ends[k] = (te, we, ae, tx, ax, 1 /
+    (tx - te))``: entry crossing's ``t``, weights and values, exit's ``t``
+    and values), and (clients that ask, ``boundaries``) whether the piece
+    starts where the ray crossed the mesh's boundary (``from_bnd[k]``), ends
+    where it enters or leaves it (``to_bnd[k]``), and the next boundary face
+    (``f_next[k]``)."""
+    t0: mi.Float
+    t1: mi.Float
+    length: mi.Float
+    inside: list
+    tet: list
+    a0: list
+    a1: list
+    carry: list
+    st: list
+    ends: list
+    from_bnd: list = None
+    to_bnd: list = None
+    f_next: list = None
+
+
+class MergedClient(Protocol):
+    """What a walk over overlapping meshes does along a ray: ``members``,
+    one :class:`Client` per mesh (its ``ts``, ``cuts``, ``gather``,
+    ``cut``); ``piece`` takes each :class:`Pieces` and returns ``(acc,
+    go)``."""
+    members: list
+    boundaries: bool
+    label: str
+
+    def piece(self, acc, pc: Pieces, fr: RayFrame, active): ...
+
+
+@dr.syntax
+def traverse_merged(scenes: list, client: MergedClient, fr: RayFrame, acc, span: Span,
+                    settings: WalkSettings, active):
+    """Walk rays through tet meshes that may overlap in space, one cursor
+    per mesh (``scenes[k]``: a scene of mesh ``k``'s boundary alone, so that
+    coincident faces of two meshes are both found), over ``span``.
+
+    Each mesh's cursor is inside it (its tet and entry face, as
+    :func:`walk` keeps them) or outside, holding the next boundary face of
+    that mesh along the ray. Each iteration hands the client the piece up to
+    the nearest event of any cursor (the exit of its tet, a knot of its
+    member's ``cut``, or entering its mesh) and moves on the cursor whose
+    event it is. A ray that starts inside a mesh (a camera inside, or a
+    first face it leaves by) is located in it by walking back
+    (:func:`locate`). Returns ``(acc, steps)``.
+    """
+    members = client.members
+    K = len(members)
+    t_max = mi.Float(span.end)
+    active = mi.Bool(active)
+    inside = [mi.Bool(False) for _ in range(K)]
+    tet = [mi.UInt32(0) for _ in range(K)]
+    f_in = [mi.UInt32(0) for _ in range(K)]
+    carry = [entry_carry(m.ts.buf, mi.UInt32(0), mi.UInt32(0), fr, mi.Bool(False), m.gather)
+             for m in members]
+    # Outside a mesh: where to trace its boundary from, and its next face.
+    need = [mi.Bool(active) for _ in range(K)]
+    t_trace = [mi.Float(span.begin) for _ in range(K)]
+    t_next = [mi.Float(dr.inf) for _ in range(K)]
+    f_next = [mi.UInt32(0) for _ in range(K)]
+    # A cursor whose last event was a knot of its own keeps the values
+    # there (``kept``, ``a_at``): recomputed from t they could fall a hair
+    # short of the knot, and the next cut would not move on.
+    kept = [mi.Bool(False) for _ in range(K)]
+    a_at = [dr.zeros(type(c[1][0])) for c in carry]
+    # The piece starts where the ray crossed mesh k's boundary (its carried face).
+    from_bnd = [mi.Bool(False) for _ in range(K)]
+    t = mi.Float(span.begin)
+    steps = mi.UInt32(0)
+    inf = mi.Float(dr.inf)
+    while dr.hint(active, label=client.label):
+        inside, tet, f_in, carry = list(inside), list(tet), list(f_in), list(carry)
+        need, t_trace, t_next, f_next = list(need), list(t_trace), list(t_next), list(f_next)
+        kept, a_at, from_bnd = list(kept), list(a_at), list(from_bnd)
+        # Each mesh the ray is outside of: its next boundary face, where needed;
+        # a face the ray leaves by: it is inside, walk back to where it is now.
+        for k in range(K):
+            m = members[k]
+            c_k, tet_k, f_k, in_k = carry[k], tet[k], f_in[k], inside[k]
+            kept_k, tn_k, fn_k, need_k = kept[k], t_next[k], f_next[k], need[k] & active
+            if need_k:
+                # (a branch: most iterations trace nothing)
+                si = scenes[k].ray_intersect_preliminary(mi.Ray3f(fr.at(t_trace[k]), fr.d),
+                                                         active=need_k)
+                hit = need_k & si.is_valid()
+                tt, ff, out = enter(m.ts.buf, si.prim_index, fr, t, settings.max_steps, hit)
+                here = hit & out
+                c_k = tree_select(here, entry_carry(m.ts.buf, tt, ff, fr, here, m.gather), c_k)
+                tet_k = dr.select(here, tt, tet_k)
+                f_k = dr.select(here, ff, f_k)
+                in_k = in_k | here
+                kept_k = kept_k & ~here
+                tn_k = dr.select(hit & ~out, t_trace[k] + si.t, inf)
+                fn_k = mi.UInt32(si.prim_index)
+            carry[k], tet[k], f_in[k], inside[k] = c_k, tet_k, f_k, in_k
+            kept[k], t_next[k], f_next[k], need[k] = kept_k, tn_k, fn_k, mi.Bool(False)
+        # Every cursor's next event: its tet's exit or a knot inside, or
+        # (outside its mesh) its next boundary face.
+        sts, ends, nows, knots, evs = [], [], [], [], []
+        t_ev = mi.Float(t_max)
+        for k in range(K):
+            m = members[k]
+            st = walk_step(m.ts.buf, tet[k], f_in[k], fr, inside[k], carry[k], m.gather)
+            te, we = crossing_at(carry[k][0], carry[k][2])
+            ae = weighted_sum(we, carry[k][1])
+            tx = dr.maximum(st.t, te)
+            ax = weighted_sum(st.w, st.carry[1])
+            span_k = tx - te
+            inv = dr.select(span_k > 0, dr.rcp(dr.select(span_k > 0, span_k, 1.0)), 0.0)
+            a_now = tree_select(kept[k], a_at[k], tree_lerp(ae, ax, dr.clip((t - te) * inv,
+                                                                            0.0, 1.0)))
+            ev = tx
+            knot = (mi.Bool(False), a_now)
+            if dr.hint(m.cuts, mode="scalar"):
+                f = m.cut(a_now, ax)
+                knot = (f < 1.0, tree_lerp(a_now, ax, f))
+                ev = dr.select(knot[0], dr.lerp(dr.maximum(t, te), tx, f), tx)
+            ev = dr.select(inside[k], ev, t_next[k])
+            sts.append(st)
+            ends.append((te, we, ae, tx, ax, inv))
+            nows.append(a_now)
+            knots.append(knot)
+            evs.append(ev)
+            t_ev = dr.minimum(t_ev, ev)
+        t_ev = dr.maximum(t_ev, t)
+        # The cursor whose event it is (the first of equal ones) moves on.
+        go = []
+        moved = mi.Bool(False)
+        for k in range(K):
+            go.append(active & ~moved & (evs[k] <= t_ev) & (evs[k] < t_max))
+            moved |= go[k]
+        # The piece [t, t_ev] (none inside: an empty piece, which may reach to
+        # an infinite t_max, whose length times a zero extinction would be NaN).
+        any_in = mi.Bool(False)
+        for k in range(K):
+            any_in |= inside[k]
+        t_end = dr.select(any_in, t_ev, t)
+        a1s = []
+        for k in range(K):
+            te, we, ae, tx, ax, inv = ends[k]
+            a1s.append(tree_select(go[k], tree_select(knots[k][0], knots[k][1], ax),
+                                   tree_lerp(ae, ax, dr.clip((t_ev - te) * inv, 0.0, 1.0))))
+        pc = Pieces(t, t_end, t_end - t, list(inside), list(tet), nows, a1s, list(carry), sts,
+                    ends)
+        if dr.hint(client.boundaries, mode="scalar"):
+            # The piece ends where the ray enters or leaves mesh k.
+            pc.from_bnd, pc.f_next = list(from_bnd), list(f_next)
+            pc.to_bnd = [go[k] & (~inside[k] | (~knots[k][0] & (sts[k].link < 0)))
+                         for k in range(K)]
+        acc, more = client.piece(acc, pc, fr, active)
+        for k in range(K):
+            m = members[k]
+            st = sts[k]
+            kept[k] = inside[k] & go[k] & knots[k][0]
+            a_at[k] = a1s[k]
+            # Inside: the next tet (or the knot, staying); leaving the mesh,
+            # trace its boundary again past the exit.
+            adv = go[k] & inside[k] & ~knots[k][0]
+            nxt_tet, nxt_f = unpack_link(st.link)
+            carry[k] = tree_select(adv, st.carry, carry[k])
+            tet[k] = dr.select(adv, nxt_tet, tet[k])
+            f_in[k] = dr.select(adv, nxt_f, f_in[k])
+            left = adv & (st.link < 0)
+            inside[k] = inside[k] & ~left
+            from_bnd[k] = left
+            t_trace[k] = dr.select(left, ends[k][3] + settings.retrace_eps, t_trace[k])
+            need[k] = need[k] | left
+            # Outside: enter the mesh through its next boundary face.
+            entering = go[k] & ~inside[k] & ~left
+            c_k, tet_k, f_k = carry[k], tet[k], f_in[k]
+            if entering:
+                tt, ff, _ = face_entry(m.ts.buf, f_next[k], fr, entering)
+                c_k = entry_carry(m.ts.buf, tt, ff, fr, entering, m.gather)
+                tet_k, f_k = tt, ff
+            carry[k], tet[k], f_in[k] = c_k, tet_k, f_k
+            inside[k] = inside[k] | entering
+            kept[k] = kept[k] & ~entering
+            from_bnd[k] = from_bnd[k] | entering
+            t_next[k] = dr.select(entering, inf, t_next[k])
+        t = t_ev
+        steps += 1
+        pending = mi.Bool(False)
+        for k in range(K):
+            pending |= inside[k] | need[k] | (t_next[k] < t_max)
+        active &= pending & (t < t_max) & more & (steps < settings.max_steps)
     return acc, steps

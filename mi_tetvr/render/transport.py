@@ -295,8 +295,9 @@ def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
         walk_grad = None
         if dr.hint(not primal, mode="scalar"):
             walk_grad = (mode, ts_ad, -dr.sum(δL * L))
-        fl = flight(ps, mi.Ray3f(ray.o, ray.d, t_surf), target, Entry(tet=tet, inside=in_tet),
-                    active, walk_grad)
+        to_surface = mi.Ray3f(ray)
+        to_surface.maxt = t_surf
+        fl = flight(ps, to_surface, target, Entry(tet=tet, inside=in_tet), active, walk_grad)
         dtau = fl.dtau
         collided = active & fl.hit
         p = ray.o + fl.t * ray.d

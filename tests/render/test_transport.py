@@ -108,6 +108,13 @@ def linear_walk(cube):
     return mi.load_dict({"type": "tetpath"}).path_scene(scene)
 
 
+def rays(o, d, t_max):
+    """Rays from the rows of ``o`` along the rows of ``d`` up to ``t_max``."""
+    ray = mi.Ray3f(mi.Point3f(o.T), mi.Vector3f(d.T))
+    ray.maxt = mi.Float(t_max)
+    return ray
+
+
 def optical_depth(o, d, s):
     """float64 closed form: the optical depth of ``A + B x`` from ``o`` over
     a distance ``s`` along ``d`` (a linear field: length times the midpoint's value)."""
@@ -128,8 +135,7 @@ def test_free_flight_distances_invert_the_optical_depth(linear_walk):
     total = 2.0 * A                                   # the depth of the whole chord
     u = rng.uniform(0.0, 1.0 - np.exp(-total), n)     # (every sample collides)
     target = -np.log1p(-u)
-    fl = flight(ps, mi.Ray3f(mi.Point3f(o.T), mi.Vector3f(d.T), 10.0), mi.Float(target), None,
-                mi.Bool(True))
+    fl = flight(ps, rays(o, d, 10.0), mi.Float(target), None, mi.Bool(True))
     assert np.all(np.array(fl.hit))
     s = np.array(fl.t, np.float64) - 2.0               # the distance inside the cube
     # s solves (A - B) s + B s^2 / 2 = target
@@ -162,8 +168,7 @@ def test_transmittance_from_outside_and_from_inside_a_tet(linear_walk, cube):
     o = target + rng.normal(size=(n, 3)) * 3.0
     d = target - o
     d /= np.linalg.norm(d, axis=1)[:, None]
-    fl = flight(ps, mi.Ray3f(mi.Point3f(o.T), mi.Vector3f(d.T), dr.inf), mi.Float(dr.inf), None,
-                mi.Bool(True))
+    fl = flight(ps, rays(o, d, dr.inf), mi.Float(dr.inf), None, mi.Bool(True))
     t0, t1 = box_chord(o, d)
     ref = optical_depth(o + d * t0[:, None], d, t1 - t0)
     assert np.abs(np.array(fl.tau) - ref).max() < 1e-5 * max(1.0, ref.max())
@@ -174,7 +179,7 @@ def test_transmittance_from_outside_and_from_inside_a_tet(linear_walk, cube):
     p = np.einsum("nk,nkj->nj", w, V[tets[k]])
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1)[:, None]
-    fl = flight(ps, mi.Ray3f(mi.Point3f(p.T), mi.Vector3f(d.T), dr.inf), mi.Float(dr.inf),
+    fl = flight(ps, rays(p, d, dr.inf), mi.Float(dr.inf),
                 Entry(tet=mi.UInt32(k), inside=mi.Bool(True)), mi.Bool(True))
     _, t1 = box_chord(p, d)
     ref = optical_depth(p, d, t1)
