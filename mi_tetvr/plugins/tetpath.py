@@ -39,8 +39,11 @@ each path (constant memory per path) w.r.t. the meshes' ``vertex_opacity``,
 ``vertex_albedo``, ``vertex_emission``, ``vertex_positions`` (the
 integrand's derivative: no silhouette terms) and the phase function's
 parameters. The surfaces' BSDFs and the emitters are sampled but not
-differentiated. Meshes must not overlap; surfaces are opaque to shadow rays
-(a ``null`` or transmissive BSDF still blocks them).
+differentiated. Meshes may overlap in space (at most 8): their extinctions
+add, and a collision is in each with the probability of its share of the
+extinction there (derivatives then w.r.t. the media, not the positions).
+Surfaces are opaque to shadow rays (a ``null`` or transmissive BSDF still
+blocks them).
 
 .. code-block:: python
 
@@ -55,11 +58,11 @@ import mitsuba as mi
 
 from mi_tetvr.plugins import constructor
 from mi_tetvr.render.buffers import index_buffers, model_groups, tet_scene
-from mi_tetvr.render.merged import overlapping
+from mi_tetvr.render.merged import MAX_MESHES, overlapping
 from mi_tetvr.render.optical import Scattering
 from mi_tetvr.render.program import scaled_settings
 from mi_tetvr.render.surfaces import SceneParts
-from mi_tetvr.render.transport import PathScene, sample
+from mi_tetvr.render.transport import PathScene, check_derivatives, sample
 from mi_tetvr.render.cursor import WalkSettings
 
 
@@ -93,27 +96,31 @@ class TetPathIntegrator(mi.ad.integrators.common.RBIntegrator):
             raise ValueError(f"tetpath: tetmesh {', '.join(plain)} has no albedo; tetpath "
                              f"renders scattering media (give each tetmesh an 'albedo', or "
                              f"render emission and absorption with tetvr)")
-        if len(tets) > 1 and overlapping(tets):
-            raise ValueError("tetpath: the scene's tet meshes overlap in space; tetpath walks "
-                             "meshes apart from each other")
         phases = {id(s.phase): s.phase for s in tets}
         if len(phases) > 1:
             raise ValueError("tetpath: the scene's scattering tet meshes must share one phase "
                              "function (load it once and hand the same object to each)")
-        (group,) = model_groups(tets)
-        key = tuple(id(s.tet_buffers) for s in group)
+        # Meshes that overlap in space: a cursor each (render.cursor.traverse_merged).
+        groups = [[s] for s in tets] if overlapping(tets) else model_groups(tets)
+        if len(groups) > MAX_MESHES:
+            raise ValueError(f"tetpath: at most {MAX_MESHES} overlapping tet meshes in one "
+                             f"scene, got {len(groups)}; merge some of them into one mesh")
+        key = tuple(tuple(id(s.tet_buffers) for s in g) for g in groups)
         if self._index is None or self._index[0] != key:
-            self._index = (key, index_buffers(group))
-        index, offsets = self._index[1]
+            self._index = (key, [index_buffers(g) for g in groups])
         with dr.resume_grad():
-            ts_ad = tet_scene(group, index, offsets)
+            media = [tet_scene(g, index, offsets)
+                     for g, (index, offsets) in zip(groups, self._index[1])]
         if surfaces is None:
             if self._empty is None:
                 self._empty = mi.load_dict({"type": "scene"})
             surfaces = self._empty
         settings = scaled_settings(self.settings, self.retrace_epsilon, scene)
-        return PathScene(scene, ts_ad.detached(), ts_ad, walk_scene, surfaces,
-                         next(iter(phases.values())), settings, self.max_depth, self.rr_depth)
+        meshes = [(ts_ad.detached(), ts_ad) for ts_ad in media]
+        apart = self.parts.apart(tets) if len(groups) > 1 else None
+        return PathScene(scene, *meshes[0], walk_scene, surfaces, next(iter(phases.values())),
+                         settings, self.max_depth, self.rr_depth,
+                         meshes if apart is not None else None, apart)
 
     def aov_names(self):
         return ["alpha"]
@@ -128,8 +135,10 @@ class TetPathIntegrator(mi.ad.integrators.common.RBIntegrator):
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
         if mode != dr.ADMode.Primal and state_in is None:
             raise ValueError("tetpath: the derivative modes need the primal pass's state_in")
-        L, valid, alpha, state = sample(mode, self.path_scene(scene), sampler, ray, δL,
-                                        state_in, active)
+        ps = self.path_scene(scene)
+        if mode != dr.ADMode.Primal:
+            check_derivatives(ps)
+        L, valid, alpha, state = sample(mode, ps, sampler, ray, δL, state_in, active)
         # (alpha has no derivative)
         return L, valid, [alpha if mode == dr.ADMode.Primal else mi.Float(0.0)], state
 

@@ -41,10 +41,10 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.render.buffers import TetScene
-from mi_tetvr.render.cursor import Entry, Span, WalkSettings, traverse
+from mi_tetvr.render.cursor import Entry, Span, WalkSettings, traverse, traverse_merged
 from mi_tetvr.render.geometry import RayFrame, crossing_at, face_crossing
 from mi_tetvr.render.linear import TetFrame
-from mi_tetvr.render.pytree import weighted_sum
+from mi_tetvr.render.pytree import tree_select, weighted_sum
 from mi_tetvr.render.segment import clip_segment
 
 #: A walk for transmittance stops at this optical depth (T < 1e-13).
@@ -70,13 +70,15 @@ class Flight:
     hit : whether it reached the target depth (a collision).
     t, tet, s : the collision's ray parameter, tet and the extinction
         there (the other attributes: :func:`attributes_at`).
+    mesh : where meshes overlap, the one the collision is in (else 0).
     dtau : (forward mode) the walked depth's tangent, else 0.
     """
     DRJIT_STRUCT = {"tau": mi.Float, "hit": mi.Bool, "t": mi.Float, "tet": mi.UInt32,
-                    "s": mi.Float, "dtau": mi.Float}
+                    "s": mi.Float, "mesh": mi.UInt32, "dtau": mi.Float}
 
-    def __init__(self, tau=None, hit=None, t=None, tet=None, s=None, dtau=None):
-        self.tau, self.hit, self.t, self.tet, self.s, self.dtau = tau, hit, t, tet, s, dtau
+    def __init__(self, tau=None, hit=None, t=None, tet=None, s=None, mesh=None, dtau=None):
+        self.tau, self.hit, self.t, self.tet, self.s = tau, hit, t, tet, s
+        self.mesh, self.dtau = mesh, dtau
 
 
 def extinction(params, i, active=True, reduce=dr.ReduceMode.Auto):
@@ -91,18 +93,20 @@ class Depth:
     the meshes of ``ts`` until it reaches ``target`` (a collision), reading
     only the extinction (:class:`Flight` is its state).
 
-    ``grad`` (a derivative pass): ``(mode, ts_ad, seed)``; backward mode
-    propagates ``seed * tau_walked`` into the parameters, forward mode adds
-    up the tangent of the walked depth (``dtau``)."""
+    ``grad`` (a derivative pass): ``(mode, seed)``; backward mode propagates
+    ``seed * tau_walked`` into the parameters (through ``ts_ad``, the buffers
+    attached to the AD graph), forward mode adds up the tangent of the
+    walked depth (``dtau``)."""
     label = "tetpath_depth"
     cuts = False
 
-    def __init__(self, ts, target, grad, reduce):
-        self.ts, self.params, self.target, self.grad = ts, ts.params, target, grad
-        self.reduce = reduce
+    def __init__(self, ts: TetScene, ts_ad: TetScene, target, grad, reduce):
+        self.ts, self.ts_ad, self.params, self.target = ts, ts_ad, ts.params, target
+        self.grad, self.reduce = grad, reduce
+        self.geometric = False
         if grad is not None:
             with dr.resume_grad():
-                self.geometric = dr.grad_enabled(grad[1].buf.positions)
+                self.geometric = dr.grad_enabled(ts_ad.buf.positions)
 
     def gather(self, i, active):
         return extinction(self.params, i, active)
@@ -127,19 +131,13 @@ class Depth:
         frac = dr.select(length > 0, x * dr.rcp(dr.select(length > 0, length, 1.0)), 0.0)
         dtau = acc.dtau
         if self.grad is not None:
-            mode, _, seed = self.grad
             piece = self._depth(p, Span(span.begin, dr.select(here, t0 + x, span.end)), fr,
                                 active)
-            flags = dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
-            with dr.resume_grad():
-                if mode == dr.ADMode.Backward:
-                    dr.backward_from(dr.select(active, seed, 0.0) * piece, flags=flags)
-                else:
-                    dtau = dtau + dr.select(active, dr.forward_to(piece, flags=flags), 0.0)
+            dtau = _propagate(self.grad, piece, dtau, active)
         tau = dr.select(here, self.target, acc.tau + tau_seg)
         out = Flight(tau, acc.hit | here, dr.select(here, t0 + x, acc.t),
                      dr.select(here, p.cur.tet, acc.tet),
-                     dr.select(here, dr.lerp(a0, a1, frac), acc.s), dtau)
+                     dr.select(here, dr.lerp(a0, a1, frac), acc.s), acc.mesh, dtau)
         return out, ~here & (tau < TAU_STOP)
 
     def _depth(self, p, span: Span, fr: RayFrame, active):
@@ -147,7 +145,7 @@ class Depth:
         the parameters' AD graph (the crossings computed again from the
         attached buffers where vertices move, else at the walk's own ray
         parameters with attached attributes)."""
-        ts_ad, reduce, st = self.grad[1], self.reduce, p.st
+        ts_ad, reduce, st = self.ts_ad, self.reduce, p.st
         with dr.resume_grad():
             if self.geometric:
                 t0, w0 = face_crossing(ts_ad.buf, st.entry, fr, active, reduce)
@@ -163,7 +161,105 @@ class Depth:
             return length * (b0 + b1) * 0.5
 
 
-def flight(ps: PathScene, ray: mi.Ray3f, target, entry: Entry, active, grad=None) -> Flight:
+def _propagate(grad, depth, dtau, active):
+    """A derivative pass's use of a walked ``depth`` (attached to the AD
+    graph): backward mode propagates ``seed * depth`` into the parameters,
+    forward mode returns ``dtau`` plus its tangent (``grad = (mode, seed)``)."""
+    mode, seed = grad
+    flags = dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
+    with dr.resume_grad():
+        if mode == dr.ADMode.Backward:
+            dr.backward_from(dr.select(active, seed, 0.0) * depth, flags=flags)
+            return dtau
+        return dtau + dr.select(active, dr.forward_to(depth, flags=flags), 0.0)
+
+
+class MergedDepth:
+    """:class:`Depth` over meshes that overlap in space
+    (:func:`~mi_tetvr.render.cursor.traverse_merged`): extinctions add, so on
+    each piece the summed extinction is linear and the collision is found as
+    in one mesh. The collision is in mesh ``k`` with probability ``s_k /
+    s`` there (``pick``, a uniform number): the free-flight density ``s
+    e^{-tau}`` times it is mesh ``k``'s own ``s_k e^{-tau}``, so the path
+    tracer's collision weights stay those of one medium. Derivatives w.r.t.
+    the media, not vertex positions (:func:`check_derivatives`)."""
+    label = "tetpath_merged"
+    boundaries = False
+
+    def __init__(self, meshes: list, target, grad, reduce, pick):
+        self.members = [Depth(ts, ts_ad, target, grad, reduce) for ts, ts_ad in meshes]
+        self.target, self.grad, self.reduce, self.pick = target, grad, reduce, pick
+
+    def piece(self, acc: Flight, pc, fr: RayFrame, active):
+        K = len(self.members)
+        s0 = sum((dr.select(pc.inside[k], pc.a0[k], 0.0) for k in range(K)), mi.Float(0.0))
+        s1 = sum((dr.select(pc.inside[k], pc.a1[k], 0.0) for k in range(K)), mi.Float(0.0))
+        length = pc.length
+        tau_seg = length * (s0 + s1) * 0.5
+        r = self.target - acc.tau
+        here = active & (tau_seg >= r)
+        x = solve_depth(s0, s1, length, r)
+        frac = dr.select(length > 0, x * dr.rcp(dr.select(length > 0, length, 1.0)), 0.0)
+        # The mesh it collides in, with probability s_k / s (the last inside
+        # mesh where round-off leaves the pick past the sum).
+        s_k = [dr.select(pc.inside[k], dr.lerp(pc.a0[k], pc.a1[k], frac), 0.0)
+               for k in range(K)]
+        u = self.pick * sum(s_k, mi.Float(0.0))
+        cum, found = mi.Float(0.0), mi.Bool(False)
+        mesh, tet, s = mi.UInt32(0), mi.UInt32(0), mi.Float(0.0)
+        for k in range(K):
+            cum = cum + s_k[k]
+            take = ~found & pc.inside[k]
+            mesh = dr.select(take, k, mesh)
+            tet = dr.select(take, pc.tet[k], tet)
+            s = dr.select(take, s_k[k], s)
+            found |= take & (u < cum)
+        dtau = acc.dtau
+        if self.grad is not None:
+            stop = dr.select(here, pc.t0 + x, pc.t1)
+            dtau = _propagate(self.grad, self._depth(pc, stop, active), dtau, active)
+        tau = dr.select(here, self.target, acc.tau + tau_seg)
+        out = Flight(tau, acc.hit | here, dr.select(here, pc.t0 + x, acc.t),
+                     dr.select(here, tet, acc.tet), dr.select(here, s, acc.s),
+                     dr.select(here, mesh, acc.mesh), dtau)
+        return out, ~here & (tau < TAU_STOP)
+
+    def _depth(self, pc, stop, active):
+        """The optical depth of the piece from ``pc.t0`` to ``stop``, attached
+        to the AD graph: each mesh's extinction at the ends, blended from its
+        tet's entry and exit crossings (fixed ray parameters)."""
+        total = mi.Float(0.0)
+        with dr.resume_grad():
+            for k, m in enumerate(self.members):
+                te, we, _, _, _, inv = pc.ends[k]
+                st, ids = pc.st[k], tuple(c.i for c in pc.carry[k][0])
+                act = active & pc.inside[k]
+                ext = [extinction(m.ts_ad.params, i, act, self.reduce) for i in ids]
+                s_e = weighted_sum(we, ext)
+                s_x = weighted_sum(st.w, [extinction(m.ts_ad.params, i, act, self.reduce)
+                                          for i in st.exit])
+                a = dr.lerp(s_e, s_x, (pc.t0 - te) * inv)
+                b = dr.lerp(s_e, s_x, (stop - te) * inv)
+                total += dr.select(pc.inside[k], (stop - pc.t0) * (a + b) * 0.5, 0.0)
+        return total
+
+
+def check_derivatives(ps: PathScene):
+    """ValueError where a derivative pass would need what the walk does not
+    differentiate: vertex positions of meshes that overlap in space."""
+    if ps.apart is None:
+        return
+    with dr.resume_grad():
+        moving = [ts_ad.shapes[0].id() or "tetmesh" for _, ts_ad in ps.meshes
+                  if dr.grad_enabled(ts_ad.buf.positions)]
+    if moving:
+        raise ValueError(f"tetpath: meshes that overlap in space have derivatives w.r.t. their "
+                         f"media, not w.r.t. their vertex positions ({', '.join(moving)}); "
+                         f"disable the gradients of their vertex_positions")
+
+
+def flight(ps: PathScene, ray: mi.Ray3f, target, entry: Entry, active, grad=None,
+           pick=None) -> Flight:
     """Walk a ray (from ``ray.o`` along the normalized ``ray.d`` up to
     ``ray.maxt``) through the scattering meshes of ``ps`` until the optical
     depth reaches ``target`` (``inf``: the transmittance ``exp(-tau)`` of
@@ -173,14 +269,23 @@ def flight(ps: PathScene, ray: mi.Ray3f, target, entry: Entry, active, grad=None
     scattered ray), else wherever Mitsuba's ray tracer finds the meshes'
     boundary (entering, or leaving when ``o`` lies inside: the start tet is
     then found by walking back). Leaving a mesh, it traces again for
-    re-entry. ``grad``: see :class:`Depth`.
+    re-entry. Meshes that overlap in space (``ps.apart``) are walked with a
+    cursor each (every start located from the boundaries), and ``pick`` (a
+    uniform number) chooses the mesh a collision is in (:class:`MergedDepth`).
+    ``grad``: see :class:`Depth`.
     """
     fr = RayFrame.of(ray.o, ray.d)
     zero = mi.Float(0.0)
-    acc = Flight(zero, mi.Bool(False), mi.Float(dr.inf), mi.UInt32(0), zero, zero)
-    client = Depth(ps.ts, mi.Float(target), grad, ps.settings.reduce)
-    acc, _ = traverse(ps.walk_scene, [client], fr, acc, Span(zero, mi.Float(ray.maxt)),
-                      ps.settings, active, entry)
+    acc = Flight(zero, mi.Bool(False), mi.Float(dr.inf), mi.UInt32(0), zero, mi.UInt32(0), zero)
+    span = Span(zero, mi.Float(ray.maxt))
+    target = mi.Float(target)
+    if ps.apart is not None:
+        client = MergedDepth(ps.meshes, target, grad, ps.settings.reduce,
+                             mi.Float(0.5) if pick is None else mi.Float(pick))
+        acc, _ = traverse_merged(ps.apart, client, fr, acc, span, ps.settings, active)
+        return acc
+    client = Depth(ps.ts, ps.ts_ad, target, grad, ps.settings.reduce)
+    acc, _ = traverse(ps.walk_scene, [client], fr, acc, span, ps.settings, active, entry)
     return acc
 
 
@@ -207,6 +312,27 @@ class PathScene:
     settings: WalkSettings
     max_depth: int               # as Mitsuba's ``volpath``
     rr_depth: int
+    #: Meshes that overlap in space: ``(ts, ts_ad)`` of each, and a scene of
+    #: each one's boundary alone (``ts``, ``ts_ad``, ``walk_scene`` unused).
+    meshes: list = None
+    apart: list = None
+
+
+def _collision_attributes(ps: PathScene, fl: Flight, p, active, attached: bool):
+    """The medium's attributes at a collision ``p`` (:func:`attributes_at`),
+    in the mesh it is in (``fl.mesh`` where meshes overlap); ``attached``: of
+    the buffers attached to the AD graph."""
+    if ps.apart is None:
+        ts = ps.ts_ad if attached else ps.ts
+        return attributes_at(ts, fl.tet, p, active, ps.settings.reduce if attached
+                             else dr.ReduceMode.Auto)
+    out = None
+    for k, (ts, ts_ad) in enumerate(ps.meshes):
+        mine = active & (fl.mesh == k)
+        a = attributes_at(ts_ad if attached else ts, fl.tet, p, mine,
+                          ps.settings.reduce if attached else dr.ReduceMode.Auto)
+        out = a if out is None else tree_select(mine, a, out)
+    return out
 
 
 def _medium_interaction(p, t, d, ray):
@@ -260,7 +386,7 @@ def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
     primal pass)."""
     primal = mode == dr.ADMode.Primal
     grad = None if primal else _Grad(mode)
-    scene, ts, ts_ad = ps.scene, ps.ts, ps.ts_ad
+    scene = ps.scene
     mis_weight = mi.ad.integrators.common.mis_weight
     phase = ps.phase          # (one object: called directly, no virtual call)
     ray = mi.Ray3f(ray)
@@ -294,14 +420,18 @@ def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
         target = -dr.log(1.0 - sampler.next_1d(active))
         walk_grad = None
         if dr.hint(not primal, mode="scalar"):
-            walk_grad = (mode, ts_ad, -dr.sum(δL * L))
+            walk_grad = (mode, -dr.sum(δL * L))
+        pick = None
+        if dr.hint(ps.apart is not None, mode="scalar"):
+            pick = sampler.next_1d(active)    # (the mesh a collision is in)
         to_surface = mi.Ray3f(ray)
         to_surface.maxt = t_surf
-        fl = flight(ps, to_surface, target, Entry(tet=tet, inside=in_tet), active, walk_grad)
+        fl = flight(ps, to_surface, target, Entry(tet=tet, inside=in_tet), active, walk_grad,
+                    pick)
         dtau = fl.dtau
         collided = active & fl.hit
         p = ray.o + fl.t * ray.d
-        a = attributes_at(ts, fl.tet, p, collided)
+        a = _collision_attributes(ps, fl, p, collided, False)
 
         # ---- a collision: emission, then absorption or scattering ----
         emit = collided & (depth < ps.max_depth)
@@ -313,7 +443,7 @@ def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
             # (a second pass would find the interpolation's edges cleared):
             # the extinction's density, the emission, the albedo's weight.
             def collision_term():
-                a_ad = attributes_at(ts_ad, fl.tet, p, collided, ps.settings.reduce)
+                a_ad = _collision_attributes(ps, fl, p, collided, True)
                 return (L * _ratio(a_ad.s, a.s) + dr.select(emit, β * a_ad.c, 0.0)
                         + (L - Le) * _ratio(a_ad.a, a.a))
             dL = grad(δL, dL, collision_term, collided)
@@ -363,7 +493,7 @@ def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
         L = L + C if primal else L - C
         if dr.hint(not primal, mode="scalar"):
             dtau_sh = flight(ps, shadow, dr.inf, shadow_entry, nee,
-                             (mode, ts_ad, -dr.sum(δL * C))).dtau
+                             (mode, -dr.sum(δL * C))).dtau
             dL = dL - dr.select(nee, C * dtau_sh, 0.0)
             dL = grad(δL, dL, lambda: C * _ratio(
                 phase.eval_pdf(phase_ctx, mei, ds.d, scatter & nee)[0], ph_val), scatter & nee)
