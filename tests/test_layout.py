@@ -1,5 +1,6 @@
 """The package layout: every exported name resolves, and the numpy
 sub-packages import and run without a Mitsuba variant."""
+import ast
 import importlib
 import subprocess
 import sys
@@ -35,7 +36,6 @@ def _module_name(path):
 def _imported_names(path, module):
     """Every module ``path`` imports (also inside functions), relative imports
     resolved; ``from a import b`` names ``a.b`` (b a module or a name in ``a``)."""
-    import ast
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
@@ -219,3 +219,23 @@ def test_library_code_leaves_the_matplotlib_backend_alone():
     said = [f"{p.relative_to(ROOT)}" for p in (ROOT / "mi_tetvr").rglob("*.py")
             if "matplotlib.use(" in p.read_text() or "pyplot" in p.read_text()]
     assert not said, said
+
+
+def test_no_function_of_the_renderer_takes_more_than_8_parameters():
+    """The walk's state travels in structures (the ray frame, the cursor,
+    the piece, the accumulators): no function or method in ``render/`` or
+    ``plugins/`` takes more than 8 parameters (``self`` not counted)."""
+    too_many = []
+    for path in sorted((ROOT / "mi_tetvr" / "render").glob("*.py")) + sorted(
+            (ROOT / "mi_tetvr" / "plugins").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                a = node.args
+                names = [x.arg for x in a.posonlyargs + a.args + a.kwonlyargs]
+                names += [x.arg for x in (a.vararg, a.kwarg) if x is not None]
+                if names[:1] in (["self"], ["cls"]):
+                    names = names[1:]
+                if len(names) > 8:
+                    too_many.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} "
+                                    f"({len(names)})")
+    assert not too_many, too_many
