@@ -239,3 +239,32 @@ def test_no_function_of_the_renderer_takes_more_than_8_parameters():
                     too_many.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} "
                                     f"({len(names)})")
     assert not too_many, too_many
+
+
+def test_the_renderer_and_plugins_public_functions_are_typed():
+    """The public functions and methods of ``render/`` and ``plugins/`` (module-level
+    functions and the methods of module-level classes whose names do not start with
+    ``_``, ``__init__`` included) have an annotation on every parameter but ``self``
+    and ``cls`` and a return annotation, so that what travels through the walk is
+    stated where it is taken and given."""
+    missing = []
+    for path in sorted((ROOT / "mi_tetvr" / "render").glob("*.py")) + sorted(
+            (ROOT / "mi_tetvr" / "plugins").glob("*.py")):
+        for node in ast.parse(path.read_text()).body:
+            if isinstance(node, ast.FunctionDef):
+                items = [node]
+            elif isinstance(node, ast.ClassDef) and not node.name.startswith("_"):
+                items = [m for m in node.body if isinstance(m, ast.FunctionDef)]
+            else:
+                items = []
+            for f in items:
+                if f.name.startswith("_") and f.name != "__init__":
+                    continue
+                a = f.args
+                args = [x for x in a.posonlyargs + a.args + a.kwonlyargs
+                        if x.arg not in ("self", "cls")]
+                untyped = [x.arg for x in args if x.annotation is None]
+                if untyped or f.returns is None:
+                    missing.append(f"{path.relative_to(ROOT)}:{f.lineno} {f.name}: {untyped} "
+                                   f"return={'ok' if f.returns else 'missing'}")
+    assert not missing, missing

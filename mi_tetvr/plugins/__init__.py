@@ -27,6 +27,11 @@ import itertools
 import sys
 import threading
 import types
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import mitsuba as mi
 
 __all__ = ["register", "registered_variant", "on_variant_change", "variant_bound_modules",
            "rebind", "constructor", "mark", "raised_in", "PLUGINS"]
@@ -37,12 +42,12 @@ PLUGINS = ("tetmesh", "tetvr", "tetproj", "tetpath")
 _registered = None
 
 
-def registered_variant():
+def registered_variant() -> str | None:
     """The Mitsuba variant the plugins are registered with (None: not yet)."""
     return _registered
 
 
-def register():
+def register() -> None:
     """Register the ``tetmesh`` shape and the ``tetvr``, ``tetproj`` and ``tetpath``
     integrators with the current Mitsuba variant.
 
@@ -75,7 +80,7 @@ def register():
     _registered = variant
 
 
-def variant_bound_modules(package="mi_tetvr"):
+def variant_bound_modules(package: str = "mi_tetvr") -> list[types.ModuleType]:
     """The imported modules of ``package`` that hold a Mitsuba variant's types or
     functions, in an order where each comes after the modules it takes names from.
 
@@ -118,7 +123,7 @@ def variant_bound_modules(package="mi_tetvr"):
     return [modules[n] for n in ranked]
 
 
-def rebind(package="mi_tetvr"):
+def rebind(package: str = "mi_tetvr") -> None:
     """Reload the modules bound to the variant (:func:`variant_bound_modules`), each
     after those it takes names from: the plugin modules among them register
     themselves again with the variant set now."""
@@ -126,7 +131,7 @@ def rebind(package="mi_tetvr"):
         importlib.reload(module)
 
 
-def on_variant_change(old, new):
+def on_variant_change(old: str | None, new: str | None) -> None:
     """Mitsuba's variant callback (``mi.detail.add_variant_callback``): register the
     plugins with each autodiff RGB variant Mitsuba switches to."""
     if new is not None and new.endswith("_rgb") and "_ad_" in new:
@@ -140,7 +145,7 @@ _numbers = itertools.count(1)
 _lock = threading.Lock()
 
 
-def constructor(cls, name):
+def constructor(cls: type[mi.Object], name: str) -> Callable[[mi.Properties], mi.Object]:
     """The function Mitsuba calls to build the plugin ``name`` (class ``cls``) from
     its properties: it keeps a copy of what the constructor raises (see
     :func:`raised_in`) and lets it through."""
@@ -165,13 +170,13 @@ def _keep(exc, plugin, where):
         _raised.append((next(_numbers), kept, plugin, where))
 
 
-def mark():
+def mark() -> int:
     """The number of the last exception kept: :func:`raised_in` after it."""
     with _lock:
         return _raised[-1][0] if _raised else 0
 
 
-def raised_in(error, since=0):
+def raised_in(error: BaseException, since: int = 0) -> tuple[BaseException, str, str] | None:
     """The exception a plugin's constructor raised that Mitsuba passed on in
     ``error`` (the ``RuntimeError`` of its parser), or None.
 

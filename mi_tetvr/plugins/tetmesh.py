@@ -146,8 +146,9 @@ from __future__ import annotations
 
 import mitsuba as mi
 import numpy as np
+import numpy.typing as npt
 
-from mi_tetvr.mesh.topology import longest_edges
+from mi_tetvr.mesh.topology import Topology, longest_edges
 from mi_tetvr.plugins import constructor
 from mi_tetvr.render.buffers import drjit_index_arrays, owned, shape_index_arrays
 from mi_tetvr.render.optical import (CellClassified, EmissionAbsorption, PostClassified,
@@ -162,7 +163,7 @@ class TetMeshShape(mi.Mesh):
     #: The optical model that integrates this shape's vertex attributes.
     optical_model = EmissionAbsorption
 
-    def __init__(self, props):
+    def __init__(self, props: mi.Properties) -> None:
         mesh = mesh_from_properties(props)
         post = post_classification(props, mesh)
         model = str(props.get("model", "emission")).lower()
@@ -233,7 +234,8 @@ class TetMeshShape(mi.Mesh):
             "order" in arrays and self.optical_model is CellClassified) else None
         self.tet_count = topo.n_tets
 
-    def set_mesh(self, params, vertices, tets, values, topology=None):
+    def set_mesh(self, params: mi.SceneParameters, vertices: npt.ArrayLike, tets: npt.ArrayLike,
+                 values: dict[str, npt.ArrayLike], topology: Topology | None = None) -> None:
         """Give the shape another mesh in place: new vertices, tets and
         per-vertex values (``{attribute name: array}``, the names of
         ``optical_model.vertex_attributes``), written into ``params`` (the
@@ -269,7 +271,7 @@ class TetMeshShape(mi.Mesh):
         :class:`~mi_tetvr.recon.regularizer.QualityRegularizer`."""
         return np.asarray(self.tet_buffers["tets"], np.int64).reshape(-1, 4)
 
-    def traverse(self, callback):
+    def traverse(self, callback: mi.TraversalCallback) -> None:
         super().traverse(callback)
         if issubclass(self.optical_model, PostClassified):
             callback.put("tf_color", self.tf_color, mi.ParamFlags.Differentiable)
@@ -279,14 +281,14 @@ class TetMeshShape(mi.Mesh):
         if getattr(self, "phase", None) is not None:
             callback.put("phase", self.phase, mi.ParamFlags.Differentiable)
 
-    def model_buffers(self):
+    def model_buffers(self) -> list[mi.Float]:
         """The differentiable buffers of the optical model besides the
         vertex attributes (the transfer function's texels, the cell scalar)."""
         out = ([self.tf_color, self.tf_opacity]
                if issubclass(self.optical_model, PostClassified) else [])
         return out + ([self.cell_scalar] if self.optical_model is CellClassified else [])
 
-    def to_string(self):
+    def to_string(self) -> str:
         return (f"TetMeshShape[vertices={self.vertex_count()}, tets={self.tet_count}, "
                 f"boundary_faces={self.face_count()}]")
 

@@ -53,23 +53,25 @@ blocks them).
 """
 from __future__ import annotations
 
+from typing import Any
+
 import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.plugins import constructor
-from mi_tetvr.render.buffers import index_buffers, model_groups, tet_scene
+from mi_tetvr.render.buffers import index_buffers, model_groups, tet_group
 from mi_tetvr.render.merged import MAX_MESHES, overlapping
 from mi_tetvr.render.optical import Scattering
 from mi_tetvr.render.program import scaled_settings
 from mi_tetvr.render.surfaces import SceneParts
-from mi_tetvr.render.transport import PathScene, check_derivatives, sample
+from mi_tetvr.render.transport import PathInputs, check_derivatives, sample
 from mi_tetvr.render.cursor import WalkSettings
 
 
 class TetPathIntegrator(mi.ad.integrators.common.RBIntegrator):
     __doc__ = __doc__
 
-    def __init__(self, props):
+    def __init__(self, props: mi.Properties) -> None:
         super().__init__(props)
         max_steps = int(props.get("max_steps", 100_000))
         if max_steps < 1:
@@ -85,10 +87,10 @@ class TetPathIntegrator(mi.ad.integrators.common.RBIntegrator):
         self._empty = None
         self._index = None
 
-    def path_scene(self, scene) -> PathScene:
+    def path_inputs(self, scene: mi.Scene) -> PathInputs:
         """What :func:`~mi_tetvr.render.transport.sample` reads of ``scene``;
         ValueError for a scene it cannot render."""
-        tets, walk_scene, surfaces = self.parts.split(scene)
+        tets, boundaries, surfaces = self.parts.split(scene)
         if not tets:
             raise ValueError("tetpath: the scene has no tetmesh")
         plain = [s.id() or "tetmesh" for s in tets if s.optical_model is not Scattering]
@@ -109,7 +111,7 @@ class TetPathIntegrator(mi.ad.integrators.common.RBIntegrator):
         if self._index is None or self._index[0] != key:
             self._index = (key, [index_buffers(g) for g in groups])
         with dr.resume_grad():
-            media = [tet_scene(g, index, offsets)
+            media = [tet_group(g, index, offsets)
                      for g, (index, offsets) in zip(groups, self._index[1])]
         if surfaces is None:
             if self._empty is None:
@@ -118,31 +120,34 @@ class TetPathIntegrator(mi.ad.integrators.common.RBIntegrator):
         settings = scaled_settings(self.settings, self.retrace_epsilon, scene)
         meshes = [(ts_ad.detached(), ts_ad) for ts_ad in media]
         apart = self.parts.apart(tets) if len(groups) > 1 else None
-        return PathScene(scene, *meshes[0], walk_scene, surfaces, next(iter(phases.values())),
+        return PathInputs(scene, *meshes[0], boundaries, surfaces, next(iter(phases.values())),
                          settings, self.max_depth, self.rr_depth,
                          meshes if apart is not None else None, apart)
 
-    def aov_names(self):
+    def aov_names(self) -> list[str]:
         return ["alpha"]
 
-    def sample_rays(self, scene, sensor, sampler):
+    def sample_rays(self, scene: mi.Scene, sensor: mi.Sensor,
+                    sampler: mi.Sampler) -> tuple[mi.RayDifferential3f, mi.Float, mi.Vector2f]:
         # Mitsuba's forward mode multiplies the AOVs by the sensor weight, a
         # Spectrum, which makes the alpha AOV a color the image block refuses;
         # an RGB sensor weights its channels alike: keep one.
         ray, weight, pos = super().sample_rays(scene, sensor, sampler)
         return ray, mi.Float(weight[0]), pos
 
-    def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
+    def sample(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
+               δL: mi.Spectrum | None, state_in: mi.Spectrum | None, active: mi.Bool,
+               **kwargs: Any) -> tuple[mi.Spectrum, mi.Bool, list[mi.Float], mi.Spectrum]:
         if mode != dr.ADMode.Primal and state_in is None:
             raise ValueError("tetpath: the derivative modes need the primal pass's state_in")
-        ps = self.path_scene(scene)
+        ps = self.path_inputs(scene)
         if mode != dr.ADMode.Primal:
             check_derivatives(ps)
         L, valid, alpha, state = sample(mode, ps, sampler, ray, δL, state_in, active)
         # (alpha has no derivative)
         return L, valid, [alpha if mode == dr.ADMode.Primal else mi.Float(0.0)], state
 
-    def to_string(self):
+    def to_string(self) -> str:
         return (f"TetPathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
                 f"max_steps={self.settings.max_steps}]")
 

@@ -70,12 +70,16 @@ that point moves smoothly (not across silhouettes or the slice's rim).
 """
 from __future__ import annotations
 
+from typing import Any
+
 import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.plugins import constructor
+from mi_tetvr.render.buffers import TetGroup
 from mi_tetvr.render.clipping import Clip, unit_vector
-from mi_tetvr.render.probes import Projection
+from mi_tetvr.render.layers import Layered
+from mi_tetvr.render.probes import Pick, Projection
 from mi_tetvr.render.program import SURFACE_MODES, Probes
 from mi_tetvr.render.cursor import WalkSettings
 
@@ -83,7 +87,7 @@ from mi_tetvr.render.cursor import WalkSettings
 class TetProjIntegrator(mi.ad.integrators.common.RBIntegrator):
     __doc__ = __doc__
 
-    def __init__(self, props):
+    def __init__(self, props: mi.Properties) -> None:
         super().__init__(props)
         mode = str(props.get("mode", "max")).lower()
         modes = Projection.MODES + SURFACE_MODES
@@ -112,25 +116,31 @@ class TetProjIntegrator(mi.ad.integrators.common.RBIntegrator):
                              float(props.get("retrace_epsilon", 1e-5)))
 
     @property
-    def mode(self):
+    def mode(self) -> str:
         return self.probes.mode
 
-    def traverse(self, callback):
+    def traverse(self, callback: mi.TraversalCallback) -> None:
         if self.mode == "iso":
             callback.put("iso", self.iso, mi.ParamFlags.Differentiable)
 
-    def tet_scene(self, scene, differentiable=False):
-        """The :class:`~mi_tetvr.render.buffers.TetScene` the probes walk
-        (:meth:`~mi_tetvr.render.program.Probes.tet_scene`)."""
-        return self.probes.tet_scene(scene, differentiable)
+    def tet_group(self, scene: mi.Scene, differentiable: bool = False) -> TetGroup:
+        """The :class:`~mi_tetvr.render.buffers.TetGroup` the probes walk
+        (:meth:`~mi_tetvr.render.program.Probes.tet_group`)."""
+        return self.probes.tet_group(scene, differentiable)
 
-    def project(self, scene, ray, active=True):
+    def project(self, scene: mi.Scene, ray: mi.Ray3f, active: bool | mi.Bool = True
+                ) -> tuple[mi.Color3f, mi.Bool, mi.Float | mi.Point3f]:
         """``(color, met, scalar)`` of the projection along rays (normalised
         directions); for ``iso``, ``(color, met, hit point)`` of the first
         surface."""
         return self.probes.project(scene, ray, active)[:3]
 
-    def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
+    def sample(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
+               δL: mi.Spectrum | None,
+               state_in: Layered | tuple[Pick | mi.Color3f, mi.Bool] | None, active: mi.Bool,
+               **kwargs: Any
+               ) -> tuple[mi.Spectrum, mi.Bool, list[mi.Float],
+                          Layered | tuple[Pick | mi.Color3f, mi.Bool] | None]:
         ray = mi.Ray3f(dr.detach(ray))
         ray.d = dr.normalize(ray.d)
         if mode == dr.ADMode.Primal:
@@ -149,7 +159,7 @@ class TetProjIntegrator(mi.ad.integrators.common.RBIntegrator):
                 return mi.Spectrum(0.0), met, [], None
             return mi.Spectrum(dr.forward_to(color)), met, [], None
 
-    def to_string(self):
+    def to_string(self) -> str:
         return "TetProjIntegrator[" + repr(self.probes)[len("Probes["):]
 
 

@@ -96,16 +96,22 @@ rays (with a sampler where the scene has surfaces).
 """
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
 import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.plugins import constructor
-from mi_tetvr.render.buffers import TetScene, index_buffers, scene_tetmeshes
+from mi_tetvr.render.buffers import TetGroup, index_buffers, scene_tetmeshes
 from mi_tetvr.render.clipping import Clip
 from mi_tetvr.render.program import ProgramOptions, VolumeProgram, scaled_settings
 from mi_tetvr.render.replay import CAPACITY, PrimalStates, derivative_seed
 from mi_tetvr.render.surfaces import DEFAULT_SURFACES, NestedIntegrator, SceneParts
 from mi_tetvr.render.cursor import WalkSettings
+
+if TYPE_CHECKING:
+    from mi_tetvr.distributed import Blocks
 
 RBIntegrator = mi.ad.integrators.common.RBIntegrator
 
@@ -113,7 +119,7 @@ RBIntegrator = mi.ad.integrators.common.RBIntegrator
 class TetVRIntegrator(RBIntegrator):
     __doc__ = __doc__
 
-    def __init__(self, props):
+    def __init__(self, props: mi.Properties) -> None:
         super().__init__(props)
         n_sub = int(props.get("n_sub", 4))
         if not 1 <= n_sub <= 64:
@@ -160,12 +166,12 @@ class TetVRIntegrator(RBIntegrator):
         #: store: key, validity and lifetime in :mod:`mi_tetvr.render.replay`).
         self.kept_primals = PrimalStates(int(props.get("kept_primals", CAPACITY)))
 
-    def traverse(self, callback):
+    def traverse(self, callback: mi.TraversalCallback) -> None:
         if self.overlay is not None:
             # (its isovalues: overlay.iso)
             callback.put("overlay", self.overlay, mi.ParamFlags.Differentiable)
 
-    def aov_names(self):
+    def aov_names(self) -> list[str]:
         return ["alpha"] if self.alpha else []
 
     # What one pass fixes (see Pass): on the integrator itself, nothing.
@@ -183,7 +189,7 @@ class TetVRIntegrator(RBIntegrator):
             self.overlay.probes if self.overlay is not None else None, self.index_buffers,
             self.remote))
 
-    def with_medium(self, remote) -> Pass:
+    def with_medium(self, remote: Blocks) -> Pass:
         """This integrator rendering ``remote`` (a partitioned mesh's blocks,
         :mod:`mi_tetvr.distributed`) in place of the scene's tet meshes: an
         object with the integrator's ``render`` and ``render_backward``."""
@@ -197,15 +203,15 @@ class TetVRIntegrator(RBIntegrator):
             self._index_cache = (key, [index_buffers(g) for g in groups])
         return self._index_cache[1]
 
-    def tet_scenes(self, scene: mi.Scene) -> list:
-        """The :class:`~mi_tetvr.render.buffers.TetScene` of each group of
+    def tet_groups(self, scene: mi.Scene) -> list:
+        """The :class:`~mi_tetvr.render.buffers.TetGroup` of each group of
         tet meshes that one walk renders (:meth:`VolumeProgram.media`)."""
         return self.program(scene).media()
 
-    def tet_scene(self, scene: mi.Scene) -> TetScene:
-        """The one :class:`~mi_tetvr.render.buffers.TetScene` of a scene whose
-        tet meshes share one walk (see :meth:`tet_scenes`)."""
-        (ts,) = self.tet_scenes(scene)
+    def tet_group(self, scene: mi.Scene) -> TetGroup:
+        """The one :class:`~mi_tetvr.render.buffers.TetGroup` of a scene whose
+        tet meshes share one walk (see :meth:`tet_groups`)."""
+        (ts,) = self.tet_groups(scene)
         return ts
 
     @staticmethod
@@ -227,8 +233,8 @@ class TetVRIntegrator(RBIntegrator):
     # results instead of rendering it again (see mi_tetvr.render.replay):
     # Mitsuba's passes run on a Pass that records or replays them.
 
-    def render(self, scene: mi.Scene, sensor=0, seed=0, spp=0, develop=True,
-               evaluate=True) -> mi.TensorXf:
+    def render(self, scene: mi.Scene, sensor: int | mi.Sensor = 0, seed: int | mi.UInt32 = 0,
+               spp: int = 0, develop: bool = True, evaluate: bool = True) -> mi.TensorXf:
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
         with dr.resume_grad():
@@ -256,17 +262,20 @@ class TetVRIntegrator(RBIntegrator):
         return base(Pass(self, self.remote, replayed=state), scene, params, *grad_in, sensor,
                     primal_seed, spp)
 
-    def render_backward(self, scene: mi.Scene, params, grad_in: mi.TensorXf, sensor=0, seed=0,
-                        spp=0) -> None:
+    def render_backward(self, scene: mi.Scene, params: mi.SceneParameters | None,
+                        grad_in: mi.TensorXf, sensor: int | mi.Sensor = 0,
+                        seed: int | mi.UInt32 = 0, spp: int = 0) -> None:
         return self._derivative_pass(RBIntegrator.render_backward, scene, params, sensor, seed,
                                      spp, grad_in)
 
-    def render_forward(self, scene: mi.Scene, params, sensor=0, seed=0,
-                       spp=0) -> mi.TensorXf:
+    def render_forward(self, scene: mi.Scene, params: mi.SceneParameters | None,
+                       sensor: int | mi.Sensor = 0, seed: int | mi.UInt32 = 0,
+                       spp: int = 0) -> mi.TensorXf:
         return self._derivative_pass(RBIntegrator.render_forward, scene, params, sensor, seed,
                                      spp)
 
-    def sample_rays(self, scene, sensor, sampler):
+    def sample_rays(self, scene: mi.Scene, sensor: mi.Sensor,
+                    sampler: mi.Sampler) -> tuple[mi.RayDifferential3f, mi.Float, mi.Vector2f]:
         # The sensor weight is a Spectrum; Mitsuba's render_backward and
         # render_forward multiply the AOVs by it, which makes the alpha AOV a
         # Color3f that the image block rejects. RGB sensors weight the three
@@ -282,7 +291,8 @@ class TetVRIntegrator(RBIntegrator):
         return scaled_settings(self.settings, self.retrace_epsilon, scene)
 
     def sample(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
-               δL: mi.Spectrum | None, state_in, active: mi.Bool, **kwargs):
+               δL: mi.Spectrum | None, state_in: tuple | None, active: mi.Bool,
+               **kwargs: Any) -> tuple[mi.Color3f, mi.Bool, list[mi.Float], tuple | None]:
         """Mitsuba's ``sample``: a function of its arguments (a :class:`Pass`
         fixes what it replays or records)."""
         program = self.program(scene)
@@ -307,7 +317,7 @@ class TetVRIntegrator(RBIntegrator):
         dL, dalpha = out
         return dL, mi.Bool(True), [dalpha] if self.alpha else [], None
 
-    def to_string(self):
+    def to_string(self) -> str:
         s = self.settings
         return (f"TetVRIntegrator[n_sub={self.n_sub}, min_transmittance={s.t_min}, "
                 f"max_steps={s.max_steps}, surfaces={self.surfaces!r}]")
@@ -325,7 +335,9 @@ class Pass:
     state to be kept (``recorder``). The integrator keeps none of these
     between calls."""
 
-    def __init__(self, integrator: TetVRIntegrator, remote=None, replayed=None, recorder=None):
+    def __init__(self, integrator: TetVRIntegrator, remote: Blocks | None = None,
+                 replayed: tuple[mi.Color3f, mi.Float] | None = None,
+                 recorder: Callable[[tuple[mi.Color3f, mi.Float]], None] | None = None) -> None:
         self.integrator = integrator
         self.remote, self.replayed, self.recorder = remote, replayed, recorder
 

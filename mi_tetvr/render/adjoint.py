@@ -42,12 +42,21 @@ tangent over as the next entry's.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
 import drjit as dr
 import mitsuba as mi
 
+from mi_tetvr.render.buffers import TetGroup
+from mi_tetvr.render.cursor import Piece, Span
 from mi_tetvr.render.geometry import RayFrame, crossing_vjp, face_crossing, face_weights
+from mi_tetvr.render.optical import OpticalModel
 from mi_tetvr.render.pytree import tree_add, tree_copy, tree_dot, tree_lerp, tree_map, tree_select
 from mi_tetvr.render.segment import clip_segment
+
+if TYPE_CHECKING:
+    from mi_tetvr.render.walk import EmissionDerivative, Radiance
 
 
 class Derivative:
@@ -56,7 +65,7 @@ class Derivative:
 
     mode : dr.ADMode
         ``Backward`` or ``Forward``.
-    scenes : list of :class:`~mi_tetvr.render.buffers.TetScene`
+    groups : list of :class:`~mi_tetvr.render.buffers.TetGroup`
         Per walk group, its buffers attached to the parameters' AD graph
         (the walk itself reads detached copies).
     camera : bool
@@ -66,14 +75,15 @@ class Derivative:
         direction).
     """
 
-    def __init__(self, mode, scenes, camera=False, ray_tangent=None):
+    def __init__(self, mode: dr.ADMode, groups: list, camera: bool = False,
+                 ray_tangent: tuple[mi.Vector3f, mi.Vector3f] | None = None) -> None:
         self.mode = mode
         self.backward = mode == dr.ADMode.Backward
-        self.scenes = list(scenes)
+        self.groups = list(groups)
         self.camera = bool(camera)
         self.ray_tangent = ray_tangent
 
-    def geometric(self, ts_ad):
+    def geometric(self, ts_ad: TetGroup) -> bool:
         """Whether the pass needs the geometry of ``ts_ad``'s walk: vertices
         that move, or a differentiable camera."""
         return self.camera or moves_vertices(ts_ad)
@@ -95,7 +105,9 @@ class Adjoint:
     DRJIT_STRUCT = {"L_pix": mi.Color3f, "T_fin": mi.Float, "dL": mi.Color3f,
                     "dalpha": mi.Float, "g_o": mi.Vector3f, "g_w": mi.Vector3f}
 
-    def __init__(self, L_pix=None, T_fin=None, dL=None, dalpha=None, g_o=None, g_w=None):
+    def __init__(self, L_pix: mi.Color3f | None = None, T_fin: mi.Float | None = None,
+                 dL: mi.Color3f | None = None, dalpha: mi.Float | None = None,
+                 g_o: mi.Vector3f | None = None, g_w: mi.Vector3f | None = None) -> None:
         self.L_pix, self.T_fin, self.dL, self.dalpha = L_pix, T_fin, dL, dalpha
         self.g_o, self.g_w = g_o, g_w
 
@@ -103,7 +115,7 @@ class Adjoint:
 _VERTEX_GRAD_TYPES = {}
 
 
-def vertex_grad_type(model):
+def vertex_grad_type(model: OpticalModel) -> type:
     """The ``DRJIT_STRUCT`` class of a pending vertex gradient under
     ``model``: position ``p`` and the model's attributes ``a``."""
     A = model.Attributes
@@ -116,7 +128,8 @@ def vertex_grad_type(model):
     return _VERTEX_GRAD_TYPES[A]
 
 
-def start(deriv: Derivative, ts_ad, entry_ids, fr: RayFrame, active):
+def start(deriv: Derivative, ts_ad: TetGroup, entry_ids: Sequence[mi.UInt32], fr: RayFrame,
+          active: mi.Bool) -> tuple:
     """The derivative modes' loop state besides the ray's adjoint, at the
     walk's entry face: ``(e, pend)``.
 
@@ -137,7 +150,7 @@ def start(deriv: Derivative, ts_ad, entry_ids, fr: RayFrame, active):
     return e, pend
 
 
-def moves_vertices(ts_ad):
+def moves_vertices(ts_ad: TetGroup) -> bool:
     """Whether vertex positions receive gradients (else the derivative
     modes leave out everything geometric: crossings' ray parameters and
     position scatters)."""
@@ -145,7 +158,7 @@ def moves_vertices(ts_ad):
         return dr.grad_enabled(ts_ad.buf.positions)
 
 
-def ray_grads(adj, r, g, mask):
+def ray_grads(adj: Adjoint, r: mi.Vector3f, g: mi.Vector3f, mask: bool | mi.Bool) -> Adjoint:
     """Add the gradient ``g`` of a vertex at offset ``r`` from the ray's
     origin to the ray's origin and direction gradients (see
     :class:`Adjoint`): moving the ray is moving the vertex the other way."""
@@ -154,7 +167,8 @@ def ray_grads(adj, r, g, mask):
     return adj
 
 
-def camera_grads(adj: Adjoint, carry, vg, fr: RayFrame, mask) -> Adjoint:
+def camera_grads(adj: Adjoint, carry: tuple, vg: list[Any], fr: RayFrame,
+                 mask: mi.Bool) -> Adjoint:
     """:func:`ray_grads` of one crossing's vertex-position gradients ``vg``
     (of the corners ``carry``); a corner's offset from the origin is ``p.x u
     + p.y v + z d``."""
@@ -163,7 +177,8 @@ def camera_grads(adj: Adjoint, carry, vg, fr: RayFrame, mask) -> Adjoint:
     return adj
 
 
-def inversion(deriv, adj, L, T, C_seg, C_d, tau):
+def inversion(deriv: Derivative, adj: Adjoint, L: mi.Color3f, T: mi.Float, C_seg: mi.Color3f,
+              C_d: mi.Color3f, tau: mi.Float) -> Adjoint:
     """The inversion trick, for one segment or piece: with ``L, T`` the
     emission and transmittance in front of it, ``C_seg`` its emission (as the
     primal computed it) and ``C_d``, ``tau`` its emission and optical depth
@@ -184,7 +199,8 @@ def inversion(deriv, adj, L, T, C_seg, C_d, tau):
     return adj
 
 
-def crossing_grads(deriv: Derivative, ts_ad, carry, g, fr: RayFrame):
+def crossing_grads(deriv: Derivative, ts_ad: TetGroup, carry: tuple, g: tuple[mi.Float, Any],
+                   fr: RayFrame) -> list[Any]:
     """Gradient of ``g . (t, attributes)`` of the ray's crossing of the face
     the walk carries (``carry``: corners, their attributes, edge functions)
     w.r.t. each corner's position and attributes
@@ -200,7 +216,8 @@ def crossing_grads(deriv: Derivative, ts_ad, carry, g, fr: RayFrame):
             for dp, dz, da in crossing_vjp(corners, edges, values, g[0], g[1])]
 
 
-def scatter(ts_ad, i, g, active, reduce):
+def scatter(ts_ad: TetGroup, i: mi.UInt32, g: Any, active: mi.Bool,
+            reduce: dr.ReduceMode) -> None:
     """Add the pending gradient ``g`` to the parameter gradients of vertex
     ``i`` (through the reverse-mode derivative of a gather: a scatter-add in
     ``reduce`` mode)."""
@@ -212,7 +229,8 @@ def scatter(ts_ad, i, g, active, reduce):
         dr.backward_from(y, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
 
 
-def tangent(deriv: Derivative, ts_ad, ids, fr: RayFrame, active):
+def tangent(deriv: Derivative, ts_ad: TetGroup, ids: Sequence[mi.UInt32], fr: RayFrame,
+            active: mi.Bool) -> tuple[mi.Float, Any]:
     """Forward mode: the tangent of a face crossing's ``(t, attributes)``
     (with a moving camera, ``deriv.ray_tangent``, the ray's tangent too)."""
     with dr.resume_grad():
@@ -232,7 +250,8 @@ def _scaled(g, w):
     return tree_map(lambda x: x * w, g)
 
 
-def segment(deriv: Derivative, walker, p, acc, span, fr: RayFrame, active):
+def segment(deriv: Derivative, walker: EmissionDerivative, p: Piece, acc: Radiance, span: Span,
+            fr: RayFrame, active: mi.Bool) -> tuple[mi.Color3f, mi.Float, Adjoint, tuple]:
     """One segment (or piece) ``p`` (a :class:`~mi_tetvr.render.cursor.Piece`)
     in a derivative mode, walked by ``walker`` (its buffers ``ts``, detached,
     and ``ts_ad``, attached; its scatter strategy ``reduce``); ``acc`` holds
@@ -316,7 +335,9 @@ def segment(deriv: Derivative, walker, p, acc, span, fr: RayFrame, active):
                                dr.select(advance, 0.0, F_end), new_pend)
 
 
-def finish(deriv: Derivative, walker, acc, carry, walked, fr: RayFrame, exit_face=None):
+def finish(deriv: Derivative, walker: EmissionDerivative, acc: Radiance, carry: tuple,
+           walked: mi.Bool, fr: RayFrame,
+           exit_face: tuple[tuple, mi.Bool] | None = None) -> Adjoint:
     """Backward mode, after the walk: the last exit crossing's gradient and
     the pending ones of its corners (``carry``: the face the walk left by;
     ``walked``: the rays that integrated at least one segment or piece);

@@ -9,19 +9,25 @@ The ``tetmesh`` shape packs its topology into per-shape index arrays
 (:func:`shape_index_arrays`, numpy, local indices); the integrator
 concatenates the shapes of a scene into one :class:`MeshBuffers`
 (:func:`index_buffers`, global indices) and pairs it with the optical model's
-parameters in a :class:`TetScene`.
+parameters in a :class:`TetGroup`.
 """
 from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_tetvr.mesh.topology import chunk_slices
+from mi_tetvr.mesh.topology import Topology, chunk_slices
 from mi_tetvr.render.surfaces import split_shapes
 
+if TYPE_CHECKING:
+    from mi_tetvr.render.optical import OpticalModel
+    from mi_tetvr.render.probes import Probe
 
-def pack_links(tets, faces):
+
+def pack_links(tets: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Links ``4 * tet + face`` (int64), ``-1`` where ``tets < 0``.
 
     Parameters
@@ -35,13 +41,13 @@ def pack_links(tets, faces):
     return np.where(tets >= 0, tets * 4 + np.asarray(faces, np.int64), -1)
 
 
-def offset_links(links, tet_offset):
+def offset_links(links: np.ndarray, tet_offset: int) -> np.ndarray:
     """Links of a mesh whose tets start at ``tet_offset`` in a concatenation."""
     links = np.asarray(links, np.int64)
     return np.where(links >= 0, links + 4 * int(tet_offset), -1)
 
 
-def owned(cls, array):
+def owned(cls: type[dr.ArrayBase], array: np.ndarray) -> dr.ArrayBase:
     """``array`` (NumPy) as a Dr.Jit array of type ``cls`` in memory of Dr.Jit's
     own. Dr.Jit maps a NumPy array's memory without copying it: a later change
     of the NumPy array would show in the scene, and the array's alignment,
@@ -57,7 +63,7 @@ def owned(cls, array):
     return x
 
 
-def unpack_link(link):
+def unpack_link(link: mi.Int32 | mi.UInt32) -> tuple[mi.UInt32, mi.UInt32]:
     """``(tet, face)`` as ``UInt32`` of a Dr.Jit link (meaningless where the
     link is ``-1``)."""
     return mi.UInt32(link >> 2), mi.UInt32(link & 3)
@@ -75,7 +81,7 @@ FAR_RECORDS = 1024
 FAR_FRACTION = 0.5
 
 
-def morton_order(points):
+def morton_order(points: np.ndarray) -> np.ndarray:
     """The order of ``points`` along the Morton (Z-order) curve of their
     bounding box: nearby points end up nearby in memory."""
     points = np.asarray(points, np.float64)
@@ -91,7 +97,7 @@ def morton_order(points):
     return np.argsort(code, kind="stable")
 
 
-def far_links(neighbors):
+def far_links(neighbors: np.ndarray) -> float:
     """Fraction of the interior neighbour links ``(m, 4)`` between tets more
     than :data:`FAR_RECORDS` records apart."""
     far = interior = 0
@@ -104,7 +110,7 @@ def far_links(neighbors):
     return far / interior if interior else 0.0
 
 
-def centroids(vertices, tets):
+def centroids(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """(m, 3) float64 centroids of the tets (in chunks: no (m, 4, 3) array)."""
     vertices = np.asarray(vertices, np.float64)
     out = np.empty((len(tets), 3))
@@ -113,7 +119,8 @@ def centroids(vertices, tets):
     return out
 
 
-def shape_index_arrays(topology, vertices, reorder=None):
+def shape_index_arrays(topology: Topology, vertices: np.ndarray,
+                       reorder: bool | None = None) -> dict[str, np.ndarray]:
     """The index arrays a ``tetmesh`` shape hands the integrator (numpy,
     32-bit, indices local to the shape); see :class:`MeshBuffers` for their
     meaning: 32 bytes per tet (corners and links), 24 per boundary face.
@@ -163,7 +170,7 @@ INDEX_TYPES = {"tets": (mi.UInt32, np.uint32), "nbr": (mi.Int32, np.int32),
                "face_adj": (mi.Int32, np.int32)}
 
 
-def drjit_index_arrays(arrays):
+def drjit_index_arrays(arrays: dict[str, np.ndarray]) -> dict[str, mi.UInt32 | mi.Int32]:
     """:func:`shape_index_arrays`' arrays as the Dr.Jit buffers the walk reads
     (what a ``tetmesh`` shape keeps: the numpy arrays can go)."""
     return {k: owned(INDEX_TYPES[k][0], np.ascontiguousarray(arrays[k], INDEX_TYPES[k][1]))
@@ -183,24 +190,26 @@ class MeshBuffers:
     DRJIT_STRUCT = {"tets": mi.UInt32, "nbr": mi.Int32, "boundary": mi.UInt32,
                     "faces": mi.UInt32, "face_adj": mi.Int32, "positions": mi.Float}
 
-    def __init__(self, tets=None, nbr=None, boundary=None, faces=None, face_adj=None,
-                 positions=None):
+    def __init__(self, tets: mi.UInt32 | None = None, nbr: mi.Int32 | None = None,
+                 boundary: mi.UInt32 | None = None, faces: mi.UInt32 | None = None,
+                 face_adj: mi.Int32 | None = None, positions: mi.Float | None = None) -> None:
         self.tets, self.nbr, self.boundary, self.faces = tets, nbr, boundary, faces
         self.face_adj, self.positions = face_adj, positions
 
-    def position(self, i, active=True, reduce=dr.ReduceMode.Auto):
+    def position(self, i: mi.UInt32, active: bool | mi.Bool = True,
+                 reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> mi.Point3f:
         """Position of vertex ``i``; ``reduce`` is the scatter strategy of the
         gather's reverse-mode derivative (gradients of shared vertices meet there)."""
         return dr.gather(mi.Point3f, self.positions, i, active, mode=reduce)
 
 
-def scene_tetmeshes(scene):
+def scene_tetmeshes(scene: mi.Scene) -> list[mi.Mesh]:
     """The scene's ``tetmesh`` shapes (its other shapes are surfaces:
     :mod:`mi_tetvr.render.surfaces`)."""
     return split_shapes(scene)[0]
 
 
-def index_buffers(shapes):
+def index_buffers(shapes: list[mi.Mesh]) -> tuple[dict[str, mi.UInt32 | mi.Int32], list[int]]:
     """The shapes' index buffers (:func:`drjit_index_arrays`) concatenated
     with their offsets applied: one shape's own buffers as they are (no copy).
 
@@ -232,15 +241,17 @@ def index_buffers(shapes):
             face_offsets)
 
 
-def concat(buffers):
+def concat(buffers: list[mi.Float]) -> mi.Float:
     """One buffer of several shapes' buffers (no copy for a single shape)."""
     return buffers[0] if len(buffers) == 1 else dr.concat(buffers)
 
 
-class TetScene:
-    """What the walk reads for one scene: the shapes (to map Mitsuba's
-    intersections to global boundary faces), their :class:`MeshBuffers`, the
-    optical model and its parameter buffers.
+class TetGroup:
+    """What a walk reads for one group of tet meshes (those of one optical
+    model, or one mesh where meshes overlap; "scene" is left to Mitsuba's
+    ``mi.Scene``): the shapes (to map Mitsuba's intersections to global
+    boundary faces), their :class:`MeshBuffers`, the optical model and its
+    parameter buffers.
 
     Parameters
     ----------
@@ -252,23 +263,24 @@ class TetScene:
     params : model.Params
     """
 
-    def __init__(self, shapes, face_offsets, buf, model, params):
+    def __init__(self, shapes: list[mi.Mesh], face_offsets: list[int], buf: MeshBuffers,
+                 model: OpticalModel | Probe, params: Any) -> None:
         self.shapes, self.face_offsets = shapes, face_offsets
         self.buf, self.model, self.params = buf, model, params
 
-    def detached(self):
-        """The same scene with its buffers detached from the AD graph."""
-        return TetScene(self.shapes, self.face_offsets, dr.detach(self.buf), self.model,
+    def detached(self) -> TetGroup:
+        """The same group with its buffers detached from the AD graph."""
+        return TetGroup(self.shapes, self.face_offsets, dr.detach(self.buf), self.model,
                         dr.detach(self.params))
 
-    def owns(self, si):
+    def owns(self, si: mi.PreliminaryIntersection3f) -> mi.Bool:
         """Whether a preliminary intersection is on one of :attr:`shapes`."""
         mask = mi.Bool(False)
         for shape in self.shapes:
             mask |= si.shape == mi.ShapePtr(shape)
         return mask
 
-    def boundary_face(self, si):
+    def boundary_face(self, si: mi.PreliminaryIntersection3f) -> mi.UInt32:
         """Global boundary face index of a preliminary intersection."""
         idx = mi.UInt32(si.prim_index)
         if len(self.shapes) == 1:
@@ -279,7 +291,7 @@ class TetScene:
         return idx + off
 
 
-def model_groups(shapes):
+def model_groups(shapes: list[mi.Mesh]) -> list[list[mi.Mesh]]:
     """The shapes in groups that one walk renders: the shapes of one optical
     model share a group (their buffers concatenated), except models with
     per-shape settings (``model.per_shape``: a transfer function's range and
@@ -297,8 +309,9 @@ def model_groups(shapes):
     return groups
 
 
-def tet_scene(shapes, index, face_offsets, **model_options):
-    """The :class:`TetScene` of ``shapes`` (one group of
+def tet_group(shapes: list[mi.Mesh], index: dict[str, mi.UInt32 | mi.Int32],
+              face_offsets: list[int], **model_options: Any) -> TetGroup:
+    """The :class:`TetGroup` of ``shapes`` (one group of
     :func:`model_groups`) from their concatenated index buffers
     (:func:`index_buffers`); positions and the optical model's parameters
     are read from the shapes (attached to their AD graph).
@@ -309,4 +322,4 @@ def tet_scene(shapes, index, face_offsets, **model_options):
                          f"{sorted(m.__name__ for m in models)} (see model_groups)")
     model = models.pop()(**model_options)
     buf = MeshBuffers(**index, positions=concat([s.vertex_positions_buffer() for s in shapes]))
-    return TetScene(shapes, face_offsets, buf, model, model.read_params(shapes))
+    return TetGroup(shapes, face_offsets, buf, model, model.read_params(shapes))

@@ -14,9 +14,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+import numpy.typing as npt
 
 
-def unit_vector(v, what: str) -> np.ndarray:
+def unit_vector(v: npt.ArrayLike, what: str) -> np.ndarray:
     """``v`` (3,) scaled to length 1; ``ValueError`` naming ``what`` unless it
     is a non-zero 3-vector (a plane's normal)."""
     n = np.asarray(v, np.float64).reshape(-1)
@@ -30,7 +31,9 @@ class Clip:
     away) and/or a box (``box_min``, ``box_max``: what lies outside is cut
     away)."""
 
-    def __init__(self, origin=None, normal=None, box_min=None, box_max=None):
+    def __init__(self, origin: npt.ArrayLike | None = None, normal: npt.ArrayLike | None = None,
+                 box_min: npt.ArrayLike | None = None,
+                 box_max: npt.ArrayLike | None = None) -> None:
         self.plane = None
         if (origin is None) != (normal is None):
             raise ValueError("clipping: give both clip_origin and clip_normal (a plane)")
@@ -48,7 +51,7 @@ class Clip:
             self.box = (lo, hi)
 
     @classmethod
-    def from_props(cls, props):
+    def from_props(cls, props: mi.Properties) -> Clip | None:
         """The clip a ``tetvr`` or ``tetproj`` property set describes
         (``clip_origin``, ``clip_normal``, ``clip_min``, ``clip_max``); None
         without any."""
@@ -59,7 +62,8 @@ class Clip:
         return cls(got.get("clip_origin"), got.get("clip_normal"), got.get("clip_min"),
                    got.get("clip_max"))
 
-    def interval(self, o, d, t_max):
+    def interval(self, o: mi.Point3f, d: mi.Vector3f,
+                 t_max: float | mi.Float) -> tuple[mi.Float, mi.Float]:
         """``(t0, t1)``: the part of the rays ``o + t d`` (``0 <= t <=
         t_max``) that is kept; empty where ``t1 <= t0``."""
         t0, t1 = mi.Float(0.0), mi.Float(t_max)

@@ -38,7 +38,7 @@ from typing import Any, Protocol
 import drjit as dr
 import mitsuba as mi
 
-from mi_tetvr.render.buffers import MeshBuffers, TetScene, unpack_link
+from mi_tetvr.render.buffers import MeshBuffers, TetGroup, unpack_link
 from mi_tetvr.render.geometry import (RayFrame, Step, crossing_at, entry_carry, face_entry,
                                       inside_face, walk_step)
 from mi_tetvr.render.pytree import tree_lerp, tree_select, weighted_sum
@@ -57,7 +57,8 @@ class WalkSettings:
     """
 
     def __init__(self, t_min: float = 1e-4, max_steps: int = 100_000,
-                 retrace_eps: float = 1e-5, reduce=dr.ReduceMode.Auto):
+                 retrace_eps: float = 1e-5,
+                 reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> None:
         self.t_min = float(t_min)
         self.max_steps = int(max_steps)
         self.retrace_eps = float(retrace_eps)
@@ -95,7 +96,8 @@ class Cursor:
     a: Any
 
     @staticmethod
-    def at(client: Client, tet, f_in, fr: RayFrame, active) -> Cursor:
+    def at(client: Client, tet: mi.UInt32, f_in: mi.UInt32, fr: RayFrame,
+           active: bool | mi.Bool) -> Cursor:
         """The cursor entering ``tet`` through its face ``f_in``."""
         tet, f_in = mi.UInt32(tet), mi.UInt32(f_in)
         carry = entry_carry(client.ts.buf, tet, f_in, fr, active, client.gather)
@@ -120,20 +122,23 @@ class Piece:
 class Client(Protocol):
     """What a walk does along a ray (see the module docstring). ``acc`` is
     the client's per-ray state, carried through the walk's loop."""
-    ts: TetScene          # the buffers walked (``ts.buf``) and the optical model
+    ts: TetGroup          # the buffers walked (``ts.buf``) and the optical model
     cuts: bool            # whether pieces end inside tets (``cut``)
     label: str            # the walk loop's name in Dr.Jit's kernels
 
-    def gather(self, i, active): ...
-    def cut(self, a0, a1): ...
-    def begin(self, acc, cur: Cursor, fr: RayFrame, active): ...
-    def piece(self, acc, p: Piece, span: Span, fr: RayFrame, active): ...
-    def end(self, acc, cur: Cursor, stay, walked, fr: RayFrame): ...
-    def alive(self, acc): ...
+    def gather(self, i: mi.UInt32, active: bool | mi.Bool) -> Any: ...
+    def cut(self, a0: Any, a1: Any) -> mi.Float: ...
+    def begin(self, acc: Any, cur: Cursor, fr: RayFrame, active: mi.Bool) -> Any: ...
+    def piece(self, acc: Any, p: Piece, span: Span, fr: RayFrame,
+              active: mi.Bool) -> tuple[Any, mi.Bool]: ...
+    def end(self, acc: Any, cur: Cursor, stay: mi.Bool, walked: mi.Bool,
+            fr: RayFrame) -> Any: ...
+    def alive(self, acc: Any) -> mi.Bool: ...
 
 
 @dr.syntax
-def locate(buf: MeshBuffers, tet, f_out, fr: RayFrame, t_start, max_steps: int, active):
+def locate(buf: MeshBuffers, tet: mi.UInt32, f_out: mi.UInt32, fr: RayFrame, t_start: mi.Float,
+           max_steps: int, active: bool | mi.Bool) -> tuple[mi.UInt32, mi.UInt32]:
     """Walk back from the boundary face ``f_out`` of ``tet`` (where the ray
     leaves a mesh) along the reversed ray to the tet that contains the point
     at ``t_start``.
@@ -160,7 +165,8 @@ def locate(buf: MeshBuffers, tet, f_out, fr: RayFrame, t_start, max_steps: int, 
     return tet, f_in
 
 
-def enter(buf: MeshBuffers, face, fr: RayFrame, t_start, max_steps: int, active):
+def enter(buf: MeshBuffers, face: mi.UInt32, fr: RayFrame, t_start: mi.Float, max_steps: int,
+          active: bool | mi.Bool) -> tuple[mi.UInt32, mi.UInt32, mi.Bool]:
     """Where a ray that hits the boundary face ``face`` (global index, from
     Mitsuba's ray tracer) walks from: ``(tet, f_in, outward)``. A ray that
     enters through the face starts in the tet behind it; one that leaves
@@ -172,8 +178,8 @@ def enter(buf: MeshBuffers, face, fr: RayFrame, t_start, max_steps: int, active)
 
 
 @dr.syntax
-def walk(client: Client, fr: RayFrame, cur: Cursor, acc, span: Span, settings: WalkSettings,
-         active):
+def walk(client: Client, fr: RayFrame, cur: Cursor, acc: Any, span: Span, settings: WalkSettings,
+         active: bool | mi.Bool) -> tuple[Any, mi.Float, mi.UInt32]:
     """Walk front to back from the cursor ``cur``, handing each piece to
     ``client``, until the ray leaves the mesh, reaches ``span.end``, crosses
     ``settings.max_steps`` tets (pieces), or the client says stop.
@@ -220,13 +226,14 @@ def walk(client: Client, fr: RayFrame, cur: Cursor, acc, span: Span, settings: W
 
 
 @dr.syntax
-def traverse(scene: mi.Scene, clients: list, fr: RayFrame, acc, span: Span,
-             settings: WalkSettings, active, entry: Entry = None):
+def traverse(scene: mi.Scene, clients: list, fr: RayFrame, acc: Any, span: Span,
+             settings: WalkSettings, active: bool | mi.Bool,
+             entry: Entry = None) -> tuple[Any, mi.UInt32]:
     """Walk rays through the tet meshes whose boundaries are ``scene``'s
     shapes, over ``span`` (see the module docstring).
 
     ``clients`` has one :class:`Client` per group of shapes that one walk
-    renders (their :class:`~mi_tetvr.render.buffers.TetScene`): each
+    renders (their :class:`~mi_tetvr.render.buffers.TetGroup`): each
     boundary hit is walked by its own group's client, all sharing ``acc``;
     the first client's ``alive(acc)`` says whether a ray goes on.
     ``entry``: where to start, when not at ``span.begin`` (:class:`Entry`).
@@ -281,7 +288,7 @@ class Pieces:
     ends (``a0[k]``, ``a1[k]``), its cursor's carried face and step, the
     ends of its segment in its tet (``ends[k] = (te, we, ae, tx, ax, 1 /
     (tx - te))``: entry crossing's ``t``, weights and values, exit's ``t``
-    and values), and (clients that ask, ``boundaries``) whether the piece
+    and values), and (clients that ask, ``boundary_terms``) whether the piece
     starts where the ray crossed the mesh's boundary (``from_bnd[k]``), ends
     where it enters or leaves it (``to_bnd[k]``), and the next boundary face
     (``f_next[k]``)."""
@@ -306,15 +313,16 @@ class MergedClient(Protocol):
     ``cut``); ``piece`` takes each :class:`Pieces` and returns ``(acc,
     go)``."""
     members: list
-    boundaries: bool
+    boundary_terms: bool
     label: str
 
-    def piece(self, acc, pc: Pieces, fr: RayFrame, active): ...
+    def piece(self, acc: Any, pc: Pieces, fr: RayFrame,
+              active: mi.Bool) -> tuple[Any, mi.Bool]: ...
 
 
 @dr.syntax
-def traverse_merged(scenes: list, client: MergedClient, fr: RayFrame, acc, span: Span,
-                    settings: WalkSettings, active):
+def traverse_merged(scenes: list, client: MergedClient, fr: RayFrame, acc: Any, span: Span,
+                    settings: WalkSettings, active: bool | mi.Bool) -> tuple[Any, mi.UInt32]:
     """Walk rays through tet meshes that may overlap in space, one cursor
     per mesh (``scenes[k]``: a scene of mesh ``k``'s boundary alone, so that
     coincident faces of two meshes are both found), over ``span``.
@@ -426,7 +434,7 @@ def traverse_merged(scenes: list, client: MergedClient, fr: RayFrame, acc, span:
                                    tree_lerp(ae, ax, dr.clip((t_ev - te) * inv, 0.0, 1.0))))
         pc = Pieces(t, t_end, t_end - t, list(inside), list(tet), nows, a1s, list(carry), sts,
                     ends)
-        if dr.hint(client.boundaries, mode="scalar"):
+        if dr.hint(client.boundary_terms, mode="scalar"):
             # The piece ends where the ray enters or leaves mesh k.
             pc.from_bnd, pc.f_next = list(from_bnd), list(f_next)
             pc.to_bnd = [go[k] & (~inside[k] | (~knots[k][0] & (sts[k].link < 0)))

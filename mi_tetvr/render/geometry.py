@@ -8,13 +8,15 @@ and can be differentiated by Dr.Jit's AD.
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.mesh.topology import FACES
-from mi_tetvr.render.buffers import unpack_link
+from mi_tetvr.render.buffers import MeshBuffers, unpack_link
 from mi_tetvr.render.pytree import tree_dot, tree_map, tree_select
 
 # ----------------------------------------------------------------------------
@@ -31,13 +33,14 @@ from mi_tetvr.render.pytree import tree_dot, tree_map, tree_select
 # on one definite side of every edge: it can't slip between faces, through
 # vertices or along edges, and zero-volume tets are crossed like any other.
 
-def project(p, o, u, v):
+def project(p: mi.Point3f, o: mi.Point3f, u: mi.Vector3f, v: mi.Vector3f) -> mi.Point2f:
     """2D coordinates of point ``p`` in the ray frame ``(o; u, v)``."""
     q = p - o
     return mi.Point2f(dr.dot(q, u), dr.dot(q, v))
 
 
-def edge_function(i, pi, j, pj):
+def edge_function(i: mi.UInt32, pi: mi.Point2f, j: mi.UInt32,
+                  pj: mi.Point2f) -> tuple[mi.Float, mi.Bool]:
     """Side of the directed edge ``i -> j`` on which the ray passes.
 
     Parameters
@@ -63,7 +66,7 @@ def edge_function(i, pi, j, pj):
     return dr.select(swap, -e, e), pos ^ swap
 
 
-def ray_frame(d):
+def ray_frame(d: mi.Vector3f) -> tuple[mi.Vector3f, mi.Vector3f]:
     """Orthonormal ``u, v`` with ``u x v = d``."""
     u, _ = mi.coordinate_system(d)
     return u, dr.cross(d, u)
@@ -81,7 +84,7 @@ class RayFrame:
     v: mi.Vector3f
 
     @staticmethod
-    def of(o, d) -> RayFrame:
+    def of(o: mi.Point3f, d: mi.Vector3f) -> RayFrame:
         """The frame of the ray from ``o`` along the normalized ``d``."""
         d = mi.Vector3f(d)
         u, v = ray_frame(d)
@@ -92,12 +95,13 @@ class RayFrame:
         parameter is ``-t`` (``u x -v = -d``)."""
         return RayFrame(self.o, -self.d, self.u, -self.v)
 
-    def at(self, t):
+    def at(self, t: float | mi.Float) -> mi.Point3f:
         """The point at ray parameter ``t``."""
         return self.o + self.d * t
 
 
-def face_weights(e_a, e_b, e_c):
+def face_weights(e_a: mi.Float, e_b: mi.Float,
+                 e_c: mi.Float) -> tuple[mi.Float, mi.Float, mi.Float]:
     """Barycentric weights of the ray's crossing point in a triangle from the
     three edge functions opposite each vertex (any common sign); degenerate
     (edge-on) triangles get equal weights. An edge function of the other
@@ -126,16 +130,17 @@ class Corner:
     one tet to the next, so that a step reads only the one new vertex."""
     DRJIT_STRUCT = {"i": mi.UInt32, "p": mi.Point2f, "z": mi.Float}
 
-    def __init__(self, i=None, p=None, z=None):
+    def __init__(self, i: mi.UInt32 | None = None, p: mi.Point2f | None = None,
+                 z: mi.Float | None = None) -> None:
         self.i, self.p, self.z = i, p, z
 
 
-def corner(i, P, fr: RayFrame) -> Corner:
+def corner(i: mi.UInt32, P: mi.Point3f, fr: RayFrame) -> Corner:
     """The :class:`Corner` of vertex ``i`` at position ``P``."""
     return Corner(i, project(P, fr.o, fr.u, fr.v), dr.dot(P - fr.o, fr.d))
 
 
-def face_edges(c):
+def face_edges(c: Sequence[Corner]) -> tuple[mi.Float, mi.Float, mi.Float]:
     """The canonical edge functions of the triangle of :class:`Corner` s
     ``c``, each of the edge opposite a corner: ``e(c1, c2), e(c2, c0), e(c0,
     c1)``."""
@@ -144,7 +149,8 @@ def face_edges(c):
             edge_function(c[0].i, c[0].p, c[1].i, c[1].p)[0])
 
 
-def crossing_at(c, edges=None):
+def crossing_at(c: Sequence[Corner],
+                edges: Sequence[mi.Float] | None = None) -> tuple[mi.Float, tuple[mi.Float, ...]]:
     """Where the ray crosses the triangle of the :class:`Corner` s ``c``: the
     ray parameter ``t`` and the barycentric weights. The weights come from
     the same canonical edge functions as the walk's exit test
@@ -154,7 +160,8 @@ def crossing_at(c, edges=None):
     return w[0] * c[0].z + w[1] * c[1].z + w[2] * c[2].z, w
 
 
-def crossing_vjp(c, edges, values, g_t, g_a):
+def crossing_vjp(c: Sequence[Corner], edges: Sequence[mi.Float], values: Sequence[Any],
+                 g_t: mi.Float, g_a: Any) -> list[tuple[mi.Point2f, mi.Float, Any]]:
     """Reverse-mode derivative of a crossing (:func:`crossing_at`) and of
     the values interpolated there: given the gradient ``(g_t, g_a)`` of the
     ray parameter and of ``sum_j w_j values[j]``, the gradients of each
@@ -187,20 +194,25 @@ def crossing_vjp(c, edges, values, g_t, g_a):
     return out
 
 
-def crossing(ids, P, p, o, d):
+def crossing(ids: Sequence[mi.UInt32], P: Sequence[mi.Point3f], p: Sequence[mi.Point2f],
+             o: mi.Point3f, d: mi.Vector3f) -> tuple[mi.Float, tuple[mi.Float, ...]]:
     """:func:`crossing_at` of the triangle of vertices ``ids`` (global
     indices), given their positions ``P`` and projections ``p`` in the ray
     frame."""
     return crossing_at(tuple(Corner(i, pi, dr.dot(Pi - o, d)) for i, Pi, pi in zip(ids, P, p)))
 
 
-def face_corners(buf, ids, fr: RayFrame, active=True, reduce=dr.ReduceMode.Auto):
+def face_corners(buf: MeshBuffers, ids: Sequence[mi.UInt32], fr: RayFrame,
+                 active: bool | mi.Bool = True,
+                 reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> tuple[Corner, ...]:
     """The :class:`Corner` s of the vertices ``ids``, gathered
     (differentiably, when AD is enabled on the buffers)."""
     return tuple(corner(i, buf.position(i, active, reduce), fr) for i in ids)
 
 
-def face_crossing(buf, ids, fr: RayFrame, active=True, reduce=dr.ReduceMode.Auto):
+def face_crossing(buf: MeshBuffers, ids: Sequence[mi.UInt32], fr: RayFrame,
+                  active: bool | mi.Bool = True, reduce: dr.ReduceMode = dr.ReduceMode.Auto
+                  ) -> tuple[mi.Float, tuple[mi.Float, ...]]:
     """``(t, w)`` where the ray crosses the triangle ``ids`` (gathered)."""
     return crossing_at(face_corners(buf, ids, fr, active, reduce))
 
@@ -214,7 +226,8 @@ def _pick(f, x):
 _FACE_LOCAL = tuple(tuple(int(FACES[f][j]) for f in range(4)) for j in range(3))
 
 
-def tet_face(buf, tet, f, active=True):
+def tet_face(buf: MeshBuffers, tet: mi.UInt32, f: mi.UInt32,
+             active: bool | mi.Bool = True) -> tuple[mi.UInt32, mi.UInt32, mi.UInt32, mi.UInt32]:
     """Global vertex indices ``(apex, a, b, c)`` of ``tet`` for its local face
     ``f`` (the apex is the vertex opposite the face, local vertex ``f``;
     ``a, b, c`` the face in the outward order of
@@ -239,7 +252,8 @@ def _boundary_corners(buf, face, fr: RayFrame, active):
 BOUNDARY_WALK_STEPS = 8
 
 
-def face_entry(buf, face, fr: RayFrame, active):
+def face_entry(buf: MeshBuffers, face: mi.UInt32, fr: RayFrame,
+               active: bool | mi.Bool) -> tuple[mi.UInt32, mi.UInt32, mi.Bool]:
     """The tet behind the boundary face a ray hits.
 
     The face found by Mitsuba's ray tracer is first moved, over the boundary
@@ -294,7 +308,9 @@ class Step:
     carry: tuple          # the exit face for the next step (see walk_step)
 
 
-def entry_carry(buf, tet, f_in, fr: RayFrame, active, gather=None):
+def entry_carry(buf: MeshBuffers, tet: mi.UInt32, f_in: mi.UInt32, fr: RayFrame,
+                active: bool | mi.Bool,
+                gather: Callable[[mi.UInt32, bool | mi.Bool], Any] | None = None) -> tuple:
     """What :func:`walk_step` carries, for the face ``f_in`` of ``tet`` read
     from the buffers: the three :class:`Corner` s in the outward order of
     ``tet``, their values ``gather(i, active)`` and the face's edge
@@ -305,7 +321,9 @@ def entry_carry(buf, tet, f_in, fr: RayFrame, active, gather=None):
     return corners, values, face_edges(corners)
 
 
-def walk_step(buf, tet, f_in, fr: RayFrame, active, carry=None, gather=None) -> Step:
+def walk_step(buf: MeshBuffers, tet: mi.UInt32, f_in: mi.UInt32, fr: RayFrame,
+              active: bool | mi.Bool, carry: tuple | None = None,
+              gather: Callable[[mi.UInt32, bool | mi.Bool], Any] | None = None) -> Step:
     """Cross one tet: find the exit face of a ray entering ``tet`` through its
     local face ``f_in``, and the exit crossing (a :class:`Step`).
 
@@ -366,7 +384,8 @@ def walk_step(buf, tet, f_in, fr: RayFrame, active, carry=None, gather=None) -> 
                 (opp_a, opp_b, opp_c), (exit_c, exit_x, exit_e))
 
 
-def inside_face(buf, tet, fr: RayFrame, active=True):
+def inside_face(buf: MeshBuffers, tet: mi.UInt32, fr: RayFrame,
+                active: bool | mi.Bool = True) -> mi.UInt32:
     """The local face through which the line of a ray from ``o`` (a point of
     ``tet``) in direction ``d`` enters ``tet``: the face the line passes
     through (its three canonical edge functions agree) that faces the ray

@@ -29,10 +29,15 @@ gained and the surface's share of what lies behind).
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import drjit as dr
 import mitsuba as mi
+
+from mi_tetvr.render.buffers import TetGroup
+from mi_tetvr.render.probes import Pick
 
 
 class Layer:
@@ -43,7 +48,9 @@ class Layer:
     (:class:`~mi_tetvr.render.probes.Pick`). The tail after the last
     surface is a layer that meets none."""
 
-    def __init__(self, start, end, active, C, T, met, color=None, pick=None):
+    def __init__(self, start: mi.Float, end: mi.Float, active: mi.Bool, C: mi.Color3f,
+                 T: mi.Float, met: mi.Bool, color: mi.Color3f | None = None,
+                 pick: Pick | None = None) -> None:
         self.start, self.end, self.active, self.C, self.T = start, end, active, C, T
         self.met, self.color, self.pick = met, color, pick
 
@@ -53,18 +60,18 @@ class Layered:
     tail last), the composite ``L`` without what lies behind and the final
     transmittance ``W``; ``alpha`` the layers' opacity."""
 
-    def __init__(self, layers, L, W, alpha):
+    def __init__(self, layers: list[Layer], L: mi.Color3f, W: mi.Float, alpha: float) -> None:
         self.layers, self.L, self.W, self.alpha = layers, L, W, alpha
 
     @property
-    def met(self):
+    def met(self) -> mi.Bool:
         """Whether any surface was met."""
         met = mi.Bool(False)
         for layer in self.layers:
             met |= layer.met
         return met
 
-    def fronts(self):
+    def fronts(self) -> list[mi.Float]:
         """The transmittance in front of each layer's interval."""
         W, out = mi.Float(1.0), []
         for layer in self.layers:
@@ -72,7 +79,7 @@ class Layered:
             W = W * layer.T * dr.select(layer.met, 1.0 - self.alpha, 1.0)
         return out
 
-    def behind(self, background):
+    def behind(self, background: mi.Color3f) -> list[mi.Color3f]:
         """``R_k``: the radiance reaching each interval's start from behind it,
         ``background`` behind the tail."""
         R, out = mi.Color3f(background), []
@@ -84,7 +91,7 @@ class Layered:
         return out[::-1]
 
 
-def own_kernel(*values):
+def own_kernel(*values: Any) -> None:
     """Evaluates ``values`` (and the scatters queued with them) unless traced in
     a symbolic loop or call: each layer's walks then run as kernels of their
     own, whose code is the same from one layer to the next (compiled once, not
@@ -104,7 +111,12 @@ class Drawing:
     t_min: float = 1e-4
 
 
-def composite(find, volume, ray: mi.Ray3f, t_start, active, drawing: Drawing) -> Layered:
+def composite(find: Callable[[mi.Ray3f, mi.Float, mi.Bool],
+                             tuple[mi.Bool, mi.Color3f, Pick, mi.Float]],
+              volume: Callable[[mi.Ray3f, mi.Float, mi.Bool],
+                               tuple[mi.Color3f, mi.Float]] | None,
+              ray: mi.Ray3f, t_start: float | mi.Float, active: bool | mi.Bool,
+              drawing: Drawing) -> Layered:
     """Front to back through at most ``drawing.count`` surfaces along
     ``ray`` (unit directions) from ``t_start`` to ``ray.maxt``.
 
@@ -150,10 +162,11 @@ def composite(find, volume, ray: mi.Ray3f, t_start, active, drawing: Drawing) ->
     return Layered(layers, L, W, float(alpha))
 
 
-def replay(ts, layered, o, d, weights=None):
+def replay(ts: TetGroup, layered: Layered, o: mi.Point3f, d: mi.Vector3f,
+           weights: list[mi.Float] | None = None) -> list[tuple[mi.Color3f, mi.Float, mi.Float]]:
     """The layers' share of the pixel, ``sum_k alpha w_k S_k``, with each
     surface's color recomputed with the AD graph from its pick (``ts``: the
-    probes' :class:`~mi_tetvr.render.buffers.TetScene`, attached), and each
+    probes' :class:`~mi_tetvr.render.buffers.TetGroup`, attached), and each
     layer's depth ``t_k`` alike: ``[(share, t_k, w_k)]``. ``weights`` are the
     transmittances in front of each surface (default: those of the layers
     alone)."""
@@ -167,7 +180,7 @@ def replay(ts, layered, o, d, weights=None):
     return out
 
 
-def volume_at(ts, pick, d):
+def volume_at(ts: TetGroup, pick: Pick, d: mi.Vector3f) -> tuple[mi.Color3f, mi.Float]:
     """``(color, extinction)`` of the volume ``ts`` (a post-classified
     model) at the pick of an isosurface of its scalar, detached
     (:meth:`~mi_tetvr.render.optical.PostClassified.medium_at`)."""

@@ -11,8 +11,16 @@ in the tet the walk found it in, instead of re-walking the ray.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
 import drjit as dr
 import mitsuba as mi
+
+from mi_tetvr.render.buffers import MeshBuffers
+
+if TYPE_CHECKING:
+    from mi_tetvr.render.optical import Shaded
 
 
 class TetFrame:
@@ -27,7 +35,8 @@ class TetFrame:
     (default: the buffers' own).
     """
 
-    def __init__(self, buf, tet, active=True, reduce=None):
+    def __init__(self, buf: MeshBuffers | Shaded.Params, tet: mi.UInt32,
+                 active: bool | mi.Bool = True, reduce: dr.ReduceMode | None = None) -> None:
         self.ids = [dr.gather(mi.UInt32, buf.tets, tet * 4 + k, active) for k in range(4)]
         self.X = [buf.position(i, active) if reduce is None else buf.position(i, active, reduce)
                   for i in self.ids]
@@ -38,27 +47,27 @@ class TetFrame:
         self.det = dr.det(M)
         self.B = dr.rcp(M)
 
-    def weights(self, x):
+    def weights(self, x: mi.Point3f) -> list[mi.Float]:
         """The four barycentric coordinates of point ``x``."""
         lam = self.B @ mi.Vector3f(x - self.X[0])
         return [1.0 - lam.x - lam.y - lam.z, lam.x, lam.y, lam.z]
 
-    def weight_gradients(self):
+    def weight_gradients(self) -> list[mi.Vector3f]:
         """The (constant) gradients of the four barycentric coordinates."""
         rows = [mi.Vector3f(self.B[k]) for k in range(3)]
         return [-(rows[0] + rows[1] + rows[2])] + rows
 
-    def gradient(self, values):
+    def gradient(self, values: Sequence[mi.Float]) -> mi.Vector3f:
         """The gradient of the linear function with ``values`` at the corners."""
         du = mi.Vector3f(values[1] - values[0], values[2] - values[0], values[3] - values[0])
         return self.B.T @ du
 
-    def at(self, values, x):
+    def at(self, values: Sequence[mi.Float], x: mi.Point3f) -> mi.Float:
         """The linear function with ``values`` at the corners, at point ``x``."""
         return sum(w * v for w, v in zip(self.weights(x), values))
 
 
-def vertex_gradients(buf, scalar):
+def vertex_gradients(buf: MeshBuffers, scalar: mi.Float) -> mi.Float:
     """Flat ``Float`` (3 n): each vertex's gradient of a per-vertex ``scalar``
     (``Float``, n), the gradients of the tets around it (constant in each)
     averaged by volume; flat and folded tets are left out. Differentiable

@@ -36,6 +36,7 @@ import mitsuba as mi
 
 
 from mi_tetvr.render import adjoint
+from mi_tetvr.render.buffers import TetGroup
 from mi_tetvr.render.cursor import Pieces, Span, WalkSettings, traverse_merged
 from mi_tetvr.render.geometry import RayFrame, corner, crossing_at, face_crossing
 from mi_tetvr.render.pytree import tree_lerp
@@ -46,7 +47,7 @@ from mi_tetvr.render.walk import Emission, Radiance
 MAX_MESHES = 8
 
 
-def overlapping(shapes, rel_eps=1e-6):
+def overlapping(shapes: list[mi.Shape], rel_eps: float = 1e-6) -> bool:
     """Whether any two shapes' bounding boxes overlap with a positive volume
     (boxes that only touch, such as blocks sharing an interface, do not)."""
     boxes = [s.bbox() for s in shapes]
@@ -77,13 +78,15 @@ class MergedEmission:
     :func:`_piece_derivative`."""
     label = "tetvr_merged"
 
-    def __init__(self, tss, settings: WalkSettings, n_sub: int, deriv=None):
+    def __init__(self, tss: list[TetGroup], settings: WalkSettings, n_sub: int,
+                 deriv: adjoint.Derivative | None = None) -> None:
         self.members = [Emission(ts, settings) for ts in tss]
         self.tss, self.n_sub, self.deriv = tss, n_sub, deriv
         self.t_min, self.reduce = settings.t_min, settings.reduce
-        self.boundaries = deriv is not None and any(deriv.geometric(g) for g in deriv.scenes)
+        self.boundary_terms = deriv is not None and any(deriv.geometric(g) for g in deriv.groups)
 
-    def piece(self, acc: Radiance, pc: Pieces, fr: RayFrame, active):
+    def piece(self, acc: Radiance, pc: Pieces, fr: RayFrame,
+              active: mi.Bool) -> tuple[Radiance, mi.Bool]:
         media = []
         for k, ts in enumerate(self.tss):
             # (outside its mesh a cursor's tet is stale: past the boundary, no tet)
@@ -98,12 +101,13 @@ class MergedEmission:
         return Radiance(acc.L + acc.T * C_seg, T, adj), T > self.t_min
 
 
-def merged_trace(scenes: list, tss: list, ray: mi.Ray3f, settings: WalkSettings, active,
-                 t_start=0.0, grad: tuple = None, n_sub: int = 4):
+def merged_trace(scenes: list, tss: list, ray: mi.Ray3f, settings: WalkSettings,
+                 active: bool | mi.Bool, t_start: float | mi.Float = 0.0, grad: tuple = None,
+                 n_sub: int = 4) -> tuple[mi.Color3f, mi.Float, mi.UInt32, adjoint.Adjoint | None]:
     """Emission and transmittance along rays through tet meshes that may
     overlap: per mesh a scene of it alone (``scenes``, whose boundary faces
-    are traced) and its :class:`~mi_tetvr.render.buffers.TetScene` (``tss``;
-    a derivative pass, ``grad = (deriv, adj)``: its context, whose ``deriv.scenes``
+    are traced) and its :class:`~mi_tetvr.render.buffers.TetGroup` (``tss``;
+    a derivative pass, ``grad = (deriv, adj)``: its context, whose ``deriv.groups``
     are the same attached to the AD graph, and the rays' adjoint).
     Same results as :func:`~mi_tetvr.render.walk.trace`; pieces are
     integrated with ``2 n_sub`` sub-intervals (the merged integral's error at
@@ -134,7 +138,7 @@ def _piece_derivative(deriv: adjoint.Derivative, pc: Pieces, C_seg, acc: Radianc
     follow through their own crossings, recomputed from the positions (and,
     for the camera, from leaf copies of them)."""
     backward = deriv.backward
-    tss_ad = deriv.scenes
+    tss_ad = deriv.groups
     carry, tets, sts, ends, inside = pc.carry, pc.tet, pc.st, pc.ends, pc.inside
     length, o, d = pc.length, fr.o, fr.d
     geo = pc.to_bnd is not None

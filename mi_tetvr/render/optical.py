@@ -46,17 +46,21 @@ integrating (projections, slices, isosurfaces) is a probe:
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_tetvr.mesh import TetMesh
 from mi_tetvr.render.buffers import concat
 from mi_tetvr.render.linear import TetFrame
 from mi_tetvr.render.pytree import weighted_sum
 from mi_tetvr.render.segment import segment_integral
 
 
-def piece_of(x, n):
+def piece_of(x: mi.Float, n: int) -> mi.UInt32:
     """The linear piece ``k`` in ``[0, n - 2]`` of ``n`` samples at ``0 .. n-1``
     that holds ``x`` (the first or last one beyond them). Written with
     comparisons, false for a NaN: a lane whose coordinate is not a number (an
@@ -90,35 +94,40 @@ class OpticalModel:
     #: walk's buffers) as a fifth argument.
     per_tet = False
 
-    def __init__(self, n_sub: int = 4):
+    def __init__(self, n_sub: int = 4) -> None:
         self.n_sub = int(n_sub)
 
     @staticmethod
-    def vertex_values(mesh):
+    def vertex_values(mesh: TetMesh) -> dict[str, np.ndarray]:
         """``{name: (n, channels) array}`` of :attr:`vertex_attributes` from a
         :class:`~mi_tetvr.mesh.TetMesh` (the shape's initial values)."""
         raise NotImplementedError
 
-    def read_params(self, shapes):
+    def read_params(self, shapes: list[mi.Mesh]) -> Any:
         """The model's parameter buffers, concatenated over ``shapes`` in the
         order of their vertices (attached to the shapes' AD graph)."""
         raise NotImplementedError
 
-    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+    def gather(self, params: Any, i: mi.UInt32, active: bool | mi.Bool = True,
+               reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> Any:
         """``Attributes`` of vertex ``i``; ``reduce`` is the scatter strategy
         of the gather's reverse-mode derivative."""
         raise NotImplementedError
 
-    def interpolate(self, params, ids, w, active=True, reduce=dr.ReduceMode.Auto):
+    def interpolate(self, params: Any, ids: Sequence[mi.UInt32], w: Sequence[mi.Float],
+                    active: bool | mi.Bool = True,
+                    reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> Any:
         """``Attributes`` at barycentric weights ``w`` of the vertices ``ids``."""
         return weighted_sum(w, [self.gather(params, i, active, reduce) for i in ids])
 
-    def segment(self, params, length, a0, a1):
+    def segment(self, params: Any, length: mi.Float, a0: Any,
+                a1: Any) -> tuple[mi.Color3f, mi.Float, mi.Float]:
         """``(C : Color3f, T : Float, tau : Float)`` of a segment of
         ``length`` whose attributes go linearly from ``a0`` to ``a1``."""
         raise NotImplementedError
 
-    def linear(self, params, a0, a1, tet):
+    def linear(self, params: Any, a0: Any, a1: Any,
+               tet: mi.UInt32) -> tuple[mi.Color3f, mi.Color3f, mi.Float, mi.Float]:
         """``(c0, c1, s0, s1)``: color and extinction at the ends of a piece
         of ``tet`` (an index in the walk's buffers) whose attributes go
         linearly from ``a0`` to ``a1`` (between the model's knots: color and
@@ -148,24 +157,27 @@ class EmissionAbsorption(OpticalModel):
     vertex_attributes = (("vertex_color", 3), ("vertex_opacity", 1))
 
     @staticmethod
-    def vertex_values(mesh):
+    def vertex_values(mesh: TetMesh) -> dict[str, np.ndarray]:
         return {"vertex_color": mesh.color, "vertex_opacity": mesh.opacity}
 
-    def read_params(self, shapes):
+    def read_params(self, shapes: list[mi.Mesh]) -> EmissionAbsorption.Params:
         return self.Params(concat([s.attribute_buffer("vertex_color") for s in shapes]),
                            concat([s.attribute_buffer("vertex_opacity") for s in shapes]))
 
-    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+    def gather(self, params: Any, i: mi.UInt32, active: bool | mi.Bool = True,
+               reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> EmissionAbsorption.Attributes:
         return self.Attributes(dr.gather(mi.Color3f, params.color, i, active, mode=reduce),
                                dr.gather(mi.Float, params.opacity, i, active, mode=reduce))
 
-    def segment(self, params, length, a0, a1):
+    def segment(self, params: Any, length: mi.Float, a0: Any,
+                a1: Any) -> tuple[mi.Color3f, mi.Float, mi.Float]:
         C, T = segment_integral(length, a0.c, a1.c, a0.s, a1.s, self.n_sub)
         # The midpoint sums of the sub-intervals: exact for a linear extinction.
         tau = length * (a0.s + a1.s) * 0.5
         return C, T, tau
 
-    def linear(self, params, a0, a1, tet):
+    def linear(self, params: Any, a0: Any, a1: Any,
+               tet: mi.UInt32) -> tuple[mi.Color3f, mi.Color3f, mi.Float, mi.Float]:
         return a0.c, a1.c, a0.s, a1.s
 
 
@@ -195,16 +207,17 @@ class Scattering(EmissionAbsorption):
     vertex_attributes = (("vertex_emission", 3), ("vertex_opacity", 1), ("vertex_albedo", 3))
 
     @staticmethod
-    def vertex_values(mesh):
+    def vertex_values(mesh: TetMesh) -> dict[str, np.ndarray]:
         raise NotImplementedError("a scattering tetmesh reads its albedo and emission from "
                                   "its properties")
 
-    def read_params(self, shapes):
+    def read_params(self, shapes: list[mi.Mesh]) -> Scattering.Params:
         return self.Params(concat([s.attribute_buffer("vertex_emission") for s in shapes]),
                            concat([s.attribute_buffer("vertex_opacity") for s in shapes]),
                            concat([s.attribute_buffer("vertex_albedo") for s in shapes]))
 
-    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+    def gather(self, params: Any, i: mi.UInt32, active: bool | mi.Bool = True,
+               reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> Scattering.Attributes:
         return self.Attributes(dr.gather(mi.Color3f, params.color, i, active, mode=reduce),
                                dr.gather(mi.Float, params.opacity, i, active, mode=reduce),
                                dr.gather(mi.Color3f, params.albedo, i, active, mode=reduce))
@@ -231,20 +244,23 @@ class Absorption(OpticalModel):
     vertex_attributes = (("vertex_opacity", 1),)
 
     @staticmethod
-    def vertex_values(mesh):
+    def vertex_values(mesh: TetMesh) -> dict[str, np.ndarray]:
         return {"vertex_opacity": mesh.opacity}
 
-    def read_params(self, shapes):
+    def read_params(self, shapes: list[mi.Mesh]) -> Absorption.Params:
         return self.Params(concat([s.attribute_buffer("vertex_opacity") for s in shapes]))
 
-    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+    def gather(self, params: Any, i: mi.UInt32, active: bool | mi.Bool = True,
+               reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> Absorption.Attributes:
         return self.Attributes(dr.gather(mi.Float, params.opacity, i, active, mode=reduce))
 
-    def segment(self, params, length, a0, a1):
+    def segment(self, params: Any, length: mi.Float, a0: Any,
+                a1: Any) -> tuple[mi.Color3f, mi.Float, mi.Float]:
         tau = length * (a0.s + a1.s) * 0.5
         return dr.zeros(mi.Color3f, dr.width(length)), dr.exp(-tau), tau
 
-    def linear(self, params, a0, a1, tet):
+    def linear(self, params: Any, a0: Any, a1: Any,
+               tet: mi.UInt32) -> tuple[mi.Color3f, mi.Color3f, mi.Float, mi.Float]:
         zero = dr.zeros(mi.Color3f, dr.width(a0.s))
         return zero, zero, a0.s, a1.s
 
@@ -292,16 +308,17 @@ class PostClassified(OpticalModel):
     #: Each shape has its own value range and texels.
     per_shape = True
 
-    def __init__(self, n_sub: int = 4, resolution: int = 256, value_range=(0.0, 1.0)):
+    def __init__(self, n_sub: int = 4, resolution: int = 256,
+                 value_range: tuple[float, float] = (0.0, 1.0)) -> None:
         super().__init__(n_sub)
         self.resolution = int(resolution)
         self.value_range = tuple(float(x) for x in value_range)
 
     @staticmethod
-    def vertex_values(mesh):
+    def vertex_values(mesh: TetMesh) -> dict[str, np.ndarray]:
         raise NotImplementedError("post-classified meshes take their scalar from the shape")
 
-    def the_shape(self, shapes):
+    def the_shape(self, shapes: list[mi.Mesh]) -> mi.Mesh:
         """The one shape of a walk of a post-classified model (its value
         range and texel count set on the model)."""
         if len(shapes) != 1:
@@ -311,22 +328,24 @@ class PostClassified(OpticalModel):
         self.value_range, self.resolution = s.value_range, s.tf_resolution
         return s
 
-    def read_params(self, shapes):
+    def read_params(self, shapes: list[mi.Mesh]) -> PostClassified.Params:
         s = self.the_shape(shapes)
         return self.Params(s.attribute_buffer("vertex_scalar"), s.tf_color, s.tf_opacity)
 
-    def texel(self, v):
+    def texel(self, v: mi.Float) -> mi.Float:
         """The texel coordinate of scalar value ``v``."""
         lo, hi = self.value_range
         return (v - lo) * (self.resolution / (hi - lo)) - 0.5
 
-    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+    def gather(self, params: Any, i: mi.UInt32, active: bool | mi.Bool = True,
+               reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> PostClassified.Attributes:
         # Gathered from the parameter itself (so that its reverse-mode
         # derivative is a scatter-add into it), then mapped to texels.
         return self.Attributes(self.texel(dr.gather(mi.Float, params.scalar, i, active,
                                                     mode=reduce)))
 
-    def classify(self, params, u0, u1):
+    def classify(self, params: Any, u0: mi.Float,
+                 u1: mi.Float) -> list[tuple[mi.Color3f, mi.Float]]:
         """Color and extinction at the texel coordinates ``u0`` and ``u1`` of
         a piece's ends. The piece lies between two knots, so both ends are
         read from the one linear part of the transfer function that holds
@@ -348,7 +367,7 @@ class PostClassified(OpticalModel):
             out.append((dr.lerp(c0, c1, w), dr.lerp(s0, s1, w)))
         return out
 
-    def cut(self, a0, a1):
+    def cut(self, a0: Any, a1: Any) -> mi.Float:
         """Fraction ``f`` in (0, 1] of the way from ``a0`` to ``a1`` where
         the scalar reaches the next knot (1: none before ``a1``)."""
         u0, u1 = a0.u, a1.u
@@ -360,16 +379,19 @@ class PostClassified(OpticalModel):
         du = dr.select(u1 != u0, u1 - u0, 1.0)
         return dr.select(inside, dr.clip((k - u0) / du, 0.0, 1.0), 1.0)
 
-    def segment(self, params, length, a0, a1):
+    def segment(self, params: Any, length: mi.Float, a0: Any,
+                a1: Any) -> tuple[mi.Color3f, mi.Float, mi.Float]:
         (c0, s0), (c1, s1) = self.classify(params, a0.u, a1.u)
         C, T = segment_integral(length, c0, c1, s0, s1, self.n_sub)
         return C, T, length * (s0 + s1) * 0.5
 
-    def linear(self, params, a0, a1, tet):
+    def linear(self, params: Any, a0: Any, a1: Any,
+               tet: mi.UInt32) -> tuple[mi.Color3f, mi.Color3f, mi.Float, mi.Float]:
         (c0, s0), (c1, s1) = self.classify(params, a0.u, a1.u)
         return c0, c1, s0, s1
 
-    def medium_at(self, params, u, tet, d):
+    def medium_at(self, params: Any, u: mi.Float, tet: mi.UInt32,
+                  d: mi.Vector3f) -> tuple[mi.Color3f, mi.Float]:
         """``(color, extinction)`` where the scalar's texel coordinate is
         ``u`` in ``tet``, seen along ``d`` (an isosurface drawn in the
         volume: :mod:`~mi_tetvr.render.layers`)."""
@@ -402,7 +424,7 @@ class CellClassified(PostClassified):
     #: Whether the shape stores its tets reordered (``order`` maps them).
     reordered = False
 
-    def read_params(self, shapes):
+    def read_params(self, shapes: list[mi.Mesh]) -> CellClassified.Params:
         # (the cells are read through the order inside the walk: the
         # parameter itself is gathered, so forward mode needs no tangent
         # of a derived buffer)
@@ -411,25 +433,28 @@ class CellClassified(PostClassified):
         order = s.cell_order if self.reordered else mi.UInt32(0)
         return self.Params(s.cell_scalar, order, s.tf_color, s.tf_opacity)
 
-    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+    def gather(self, params: Any, i: mi.UInt32, active: bool | mi.Bool = True,
+               reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> PostClassified.Attributes:
         # Nothing varies inside a tet (the walk still carries an attribute).
         return self.Attributes(mi.Float(0.0))
 
-    def cell_texel(self, params, tet):
+    def cell_texel(self, params: Any, tet: mi.UInt32) -> mi.Float:
         """The texel coordinate of the cell value of ``tet`` (the walk's index)."""
         cell = dr.gather(mi.UInt32, params.order, tet) if self.reordered else tet
         # (inside the adjoint's loop: plain atomics; Auto's per-thread
         # copies raced there)
         return self.texel(dr.gather(mi.Float, params.cells, cell, mode=dr.ReduceMode.Direct))
 
-    def segment(self, params, length, a0, a1, tet):
+    def segment(self, params: Any, length: mi.Float, a0: Any, a1: Any,
+                tet: mi.UInt32) -> tuple[mi.Color3f, mi.Float, mi.Float]:
         u = self.cell_texel(params, tet)
         (c, s), _ = self.classify(params, u, u)
         tau = s * length
         T = dr.exp(-tau)
         return c * (1.0 - T), T, tau
 
-    def linear(self, params, a0, a1, tet):
+    def linear(self, params: Any, a0: Any, a1: Any,
+               tet: mi.UInt32) -> tuple[mi.Color3f, mi.Color3f, mi.Float, mi.Float]:
         u = self.cell_texel(params, tet)
         (c, s), _ = self.classify(params, u, u)
         return c, c, s, s
@@ -440,11 +465,13 @@ class ScalarPoint:
     scalar's texel coordinate ``u`` and the point ``p``."""
     DRJIT_STRUCT = {"u": mi.Float, "p": mi.Point3f}
 
-    def __init__(self, u=None, p=None):
+    def __init__(self, u: mi.Float | None = None, p: mi.Point3f | None = None) -> None:
         self.u, self.p = u, p
 
     @staticmethod
-    def gather(model, params, i, active=True, reduce=dr.ReduceMode.Auto):
+    def gather(model: PostClassified, params: Any, i: mi.UInt32,
+               active: bool | mi.Bool = True,
+               reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> ScalarPoint:
         """The attributes of vertex ``i`` (``params.scalar``, ``params.positions``)."""
         u = PostClassified.gather(model, params, i, active, reduce).u
         return ScalarPoint(u, dr.gather(mi.Point3f, params.positions, i, active, mode=reduce))
@@ -484,16 +511,17 @@ class Shaded(PostClassified):
     #: ``(ambient, diffuse, specular, specular_power)``, set from the shape.
     lighting = (0.1, 0.7, 0.2, 10.0)
 
-    def read_params(self, shapes):
+    def read_params(self, shapes: list[mi.Mesh]) -> Shaded.Params:
         s = self.the_shape(shapes)
         self.lighting = s.lighting
         return self.Params(s.attribute_buffer("vertex_scalar"), s.tf_color, s.tf_opacity,
                            s.vertex_positions_buffer(), s.tet_buffers["tets"])
 
-    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+    def gather(self, params: Any, i: mi.UInt32, active: bool | mi.Bool = True,
+               reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> ScalarPoint:
         return ScalarPoint.gather(self, params, i, active, reduce)
 
-    def lit(self, c, g, d):
+    def lit(self, c: mi.Color3f, g: mi.Vector3f, d: mi.Vector3f) -> mi.Color3f:
         """The color ``c`` lit at gradient ``g`` seen along ``d`` (unit)."""
         ambient, diffuse, specular, power = self.lighting
         norm = dr.norm(g)
@@ -502,19 +530,20 @@ class Shaded(PostClassified):
         return dr.select(norm > 0.0, out, c)
 
     @staticmethod
-    def gradient(params, tet):
+    def gradient(params: Shaded.Params, tet: mi.UInt32) -> mi.Vector3f:
         """The scalar's gradient in ``tet`` (constant: the scalar is linear)."""
         frame = TetFrame(params, tet)
         return frame.gradient([dr.gather(mi.Float, params.scalar, i, mode=dr.ReduceMode.Direct)
                                for i in frame.ids])
 
     @staticmethod
-    def direction(a0, a1):
+    def direction(a0: ScalarPoint, a1: ScalarPoint) -> mi.Vector3f:
         """The unit direction of a piece from its ends' points (0 when empty)."""
         step = a1.p - a0.p
         return step / dr.select(dr.norm(step) > 0.0, dr.norm(step), 1.0)
 
-    def segment(self, params, length, a0, a1, tet):
+    def segment(self, params: Any, length: mi.Float, a0: Any, a1: Any,
+                tet: mi.UInt32) -> tuple[mi.Color3f, mi.Float, mi.Float]:
         g = self.gradient(params, tet)
         d = self.direction(a0, a1)
         (c0, s0), (c1, s1) = self.classify(params, a0.u, a1.u)
@@ -522,13 +551,15 @@ class Shaded(PostClassified):
                                 self.n_sub)
         return C, T, length * (s0 + s1) * 0.5
 
-    def linear(self, params, a0, a1, tet):
+    def linear(self, params: Any, a0: Any, a1: Any,
+               tet: mi.UInt32) -> tuple[mi.Color3f, mi.Color3f, mi.Float, mi.Float]:
         g = self.gradient(params, tet)
         d = self.direction(a0, a1)
         (c0, s0), (c1, s1) = self.classify(params, a0.u, a1.u)
         return self.lit(c0, g, d), self.lit(c1, g, d), s0, s1
 
-    def medium_at(self, params, u, tet, d):
+    def medium_at(self, params: Any, u: mi.Float, tet: mi.UInt32,
+                  d: mi.Vector3f) -> tuple[mi.Color3f, mi.Float]:
         c, sigma = PostClassified.medium_at(self, params, u, tet, d)
         return self.lit(c, self.gradient(params, tet), d), sigma
 
@@ -558,7 +589,7 @@ class PreIntegrated(PostClassified):
 
     cuts = False
 
-    def read_params(self, shapes):
+    def read_params(self, shapes: list[mi.Mesh]) -> PreIntegrated.Params:
         s = self.the_shape(shapes)
         with dr.resume_grad():      # (the primal pass runs with AD suspended)
             tracked = dr.grad_enabled(s.tf_color) or dr.grad_enabled(s.tf_opacity)
@@ -572,7 +603,8 @@ class PreIntegrated(PostClassified):
         self.samples, self.max_length, table = s._preintegrated[1]
         return self.Params(s.attribute_buffer("vertex_scalar"), table)
 
-    def table(self, tf_color, tf_opacity, max_length):
+    def table(self, tf_color: mi.Float, tf_opacity: mi.Float,
+              max_length: float) -> tuple[int, float, mi.Float]:
         """``(samples, max_length, table)``: RGB emission and transmittance of
         segments from texel coordinate ``u_i`` to ``u_j`` of length ``l_k``,
         flattened ``[(i * S + j) * K + k] * 4 + channel``."""
@@ -587,7 +619,8 @@ class PreIntegrated(PostClassified):
         return S, float(max_length), mi.Float(table.astype(np.float32).ravel())
 
     @dr.syntax
-    def exact(self, params, u0, u1, length):
+    def exact(self, params: Any, u0: mi.Float, u1: mi.Float,
+              length: mi.Float) -> tuple[mi.Color3f, mi.Float]:
         """The exact post-classified integral of segments whose texel
         coordinate goes from ``u0`` to ``u1`` over ``length``, piece by piece
         between the knots."""
@@ -609,16 +642,19 @@ class PreIntegrated(PostClassified):
             active &= f < 1.0
         return C, T
 
-    def medium_at(self, params, u, tet, d):
+    def medium_at(self, params: Any, u: mi.Float, tet: mi.UInt32,
+                  d: mi.Vector3f) -> tuple[mi.Color3f, mi.Float]:
         raise ValueError("tetvr: the derivatives of an isosurface overlay need the volume's "
                          "transfer function: use classification 'post' (not 'preintegrated')")
 
-    def linear(self, params, a0, a1, tet):
+    def linear(self, params: Any, a0: Any, a1: Any,
+               tet: mi.UInt32) -> tuple[mi.Color3f, mi.Color3f, mi.Float, mi.Float]:
         raise ValueError("tetvr: a pre-integrated tetmesh (classification 'preintegrated') "
                          "cannot overlap another tetmesh: its table integrates whole segments "
                          "of its own medium alone; use classification 'post'")
 
-    def segment(self, params, length, a0, a1):
+    def segment(self, params: Any, length: mi.Float, a0: Any,
+                a1: Any) -> tuple[mi.Color3f, mi.Float, mi.Float]:
         S, K = self.samples, TABLE_LENGTHS
         last = float(self.resolution - 1)
         scale = (S - 1) / last

@@ -32,9 +32,13 @@ the maximum).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+import numpy.typing as npt
 
 from mi_tetvr.render.buffers import MeshBuffers
 from mi_tetvr.render.clipping import unit_vector
@@ -54,7 +58,9 @@ class Pick:
     DRJIT_STRUCT = {"u": mi.Float, "p": mi.Point3f, "n": mi.Vector3f, "tet": mi.UInt32,
                     "k": mi.UInt32}
 
-    def __init__(self, u=None, p=None, n=None, tet=None, k=None):
+    def __init__(self, u: mi.Float | None = None, p: mi.Point3f | None = None,
+                 n: mi.Vector3f | None = None, tet: mi.UInt32 | None = None,
+                 k: mi.UInt32 | None = None) -> None:
         self.u, self.p, self.n, self.tet, self.k = u, p, n, tet, k
 
 
@@ -67,7 +73,7 @@ class VertexGradients:
     buffer is a field Dr.Jit traverses (a frozen render reaches it)."""
     DRJIT_STRUCT = {"kept": mi.Float}
 
-    def __init__(self):
+    def __init__(self) -> None:
         self._inputs = ()
         self.kept = mi.Float()
 
@@ -111,64 +117,68 @@ class Probe:
             self.scalar, self.tf_color, self.tf_opacity = scalar, tf_color, tf_opacity
             self.positions = positions
 
-    def __init__(self):
+    def __init__(self) -> None:
         #: The scalar's classification (value range and texels of the shape).
         self.field = PostClassified()
 
-    def read_params(self, shapes):
+    def read_params(self, shapes: list[mi.Mesh]) -> Probe.Params:
         s = self.field.the_shape(shapes)
         return self.Params(s.attribute_buffer("vertex_scalar"), s.tf_color, s.tf_opacity,
                            s.vertex_positions_buffer())
 
-    def texel(self, v):
+    def texel(self, v: mi.Float) -> mi.Float:
         """The texel coordinate of scalar value ``v``."""
         return self.field.texel(v)
 
-    def vertex_texel(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+    def vertex_texel(self, params: Any, i: mi.UInt32, active: bool | mi.Bool = True,
+                     reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> mi.Float:
         """The texel coordinate of vertex ``i``'s scalar."""
         return self.texel(dr.gather(mi.Float, params.scalar, i, active, mode=reduce))
 
-    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+    def gather(self, params: Any, i: mi.UInt32, active: bool | mi.Bool = True,
+               reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> ScalarPoint:
         return ScalarPoint(self.vertex_texel(params, i, active, reduce),
                            dr.gather(mi.Point3f, params.positions, i, active, mode=reduce))
 
-    def start(self):
+    def start(self) -> Pick | mi.Color3f:
         """The accumulator before the first segment."""
         if self.mean:
             return mi.Color3f(self.initial)
         return Pick(mi.Float(self.initial), mi.Point3f(0.0), mi.Vector3f(0.0), mi.UInt32(0),
                     mi.UInt32(0))
 
-    def visit(self, params, L, length, a0, a1, tet):
+    def visit(self, params: Any, L: Pick | mi.Color3f, length: mi.Float, a0: Any, a1: Any,
+              tet: mi.UInt32) -> tuple[Pick | mi.Color3f, mi.Bool]:
         """``(L, stop)``: the accumulator after a segment of ``length`` in
         ``tet`` whose attributes go linearly from ``a0`` to ``a1``, and where
         the ray may stop."""
         raise NotImplementedError
 
-    def value(self, L):
+    def value(self, L: Pick | mi.Color3f) -> tuple[mi.Float, mi.Bool]:
         """``(texel coordinate, met)`` of the accumulated ``L`` of a ray."""
         if self.mean:
             met = L.y > 0.0
             return L.x / dr.select(met, L.y, 1.0), met
         return L.u, dr.abs(L.u) < 0.5 * NO_VALUE
 
-    def scalar(self, u):
+    def scalar(self, u: mi.Float) -> mi.Float:
         """The scalar (data units) at texel coordinate ``u``."""
         lo, hi = self.field.value_range
         return lo + (u + 0.5) * ((hi - lo) / self.field.resolution)
 
-    def color(self, params, u):
+    def color(self, params: Any, u: mi.Float) -> mi.Color3f:
         """The transfer function's color at texel coordinate ``u``."""
         (color, _), _ = self.field.classify(params, u, u)
         return color
 
-    def finish(self, params, L):
+    def finish(self, params: Any, L: Pick | mi.Color3f) -> tuple[mi.Color3f, mi.Bool, mi.Float]:
         """``(color, met, scalar)`` of a ray's accumulated ``L``: the transfer
         function's color at the value (black where the ray met nothing)."""
         u, met = self.value(L)
         return dr.select(met, self.color(params, u), 0.0), met, self.scalar(u)
 
-    def replay(self, params, buf, L, o, d):
+    def replay(self, params: Any, buf: MeshBuffers, L: Pick, o: mi.Point3f,
+               d: mi.Vector3f) -> mi.Color3f:
         """The pixel color of a ray ``(o, d)`` (detached) whose primal walk
         picked ``L`` (detached), recomputed in ``L.tet`` from ``params`` and
         ``buf`` (attached to the AD graph)."""
@@ -182,7 +192,8 @@ class Probe:
         return dr.select(met, self.color(params, self.replay_value(frame, values, L, o, d)),
                          0.0)
 
-    def replay_value(self, frame, values, L, o, d):
+    def replay_value(self, frame: TetFrame, values: Sequence[mi.Float], L: Pick,
+                     o: mi.Point3f, d: mi.Vector3f) -> mi.Float:
         """The texel coordinate at the picked point, from the tet's corner
         ``values`` (:meth:`replay`)."""
         raise NotImplementedError
@@ -197,7 +208,7 @@ class Projection(Probe):
     visited."""
     MODES = ("max", "min", "mean")
 
-    def __init__(self, mode: str = "max"):
+    def __init__(self, mode: str = "max") -> None:
         super().__init__()
         if mode not in self.MODES:
             raise ValueError(f"projection mode must be one of {self.MODES}, got {mode!r}")
@@ -205,11 +216,12 @@ class Projection(Probe):
         self.mean = mode == "mean"
         self.initial = {"max": -NO_VALUE, "min": NO_VALUE, "mean": 0.0}[mode]
 
-    def better(self, a, b):
+    def better(self, a: mi.Float, b: mi.Float) -> mi.Bool:
         """Whether value ``a`` beats ``b`` (greater for ``max``)."""
         return a > b if self.mode == "max" else a < b
 
-    def visit(self, params, L, length, a0, a1, tet):
+    def visit(self, params: Any, L: Pick | mi.Color3f, length: mi.Float, a0: Any, a1: Any,
+              tet: mi.UInt32) -> tuple[Pick | mi.Color3f, mi.Bool]:
         if self.mean:
             return L + mi.Color3f(length * 0.5 * (a0.u + a1.u), length, 0.0), mi.Bool(False)
         end = self.better(a1.u, a0.u)
@@ -217,7 +229,8 @@ class Projection(Probe):
         pick = Pick(u, dr.select(end, a1.p, a0.p), mi.Vector3f(0.0), tet, mi.UInt32(0))
         return tree_select(self.better(pick.u, L.u), pick, L), mi.Bool(False)
 
-    def replay_value(self, frame, values, L, o, d):
+    def replay_value(self, frame: TetFrame, values: Sequence[mi.Float], L: Pick,
+                     o: mi.Point3f, d: mi.Vector3f) -> mi.Float:
         # The extreme lies on the face of the tet where the ray crosses it
         # (the one of the smallest barycentric coordinate at the primal
         # point), or on a clip plane or the camera's origin (kept where it is).
@@ -248,15 +261,16 @@ class Slice(Probe):
     ``s0 / (s0 - s1)`` where the scalar is ``lerp(u0, u1, f)``; the walk
     stops there."""
 
-    def __init__(self, origin, normal):
+    def __init__(self, origin: npt.ArrayLike, normal: npt.ArrayLike) -> None:
         super().__init__()
         self.origin = np.asarray(origin, np.float64).reshape(3)
         self.normal = unit_vector(normal, "a slice's normal")
 
-    def plane(self):
+    def plane(self) -> tuple[mi.Point3f, mi.Vector3f]:
         return mi.Point3f(*self.origin.tolist()), mi.Vector3f(*self.normal.tolist())
 
-    def visit(self, params, L, length, a0, a1, tet):
+    def visit(self, params: Any, L: Pick | mi.Color3f, length: mi.Float, a0: Any, a1: Any,
+              tet: mi.UInt32) -> tuple[Pick | mi.Color3f, mi.Bool]:
         origin, normal = self.plane()
         s0, s1 = dr.dot(a0.p - origin, normal), dr.dot(a1.p - origin, normal)
         meets = ((length > 0.0) & (s0 != s1) & (dr.minimum(s0, s1) <= 0.0)
@@ -266,16 +280,18 @@ class Slice(Probe):
                     mi.UInt32(0))
         return tree_select(meets, pick, L), meets
 
-    def depth(self, o, d):
+    def depth(self, o: mi.Point3f, d: mi.Vector3f) -> mi.Float:
         """Where the rays ``(o, d)`` meet the plane."""
         origin, normal = self.plane()
         slope = dr.dot(d, normal)
         return dr.dot(origin - o, normal) / dr.select(slope != 0.0, slope, 1.0)
 
-    def replay_value(self, frame, values, L, o, d):
+    def replay_value(self, frame: TetFrame, values: Sequence[mi.Float], L: Pick,
+                     o: mi.Point3f, d: mi.Vector3f) -> mi.Float:
         return frame.at(values, o + d * self.depth(o, d))
 
-    def replay_surface(self, params, buf, L, o, d):
+    def replay_surface(self, params: Any, buf: MeshBuffers, L: Pick, o: mi.Point3f,
+                       d: mi.Vector3f) -> tuple[mi.Color3f, mi.Float]:
         """``(color, t)``: :meth:`replay` and the plane's depth (fixed)."""
         return self.replay(params, buf, L, o, d), self.depth(o, d)
 
@@ -309,7 +325,8 @@ class Isosurface(Probe):
             self.scalar, self.tf_color, self.tf_opacity = scalar, tf_color, tf_opacity
             self.positions, self.gradients, self.values = positions, gradients, values
 
-    def __init__(self, values, gradients: VertexGradients = None):
+    def __init__(self, values: Sequence[float] | mi.Float,
+                 gradients: VertexGradients = None) -> None:
         super().__init__()
         self.values = mi.Float(values)
         self.count = dr.width(self.values)
@@ -318,17 +335,19 @@ class Isosurface(Probe):
         #: Where the shape's vertex gradients are kept between renders.
         self.gradients = gradients if gradients is not None else VertexGradients()
 
-    def read_params(self, shapes):
+    def read_params(self, shapes: list[mi.Mesh]) -> Isosurface.Params:
         s = self.field.the_shape(shapes)
         scalar, positions = s.attribute_buffer("vertex_scalar"), s.vertex_positions_buffer()
         return self.Params(scalar, s.tf_color, s.tf_opacity, positions, self.gradients(s),
                            self.values)
 
-    def gather(self, params, i, active=True, reduce=dr.ReduceMode.Auto):
+    def gather(self, params: Any, i: mi.UInt32, active: bool | mi.Bool = True,
+               reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> Isosurface.Attributes:
         a = Probe.gather(self, params, i, active, reduce)
         return self.Attributes(a.u, a.p, dr.gather(mi.Vector3f, params.gradients, i, active))
 
-    def visit(self, params, L, length, a0, a1, tet):
+    def visit(self, params: Any, L: Pick | mi.Color3f, length: mi.Float, a0: Any, a1: Any,
+              tet: mi.UInt32) -> tuple[Pick | mi.Color3f, mi.Bool]:
         best = mi.Float(2.0)
         value = mi.Float(0.0)
         k = mi.UInt32(0)
@@ -345,22 +364,25 @@ class Isosurface(Probe):
         return tree_select(meets, hit, L), meets
 
     @staticmethod
-    def lambert(n, d):
+    def lambert(n: mi.Vector3f, d: mi.Vector3f) -> mi.Float:
         """The headlight's factor ``|n . d| / |n|`` (1 where ``n`` is 0)."""
         norm = dr.norm(n)
         return dr.select(norm > 0.0, dr.abs(dr.dot(n, d)) / dr.select(norm > 0.0, norm, 1.0),
                          1.0)
 
-    def shade(self, params, L, d):
+    def shade(self, params: Any, L: Pick,
+              d: mi.Vector3f) -> tuple[mi.Color3f, mi.Bool, mi.Point3f]:
         """``(color, met, point)``: the transfer function's color at the hit's
         value lit by the headlight."""
         color, met, _ = self.finish(params, L)
         return color * self.lambert(L.n, d), met, L.p
 
-    def replay(self, params, buf, L, o, d):
+    def replay(self, params: Any, buf: MeshBuffers, L: Pick, o: mi.Point3f,
+               d: mi.Vector3f) -> mi.Color3f:
         return self.replay_surface(params, buf, L, o, d)[0]
 
-    def replay_surface(self, params, buf, L, o, d):
+    def replay_surface(self, params: Any, buf: MeshBuffers, L: Pick, o: mi.Point3f,
+                       d: mi.Vector3f) -> tuple[mi.Color3f, mi.Float]:
         """``(color, t)``: :meth:`replay` and the hit's depth along the ray,
         both closed forms in the hit's tet (differentiable)."""
         _, met = self.value(L)

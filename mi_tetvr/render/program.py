@@ -27,6 +27,7 @@ isosurfaces) and what ``tetvr`` draws inside its volume (its ``overlay``).
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,11 +36,12 @@ import mitsuba as mi
 
 from mi_tetvr.render import layers
 from mi_tetvr.render.adjoint import Adjoint, Derivative
-from mi_tetvr.render.buffers import (MeshBuffers, TetScene, index_buffers, model_groups,
-                                     scene_tetmeshes, tet_scene)
+from mi_tetvr.render.buffers import (MeshBuffers, TetGroup, index_buffers, model_groups,
+                                     scene_tetmeshes, tet_group)
+from mi_tetvr.render.clipping import Clip
 from mi_tetvr.render.merged import merged_trace, overlapping
 from mi_tetvr.render.optical import CellClassified, PostClassified
-from mi_tetvr.render.probes import Isosurface, Projection, Slice, VertexGradients
+from mi_tetvr.render.probes import Isosurface, Pick, Projection, Slice, VertexGradients
 from mi_tetvr.render.cursor import WalkSettings
 from mi_tetvr.render.walk import trace
 
@@ -47,7 +49,8 @@ from mi_tetvr.render.walk import trace
 SURFACE_MODES = ("slice", "iso")
 
 
-def clipped(clip, ray, active=True):
+def clipped(clip: Clip | None, ray: mi.Ray3f,
+            active: bool | mi.Bool = True) -> tuple[mi.Ray3f, float | mi.Float, bool | mi.Bool]:
     """``(ray, t_start, active)``: the rays cut to ``clip`` (None: as they are)."""
     if clip is None:
         return ray, 0.0, active
@@ -57,7 +60,8 @@ def clipped(clip, ray, active=True):
     return ray, t_start, active & (t_end > t_start)
 
 
-def scaled_settings(settings: WalkSettings, retrace_epsilon: float, scene) -> WalkSettings:
+def scaled_settings(settings: WalkSettings, retrace_epsilon: float,
+                    scene: mi.Scene) -> WalkSettings:
     """``settings`` with the re-trace offset scaled to the scene's size."""
     return WalkSettings(settings.t_min, settings.max_steps,
                         retrace_epsilon * float(dr.norm(scene.bbox().extents())),
@@ -78,7 +82,7 @@ class Probes:
     DRJIT_STRUCT = {"iso": mi.Float, "gradients": VertexGradients}
 
     def __init__(self, mode: str, iso: mi.Float, plane: tuple, opacity: float, count: int,
-                 clip, settings: WalkSettings, retrace_epsilon: float):
+                 clip: Clip | None, settings: WalkSettings, retrace_epsilon: float) -> None:
         self.mode, self.iso, (self.origin, self.normal) = mode, iso, plane
         self.opacity, self.count, self.clip = opacity, count, clip
         self.settings, self.retrace_epsilon = settings, retrace_epsilon
@@ -86,12 +90,12 @@ class Probes:
         self.gradients = VertexGradients()
 
     @property
-    def surfaces(self):
+    def surfaces(self) -> bool:
         """Whether the probes are surfaces (slices, isosurfaces)."""
         return self.mode in SURFACE_MODES
 
-    def tet_scene(self, scene, differentiable=False):
-        """The :class:`TetScene` of the scene's one post-classified mesh,
+    def tet_group(self, scene: mi.Scene, differentiable: bool = False) -> TetGroup:
+        """The :class:`TetGroup` of the scene's one post-classified mesh,
         walked by the mode's model (:class:`Projection`, :class:`Slice` or
         :class:`Isosurface`); ``differentiable``: for the derivative passes."""
         shapes = scene_tetmeshes(scene)
@@ -116,9 +120,11 @@ class Probes:
             model = Projection(self.mode)
         index, offsets = index_buffers(shapes)
         buf = MeshBuffers(**index, positions=shapes[0].vertex_positions_buffer())
-        return TetScene(shapes, offsets, buf, model, model.read_params(shapes))
+        return TetGroup(shapes, offsets, buf, model, model.read_params(shapes))
 
-    def walk(self, scene, ts, ray, start, active):
+    def walk(self, scene: mi.Scene, ts: TetGroup, ray: mi.Ray3f, start: float | mi.Float,
+             active: bool | mi.Bool
+             ) -> tuple[tuple[mi.Color3f, mi.Bool, mi.Float | mi.Point3f], Pick | mi.Color3f]:
         """``((color, met, scalar or hit point), pick)`` of the rays walked
         from ``start``."""
         L, _, _, _ = trace(scene, ts, ray, scaled_settings(self.settings, self.retrace_epsilon,
@@ -127,21 +133,26 @@ class Probes:
             return ts.model.shade(ts.params, L, ray.d), L
         return ts.model.finish(ts.params, L), L
 
-    def project(self, scene, ray, active=True):
+    def project(self, scene: mi.Scene, ray: mi.Ray3f, active: bool | mi.Bool = True
+                ) -> tuple[mi.Color3f, mi.Bool, mi.Float | mi.Point3f, Pick | mi.Color3f]:
         """``(color, met, scalar or hit point, pick)`` of the first probe
         along rays (normalised directions)."""
-        ts = self.tet_scene(scene)
+        ts = self.tet_group(scene)
         ray, t_start, active = clipped(self.clip, ray, active)
         out, L = self.walk(scene, ts, ray, t_start, active)
         return (*out, L)
 
-    def layered(self, scene, ray, t_start=0.0, active=True, volume=None, t_min=1e-4):
+    def layered(self, scene: mi.Scene, ray: mi.Ray3f, t_start: float | mi.Float = 0.0,
+                active: bool | mi.Bool = True,
+                volume: Callable[[mi.Ray3f, mi.Float, mi.Bool],
+                                 tuple[mi.Color3f, mi.Float]] | None = None,
+                t_min: float = 1e-4) -> layers.Layered:
         """The surfaces along ``ray`` from ``t_start`` to ``ray.maxt`` (both
         cut further by the clip) composited front to back with ``volume``
         (:func:`~mi_tetvr.render.layers.composite`)."""
         if not self.surfaces:
             raise ValueError(f"tetproj: mode {self.mode!r} shows no surface (slice and iso do)")
-        ts = self.tet_scene(scene)
+        ts = self.tet_group(scene)
         ray, t_clip, active = clipped(self.clip, ray, active)
         eps = self.retrace_epsilon * float(dr.norm(scene.bbox().extents()))
 
@@ -151,11 +162,12 @@ class Probes:
         return layers.composite(find, volume, ray, dr.maximum(t_start, t_clip), active,
                                 layers.Drawing(self.opacity, self.count, eps, t_min))
 
-    def replay(self, scene, state, o, d):
+    def replay(self, scene: mi.Scene, state: layers.Layered | Pick, o: mi.Point3f,
+               d: mi.Vector3f) -> mi.Color3f:
         """A pixel's color recomputed with the parameters' AD graph from the
         primal pass's ``state`` (a :class:`~mi_tetvr.render.layers.Layered`
         for surfaces, else the rays' picks)."""
-        ts = self.tet_scene(scene, differentiable=True)
+        ts = self.tet_group(scene, differentiable=True)
         if self.surfaces:
             return sum((c for c, _, _ in layers.replay(ts, state, o, d)), mi.Color3f(0.0))
         return ts.model.replay(ts.params, ts.buf, state, o, d)
@@ -205,9 +217,9 @@ class VolumeProgram:
     """``tetvr``'s ray program for one scene (see the module docstring),
     built from the integrator's :class:`ProgramOptions`."""
 
-    def __init__(self, scene: mi.Scene, options: ProgramOptions):
+    def __init__(self, scene: mi.Scene, options: ProgramOptions) -> None:
         self.scene = scene
-        self.tets, self.walk_scene, self.surfaces = options.parts.split(scene)
+        self.tets, self.boundaries, self.surfaces = options.parts.split(scene)
         self.parts, self.nested, self.n_sub = options.parts, options.nested, options.n_sub
         self.settings = scaled_settings(options.settings, options.retrace_epsilon, scene)
         self.clip, self.probes = options.clip, options.probes
@@ -220,8 +232,8 @@ class VolumeProgram:
 
     # -- the media ------------------------------------------------------------
 
-    def media(self, differentiable=False):
-        """The :class:`TetScene` of each group of tet meshes that one walk
+    def media(self, differentiable: bool = False) -> list[TetGroup] | None:
+        """The :class:`TetGroup` of each group of tet meshes that one walk
         renders (per mesh where they overlap; else per optical model,
         :func:`~mi_tetvr.render.buffers.model_groups`), None without tet
         meshes; ``differentiable``: read with AD resumed (the derivative
@@ -230,10 +242,13 @@ class VolumeProgram:
             return None
         groups = [[s] for s in self.tets] if self.merged else model_groups(self.tets)
         with dr.resume_grad(when=differentiable):
-            return [tet_scene(g, idx, offsets, n_sub=self.n_sub)
+            return [tet_group(g, idx, offsets, n_sub=self.n_sub)
                     for g, (idx, offsets) in zip(groups, self.index_cache(groups))]
 
-    def walk(self, media, ray, t_start, active, grad=None, t_enter=None):
+    def walk(self, media: list[TetGroup], ray: mi.Ray3f, t_start: float | mi.Float,
+             active: bool | mi.Bool, grad: tuple[Derivative, Adjoint] | None = None,
+             t_enter: float | mi.Float | None = None
+             ) -> tuple[mi.Color3f, mi.Float, mi.UInt32, Adjoint | None]:
         """``(C, T, steps, adj)`` of the media along ``ray`` from ``t_start``
         to ``ray.maxt`` (a derivative pass: ``grad = (deriv, adj)``, its
         context and the rays' adjoint; ``media`` then detached; ``t_enter``:
@@ -241,9 +256,11 @@ class VolumeProgram:
         if self.merged:
             return merged_trace(self.parts.apart(self.tets), media, ray, self.settings, active,
                                 t_start, grad, n_sub=self.n_sub)
-        return trace(self.walk_scene, media, ray, self.settings, active, t_start, grad, t_enter)
+        return trace(self.boundaries, media, ray, self.settings, active, t_start, grad, t_enter)
 
-    def volume(self, media, ray, t_start, active, t_enter=None):
+    def volume(self, media: list[TetGroup] | None, ray: mi.Ray3f, t_start: float | mi.Float,
+               active: bool | mi.Bool,
+               t_enter: float | mi.Float | None = None) -> tuple[mi.Color3f, mi.Float]:
         """``(C, T)`` of the media along ``ray`` from ``t_start``."""
         if media is None:
             if self.remote is not None:
@@ -254,7 +271,7 @@ class VolumeProgram:
 
     # -- the ray's parts ------------------------------------------------------
 
-    def background(self, d, active):
+    def background(self, d: mi.Vector3f, active: bool | mi.Bool) -> mi.Color3f:
         """The environment's radiance along directions ``d`` (black without one)."""
         env = self.scene.environment()
         if env is None:
@@ -263,7 +280,8 @@ class VolumeProgram:
         si.wi = -d
         return mi.Color3f(env.eval(si, active))
 
-    def interval(self, ray, active):
+    def interval(self, ray: mi.Ray3f, active: bool | mi.Bool
+                 ) -> tuple[mi.Ray3f, mi.Ray3f, mi.Bool, float | mi.Float, mi.Bool]:
         """``(ray, nested_ray, hit, t_start, walking)``: the volume's part of
         the rays (up to the first surface, cut by the clip; ``ray.maxt`` its
         end, ``t_start`` its start, ``walking`` where it is not empty), the
@@ -287,7 +305,8 @@ class VolumeProgram:
 
     # -- the passes -----------------------------------------------------------
 
-    def primal(self, ray, sampler, active):
+    def primal(self, ray: mi.Ray3f, sampler: mi.Sampler | None,
+               active: mi.Bool) -> tuple[mi.Color3f, mi.Float, mi.Bool, tuple]:
         """``(L, T, hit, state)``: the pixel value, the transmittance in
         front of what lies behind the volume, where a surface is hit, and
         what the derivative passes need (``(L, T, nested state, layers,
@@ -297,7 +316,7 @@ class VolumeProgram:
         layered = None
         if self.probes is not None:
             layered = self.probes.layered(
-                self.walk_scene, ray, t_start, walking,
+                self.boundaries, ray, t_start, walking,
                 lambda r, s, a: self.volume(media, r, s, a), self.settings.t_min)
             C, T = layered.L, layered.W
         else:
@@ -309,13 +328,15 @@ class VolumeProgram:
         L = C + T * Lb
         return L, T, hit, (L, T, nested_state, layered, Lb)
 
-    def keeps_primal(self):
+    def keeps_primal(self) -> bool:
         """Whether the derivative passes need only the primal's pixel value
         and transmittance (no nested integrator's paths, no layers): then a
         kept primal replaces the primal pass (:mod:`~mi_tetvr.render.replay`)."""
         return self.surfaces is None and self.probes is None
 
-    def derivative(self, mode, ray_ad, sampler, δL, δalpha, state, active):
+    def derivative(self, mode: dr.ADMode, ray_ad: mi.Ray3f, sampler: mi.Sampler,
+                   δL: mi.Spectrum | None, δalpha: mi.Float, state: tuple,
+                   active: mi.Bool) -> tuple[mi.Color3f, mi.Float] | None:
         """A derivative pass over the rays ``ray_ad`` (attached to a
         differentiable sensor, if any) given the primal ``state``: backward
         mode propagates ``δL`` (and the alpha AOV's ``δalpha``) into the
@@ -372,8 +393,9 @@ class VolumeProgram:
             return None
         return adj.dL + seen, dr.select(hit, 0.0, adj.dalpha)
 
-    def behind_derivative(self, mode, ray, nested_ray, sampler, δL, T_fin, nested_state,
-                          active):
+    def behind_derivative(self, mode: dr.ADMode, ray: mi.Ray3f, nested_ray: mi.Ray3f,
+                          sampler: mi.Sampler, δL: mi.Spectrum | None, T_fin: mi.Float,
+                          nested_state: Any, active: mi.Bool) -> float | mi.Color3f:
         """The derivative of ``T L_behind`` w.r.t. what lies behind (the
         environment's parameters, or the surfaces' through the nested
         integrator), taken before the walk's forward mode consumes the input
@@ -393,7 +415,10 @@ class VolumeProgram:
                 return 0.0
             return dr.forward_to(seen, flags=dr.ADFlag.ClearEdges)
 
-    def layers_derivative(self, mode, media_ad, ray, active, layered, behind, δL, δalpha):
+    def layers_derivative(self, mode: dr.ADMode, media_ad: list[TetGroup], ray: mi.Ray3f,
+                          active: mi.Bool, layered: layers.Layered, behind: mi.Color3f,
+                          δL: mi.Spectrum | None,
+                          δalpha: mi.Float) -> tuple[mi.Color3f, mi.Float]:
         """The derivative passes with surfaces in the volume
         (:mod:`~mi_tetvr.render.layers`): the volume's intervals by the walk's
         adjoint (each with the radiance behind it and the transmittance in
@@ -406,7 +431,7 @@ class VolumeProgram:
         zero = mi.Vector3f(0.0)
         dL, dalpha = mi.Color3f(0.0), mi.Float(0.0)
         with dr.resume_grad():
-            probes = self.probes.tet_scene(self.walk_scene, differentiable=True)
+            probes = self.probes.tet_group(self.boundaries, differentiable=True)
             (volume,) = media_ad
             shares = layers.replay(probes, layered, ray.o, ray.d,
                                    [W * layer.T for layer, W in zip(layered.layers, fronts)])

@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import itertools
 import threading
+from typing import Any
 
 import mitsuba as mi
 import numpy as np
 
-from mi_tetvr.mesh import TetMesh, read_tetmesh
+from mi_tetvr.mesh import TetMesh, Topology, read_tetmesh
 from mi_tetvr.mesh.io import choose_scalar
 from mi_tetvr.render.optical import (Absorption, CellClassified, EmissionAbsorption,
                                      PostClassified, PreIntegrated, Shaded)
@@ -61,7 +62,8 @@ def _array_scalars(props):
                          "(or the tensors tf_color and tf_opacity) to map it")
 
 
-def scalar_range(scalar, name, props):
+def scalar_range(scalar: np.ndarray, name: str,
+                 props: mi.Properties | dict[str, Any]) -> tuple[float, float]:
     """``(lo, hi)``, the scalar range a transfer function maps to [0, 1]:
     ``value_min`` and ``value_max``, else the range of ``scalar`` (the array
     ``name``); ValueError where it is empty or the scalar is not finite."""
@@ -76,7 +78,7 @@ def scalar_range(scalar, name, props):
     return lo, hi
 
 
-def check_array_scalars(entry):
+def check_array_scalars(entry: dict[str, Any]) -> None:
     """The shape's checks of a dict entry's scalar tensors that need neither
     the mesh nor a file, with the shape's messages (ValueError): for
     :func:`mi_tetvr.tetmesh_dict`, which makes them before Mitsuba builds the
@@ -89,7 +91,7 @@ def check_array_scalars(entry):
         scalar_range(np.asarray(values, np.float64).reshape(-1), "scalar", entry)
 
 
-def mesh_from_properties(props) -> TetMesh:
+def mesh_from_properties(props: mi.Properties) -> TetMesh:
     """The numpy mesh described by a ``tetmesh`` property set; a topology handed
     for its arrays ``vertices`` and ``tets`` (:func:`hand_topology`) is kept, not
     built again."""
@@ -140,7 +142,7 @@ def mesh_from_properties(props) -> TetMesh:
     return mesh
 
 
-def transfer_function(props):
+def transfer_function(props: mi.Properties) -> TransferFunction | None:
     """The shape's :class:`~mi_tetvr.transfer.TransferFunction`: from the
     ``transfer_function`` file, or from the texel tensors ``tf_color`` (R, 3)
     and ``tf_opacity`` (R,); None without either."""
@@ -162,7 +164,7 @@ def transfer_function(props):
     return TransferFunction.from_texels(color.reshape(-1, 3), opacity)
 
 
-def classification(props):
+def classification(props: mi.Properties) -> str | None:
     """``pre``, ``post`` or ``preintegrated`` with a transfer function, else None."""
     if transfer_function(props) is None:
         return None
@@ -173,7 +175,9 @@ def classification(props):
     return mode
 
 
-def post_classification(props, mesh):
+def post_classification(props: mi.Properties, mesh: TetMesh
+                        ) -> tuple[type[PostClassified], np.ndarray, tuple[float, float],
+                                   np.ndarray, np.ndarray] | None:
     """``(optical model, scalar (n,), value_range, tf_color (R, 3), tf_opacity
     (R,))`` of a post-classified ``tetmesh``, or None when it is not one."""
     tf, mode = transfer_function(props), classification(props)
@@ -253,7 +257,8 @@ def _per_vertex(props, key, attribute, mesh, default: float):
     return values
 
 
-def scattering(props, mesh):
+def scattering(props: mi.Properties,
+               mesh: TetMesh) -> tuple[np.ndarray, np.ndarray, mi.PhaseFunction] | None:
     """``(albedo (n, 3), emission (n, 3), phase)`` of a scattering ``tetmesh``
     (one with an ``albedo``), or None; the scattering properties without an
     albedo are errors."""
@@ -289,7 +294,7 @@ def scattering(props, mesh):
 
 
 
-def shape_properties(entry) -> mi.Properties:
+def shape_properties(entry: dict[str, Any]) -> mi.Properties:
     """The ``mi.Properties`` of a ``tetmesh`` dict entry (as
     :func:`mi_tetvr.tetmesh_dict` makes): its values as they are, nested
     dicts (an ``emitter``, a ``bsdf``) loaded as objects."""
@@ -313,7 +318,7 @@ _keys = itertools.count()
 _lock = threading.Lock()
 
 
-def hand_topology(topology) -> str:
+def hand_topology(topology: Topology) -> str:
     """Keep ``topology`` for the ``tetmesh`` shape about to be built; the key to give
     it as its ``topology`` property (taken once, by that shape)."""
     with _lock:

@@ -9,10 +9,14 @@ hand for each field.
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from typing import Any
+
 import drjit as dr
+import mitsuba as mi
 
 
-def tree_map(fn, *trees):
+def tree_map(fn: Callable[..., Any], *trees: Any) -> Any:
     """``fn`` applied leaf by leaf to structures of the same layout."""
     first = trees[0]
     fields = getattr(type(first), "DRJIT_STRUCT", None)
@@ -26,7 +30,7 @@ def tree_map(fn, *trees):
     return fn(*trees)
 
 
-def tree_leaves(tree):
+def tree_leaves(tree: Any) -> list[Any]:
     """The leaves of a structure, in field order."""
     fields = getattr(type(tree), "DRJIT_STRUCT", None)
     if fields is not None:
@@ -36,25 +40,25 @@ def tree_leaves(tree):
     return [tree]
 
 
-def tree_copy(tree):
+def tree_copy(tree: Any) -> Any:
     """New Dr.Jit wrappers of the same values (``enable_grad`` on the copy
     leaves the original alone)."""
     return tree_map(lambda x: type(x)(x), tree)
 
 
-def tree_add(a, b):
+def tree_add(a: Any, b: Any) -> Any:
     return tree_map(lambda x, y: x + y, a, b)
 
 
-def tree_lerp(a, b, t):
+def tree_lerp(a: Any, b: Any, t: float | mi.Float) -> Any:
     return tree_map(lambda x, y: dr.lerp(x, y, t), a, b)
 
 
-def tree_select(mask, a, b):
+def tree_select(mask: bool | mi.Bool, a: Any, b: Any) -> Any:
     return tree_map(lambda x, y: dr.select(mask, x, y), a, b)
 
 
-def tree_dot(a, b):
+def tree_dot(a: Any, b: Any) -> mi.Float:
     """Sum over the leaves of their inner products (a Float per lane)."""
     total = None
     for x, y in zip(tree_leaves(a), tree_leaves(b)):
@@ -63,7 +67,7 @@ def tree_dot(a, b):
     return total
 
 
-def weighted_sum(weights, trees):
+def weighted_sum(weights: Sequence[mi.Float], trees: Sequence[Any]) -> Any:
     """``sum_j weights[j] * trees[j]``, leaf by leaf."""
     acc = tree_map(lambda x: type(x)(0.0), trees[0])
     for w, tree in zip(weights, trees):

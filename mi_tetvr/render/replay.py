@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import warnings
 from collections import OrderedDict
+from typing import Any
 
 import drjit as dr
 import mitsuba as mi
@@ -49,7 +50,7 @@ import mitsuba as mi
 CAPACITY = 16
 
 
-def derivative_seed(seed):
+def derivative_seed(seed: int | mi.UInt32) -> int:
     """The seed ``mi.render`` gives the derivative pass of a primal render
     with ``seed`` when ``seed_grad`` is left at 0."""
     return int(mi.sample_tea_32(int(seed), 1)[0])
@@ -59,7 +60,7 @@ class PrimalStates:
     """Primal per-ray states keyed by what the derivative pass is called
     with: ``(scene, sensor, seed, spp)``."""
 
-    def __init__(self, capacity=CAPACITY):
+    def __init__(self, capacity: int = CAPACITY) -> None:
         self.capacity = int(capacity)
         if self.capacity < 1:
             raise ValueError(f"tetvr: kept_primals must be >= 1, got {capacity}")
@@ -67,10 +68,12 @@ class PrimalStates:
         self._dropped = OrderedDict()      # keys of the renders dropped (the latest 1024)
 
     @staticmethod
-    def key(scene, sensor, seed, spp):
+    def key(scene: mi.Scene, sensor: mi.Sensor, seed: int | mi.UInt32,
+            spp: int) -> tuple[int, int, int, int]:
         return (id(scene), id(sensor), int(seed), int(spp))
 
-    def put(self, key, primal_seed, state, inputs):
+    def put(self, key: tuple[int, int, int, int], primal_seed: int, state: Any,
+            inputs: list[dr.ArrayBase]) -> None:
         """Keep ``state`` (per-ray arrays, scheduled for evaluation with the
         image) of a primal render with ``primal_seed``; ``inputs`` are the
         scene's differentiable arrays it was rendered with (references are
@@ -85,7 +88,8 @@ class PrimalStates:
             if len(self._dropped) > 1024:
                 self._dropped.popitem(last=False)
 
-    def take(self, key, inputs):
+    def take(self, key: tuple[int, int, int, int],
+             inputs: list[dr.ArrayBase]) -> tuple[int, Any] | None:
         """``(primal_seed, state)`` kept under ``key`` if it was rendered with
         exactly these ``inputs`` (removed either way), else None."""
         entry = self._states.pop(key, None)
@@ -102,7 +106,7 @@ class PrimalStates:
             type(a) is type(b) and a.index == b.index for a, b in zip(kept, inputs))
         return (seed, state) if same else None
 
-    def clear(self):
+    def clear(self) -> None:
         self._states.clear()
 
     def __len__(self):

@@ -38,7 +38,10 @@ that the adjoint takes by Dr.Jit's AD stay finite there: at zero opacity
 """
 from __future__ import annotations
 
+from typing import Any
+
 import drjit as dr
+import mitsuba as mi
 
 from mi_tetvr.render.pytree import tree_lerp
 
@@ -48,7 +51,7 @@ from mi_tetvr.render.pytree import tree_lerp
 _SMALL_X = 0.1
 
 
-def interval_terms(x, A):
+def interval_terms(x: mi.Float, A: mi.Float) -> tuple[mi.Float, mi.Float]:
     """``(1 - A, h)`` of a sub-interval of optical depth ``x >= 0`` and
     transmittance ``A = exp(-x)``: ``h = A - g`` with ``g = (1 - A) / x`` its
     mean transmittance, both without cancellation (``h <= 0``)."""
@@ -84,7 +87,8 @@ def _moments(x, A):
     return P * (1.0 / n), Q * (1.0 / n), T[n]
 
 
-def segment_integral(length, c0, c1, s0, s1, n_sub: int):
+def segment_integral(length: mi.Float, c0: mi.Color3f, c1: mi.Color3f, s0: mi.Float,
+                     s1: mi.Float, n_sub: int) -> tuple[mi.Color3f, mi.Float]:
     """Emission-absorption integral over a segment with linear color and
     extinction (see the module docstring).
 
@@ -119,7 +123,8 @@ def segment_integral(length, c0, c1, s0, s1, n_sub: int):
     return c0 * P + c1 * Q, T
 
 
-def clip_segment(t0, x0, t1, x1, t_begin, t_end):
+def clip_segment(t0: mi.Float, x0: Any, t1: mi.Float, x1: Any, t_begin: mi.Float,
+                 t_end: mi.Float) -> tuple[mi.Float, Any, Any]:
     """Restrict a segment with linear attributes (``t0 -> t1``, values ``x0 ->
     x1``: any Dr.Jit array or ``DRJIT_STRUCT`` of them) to ``[t_begin,
     t_end]``. Returns ``(length, x_begin, x_end)``; unclipped segments pass
@@ -160,7 +165,9 @@ def _exp_moments(x, A):
     return tuple(dr.select(small, s, m) for s, m in zip(series, (m0, m1, m2)))
 
 
-def merged_integral(length, media, n_sub: int):
+def merged_integral(length: mi.Float,
+                    media: list[tuple[mi.Color3f, mi.Color3f, mi.Float, mi.Float]],
+                    n_sub: int) -> tuple[mi.Color3f, mi.Float]:
     """Emission and transmittance of a piece where several media overlap,
     each with linear color and extinction (``media``: ``(c0, c1, s0, s1)``
     per medium): extinctions add, and so do emissions ``s_k c_k``::

@@ -15,16 +15,19 @@ walk traces a scene of the tet meshes alone (:class:`SceneParts`).
 """
 from __future__ import annotations
 
+from os import PathLike
+from typing import Any
+
 import drjit as dr
 import mitsuba as mi
 
 
-def is_tetmesh(shape):
+def is_tetmesh(shape: mi.Shape) -> bool:
     """Whether ``shape`` is a ``tetmesh`` (it carries the walk's index arrays)."""
     return hasattr(shape, "tet_buffers")
 
 
-def split_shapes(scene):
+def split_shapes(scene: mi.Scene) -> tuple[list[mi.Mesh], list[mi.Shape]]:
     """``(tetmeshes, surfaces)``: the scene's ``tetmesh`` shapes and its other
     shapes."""
     tets, surfaces = [], []
@@ -75,12 +78,12 @@ class SceneParts:
     (a new vertex buffer or bounding box).
     """
 
-    def __init__(self):
+    def __init__(self) -> None:
         self._walk = None
         self._surfaces = None
         self._apart = {}
 
-    def apart(self, tets):
+    def apart(self, tets: list[mi.Mesh]) -> list[mi.Scene]:
         """A scene of each tet mesh alone (the merged walk traces each mesh's
         boundary apart: coincident faces of two meshes are then both found)."""
         out, kept = [], {}
@@ -92,8 +95,10 @@ class SceneParts:
         self._apart = kept
         return out
 
-    def split(self, scene):
-        """``(tet meshes, walk scene, surfaces scene or None)``."""
+    def split(self, scene: mi.Scene) -> tuple[list[mi.Mesh], mi.Scene, mi.Scene | None]:
+        """``(tet meshes, boundaries, surfaces)``: the scene's tet meshes, a
+        scene of their boundaries (the scene itself without surfaces) and a
+        scene of the other shapes (None without any)."""
         tets, surfaces = split_shapes(scene)
         if not surfaces:
             return tets, scene, None
@@ -108,7 +113,7 @@ class SceneParts:
         return tets, self._walk[1], self._surfaces[1]
 
 
-def lights_scene(path):
+def lights_scene(path: str | PathLike) -> dict[str, mi.Shape | mi.Emitter]:
     """``{name: object}`` of a Mitsuba scene file's emitters and shapes (the
     known lighting of a scattering fit, the lights of a lit render), for a
     scene dict."""
@@ -135,7 +140,7 @@ class NestedIntegrator:
     ``prb_projective``, ...) run in all three modes; others (``path``,
     ``direct``, ...) in the primal mode only."""
 
-    def __init__(self, integrator):
+    def __init__(self, integrator: mi.Object) -> None:
         if not isinstance(integrator, mi.SamplingIntegrator):
             raise ValueError(f"tetvr: the 'surfaces' child must be a sampling integrator "
                              f"(e.g. prb, path, direct), got {type(integrator).__name__}")
@@ -145,7 +150,8 @@ class NestedIntegrator:
     def __repr__(self):
         return repr(self.integrator)
 
-    def primal(self, scene, sampler, ray, active):
+    def primal(self, scene: mi.Scene, sampler: mi.Sampler | None, ray: mi.Ray3f,
+               active: mi.Bool) -> tuple[mi.Color3f, Any]:
         """``(L, state)``: the surfaces' radiance along ``ray`` and what the
         derivative modes need of it."""
         if sampler is None:
@@ -158,7 +164,8 @@ class NestedIntegrator:
         L, _, _ = self.integrator.sample(scene, sampler, ray, None, active)
         return mi.Color3f(L), None
 
-    def derivative(self, mode, scene, sampler, ray, δL, state, active):
+    def derivative(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
+                   δL: mi.Spectrum | None, state: Any, active: mi.Bool) -> mi.Color3f | None:
         """Backward mode: propagate ``δL`` (the adjoint of the surfaces'
         radiance) into the surfaces' parameters; forward mode: return the
         radiance's tangent (0 where no parameter of the surfaces scene, its

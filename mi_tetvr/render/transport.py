@@ -36,12 +36,14 @@ integrand (the crossings move, the field at a sampled point moves); like
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import drjit as dr
 import mitsuba as mi
 
-from mi_tetvr.render.buffers import TetScene
-from mi_tetvr.render.cursor import Entry, Span, WalkSettings, traverse, traverse_merged
+from mi_tetvr.render.buffers import TetGroup
+from mi_tetvr.render.cursor import (Cursor, Entry, Piece, Pieces, Span, WalkSettings, traverse,
+                                    traverse_merged)
 from mi_tetvr.render.geometry import RayFrame, crossing_at, face_crossing
 from mi_tetvr.render.linear import TetFrame
 from mi_tetvr.render.pytree import tree_select, weighted_sum
@@ -51,7 +53,7 @@ from mi_tetvr.render.segment import clip_segment
 TAU_STOP = 30.0
 
 
-def solve_depth(s0, s1, length, r):
+def solve_depth(s0: mi.Float, s1: mi.Float, length: mi.Float, r: mi.Float) -> mi.Float:
     """The distance ``x`` in ``[0, length]`` at which a piece whose
     extinction goes linearly from ``s0`` to ``s1`` reaches optical depth
     ``r``: the root of ``s0 x + (s1 - s0) x^2 / (2 length) = r`` (in the
@@ -76,12 +78,16 @@ class Flight:
     DRJIT_STRUCT = {"tau": mi.Float, "hit": mi.Bool, "t": mi.Float, "tet": mi.UInt32,
                     "s": mi.Float, "mesh": mi.UInt32, "dtau": mi.Float}
 
-    def __init__(self, tau=None, hit=None, t=None, tet=None, s=None, mesh=None, dtau=None):
+    def __init__(self, tau: mi.Float | None = None, hit: mi.Bool | None = None,
+                 t: mi.Float | None = None, tet: mi.UInt32 | None = None,
+                 s: mi.Float | None = None, mesh: mi.UInt32 | None = None,
+                 dtau: mi.Float | None = None) -> None:
         self.tau, self.hit, self.t, self.tet, self.s = tau, hit, t, tet, s
         self.mesh, self.dtau = mesh, dtau
 
 
-def extinction(params, i, active=True, reduce=dr.ReduceMode.Auto):
+def extinction(params: Any, i: mi.UInt32, active: bool | mi.Bool = True,
+               reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> mi.Float:
     """The extinction of vertex ``i`` (every scattering and emission model's
     ``opacity``): all that a free flight reads per vertex. ``reduce``: the
     scatter strategy of the gather's derivative."""
@@ -100,7 +106,8 @@ class Depth:
     label = "tetpath_depth"
     cuts = False
 
-    def __init__(self, ts: TetScene, ts_ad: TetScene, target, grad, reduce):
+    def __init__(self, ts: TetGroup, ts_ad: TetGroup, target: mi.Float,
+                 grad: tuple[dr.ADMode, mi.Float] | None, reduce: dr.ReduceMode) -> None:
         self.ts, self.ts_ad, self.params, self.target = ts, ts_ad, ts.params, target
         self.grad, self.reduce = grad, reduce
         self.geometric = False
@@ -108,19 +115,21 @@ class Depth:
             with dr.resume_grad():
                 self.geometric = dr.grad_enabled(ts_ad.buf.positions)
 
-    def gather(self, i, active):
+    def gather(self, i: mi.UInt32, active: bool | mi.Bool) -> mi.Float:
         return extinction(self.params, i, active)
 
-    def begin(self, acc: Flight, cur, fr: RayFrame, active) -> Flight:
+    def begin(self, acc: Flight, cur: Cursor, fr: RayFrame, active: mi.Bool) -> Flight:
         return acc
 
-    def end(self, acc: Flight, cur, stay, walked, fr: RayFrame) -> Flight:
+    def end(self, acc: Flight, cur: Cursor, stay: mi.Bool, walked: mi.Bool,
+            fr: RayFrame) -> Flight:
         return acc
 
-    def alive(self, acc: Flight):
+    def alive(self, acc: Flight) -> mi.Bool:
         return ~acc.hit & (acc.tau < TAU_STOP)
 
-    def piece(self, acc: Flight, p, span: Span, fr: RayFrame, active):
+    def piece(self, acc: Flight, p: Piece, span: Span, fr: RayFrame,
+              active: mi.Bool) -> tuple[Flight, mi.Bool]:
         t, a, t_out, a_out = p.cur.t, p.cur.a, p.t1, p.a1
         length, a0, a1 = clip_segment(t, a, t_out, a_out, span.begin, span.end)
         t0 = dr.clip(t, span.begin, span.end)
@@ -184,13 +193,15 @@ class MergedDepth:
     tracer's collision weights stay those of one medium. Derivatives w.r.t.
     the media, not vertex positions (:func:`check_derivatives`)."""
     label = "tetpath_merged"
-    boundaries = False
+    boundary_terms = False
 
-    def __init__(self, meshes: list, target, grad, reduce, pick):
+    def __init__(self, meshes: list, target: mi.Float, grad: tuple[dr.ADMode, mi.Float] | None,
+                 reduce: dr.ReduceMode, pick: mi.Float) -> None:
         self.members = [Depth(ts, ts_ad, target, grad, reduce) for ts, ts_ad in meshes]
         self.target, self.grad, self.reduce, self.pick = target, grad, reduce, pick
 
-    def piece(self, acc: Flight, pc, fr: RayFrame, active):
+    def piece(self, acc: Flight, pc: Pieces, fr: RayFrame,
+              active: mi.Bool) -> tuple[Flight, mi.Bool]:
         K = len(self.members)
         s0 = sum((dr.select(pc.inside[k], pc.a0[k], 0.0) for k in range(K)), mi.Float(0.0))
         s1 = sum((dr.select(pc.inside[k], pc.a1[k], 0.0) for k in range(K)), mi.Float(0.0))
@@ -244,7 +255,7 @@ class MergedDepth:
         return total
 
 
-def check_derivatives(ps: PathScene):
+def check_derivatives(ps: PathInputs) -> None:
     """ValueError where a derivative pass would need what the walk does not
     differentiate: vertex positions of meshes that overlap in space."""
     if ps.apart is None:
@@ -258,8 +269,9 @@ def check_derivatives(ps: PathScene):
                          f"disable the gradients of their vertex_positions")
 
 
-def flight(ps: PathScene, ray: mi.Ray3f, target, entry: Entry, active, grad=None,
-           pick=None) -> Flight:
+def flight(ps: PathInputs, ray: mi.Ray3f, target: float | mi.Float, entry: Entry,
+           active: bool | mi.Bool, grad: tuple[dr.ADMode, mi.Float] | None = None,
+           pick: mi.Float | None = None) -> Flight:
     """Walk a ray (from ``ray.o`` along the normalized ``ray.d`` up to
     ``ray.maxt``) through the scattering meshes of ``ps`` until the optical
     depth reaches ``target`` (``inf``: the transmittance ``exp(-tau)`` of
@@ -285,11 +297,12 @@ def flight(ps: PathScene, ray: mi.Ray3f, target, entry: Entry, active, grad=None
         acc, _ = traverse_merged(ps.apart, client, fr, acc, span, ps.settings, active)
         return acc
     client = Depth(ps.ts, ps.ts_ad, target, grad, ps.settings.reduce)
-    acc, _ = traverse(ps.walk_scene, [client], fr, acc, span, ps.settings, active, entry)
+    acc, _ = traverse(ps.boundaries, [client], fr, acc, span, ps.settings, active, entry)
     return acc
 
 
-def attributes_at(ts_ad, tet, p, active=True, reduce=dr.ReduceMode.Auto):
+def attributes_at(ts_ad: TetGroup, tet: mi.UInt32, p: mi.Point3f, active: bool | mi.Bool = True,
+                  reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> Any:
     """The model's attributes at point ``p`` of ``tet`` (barycentric in the
     tet), attached to the parameters' AD graph: the field at a sampled point,
     moving with the vertices (``reduce``: the gathers' scatter strategy)."""
@@ -301,24 +314,24 @@ def attributes_at(ts_ad, tet, p, active=True, reduce=dr.ReduceMode.Auto):
 
 
 @dataclass
-class PathScene:
+class PathInputs:
     """What the path tracer reads for one scene."""
     scene: mi.Scene              # the user's scene (its emitters)
-    ts: TetScene                 # the scattering meshes, detached (the walk reads these)
-    ts_ad: TetScene              # the same, attached to the parameters' AD graph
-    walk_scene: mi.Scene         # the meshes' boundaries (the walk traces these)
+    ts: TetGroup                 # the scattering meshes, detached (the walk reads these)
+    ts_ad: TetGroup              # the same, attached to the parameters' AD graph
+    boundaries: mi.Scene         # the meshes' boundaries (the walk traces these)
     surfaces: mi.Scene           # the other shapes (an empty scene without any)
     phase: mi.PhaseFunction      # the meshes' phase function
     settings: WalkSettings
     max_depth: int               # as Mitsuba's ``volpath``
     rr_depth: int
     #: Meshes that overlap in space: ``(ts, ts_ad)`` of each, and a scene of
-    #: each one's boundary alone (``ts``, ``ts_ad``, ``walk_scene`` unused).
+    #: each one's boundary alone (``ts``, ``ts_ad``, ``boundaries`` unused).
     meshes: list = None
     apart: list = None
 
 
-def _collision_attributes(ps: PathScene, fl: Flight, p, active, attached: bool):
+def _collision_attributes(ps: PathInputs, fl: Flight, p, active, attached: bool):
     """The medium's attributes at a collision ``p`` (:func:`attributes_at`),
     in the mesh it is in (``fl.mesh`` where meshes overlap); ``attached``: of
     the buffers attached to the AD graph."""
@@ -376,7 +389,9 @@ class _Grad:
 
 
 @dr.syntax
-def sample(mode, ps: PathScene, sampler, ray, δL, state_in, active):
+def sample(mode: dr.ADMode, ps: PathInputs, sampler: mi.Sampler, ray: mi.Ray3f,
+           δL: mi.Spectrum | None, state_in: mi.Spectrum | None,
+           active: bool | mi.Bool) -> tuple[mi.Spectrum, mi.Bool, mi.Float, mi.Spectrum]:
     """Mitsuba's ``sample`` of the path tracer (see the module docstring):
     ``(L or its derivative, valid, alpha, L)``; ``alpha`` is 1 where the
     camera ray's first segment met the medium or a surface (its mean over a

@@ -19,10 +19,10 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.render import adjoint
-from mi_tetvr.render.buffers import TetScene
+from mi_tetvr.render.buffers import TetGroup
 from mi_tetvr.render.cursor import Cursor, Entry, Piece, Span, WalkSettings, traverse
 from mi_tetvr.render.geometry import RayFrame, walk_step
-from mi_tetvr.render.probes import Probe
+from mi_tetvr.render.probes import Pick, Probe
 from mi_tetvr.render.segment import clip_segment
 
 
@@ -43,22 +43,23 @@ class Emission:
     probe) along rays through the meshes of ``ts``."""
     label = "tetvr_walk"
 
-    def __init__(self, ts: TetScene, settings: WalkSettings):
+    def __init__(self, ts: TetGroup, settings: WalkSettings) -> None:
         self.ts, self.model, self.params = ts, ts.model, ts.params
         self.cuts = ts.model.cuts
         self.probe = isinstance(ts.model, Probe)
         self.t_min = settings.t_min
 
-    def gather(self, i, active):
+    def gather(self, i: mi.UInt32, active: bool | mi.Bool) -> Any:
         return self.model.gather(self.params, i, active)
 
-    def cut(self, a0, a1):
+    def cut(self, a0: Any, a1: Any) -> mi.Float:
         return self.model.cut(a0, a1)
 
-    def begin(self, acc: Radiance, cur: Cursor, fr: RayFrame, active) -> Radiance:
+    def begin(self, acc: Radiance, cur: Cursor, fr: RayFrame, active: mi.Bool) -> Radiance:
         return acc
 
-    def piece(self, acc: Radiance, p: Piece, span: Span, fr: RayFrame, active):
+    def piece(self, acc: Radiance, p: Piece, span: Span, fr: RayFrame,
+              active: mi.Bool) -> tuple[Radiance, mi.Bool]:
         length, a0, a1 = clip_segment(p.cur.t, p.cur.a, p.t1, p.a1, span.begin, span.end)
         if self.probe:
             # (a probe picks: the ray goes on, T = 1, until it stops, T = 0)
@@ -70,10 +71,11 @@ class Emission:
             L, T = acc.L + acc.T * C_seg, acc.T * T_seg
         return Radiance(L, T), T > self.t_min
 
-    def end(self, acc: Radiance, cur: Cursor, stay, walked, fr: RayFrame) -> Radiance:
+    def end(self, acc: Radiance, cur: Cursor, stay: mi.Bool, walked: mi.Bool,
+            fr: RayFrame) -> Radiance:
         return acc
 
-    def alive(self, acc: Radiance):
+    def alive(self, acc: Radiance) -> mi.Bool:
         return acc.T > self.t_min
 
 
@@ -82,22 +84,24 @@ class EmissionDerivative(Emission):
     the detached buffers ``ts``, each segment differentiated through
     ``ts_ad`` (attached) by :func:`~mi_tetvr.render.adjoint.segment`."""
 
-    def __init__(self, ts: TetScene, ts_ad: TetScene, deriv: adjoint.Derivative,
-                 settings: WalkSettings):
+    def __init__(self, ts: TetGroup, ts_ad: TetGroup, deriv: adjoint.Derivative,
+                 settings: WalkSettings) -> None:
         super().__init__(ts, settings)
         self.ts_ad, self.deriv, self.reduce = ts_ad, deriv, settings.reduce
 
-    def begin(self, acc: Radiance, cur: Cursor, fr: RayFrame, active) -> Radiance:
+    def begin(self, acc: Radiance, cur: Cursor, fr: RayFrame, active: mi.Bool) -> Radiance:
         entry_ids = tuple(c.i for c in cur.carry[0])
         pending = adjoint.start(self.deriv, self.ts_ad, entry_ids, fr, active)
         return Radiance(acc.L, acc.T, acc.adj, pending)
 
-    def piece(self, acc: Radiance, p: Piece, span: Span, fr: RayFrame, active):
+    def piece(self, acc: Radiance, p: Piece, span: Span, fr: RayFrame,
+              active: mi.Bool) -> tuple[Radiance, mi.Bool]:
         C_seg, T_seg, adj, pending = adjoint.segment(self.deriv, self, p, acc, span, fr, active)
         T = acc.T * T_seg
         return Radiance(acc.L + acc.T * C_seg, T, adj, pending), T > self.t_min
 
-    def end(self, acc: Radiance, cur: Cursor, stay, walked, fr: RayFrame) -> Radiance:
+    def end(self, acc: Radiance, cur: Cursor, stay: mi.Bool, walked: mi.Bool,
+            fr: RayFrame) -> Radiance:
         if not self.deriv.backward:
             return Radiance(acc.L, acc.T, acc.adj)
         exit_face = None
@@ -109,15 +113,17 @@ class EmissionDerivative(Emission):
         return Radiance(acc.L, acc.T, adj)
 
 
-def trace(scene: mi.Scene, ts, ray: mi.Ray3f, settings: WalkSettings, active, t_start=0.0,
-          grad: tuple = None, t_enter=None):
+def trace(scene: mi.Scene, ts: TetGroup | list[TetGroup], ray: mi.Ray3f,
+          settings: WalkSettings, active: bool | mi.Bool, t_start: float | mi.Float = 0.0,
+          grad: tuple = None, t_enter: float | mi.Float | None = None
+          ) -> tuple[mi.Color3f | Pick, mi.Float, mi.UInt32, adjoint.Adjoint | None]:
     """Emission and transmittance along rays through the tet meshes.
 
     Parameters
     ----------
     scene : mi.Scene
         Its shapes must be exactly the tet meshes of ``ts`` (their boundaries).
-    ts : mi_tetvr.render.buffers.TetScene, or a list of them
+    ts : mi_tetvr.render.buffers.TetGroup, or a list of them
         One per group of shapes that one walk renders (an optical model:
         :func:`~mi_tetvr.render.buffers.model_groups`). Each boundary hit is
         walked in its own group's mesh.
@@ -147,7 +153,7 @@ def trace(scene: mi.Scene, ts, ray: mi.Ray3f, settings: WalkSettings, active, t_
     else:
         deriv, adj = grad
         clients = [EmissionDerivative(g, g_ad, deriv, settings)
-                   for g, g_ad in zip(groups, deriv.scenes)]
+                   for g, g_ad in zip(groups, deriv.groups)]
     model = groups[0].model
     L = model.start() if isinstance(model, Probe) else mi.Color3f(0.0)
     acc = Radiance(L, dr.full(mi.Float, 1.0, dr.width(ray.o)), adj)

@@ -177,4 +177,4 @@ def test_cell_data_from_a_file_and_refusals(cells, tmp_path):
         proj = mi.load_dict({"type": "scene", "integrator": {"type": "tetproj"},
                              "mesh0": scene_of(*cells).shapes()[0]})
         with dr.suspend_grad():
-            proj.integrator().tet_scene(proj)
+            proj.integrator().tet_group(proj)

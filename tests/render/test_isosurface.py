@@ -96,7 +96,7 @@ def _lambert(scene, o, d):
     """|n . d| of the hits' shading normals (the headlight's Lambert factor)."""
     with dr.suspend_grad():
         integrator = scene.integrator()
-        ts = integrator.tet_scene(scene)
+        ts = integrator.tet_group(scene)
         from mi_tetvr.render.cursor import WalkSettings
         from mi_tetvr.render.walk import trace
         L, _, _, _ = trace(scene, ts, make_rays(o, d),

@@ -82,7 +82,7 @@ def test_four_models_in_one_scene(meshes):
     functions and value ranges, an absorption mesh: one image."""
     names = list(BOXES)
     scene = scene_of(meshes, names)
-    assert len(scene.integrator().tet_scenes(scene)) == 4
+    assert len(scene.integrator().tet_groups(scene)) == 4
     rng = np.random.default_rng(51)
     o, d = rays_at(rng, 384, radius=6.0, target_extent=2.0)
     rgb, alpha = render_rays(scene, o, d)

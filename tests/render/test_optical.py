@@ -9,7 +9,7 @@ import pytest
 from tests.helpers import make_scene, rays_at
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.render.adjoint import Adjoint, Derivative
-from mi_tetvr.render.buffers import TetScene
+from mi_tetvr.render.buffers import TetGroup
 from mi_tetvr.render.optical import Absorption
 from mi_tetvr.render.walk import trace
 from tests.reference import reference_render
@@ -30,8 +30,8 @@ def absorption_scene(scene, opacity):
     """The scene's tet meshes under the absorption-only model, with the given
     extinction buffer (the shapes carry color too; the model ignores it)."""
     integrator = scene.integrator()
-    ts = integrator.tet_scene(scene)
-    return TetScene(ts.shapes, ts.face_offsets, ts.buf, Absorption(), Absorption.Params(opacity))
+    ts = integrator.tet_group(scene)
+    return TetGroup(ts.shapes, ts.face_offsets, ts.buf, Absorption(), Absorption.Params(opacity))
 
 
 def rays(o, d):

@@ -198,7 +198,7 @@ def test_merged_walk_moves_on_at_every_knot(meshes, tmp_path):
     ray = make_rays(*rays_at(np.random.default_rng(75), 256, radius=20.0, target_extent=1.0))
     tets = integrator.parts.split(scene)[0]
     _, _, steps, _ = merged_trace(integrator.parts.apart(tets),
-                                  integrator.tet_scenes(scene), ray,
+                                  integrator.tet_groups(scene), ray,
                                   integrator.settings_for(scene), True)
     steps = np.array(steps)
     # Measured: at most 299 iterations (tets of both meshes, the ramp's knots, boundary faces).

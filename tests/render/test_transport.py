@@ -105,7 +105,7 @@ def linear_walk(cube):
     V, T = cube
     scene = mi.load_dict({"type": "scene", "vol": mi_tetvr.tetmesh_dict(
         V, T, opacity=A + B * V[:, 0], albedo=0.5)})
-    return mi.load_dict({"type": "tetpath"}).path_scene(scene)
+    return mi.load_dict({"type": "tetpath"}).path_inputs(scene)
 
 
 def rays(o, d, t_max):
@@ -418,7 +418,7 @@ def test_overlapping_meshes_walk_as_their_summed_extinction(overlapping):
         params = mi.traverse(scene)
         dr.enable_grad(params["a.vertex_opacity"])
         params.update()
-        ps = scene.integrator().path_scene(scene)
+        ps = scene.integrator().path_inputs(scene)
         assert (ps.apart is not None) == (scene is two)
         with dr.suspend_grad():
             fl = flight(ps, rays(o, d, dr.inf), mi.Float(dr.inf), None, mi.Bool(True),
