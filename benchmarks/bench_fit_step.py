@@ -92,7 +92,7 @@ def tets_per_ray(trainer, view):
     scene = trainer.scene
     integrator = scene.integrator()
     rays = view.camera.rays_drjit()
-    _, _, steps, _ = trace(scene, integrator.tet_scene(scene), rays,
+    _, _, steps, _ = trace(scene, integrator.tet_group(scene), rays,
                            integrator.settings_for(scene), True)
     dr.eval(steps)
     return np.array(steps, np.float64)
@@ -129,7 +129,7 @@ def walk_rates(trainer, view, cells=64):
 
     def rate(scene, cam):
         integrator = scene.integrator()
-        ts, settings = integrator.tet_scene(scene), integrator.settings_for(scene)
+        ts, settings = integrator.tet_group(scene), integrator.settings_for(scene)
         rays = cam.rays_drjit()
         out = {}
 

@@ -93,7 +93,7 @@ def pixel_rays(scene, res):
 def tets_per_ray(scene, ray):
     integrator = scene.integrator()
     with dr.suspend_grad():
-        _, _, steps, _ = trace(scene, integrator.tet_scene(scene), ray,
+        _, _, steps, _ = trace(scene, integrator.tet_group(scene), ray,
                                integrator.settings_for(scene), True)
     steps = np.asarray(steps)
     hit = steps > 0

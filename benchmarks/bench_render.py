@@ -70,7 +70,7 @@ mi.set_variant(ARGS.variant)
 
 import mi_tetvr  # noqa: E402,F401
 from mi_tetvr.mesh.topology import build_topology  # noqa: E402
-from mi_tetvr.render.buffers import MeshBuffers, TetScene, shape_index_arrays  # noqa: E402
+from mi_tetvr.render.buffers import MeshBuffers, TetGroup, shape_index_arrays  # noqa: E402
 from mi_tetvr.render.cursor import WalkSettings  # noqa: E402
 from mi_tetvr.render.walk import trace  # noqa: E402
 from plain_walk import plain_trace  # noqa: E402
@@ -103,7 +103,7 @@ def main(a):
     diag = float(dr.norm(scene.bbox().extents()))
     settings = WalkSettings(0.0, integrator.settings.max_steps,
                             integrator.retrace_epsilon * diag)
-    ts = integrator.tet_scene(scene)
+    ts = integrator.tet_group(scene)
     dr.eval(ts.buf, ts.params)
 
     def run_render():
@@ -131,7 +131,7 @@ def main(a):
                 run_plain("alg1", a.baseline_n_sub))]
     if a.shuffle:
         # The same walk on the tet records in the file's order.
-        unordered = TetScene(ts.shapes, ts.face_offsets, MeshBuffers(
+        unordered = TetGroup(ts.shapes, ts.face_offsets, MeshBuffers(
             **{k: type(getattr(ts.buf, k))(x) for k, x in
                shape_index_arrays(topo, v, reorder=False).items()},
             positions=ts.buf.positions), ts.model, ts.params)

@@ -107,7 +107,7 @@ def measure(cells, res, repeat):
         sampler, _ = integrator.prepare(sensor, 0, 1, [])
         ray, _, _ = integrator.sample_rays(scene, sensor, sampler)
         ray.d = dr.normalize(ray.d)
-        _, _, steps, _ = trace(scene, integrator.tet_scene(scene), ray,
+        _, _, steps, _ = trace(scene, integrator.tet_group(scene), ray,
                                integrator.settings_for(scene), True)
     steps = np.asarray(steps, np.int64)
     return dict(cells=cells, tets=len(tets), vertices=len(v), res=res, load_s=load,

@@ -129,7 +129,7 @@ def grid_scene(sigma, albedo, n, integrator):
                                   "interior": grid_medium(sigma, albedo, n)}})
 
 
-def tet_scene(V, T, sigma, albedo, integrator="tetpath"):
+def tet_group(V, T, sigma, albedo, integrator="tetpath"):
     return mi.load_dict({"type": "scene", **LIGHTS,
                          "integrator": {"type": integrator, "max_depth": 8},
                          "vol": mi_tetvr.tetmesh_dict(V, T, opacity=sigma, albedo=albedo)})
@@ -209,7 +209,7 @@ def main(a):
     n0 = len(V)
     keys = ["vol.vertex_opacity", "vol.vertex_albedo"]
     mesh = {"V": V, "T": T}
-    scene = tet_scene(V, T, np.full(len(V), 0.5), np.full((len(V), 3), 0.5))
+    scene = tet_group(V, T, np.full(len(V), 0.5), np.full((len(V), 3), 0.5))
 
     def refine(stage, scene, values):
         sigma = values[keys[0]]

@@ -95,7 +95,7 @@ def main(a):
     rays = pixel_rays(scene.sensors()[0], a.res)
     settings = WalkSettings(0.0, integrator.settings.max_steps,
                             integrator.retrace_epsilon * float(dr.norm(scene.bbox().extents())))
-    ts = integrator.tet_scene(scene)
+    ts = integrator.tet_group(scene)
     dr.eval(ts.buf, ts.params)
     steps = [0]
 

@@ -121,12 +121,12 @@ def walk_work(tet, res):
     """Mean tets crossed per camera ray through the cube (pixel centres), and
     delta tracking's expected steps on the same rays (majorant x chord)."""
     integrator = tet.integrator()
-    ps = integrator.path_scene(tet)
+    ps = integrator.path_inputs(tet)
     sensor = tet.sensors()[0]
     idx = dr.arange(mi.UInt32, res * res)
     pos = mi.Vector2f(mi.Float(idx % res) + 0.5, mi.Float(idx // res) + 0.5) / res
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
-    _, T, steps, _ = trace(ps.walk_scene, ps.ts, ray, ps.settings, mi.Bool(True))
+    _, T, steps, _ = trace(ps.boundaries, ps.ts, ray, ps.settings, mi.Bool(True))
     steps = np.asarray(steps, np.float64)
     o, d = np.asarray(ray.o).T, np.asarray(ray.d).T
     with np.errstate(divide="ignore", invalid="ignore"):

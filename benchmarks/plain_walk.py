@@ -84,7 +84,7 @@ def alg1_segment(length, c0, c1, s0, s1, n_sub: int):
 def plain_trace(scene, ts, ray, t_min: float, max_steps: int, integral: str = "model"):
     """Emission, transmittance and tets crossed along ``ray`` (normalized
     directions) through the convex tet mesh of ``scene`` (``ts`` its
-    :class:`~mi_tetvr.render.buffers.TetScene`)."""
+    :class:`~mi_tetvr.render.buffers.TetGroup`)."""
     buf, model, params = ts.buf, ts.model, ts.params
     o = mi.Point3f(ray.o)
     d = mi.Vector3f(ray.d)
