@@ -70,6 +70,7 @@ def limited_load(pvtu, which, limit):
 
     import mitsuba as mi
     mi.set_variant(ARGS.variant)
+    import mi_tetvr
     from mi_tetvr.mesh.partition import read_partition, read_piece
     part = read_partition(pvtu)
     with open("/proc/self/status") as f:
