@@ -371,25 +371,32 @@ def test_emission_only_is_tetvr_in_expectation(cube):
 C, D = 0.6, -0.4
 
 
-@pytest.fixture(scope="module")
-def overlapping(cube):
-    """Two meshes of the cube (4^3 and 3^3 cells: their tets and inner faces
-    differ, their boundaries coincide) with linear extinctions ``A + B x``
-    and ``C + D y``, and the one mesh whose extinction is their sum (linear
-    fields are exact on any tessellation), all with one albedo and one phase
-    function: the same medium, walked with a cursor per mesh or with one."""
+def cube_pair(cube, first, second, *singles):
+    """Two meshes of the cube that overlap (4^3 and 3^3 cells: their tets
+    and inner faces differ, their boundaries coincide) and single meshes of
+    it (4^3 cells), each medium given as ``(opacity(V), albedo)``; one phase
+    function, an area light. Returns ``(the pair's scene, [the singles'])``."""
     V, T = cube
     V2, T2 = grid_mesh((3, 3, 3))
     phase = mi.load_dict({"type": "hg", "g": G})
     common = {"type": "scene", "sensor": camera(128), "light": LIGHTS["area"],
               "integrator": {"type": "tetpath", "max_depth": 4}}
-    two = mi.load_dict({**common,
-                        "a": mi_tetvr.tetmesh_dict(V, T, opacity=A + B * V[:, 0], albedo=ALBEDO,
-                                                   phase=phase),
-                        "b": mi_tetvr.tetmesh_dict(V2, T2, opacity=C + D * V2[:, 1],
-                                                   albedo=ALBEDO, phase=phase)})
-    one = mi.load_dict({**common, "a": mi_tetvr.tetmesh_dict(
-        V, T, opacity=A + B * V[:, 0] + C + D * V[:, 1], albedo=ALBEDO, phase=phase)})
+
+    def mesh(V, T, medium):
+        return mi_tetvr.tetmesh_dict(V, T, opacity=medium[0](V), albedo=medium[1], phase=phase)
+    two = mi.load_dict({**common, "a": mesh(V, T, first), "b": mesh(V2, T2, second)})
+    return two, [mi.load_dict({**common, "a": mesh(V, T, m)}) for m in singles]
+
+
+@pytest.fixture(scope="module")
+def overlapping(cube):
+    """The pair of meshes of the cube with linear extinctions ``A + B x``
+    and ``C + D y``, and the one mesh whose extinction is their sum (linear
+    fields are exact on any tessellation), all with one albedo: the same
+    medium, walked with a cursor per mesh or with one."""
+    two, (one,) = cube_pair(cube, (lambda V: A + B * V[:, 0], ALBEDO),
+                            (lambda V: C + D * V[:, 1], ALBEDO),
+                            (lambda V: A + B * V[:, 0] + C + D * V[:, 1], ALBEDO))
     return two, one
 
 
@@ -446,25 +453,15 @@ def test_overlapping_meshes_render_as_their_summed_medium(cube):
     is in each mesh in proportion to its extinction: the mixture's albedo is
     the extinction-weighted mean). Independent samples: z-scores of the
     difference per block and over the image."""
-    V, T = cube
-    V2, T2 = grid_mesh((3, 3, 3))
-    phase = mi.load_dict({"type": "hg", "g": G})
-    common = {"type": "scene", "sensor": camera(128), "light": LIGHTS["area"],
-              "integrator": {"type": "tetpath", "max_depth": 4}}
-    two = mi.load_dict({**common,
-                        "a": mi_tetvr.tetmesh_dict(V, T, opacity=np.full(len(V), 1.0),
-                                                   albedo=0.9, phase=phase),
-                        "b": mi_tetvr.tetmesh_dict(V2, T2, opacity=np.full(len(V2), 0.5),
-                                                   albedo=0.3, phase=phase)})
-    one = mi.load_dict({**common, "a": mi_tetvr.tetmesh_dict(
-        V, T, opacity=np.full(len(V), 1.5), albedo=0.7, phase=phase)})
+    def constant(value):
+        return lambda V: np.full(len(V), value)
+    two, (one, wrong) = cube_pair(cube, (constant(1.0), 0.9), (constant(0.5), 0.3),
+                                  (constant(1.5), 0.7), (constant(1.5), 0.9))
     a = mi.render(two, seed=1)
     b = mi.render(one, seed=2)
     assert np.array(b)[..., :3].mean() > 0.01            # (the medium is lit and seen)
     assert z_scores(a, b).max() < Z
-    # Had every collision taken the first mesh's albedo, the image would differ.
-    wrong = mi.load_dict({**common, "a": mi_tetvr.tetmesh_dict(
-        V, T, opacity=np.full(len(V), 1.5), albedo=0.9, phase=phase)})
+    # Had every collision taken the first mesh's albedo (0.9), the image would differ.
     assert z_scores(a, mi.render(wrong, seed=3)).max() > Z
 
 
