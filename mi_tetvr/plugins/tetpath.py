@@ -59,8 +59,8 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.plugins import constructor
-from mi_tetvr.render.buffers import index_buffers, model_groups, tet_group
-from mi_tetvr.render.merged import MAX_MESHES, overlapping
+from mi_tetvr.render.buffers import index_buffers, tet_group
+from mi_tetvr.render.merged import walk_groups
 from mi_tetvr.render.optical import Scattering
 from mi_tetvr.render.program import scaled_settings
 from mi_tetvr.render.surfaces import SceneParts
@@ -103,10 +103,7 @@ class TetPathIntegrator(mi.ad.integrators.common.RBIntegrator):
             raise ValueError("tetpath: the scene's scattering tet meshes must share one phase "
                              "function (load it once and hand the same object to each)")
         # Meshes that overlap in space: a cursor each (render.cursor.traverse_merged).
-        groups = [[s] for s in tets] if overlapping(tets) else model_groups(tets)
-        if len(groups) > MAX_MESHES:
-            raise ValueError(f"tetpath: at most {MAX_MESHES} overlapping tet meshes in one "
-                             f"scene, got {len(groups)}; merge some of them into one mesh")
+        groups = walk_groups(tets, "tetpath")
         key = tuple(tuple(id(s.tet_buffers) for s in g) for g in groups)
         if self._index is None or self._index[0] != key:
             self._index = (key, [index_buffers(g) for g in groups])

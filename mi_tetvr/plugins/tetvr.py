@@ -185,7 +185,7 @@ class TetVRIntegrator(RBIntegrator):
         keep (the split of the scene into parts, each mesh's buffers, the
         index buffers of its groups)."""
         return VolumeProgram(scene, ProgramOptions(
-            self.parts, self.surfaces, self.settings, self.retrace_epsilon, self.n_sub, self.clip,
+            self.parts, self.surfaces, self.settings_for(scene), self.n_sub, self.clip,
             self.overlay.probes if self.overlay is not None else None, self.index_buffers,
             self.remote))
 

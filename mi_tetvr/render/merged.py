@@ -36,6 +36,7 @@ import mitsuba as mi
 
 
 from mi_tetvr.render import adjoint
+from mi_tetvr.render.buffers import model_groups
 from mi_tetvr.render.buffers import TetGroup
 from mi_tetvr.render.cursor import Pieces, Span, WalkSettings, traverse_merged
 from mi_tetvr.render.geometry import RayFrame, corner, crossing_at, face_crossing
@@ -64,10 +65,17 @@ def overlapping(shapes: list[mi.Shape], rel_eps: float = 1e-6) -> bool:
     return False
 
 
-def _check(tss):
-    if len(tss) > MAX_MESHES:
-        raise ValueError(f"tetvr: at most {MAX_MESHES} overlapping tet meshes in one scene, got "
-                         f"{len(tss)}; merge some of them into one mesh")
+def walk_groups(shapes: list, plugin: str) -> list:
+    """The groups of tet meshes that one walk renders: one per mesh where
+    meshes overlap in space (the merged walk, at most :data:`MAX_MESHES`),
+    else one per optical model (:func:`~mi_tetvr.render.buffers.model_groups`).
+    ``plugin`` names the integrator in the error for too many meshes."""
+    if not overlapping(shapes):
+        return model_groups(shapes)
+    if len(shapes) > MAX_MESHES:
+        raise ValueError(f"{plugin}: at most {MAX_MESHES} overlapping tet meshes in one scene, "
+                         f"got {len(shapes)}; merge some of them into one mesh")
+    return [[s] for s in shapes]
 
 
 class MergedEmission:
@@ -113,7 +121,6 @@ def merged_trace(scenes: list, tss: list, ray: mi.Ray3f, settings: WalkSettings,
     integrated with ``2 n_sub`` sub-intervals (the merged integral's error at
     ``2 n`` is about the single medium's at ``n``); the integral starts at
     ``t_start`` (a clip)."""
-    _check(tss)
     deriv, adj = (None, None) if grad is None else grad
     client = MergedEmission(tss, settings, n_sub, deriv)
     acc = Radiance(mi.Color3f(0.0), mi.Float(1.0), adj)

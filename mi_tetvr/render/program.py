@@ -36,10 +36,10 @@ import mitsuba as mi
 
 from mi_tetvr.render import layers
 from mi_tetvr.render.adjoint import Adjoint, Derivative
-from mi_tetvr.render.buffers import (MeshBuffers, TetGroup, index_buffers, model_groups,
-                                     scene_tetmeshes, tet_group)
+from mi_tetvr.render.buffers import (MeshBuffers, TetGroup, index_buffers, scene_tetmeshes,
+                                     tet_group)
 from mi_tetvr.render.clipping import Clip
-from mi_tetvr.render.merged import merged_trace, overlapping
+from mi_tetvr.render.merged import merged_trace, overlapping, walk_groups
 from mi_tetvr.render.optical import CellClassified, PostClassified
 from mi_tetvr.render.probes import Isosurface, Pick, Projection, Slice, VertexGradients
 from mi_tetvr.render.cursor import WalkSettings
@@ -187,8 +187,7 @@ class ProgramOptions:
     nested : mi_tetvr.render.surfaces.NestedIntegrator
         Renders the surfaces.
     settings : WalkSettings
-        The walk's settings; ``retrace_epsilon`` is scaled to each scene
-        (:func:`scaled_settings`).
+        The walk's settings, scaled to the scene (:func:`scaled_settings`).
     n_sub : int
         The segment integrals' sub-intervals.
     clip : mi_tetvr.render.clipping.Clip or None
@@ -205,7 +204,6 @@ class ProgramOptions:
     parts: Any
     nested: Any
     settings: WalkSettings
-    retrace_epsilon: float
     n_sub: int
     clip: Any
     probes: Any
@@ -221,7 +219,7 @@ class VolumeProgram:
         self.scene = scene
         self.tets, self.boundaries, self.surfaces = options.parts.split(scene)
         self.parts, self.nested, self.n_sub = options.parts, options.nested, options.n_sub
-        self.settings = scaled_settings(options.settings, options.retrace_epsilon, scene)
+        self.settings = options.settings
         self.clip, self.probes = options.clip, options.probes
         self.index_cache, self.remote = options.index_cache, options.remote
         if self.remote is not None and (self.tets or self.probes is not None):
@@ -240,7 +238,7 @@ class VolumeProgram:
         passes run with it suspended), attached to the parameters."""
         if not self.tets:
             return None
-        groups = [[s] for s in self.tets] if self.merged else model_groups(self.tets)
+        groups = walk_groups(self.tets, "tetvr")
         with dr.resume_grad(when=differentiable):
             return [tet_group(g, idx, offsets, n_sub=self.n_sub)
                     for g, (idx, offsets) in zip(groups, self.index_cache(groups))]
