@@ -58,7 +58,8 @@ def main():
     a = ap.parse_args()
     for d in a.dirs:
         if not (Path(d) / "mi_tetvr" / "__init__.py").is_file():
-            sys.exit(f"compare_backward: {d} is not a checkout of mi_tetvr (no mi_tetvr/__init__.py)")
+            sys.exit(f"compare_backward: {d} is not a checkout of mi_tetvr "
+                     f"(no mi_tetvr/__init__.py)")
     for r in range(a.rounds):
         for d in a.dirs:
             out = subprocess.run([sys.executable, "-c", CHILD, str(Path(d).resolve())],
