@@ -171,7 +171,10 @@ def camera_grads(adj: Adjoint, carry: tuple, vg: list[Any], fr: RayFrame,
                  mask: mi.Bool) -> Adjoint:
     """:func:`ray_grads` of one crossing's vertex-position gradients ``vg``
     (of the corners ``carry``); a corner's offset from the origin is ``p.x u
-    + p.y v + z d``."""
+    + p.y v + z d``. The single walk's backward mode, whose crossings are
+    differentiated in closed form; where a crossing is differentiated by
+    Dr.Jit's AD (forward mode, the merged walk), the ray is a leaf of the
+    graph instead (:func:`ray_leaves`)."""
     for c, g in zip(carry[0], vg):
         adj = ray_grads(adj, c.p.x * fr.u + c.p.y * fr.v + c.z * fr.d, g.p, mask)
     return adj
@@ -229,17 +232,45 @@ def scatter(ts_ad: TetGroup, i: mi.UInt32, g: Any, active: mi.Bool,
         dr.backward_from(y, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
 
 
+def ray_leaves(deriv: Derivative, fr: RayFrame) -> tuple[mi.Point3f, mi.Vector3f]:
+    """The ray's origin and direction as AD leaves: where the camera enters
+    a derivative pass's graph (forward mode: carrying the rays' tangents,
+    ``deriv.ray_tangent``). Frames are made of them by :func:`leaf_frame`;
+    backward mode reads their gradients with :func:`leaf_grads`."""
+    o, d = mi.Point3f(dr.detach(fr.o)), mi.Vector3f(dr.detach(fr.d))
+    dr.enable_grad(o, d)
+    if deriv.ray_tangent is not None:
+        dr.set_grad(o, deriv.ray_tangent[0])
+        dr.set_grad(d, deriv.ray_tangent[1])
+    return o, d
+
+
+def leaf_frame(leaves: tuple[mi.Point3f, mi.Vector3f], active: bool | mi.Bool) -> RayFrame:
+    """The frame of the ray :func:`ray_leaves` made, attached where
+    ``active``: elsewhere (a lane with no crossing there) it adds no
+    gradient, rather than the NaN that a degenerate crossing's derivative
+    times a zero weight may give."""
+    o, d = leaves
+    return RayFrame.of(dr.select(active, o, dr.detach(o)), dr.select(active, d, dr.detach(d)))
+
+
+def leaf_grads(adj: Adjoint, leaves: tuple[mi.Point3f, mi.Vector3f]) -> Adjoint:
+    """Add the gradients the leaves of :func:`ray_leaves` received to the
+    ray's (see :class:`Adjoint`): turning the direction by ``w`` moves it by
+    ``w x d``, so the rotation's gradient is ``d x g_d``."""
+    o, d = leaves
+    adj.g_o = adj.g_o + mi.Vector3f(dr.grad(o))
+    adj.g_w = adj.g_w + dr.cross(dr.detach(d), dr.grad(d))
+    return adj
+
+
 def tangent(deriv: Derivative, ts_ad: TetGroup, ids: Sequence[mi.UInt32], fr: RayFrame,
             active: mi.Bool) -> tuple[mi.Float, Any]:
     """Forward mode: the tangent of a face crossing's ``(t, attributes)``
     (with a moving camera, ``deriv.ray_tangent``, the ray's tangent too)."""
     with dr.resume_grad():
         if deriv.ray_tangent is not None:
-            o, d = mi.Point3f(fr.o), mi.Vector3f(fr.d)
-            dr.enable_grad(o, d)
-            dr.set_grad(o, deriv.ray_tangent[0])
-            dr.set_grad(d, deriv.ray_tangent[1])
-            fr = RayFrame.of(o, d)
+            fr = leaf_frame(ray_leaves(deriv, fr), True)
         t, w = face_crossing(ts_ad.buf, ids, fr, active)
         a = ts_ad.model.interpolate(ts_ad.params, ids, w, active)
         # AllowNoGrad: the tangents may all be elsewhere (e.g. the environment's)

@@ -25,8 +25,8 @@ recovered from the pixel's value, and the piece is differentiated with
 Dr.Jit's AD locally, through the gathers of its tets' face vertices (their
 reverse mode scatter-adds into the parameters): the optical models'
 parameters, vertex positions (through the face crossings; a piece's ends
-move only where the ray enters or leaves a mesh) and the camera (every
-crossed vertex moved the other way; :func:`_piece_derivative`). Memory stays
+move only where the ray enters or leaves a mesh) and the camera (the ray's
+origin and direction as AD leaves; :func:`_piece_derivative`). Memory stays
 O(rays).
 """
 from __future__ import annotations
@@ -39,7 +39,7 @@ from mi_tetvr.render import adjoint
 from mi_tetvr.render.buffers import model_groups
 from mi_tetvr.render.buffers import TetGroup
 from mi_tetvr.render.cursor import Pieces, Span, WalkSettings, traverse_merged
-from mi_tetvr.render.geometry import RayFrame, corner, crossing_at, face_crossing
+from mi_tetvr.render.geometry import RayFrame, face_crossing
 from mi_tetvr.render.pytree import tree_lerp
 from mi_tetvr.render.segment import merged_integral
 from mi_tetvr.render.walk import Emission, Radiance
@@ -142,45 +142,24 @@ def _piece_derivative(deriv: adjoint.Derivative, pc: Pieces, C_seg, acc: Radianc
     where it enters or leaves that mesh (``pc.from_bnd``, ``pc.to_bnd``,
     when vertex positions or the camera are differentiated):
     those move with the boundary, and every mesh's attributes at the ends
-    follow through their own crossings, recomputed from the positions (and,
-    for the camera, from leaf copies of them)."""
+    follow through their own crossings, recomputed from the positions and,
+    for the camera, on a ray whose origin and direction are AD leaves
+    (:func:`~mi_tetvr.render.adjoint.ray_leaves`)."""
     backward = deriv.backward
     tss_ad = deriv.groups
     carry, tets, sts, ends, inside = pc.carry, pc.tet, pc.st, pc.ends, pc.inside
-    length, o, d = pc.length, fr.o, fr.d
+    length = pc.length
     geo = pc.to_bnd is not None
     with dr.resume_grad():
         t0, t1 = mi.Float(pc.t0), mi.Float(pc.t1)
-        camera = geo and deriv.camera
-        moved = []          # (the camera) each corner's mesh, index, mask, leaf position
+        # (the camera: the ray's origin and direction as leaves)
+        leaves = adjoint.ray_leaves(deriv, fr) if geo and deriv.camera else None
 
         def crossing_of(ts, ids, act):
-            """A face crossing from the positions (attached); with a camera,
-            from leaf copies of the corners' positions, whose gradients are
-            moved onto the ray (moving the ray is moving every vertex the
-            other way: the single walk's
-            :func:`~mi_tetvr.render.adjoint.camera_grads`) and, where the
-            positions are differentiated too, into them."""
-            if not camera:
-                return face_crossing(ts.buf, ids, fr, act, reduce)
-            corners = []
-            for i in ids:
-                P = mi.Point3f(dr.detach(ts.buf.position(i, act)))
-                dr.enable_grad(P)
-                if not backward:
-                    # the ray's tangent (origin, direction) as the vertex's:
-                    # -(do + w x (P - o)) with w = d x dd
-                    dP = 0.0
-                    if deriv.ray_tangent is not None:
-                        do, dd = deriv.ray_tangent
-                        dP = -(do + dr.cross(dr.cross(d, dd), P - o))
-                    if adjoint.moves_vertices(ts):
-                        dP = dP + dr.forward_to(ts.buf.position(i, act),
-                                                flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
-                    dr.set_grad(P, dP)
-                moved.append((ts, i, act, P))
-                corners.append(corner(i, P, fr))
-            return crossing_at(tuple(corners))
+            """A face crossing from the positions (attached), on the ray
+            (attached where ``act`` when the camera is differentiated)."""
+            return face_crossing(ts.buf, ids, fr if leaves is None
+                                 else adjoint.leaf_frame(leaves, act), act, reduce)
         crossings = []
         for k, ts in enumerate(tss_ad):
             te, we, _, tx, _, inv = ends[k]
@@ -223,12 +202,6 @@ def _piece_derivative(deriv: adjoint.Derivative, pc: Pieces, C_seg, acc: Radianc
             tau += length * (lin[2] + lin[3]) * 0.5
         C_d, _ = merged_integral(length, media, 2 * n_sub)
         adj = adjoint.inversion(deriv, acc.adj, acc.L, acc.T, C_seg, C_d, tau)
-        if backward:
-            for ts, i, act, P in moved:
-                # (a corner that is not there has no gradient: zero, not the NaN that a
-                # degenerate crossing's derivative times a zero weight may give)
-                g = dr.select(act, mi.Vector3f(dr.grad(P)), 0.0)
-                adj = adjoint.ray_grads(adj, dr.detach(P) - o, g, True)
-                if adjoint.moves_vertices(ts):
-                    dr.backward_from(dr.dot(ts.buf.position(i, act, reduce), dr.detach(g)))
+        if backward and leaves is not None:
+            adj = adjoint.leaf_grads(adj, leaves)
     return adj
