@@ -275,45 +275,66 @@ def _render_at(params, key, base, x, scene):
     return img
 
 
-def check_derivatives(scene, key, direction, h, smooth_share):
-    """Forward mode of the image along ``direction`` of parameter ``key``
-    against central differences (5 % on the smooth pixels, which must be at
-    least ``smooth_share`` of the pixels whose value moves), and reverse mode
-    of a weighted sum of the image against forward mode (1e-4). ``key`` is
-    a scene parameter, or ``integrator.<name>`` one of the integrator's."""
+def check_derivatives(scene, checks):
+    """The image's derivatives w.r.t. each parameter of ``checks`` (key ->
+    ``(direction, h, smooth_share)``): forward mode along ``direction``
+    against central differences with step ``h`` (5 % on the smooth pixels,
+    which must be at least ``smooth_share`` of the pixels whose value moves),
+    and reverse mode of a weighted sum of the image against forward mode
+    (1e-4). A key is a scene parameter, or ``integrator.<name>`` one of the
+    integrator's.
+
+    All the keys are differentiated at once (each forward pass carries a
+    tangent in one of them, zero in the others), so that a scene compiles one
+    forward and one reverse kernel however many parameters it checks."""
     import drjit as dr
     import mitsuba as mi
     params = mi.traverse(scene)
-    base = np.array(params[key], np.float64)
-    direction = np.asarray(direction, np.float64)
-    dr.enable_grad(params[key])
-    dr.set_grad(params[key], type(params[key])(direction.astype(np.float32)))
-    ad = np.array(dr.forward_to(mi.render(scene, params, spp=1)), np.float64)
-    dr.disable_grad(params[key])
-    f = {s: _render_at(params, key, base, base + s * h * direction, scene)
-         for s in (-1.0, -0.5, 0.0, 0.5, 1.0)}
-    fd = [(f[1.0] - f[-1.0]) / (2 * h), (f[0.5] - f[-0.5]) / h]
-    one_sided = [(f[0.5] - f[0.0]) / (h / 2), (f[0.0] - f[-0.5]) / (h / 2)]
-    scale = np.abs(fd[1]).max()
-    assert scale > 0
-    moving = np.abs(fd[1]) > 1e-3 * scale
-    # Smooth: no kink or jump within h (the differences at both steps and
-    # on both sides agree).
-    smooth = (moving & (np.abs(fd[0] - fd[1]) <= 0.01 * np.abs(fd[1]))
-              & (np.abs(one_sided[0] - one_sided[1]) <= 0.05 * np.abs(fd[1])))
-    assert smooth.sum() >= smooth_share * moving.sum() and smooth.sum() > 50, \
-        (smooth.sum(), moving.sum())
-    err = np.abs(ad - fd[1])[smooth] / np.abs(fd[1])[smooth]
-    assert err.max() < 0.05, (err.max(), np.median(err))
+    base = {k: np.array(params[k], np.float64) for k in checks}
+    kind = {k: type(params[k]) for k in checks}
 
-    w = np.random.default_rng(3).normal(size=ad.shape)
-    dr.enable_grad(params[key])
+    def tangents(key):
+        # (evaluated zeros, not literals: the same kernel for every key)
+        for k in checks:
+            v = np.asarray(checks[k][0], np.float64) if k == key else np.zeros(len(base[k]))
+            dr.set_grad(params[k], kind[k](v.astype(np.float32)))
+
+    def attach(on):
+        for k in checks:
+            dr.set_grad_enabled(params[k], on)
+
+    attach(True)
+    ad = {}
+    for key in checks:
+        tangents(key)
+        ad[key] = np.array(dr.forward_to(mi.render(scene, params, spp=1)), np.float64)
+    attach(False)
+    w = np.random.default_rng(3).normal(size=next(iter(ad.values())).shape)
+    attach(True)
     dr.backward(dr.sum(mi.render(scene, params, spp=1) * mi.TensorXf(w.astype(np.float32)),
                        axis=None))
-    grad = np.array(dr.grad(params[key]), np.float64)
-    dr.disable_grad(params[key])
-    reverse, forward = grad @ direction, float(np.sum(w * ad))
-    assert abs(reverse - forward) <= 1e-4 * np.abs(w * ad).sum(), (reverse, forward)
+    grads = {k: np.array(dr.grad(params[k]), np.float64) for k in checks}
+    attach(False)
+    for key, (direction, h, smooth_share) in checks.items():
+        direction = np.asarray(direction, np.float64)
+        f = {s: _render_at(params, key, base[key], base[key] + s * h * direction, scene)
+             for s in (-1.0, -0.5, 0.0, 0.5, 1.0)}
+        fd = [(f[1.0] - f[-1.0]) / (2 * h), (f[0.5] - f[-0.5]) / h]
+        one_sided = [(f[0.5] - f[0.0]) / (h / 2), (f[0.0] - f[-0.5]) / (h / 2)]
+        scale = np.abs(fd[1]).max()
+        assert scale > 0, key
+        moving = np.abs(fd[1]) > 1e-3 * scale
+        # Smooth: no kink or jump within h (the differences at both steps and
+        # on both sides agree).
+        smooth = (moving & (np.abs(fd[0] - fd[1]) <= 0.01 * np.abs(fd[1]))
+                  & (np.abs(one_sided[0] - one_sided[1]) <= 0.05 * np.abs(fd[1])))
+        assert smooth.sum() >= smooth_share * moving.sum() and smooth.sum() > 50, \
+            (key, smooth.sum(), moving.sum())
+        err = np.abs(ad[key] - fd[1])[smooth] / np.abs(fd[1])[smooth]
+        assert err.max() < 0.05, (key, err.max(), np.median(err))
+        reverse, forward = grads[key] @ direction, float(np.sum(w * ad[key]))
+        assert abs(reverse - forward) <= 1e-4 * np.abs(w * ad[key]).sum(), \
+            (key, reverse, forward)
 
 
 def grid_field():

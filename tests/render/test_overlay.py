@@ -149,41 +149,35 @@ def iso_volume_scene(opacity):
 
 @pytest.fixture(scope="module", params=[1.0, 0.45], ids=["opaque", "translucent"])
 def composite(request):
-    return iso_volume_scene(request.param)
+    """``(scene, opacity)``: the volume and its isosurfaces of that opacity."""
+    return iso_volume_scene(request.param), request.param
 
 
-def test_overlay_gradient_wrt_scalars(composite):
-    """The scalar moves the isosurfaces (their depths end and start the
-    volume's intervals) and classifies the volume: both terms."""
-    n = len(np.array(mi.traverse(composite)["m.vertex_scalar"]))
-    check_derivatives(composite, "m.vertex_scalar", np.random.default_rng(1).normal(size=n),
-                      2e-3, 0.7)
-
-
-def test_overlay_gradient_wrt_the_isovalues(composite):
-    check_derivatives(composite, "integrator.overlay.iso", [1.0, 0.5], 2e-3, 0.7)
-
-
-def test_overlay_gradient_wrt_the_transfer_function(composite):
-    params = mi.traverse(composite)
-    rng = np.random.default_rng(4)
+def test_overlay_gradients(composite):
+    """W.r.t. the scalars (they move the isosurfaces, whose depths end and
+    start the volume's intervals, and classify the volume: both terms), the
+    isovalues, the transfer function and (the translucent composite) the
+    positions."""
+    scene, opacity = composite
+    params = mi.traverse(scene)
+    rng = np.random.default_rng(1)
+    checks = {"m.vertex_scalar": (rng.normal(size=len(np.array(params["m.vertex_scalar"]))),
+                                  2e-3, 0.7),
+              "integrator.overlay.iso": ([1.0, 0.5], 2e-3, 0.7)}
     for key in ("m.tf_color", "m.tf_opacity"):
-        n = len(np.array(params[key]))
-        check_derivatives(composite, key, rng.normal(size=n), 1e-2, 0.9)
-
-
-def test_overlay_gradient_wrt_positions():
-    scene = iso_volume_scene(0.45)
-    V, T = MESH
-    direction = np.random.default_rng(2).normal(size=3 * len(V)) * interior_positions(V, T)
-    check_derivatives(scene, "m.vertex_positions", direction, 2e-3, 0.6)
+        checks[key] = (rng.normal(size=len(np.array(params[key]))), 1e-2, 0.9)
+    if opacity < 1.0:
+        V, T = MESH
+        checks["m.vertex_positions"] = (rng.normal(size=3 * len(V)) * interior_positions(V, T),
+                                        2e-3, 0.6)
+    check_derivatives(scene, checks)
 
 
 def test_slice_in_the_volume_gradient_wrt_scalars():
     scene = scene_of({"type": "tetvr", "overlay": overlay_of("slice", 0.45)})
     n = len(np.array(mi.traverse(scene)["m.vertex_scalar"]))
-    check_derivatives(scene, "m.vertex_scalar", np.random.default_rng(5).normal(size=n),
-                      2e-3, 0.7)
+    check_derivatives(scene, {"m.vertex_scalar": (np.random.default_rng(5).normal(size=n),
+                                                  2e-3, 0.7)})
 
 
 def test_overlay_refusals():

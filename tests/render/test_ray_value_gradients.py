@@ -28,34 +28,28 @@ def iso_scene():
     return scene_of("iso", "viridis", iso=f"{ISO},-0.5")
 
 
-def test_isosurface_gradient_wrt_scalars(iso_scene):
-    n = len(np.array(mi.traverse(iso_scene)["m.vertex_scalar"]))
-    direction = np.random.default_rng(1).normal(size=n)
-    check_derivatives(iso_scene, "m.vertex_scalar", direction, 2e-3, 0.8)
+def test_isosurface_gradients(iso_scene):
+    """W.r.t. the scalars, the isovalues, the positions and the transfer
+    function's colors."""
+    params = mi.traverse(iso_scene)
+    rng = np.random.default_rng(1)
 
-
-def test_isosurface_gradient_wrt_the_isovalues(iso_scene):
-    check_derivatives(iso_scene, "integrator.iso", [1.0, 0.5], 2e-3, 0.8)
-
-
-def test_isosurface_gradient_wrt_positions(iso_scene):
-    n = len(np.array(mi.traverse(iso_scene)["m.vertex_positions"]))
-    direction = np.random.default_rng(2).normal(size=n)
-    check_derivatives(iso_scene, "m.vertex_positions", direction, 2e-3, 0.7)
-
-
-def test_isosurface_gradient_wrt_the_transfer_function(iso_scene):
-    n = len(np.array(mi.traverse(iso_scene)["m.tf_color"]))
-    direction = np.random.default_rng(4).normal(size=n)
-    check_derivatives(iso_scene, "m.tf_color", direction, 1e-2, 0.95)
+    def along(key):
+        return rng.normal(size=len(np.array(params[key])))
+    check_derivatives(iso_scene, {
+        "m.vertex_scalar": (along("m.vertex_scalar"), 2e-3, 0.8),
+        "integrator.iso": ([1.0, 0.5], 2e-3, 0.8),
+        "m.vertex_positions": (along("m.vertex_positions"), 2e-3, 0.7),
+        "m.tf_color": (along("m.tf_color"), 1e-2, 0.95)})
 
 
 @pytest.mark.parametrize("mode, integrator", [
     ("slice", {"origin": [0.1, 0.0, -0.05], "normal": [0.3, 0.2, 1.0]}),
     ("max", {}), ("min", {})])
-@pytest.mark.parametrize("key", ["m.vertex_scalar", "m.vertex_positions"])
-def test_slice_and_projection_gradients(mode, integrator, key):
+def test_slice_and_projection_gradients(mode, integrator):
+    """W.r.t. the scalars and the positions."""
     scene = scene_of(mode, "gray", **integrator)
-    n = len(np.array(mi.traverse(scene)[key]))
-    direction = np.random.default_rng(5).normal(size=n)
-    check_derivatives(scene, key, direction, 2e-3, 0.7)
+    params = mi.traverse(scene)
+    rng = np.random.default_rng(5)
+    check_derivatives(scene, {key: (rng.normal(size=len(np.array(params[key]))), 2e-3, 0.7)
+                              for key in ("m.vertex_scalar", "m.vertex_positions")})
