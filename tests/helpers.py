@@ -175,9 +175,14 @@ class Problem:
         return grads
 
     def forward(self, directions):
-        """Forward mode along ``directions`` (key -> array) at once."""
+        """Forward mode along ``directions`` (key -> array) at once. Every key
+        of the problem is differentiated (those without a direction carry
+        evaluated zeros), so that every call runs the same kernel."""
         import drjit as dr
-        for k, v in directions.items():
+        for k in self.keys:
+            v = directions.get(k)
+            if v is None:
+                v = np.zeros(np.array(self.params[k]).size)
             dr.enable_grad(self.params[k])
             dr.set_grad(self.params[k], self._typed(k, v))
         with dr.suspend_grad():

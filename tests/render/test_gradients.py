@@ -388,47 +388,55 @@ def test_camera_gradients_against_finite_differences():
                 0, 1)
     S = 3.0 * np.exp(-3 * (V ** 2).sum(1)) * (np.abs(V).max(1) < 0.99)   # 0 on the boundary
     scene = camera_scene((V, T, C, S), 24, 45)
-    base = mi.AffineTransform4f(mi.traverse(scene)["sensor.to_world"])
-    # (pose, step of the central difference: big enough that float32
-    # round-off of the loss stays below 1 % of the difference)
-    poses = {
-        "translate x": (lambda x: mi.AffineTransform4f().translate(mi.Vector3f(x, 0, 0)) @ base,
-                        1e-3),
-        "rotate about y (degrees)": (lambda x: base @ mi.AffineTransform4f().rotate(
-            mi.Vector3f(0, 1, 0), x), 0.05),
-        "longitude": (lambda x: orbit_to_world(40.0 + x, 25.0, 4.2), 0.05),
-        "latitude": (lambda x: orbit_to_world(40.0, 25.0 + x, 4.2), 0.05),
-        "distance": (lambda x: orbit_to_world(40.0, 25.0, 4.2 + x), 1e-2),
-    }
-    check_camera_poses(scene, poses, 32)
+    # x: a translation along x, a rotation about y (degrees) and the orbit
+    # (longitude, latitude, distance), with the steps of their central
+    # differences (big enough that float32 round-off of the loss stays
+    # below 1 % of the difference)
+    steps = {"translate x": 1e-3, "rotate about y (degrees)": 0.05, "longitude": 0.05,
+             "latitude": 0.05, "distance": 1e-2}
+
+    def pose(x):
+        return (mi.AffineTransform4f().translate(mi.Vector3f(x[0], 0, 0))
+                @ orbit_to_world(40.0 + x[2], 25.0 + x[3], 4.2 + x[4])
+                @ mi.AffineTransform4f().rotate(mi.Vector3f(0, 1, 0), x[1]))
+    check_camera_poses(scene, pose, steps, 32)
 
 
-def check_camera_poses(scene, poses, seed, size=24):
-    """Reverse mode through ``mi.render`` w.r.t. ``sensor.to_world`` set by
-    each pose (name -> (pose(x), step h)) of a random weighting of the image,
-    against central differences (5 %); forward against reverse (1 %)."""
+def check_camera_poses(scene, pose, steps, seed, size=24):
+    """Reverse mode through ``mi.render`` w.r.t. the parameters ``x`` of
+    ``sensor.to_world = pose(x)`` (``x`` a list of Floats, named with their
+    step of central difference by ``steps``: name -> h) of a random
+    weighting of the image, against central differences (5 %); forward
+    against reverse (1 %). The parameters are differentiated at once and are
+    opaque, so that the scene compiles one kernel per mode and one primal."""
     params = mi.traverse(scene)
     base = mi.AffineTransform4f(params["sensor.to_world"])
     w = mi.TensorXf(np.random.default_rng(seed).normal(size=(size, size, 4)).astype(np.float32))
+    names = list(steps)
 
-    def loss(to_world):
-        params["sensor.to_world"] = to_world
+    def loss(values, tangent=None):
+        x = [dr.opaque(mi.Float, v) for v in values]
+        if tangent is not None:
+            for xi, ti in zip(x, tangent):
+                dr.enable_grad(xi)
+                dr.set_grad(xi, dr.opaque(mi.Float, ti))
+        params["sensor.to_world"] = pose(x)
         params.update()
-        return dr.sum(mi.render(scene, params, spp=1) * w, axis=None)
+        return x, dr.sum(mi.render(scene, params, spp=1) * w, axis=None)
 
-    for name, (pose, h) in poses.items():
-        x = mi.Float(0.0)
-        dr.enable_grad(x)
-        dr.backward(loss(pose(x)))
-        reverse = float(dr.grad(x)[0])
-        fd = (float(loss(pose(mi.Float(h))).array[0])
-              - float(loss(pose(mi.Float(-h))).array[0])) / (2 * h)
-        assert abs(reverse - fd) < 0.05 * abs(fd), (name, reverse, fd)
+    zero = [0.0] * len(names)
+    x, value = loss(zero, zero)
+    dr.backward(value)
+    reverse = [float(dr.grad(xi)[0]) for xi in x]
+    for i, name in enumerate(names):
+        h = steps[name]
+        step = [h if j == i else 0.0 for j in range(len(names))]
+        fd = (float(loss(step)[1].array[0])
+              - float(loss([-v for v in step])[1].array[0])) / (2 * h)
+        assert abs(reverse[i] - fd) < 0.05 * abs(fd), (name, reverse[i], fd)
         assert abs(fd) > 1e-2, (name, fd)
-        x = mi.Float(0.0)
-        dr.enable_grad(x)
-        dr.set_grad(x, 1.0)
-        forward = float(np.array(dr.forward_to(loss(pose(x)))).ravel()[0])
-        assert abs(forward - reverse) < 0.01 * abs(reverse), (name, forward, reverse)
+        unit = [1.0 if j == i else 0.0 for j in range(len(names))]
+        forward = float(np.array(dr.forward_to(loss(zero, unit)[1])).ravel()[0])
+        assert abs(forward - reverse[i]) < 0.01 * abs(reverse[i]), (name, forward, reverse[i])
     params["sensor.to_world"] = base
     params.update()

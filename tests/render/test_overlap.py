@@ -245,11 +245,11 @@ def test_camera_gradients_where_meshes_overlap():
     scene = camera_scene((V, T, *field(V, 0.0)), 24, 50,
                          mesh1=mi_tetvr.tetmesh_dict(V2, T, *field(V2, 0.6)))
     base = mi.AffineTransform4f(mi.traverse(scene)["sensor.to_world"])
-    check_camera_poses(scene, {
-        "translate x": (lambda x: mi.AffineTransform4f().translate(
-            mi.Vector3f(x, 0, 0)) @ base, 1e-3),
-        "rotate about y (degrees)": (lambda x: base @ mi.AffineTransform4f().rotate(
-            mi.Vector3f(0, 1, 0), x), 0.05)}, 78)
+
+    def pose(x):    # a translation along x, a rotation about y (degrees)
+        return (mi.AffineTransform4f().translate(mi.Vector3f(x[0], 0, 0)) @ base
+                @ mi.AffineTransform4f().rotate(mi.Vector3f(0, 1, 0), x[1]))
+    check_camera_poses(scene, pose, {"translate x": 1e-3, "rotate about y (degrees)": 0.05}, 78)
 
 
 @pytest.mark.slow
