@@ -19,7 +19,7 @@ from tests.helpers import ROOT, VARIANT
 POSITIONAL = {"render": ["s.xml"], "info": ["m.vtu"], "make-scenes": [],
               "make-dataset": ["v.npy"], "make-capture": [], "process-data": ["photos"],
               "process-xray": ["scan.h5"],
-              "fit": ["data"], "eval": ["fit", "data"], "refine": ["m.vtu"],
+              "fit": ["data"], "eval": ["fit", "data"], "export": ["m.vtu"], "refine": ["m.vtu"],
               "viewpoint": ["m.vtu"], "view": ["m.vtu"], "partition": ["m.vtu"],
               "sweep": ["data", "sweep.yaml"]}
 REQUIRED = {"refine": ["--select", "x"], "partition": ["--blocks", "2"]}
@@ -28,8 +28,8 @@ RENDERS = {"render", "make-dataset", "make-capture", "fit", "eval", "viewpoint",
            "sweep"}
 SHOWS_PROGRESS = {"make-dataset", "make-capture", "process-data", "process-xray", "fit",
                   "viewpoint", "partition"}
-READS_MESHES = {"render", "info", "make-dataset", "fit", "eval", "refine", "viewpoint", "view",
-                "partition"}
+READS_MESHES = {"render", "info", "make-dataset", "fit", "eval", "export", "refine", "viewpoint",
+                "view", "partition"}
 MAKES_IMAGES = {"render", "make-dataset", "make-capture", "viewpoint", "view"}
 
 

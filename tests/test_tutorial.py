@@ -242,3 +242,27 @@ def test_visualize_modes_tutorial(data_dir, tmp_path):
     assert len(drawn) == 2
     for d in drawn:
         assert np.all(d >= whole - 1e-5) and np.any(d > whole + 1e-3)
+
+
+def test_export_surface_tutorial(tmp_path):
+    """``tutorials/export_surface.py`` shrunk (a 10^3 grid, 48x48, 4 spp): the three
+    files read back by trimesh with the same surface, the surface's render by Mitsuba's
+    ``path`` covers about what the volume's opaque core covers (the pixels where the
+    volume's alpha is above one half, within a few pixels of its rim), and is colored
+    (its pixels not gray)."""
+    import trimesh
+    r = _tutorial("export_surface").main(["--cells", "10", "--res", "48", "--spp", "4",
+                                          "--out", str(tmp_path), "--variant", VARIANT])
+    n = len(r["surface"].points)
+    for suffix in ("ply", "obj", "glb"):
+        m = trimesh.load(r["files"][suffix], process=False, force="mesh")
+        assert len(m.vertices) == n and len(m.faces) == len(r["surface"].faces), suffix
+    alpha = r["volume_image"][..., 3]
+    surf = r["surface_image"][..., :3]
+    sky = np.abs(surf - surf[0, 0]).max(-1) < 0.02          # (the top-left pixel is sky)
+    core = alpha > 0.5
+    assert core.sum() > 50
+    assert (core & sky).sum() < 0.1 * core.sum()           # the core is covered
+    spread = surf[core & ~sky].std(0).max()                # colored, not one gray
+    assert spread > 0.02, spread
+    assert Path(r["files"]["figure"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -15,6 +15,7 @@
     mi-tetvr fit DATA -o DIR [--config FILE] [--print-config] [--time-budget MIN] [--viewer]
                  [...]
     mi-tetvr eval FIT_DIR|MESH DATA [-o METRICS.json]
+    mi-tetvr export FIT|MESH -o OUT.ply|.obj|.glb [--level L] [--array NAME] [--points]
     mi-tetvr refine MESH --select ARRAY [--fraction F] -o OUT
     mi-tetvr viewpoint MESH -o DIR [--tf TF] [--res WxH]
     mi-tetvr partition MESH -o OUT.pvtu --blocks N
@@ -23,7 +24,7 @@
 
 One module per command (``render``, ``info``, ``make_scenes``, ``make_dataset``,
 ``make_capture``, ``process_data``, ``process_xray``, ``fit``, ``view``, ``evaluate`` for ``eval``,
-``refine``, ``viewpoint``, ``partition``, ``sweep``), each with its ``NAME``, ``HELP``,
+``export``, ``refine``, ``viewpoint``, ``partition``, ``sweep``), each with its ``NAME``, ``HELP``,
 ``add_arguments(parser)`` and ``run(args)``; :mod:`~mi_tetvr.cli.flags` holds the shared options
 and those generated from settings dataclasses (``render``'s from
 :class:`~mi_tetvr.apps.settings.RenderSettings`, ``fit``'s from
@@ -50,9 +51,9 @@ import sys
 import textwrap
 
 from mi_tetvr.apps.settings import OPACITY_SCALE
-from mi_tetvr.cli import (evaluate, fit, info, make_capture, make_dataset, make_scenes,
-                          partition, process_data, process_xray, refine, render, sweep, view,
-                          viewpoint)
+from mi_tetvr.cli import (evaluate, export, fit, info, make_capture, make_dataset,
+                          make_scenes, partition, process_data, process_xray, refine, render,
+                          sweep, view, viewpoint)
 from mi_tetvr.cli.common import CommandError, scene_xml
 from mi_tetvr.cli.fit import fit_config
 from mi_tetvr.cli.flags import (VARIANTS, config_flags, image_size, settings_flags,
@@ -71,7 +72,7 @@ __all__ = ["main", "build_parser", "command_summary", "COMMANDS", "CommandError"
 
 #: The commands, in the order ``mi-tetvr --help`` and the README list them.
 COMMANDS = (render, info, make_scenes, make_dataset, make_capture, process_data, process_xray,
-            fit, view, evaluate, refine, viewpoint, partition, sweep)
+            fit, view, evaluate, export, refine, viewpoint, partition, sweep)
 
 
 def build_parser():
