@@ -155,7 +155,7 @@ from mi_tetvr.render.optical import (CellClassified, EmissionAbsorption, PostCla
                                      Scattering)
 from mi_tetvr.render.properties import (LIGHTING, LIGHTING_DEFAULTS, MODELS,
                                         mesh_from_properties, post_classification, scattering,
-                                        transfer_function)
+                                        spherical_harmonics, transfer_function)
 
 
 class TetMeshShape(mi.Mesh):
@@ -178,6 +178,12 @@ class TetMeshShape(mi.Mesh):
             raise ValueError("tetmesh: an albedo makes a scattering medium of a per-vertex "
                              "opacity (extinction): it takes no 'model', and a transfer "
                              "function only classified at the vertices (classification 'pre')")
+        sh = spherical_harmonics(props, mesh)
+        if sh is not None and (model != "emission" or post is not None or scatter is not None
+                               or transfer_function(props) is not None):
+            raise ValueError("tetmesh: spherical harmonics ('sh') are an emission-absorption "
+                             "mesh's view-dependent colors: no transfer function, albedo or "
+                             "'model' with them")
         topo = mesh.topology
         super().__init__("tetmesh", len(mesh.vertices), len(topo.boundary_faces),
                          props, False, False)
@@ -193,6 +199,9 @@ class TetMeshShape(mi.Mesh):
             albedo, emission, self.phase = scatter
             values = {"vertex_emission": emission, "vertex_opacity": mesh.opacity,
                       "vertex_albedo": albedo}
+        elif sh is not None:
+            self.optical_model = sh[0]
+            values = {"vertex_sh": sh[1], "vertex_opacity": mesh.opacity}
         elif post is None:
             values = self.optical_model.vertex_values(mesh)
         else:

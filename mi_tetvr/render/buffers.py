@@ -273,6 +273,13 @@ class TetGroup:
         return TetGroup(self.shapes, self.face_offsets, dr.detach(self.buf), self.model,
                         dr.detach(self.params))
 
+    def for_ray(self, d: mi.Vector3f) -> TetGroup:
+        """The same group, its parameters for rays of direction ``d``
+        (:meth:`~mi_tetvr.render.optical.OpticalModel.for_ray`)."""
+        params = self.model.for_ray(self.params, d) if hasattr(self.model, "for_ray") \
+            else self.params
+        return TetGroup(self.shapes, self.face_offsets, self.buf, self.model, params)
+
     def owns(self, si: mi.PreliminaryIntersection3f) -> mi.Bool:
         """Whether a preliminary intersection is on one of :attr:`shapes`."""
         mask = mi.Bool(False)

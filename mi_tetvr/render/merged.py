@@ -122,9 +122,15 @@ def merged_trace(scenes: list, tss: list, ray: mi.Ray3f, settings: WalkSettings,
     ``2 n`` is about the single medium's at ``n``); the integral starts at
     ``t_start`` (a clip)."""
     deriv, adj = (None, None) if grad is None else grad
+    fr = RayFrame.of(ray.o, ray.d)
+    d = dr.detach(fr.d)
+    tss = [g.for_ray(d) for g in tss]
+    if deriv is not None:
+        deriv = adjoint.Derivative(deriv.mode, [g.for_ray(d) for g in deriv.groups],
+                                   deriv.camera, deriv.ray_tangent)
     client = MergedEmission(tss, settings, n_sub, deriv)
     acc = Radiance(mi.Color3f(0.0), mi.Float(1.0), adj)
-    acc, steps = traverse_merged(scenes, client, RayFrame.of(ray.o, ray.d), acc,
+    acc, steps = traverse_merged(scenes, client, fr, acc,
                                  Span(mi.Float(t_start), mi.Float(ray.maxt)), settings, active)
     return acc.L, acc.T, steps, acc.adj
 

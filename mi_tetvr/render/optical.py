@@ -108,6 +108,12 @@ class OpticalModel:
         order of their vertices (attached to the shapes' AD graph)."""
         raise NotImplementedError
 
+    def for_ray(self, params: Any, d: mi.Vector3f) -> Any:
+        """``params`` for rays of unit direction ``d`` (a model whose vertices'
+        values depend on the direction they are seen from evaluates that once per
+        ray here); the walk calls it before it gathers."""
+        return params
+
     def gather(self, params: Any, i: mi.UInt32, active: bool | mi.Bool = True,
                reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> Any:
         """``Attributes`` of vertex ``i``; ``reduce`` is the scatter strategy
@@ -179,6 +185,107 @@ class EmissionAbsorption(OpticalModel):
     def linear(self, params: Any, a0: Any, a1: Any,
                tet: mi.UInt32) -> tuple[mi.Color3f, mi.Color3f, mi.Float, mi.Float]:
         return a0.c, a1.c, a0.s, a1.s
+
+
+#: Real spherical harmonics' constants up to degree 3 (as 3D Gaussian Splatting's
+#: ``sh_utils``: the orthonormal real basis with the Condon-Shortley phase).
+_SH_C0 = 0.28209479177387814
+_SH_C1 = 0.4886025119029199
+_SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
+          -1.0925484305920792, 0.5462742152960396)
+_SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+          -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+
+def sh_basis(d: Any, degree: int) -> list:
+    """The ``(degree + 1)^2`` real spherical harmonics at the unit direction ``d``
+    (Dr.Jit or numpy components ``d.x, d.y, d.z`` / ``d[..., 0]``...), in the order
+    of 3D Gaussian Splatting (degree by degree, ``m`` from ``-l`` to ``l``)."""
+    x, y, z = (d.x, d.y, d.z) if hasattr(d, "x") else (d[..., 0], d[..., 1], d[..., 2])
+    out = [_SH_C0 + 0.0 * x]
+    if degree >= 1:
+        out += [-_SH_C1 * y, _SH_C1 * z, -_SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        out += [_SH_C2[0] * xy, _SH_C2[1] * yz, _SH_C2[2] * (2.0 * zz - xx - yy),
+                _SH_C2[3] * xz, _SH_C2[4] * (xx - yy)]
+    if degree >= 3:
+        out += [_SH_C3[0] * y * (3.0 * xx - yy), _SH_C3[1] * xy * z,
+                _SH_C3[2] * y * (4.0 * zz - xx - yy),
+                _SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+                _SH_C3[4] * x * (4.0 * zz - xx - yy), _SH_C3[5] * z * (xx - yy),
+                _SH_C3[6] * x * (xx - 3.0 * yy)]
+    return out
+
+
+class ViewDependent(EmissionAbsorption):
+    """Emission and absorption whose color depends on the direction it is seen
+    from, as 3D Gaussian Splatting's and Radiant Foam's primitives: per vertex, the
+    coefficients of real spherical harmonics up to :attr:`degree` per color channel
+    (``vertex_sh``: ``(degree + 1)^2`` RGB triples, degree by degree), and an
+    extinction. Seen along the unit direction ``d``, a vertex's color is ``max(sum_k
+    Y_k(d) k_k + 0.5, 0)`` (3DGS's offset: zero coefficients are a mid gray; the
+    degree-0 coefficient of a color ``c`` is ``(c - 0.5) / Y_0``). A ray's direction
+    is constant along it, so its basis is evaluated once per ray (:meth:`for_ray`)
+    and the colors stay linear inside a tet: each segment is
+    :class:`EmissionAbsorption`'s. One class per degree (:func:`view_dependent`),
+    so that meshes of one degree share a walk."""
+
+    #: The spherical harmonics' degree (0 to 3).
+    degree = 0
+
+    class Params:
+        DRJIT_STRUCT = {"sh": mi.Float, "opacity": mi.Float, "basis": list}
+
+        def __init__(self, sh=None, opacity=None, basis=None):
+            self.sh, self.opacity, self.basis = sh, opacity, basis
+
+    @classmethod
+    def coefficients(cls) -> int:
+        """RGB triples per vertex: ``(degree + 1)^2``."""
+        return (cls.degree + 1) ** 2
+
+    @staticmethod
+    def vertex_values(mesh: TetMesh) -> dict[str, np.ndarray]:
+        raise NotImplementedError("a view-dependent tetmesh reads its coefficients from its "
+                                  "properties")
+
+    def read_params(self, shapes: list[mi.Mesh]) -> ViewDependent.Params:
+        return self.Params(concat([s.attribute_buffer("vertex_sh") for s in shapes]),
+                           concat([s.attribute_buffer("vertex_opacity") for s in shapes]),
+                           [])
+
+    def for_ray(self, params: ViewDependent.Params, d: mi.Vector3f) -> ViewDependent.Params:
+        """``params`` with the basis at the rays' directions ``d``."""
+        return self.Params(params.sh, params.opacity, sh_basis(d, self.degree))
+
+    def gather(self, params: Any, i: mi.UInt32, active: bool | mi.Bool = True,
+               reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> EmissionAbsorption.Attributes:
+        if not params.basis:
+            raise RuntimeError("ViewDependent.gather needs the rays' basis: for_ray(params, d)")
+        K = len(params.basis)
+        c = mi.Color3f(0.5)
+        for k, y in enumerate(params.basis):
+            c += y * dr.gather(mi.Color3f, params.sh, i * K + k, active, mode=reduce)
+        return self.Attributes(dr.maximum(c, 0.0),
+                               dr.gather(mi.Float, params.opacity, i, active, mode=reduce))
+
+
+_VIEW_DEPENDENT = {}
+
+
+def view_dependent(degree: int) -> type:
+    """The :class:`ViewDependent` model of spherical harmonics up to ``degree``
+    (0 to 3), one class per degree."""
+    degree = int(degree)
+    if not 0 <= degree <= 3:
+        raise ValueError(f"the spherical harmonics' degree must be 0 to 3, got {degree}")
+    if degree not in _VIEW_DEPENDENT:
+        K = (degree + 1) ** 2
+        _VIEW_DEPENDENT[degree] = type(f"ViewDependent{degree}", (ViewDependent,), {
+            "degree": degree, "vertex_attributes": (("vertex_sh", 3 * K), ("vertex_opacity", 1)),
+            "__doc__": f"{ViewDependent.__name__} of degree {degree}."})
+    return _VIEW_DEPENDENT[degree]
 
 
 class Scattering(EmissionAbsorption):

@@ -26,7 +26,8 @@ from mi_tetvr.transfer import TransferFunction, read_transfer_function
 
 __all__ = ["CLASSIFICATIONS", "LIGHTING", "LIGHTING_DEFAULTS", "MODELS", "scalar_range",
            "check_array_scalars", "mesh_from_properties", "transfer_function",
-           "classification", "post_classification", "scattering", "shape_properties",
+           "classification", "post_classification", "scattering", "spherical_harmonics",
+           "shape_properties",
            "hand_topology", "drop_topology"]
 
 CLASSIFICATIONS = ("post", "pre", "preintegrated")
@@ -292,6 +293,32 @@ def scattering(props: mi.Properties,
     return albedo, emission, phase
 
 
+
+
+def spherical_harmonics(props: mi.Properties, mesh: TetMesh) -> tuple[type, np.ndarray] | None:
+    """``(model, coefficients (n, 3 K))`` of a view-dependent ``tetmesh``: the
+    tensor ``sh`` ((n, K, 3) or (n, 3 K), K = 1, 4, 9 or 16 RGB triples per vertex,
+    degree by degree) or the mesh file's point array ``sh`` (as a fit writes it);
+    else None."""
+    from mi_tetvr.render.optical import view_dependent
+    n = len(mesh.vertices)
+    if "sh" in props:
+        sh = np.asarray(props["sh"], np.float64)
+    elif mesh.point_data and "sh" in mesh.point_data:
+        sh = np.asarray(mesh.point_data["sh"], np.float64)
+    else:
+        return None
+    if sh.size % (3 * max(n, 1)) or len(sh) != n:
+        raise ValueError(f"tetmesh: 'sh' needs (n, K, 3) or (n, 3 K) coefficients for the "
+                         f"{n} vertices, got shape {sh.shape}")
+    K = sh.size // (3 * n)
+    degree = int(round(np.sqrt(K))) - 1
+    if (degree + 1) ** 2 != K or not 0 <= degree <= 3:
+        raise ValueError(f"tetmesh: 'sh' holds {K} RGB triples per vertex; spherical "
+                         f"harmonics up to degree 0 to 3 have 1, 4, 9 or 16")
+    if not np.all(np.isfinite(sh)):
+        raise ValueError("tetmesh: 'sh' has non-finite coefficients")
+    return view_dependent(degree), sh.reshape(n, 3 * K)
 
 
 def shape_properties(entry: dict[str, Any]) -> mi.Properties:

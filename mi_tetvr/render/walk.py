@@ -147,17 +147,18 @@ def trace(scene: mi.Scene, ts: TetGroup | list[TetGroup], ray: mi.Ray3f,
         the number of tets crossed, and the adjoint (forward mode: with the
         tangents accumulated; None in the primal pass).
     """
-    groups = list(ts) if isinstance(ts, (list, tuple)) else [ts]
+    fr = RayFrame.of(ray.o, ray.d)
+    d = dr.detach(fr.d)
+    groups = [g.for_ray(d) for g in (ts if isinstance(ts, (list, tuple)) else [ts])]
     if grad is None:
         clients, adj = [Emission(g, settings) for g in groups], None
     else:
         deriv, adj = grad
-        clients = [EmissionDerivative(g, g_ad, deriv, settings)
+        clients = [EmissionDerivative(g, g_ad.for_ray(d), deriv, settings)
                    for g, g_ad in zip(groups, deriv.groups)]
     model = groups[0].model
     L = model.start() if isinstance(model, Probe) else mi.Color3f(0.0)
     acc = Radiance(L, dr.full(mi.Float, 1.0, dr.width(ray.o)), adj)
-    fr = RayFrame.of(ray.o, ray.d)
     acc, steps = traverse(scene, clients, fr, acc, Span(mi.Float(t_start), mi.Float(ray.maxt)),
                           settings, active, Entry(t=t_enter) if t_enter is not None else None)
     return acc.L, acc.T, steps, acc.adj
