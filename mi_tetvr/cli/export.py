@@ -88,6 +88,11 @@ def run(a):
     name = field_name(pd, a.array, path)
     values = pd[name][:, 0]
     colors = pd["color"][:, :3] if "color" in pd and pd["color"].shape[1] >= 3 else None
+    if "sh" in pd:
+        # view-dependent colors (which a tetmesh renders in place of any color array):
+        # their mean over the directions, the degree-0 term (its spherical harmonic is
+        # 1 / (2 sqrt(pi)))
+        colors = np.maximum(pd["sh"][:, :3] * (0.5 / np.sqrt(np.pi)) + 0.5, 0.0)
     try:
         level = default_level(values, name) if a.level is None else a.level
         if a.points:

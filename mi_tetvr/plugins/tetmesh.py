@@ -100,6 +100,15 @@
    - With an albedo: the phase function, a Mitsuba phase plugin as a child
      (``isotropic``, ``hg``, ``rayleigh``, ...); its parameters are in
      ``mi.traverse`` under ``<id>.phase.``. (Default: ``isotropic``)
+ * - sh
+   - |tensor|
+   - View-dependent color (:class:`~mi_tetvr.render.optical.ViewDependent`): per
+     vertex the coefficients of real spherical harmonics up to degree 0 to 3, (n, K, 3)
+     or (n, 3 K) with K = 1, 4, 9 or 16 RGB triples, degree by degree (3D Gaussian
+     Splatting's order and offset: seen along ``d``, a vertex's color is
+     ``max(sum_k Y_k(d) sh_k + 0.5, 0)``). A mesh file's point array ``sh`` is read
+     the same way. Instead of ``color``; not with a transfer function or an albedo.
+     (Default: none)
  * - to_world
    - |transform|
    - Applied to the vertex positions at load. Opacity stays per unit length
@@ -115,7 +124,8 @@ bytes per tet); ``shape.oriented_tets()`` reads its tets back, positively
 oriented (e.g. for the quality regularizer).
 
 Differentiable parameters (``mi.traverse``): ``vertex_positions`` (3n),
-``vertex_color`` (3n) and ``vertex_opacity`` (n); scattering (an
+``vertex_color`` (3n) and ``vertex_opacity`` (n); view-dependent (``sh``):
+``vertex_sh`` (3Kn) instead of ``vertex_color``; scattering (an
 ``albedo``): ``vertex_emission`` (3n) and ``vertex_albedo`` (3n) instead of
 ``vertex_color``, and the phase function's (``phase.g``, ...); post-classified:
 ``vertex_positions``, ``vertex_scalar`` (n), ``tf_color`` (3R, linear RGB)

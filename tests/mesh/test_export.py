@@ -116,6 +116,21 @@ def test_a_fits_folder_exports_its_fitted_mesh(blob, tmp_path):
         export(fit, "-o", tmp_path / "tf.ply")
 
 
+def test_view_dependent_colors_export_their_mean(blob, tmp_path):
+    """A mesh of spherical-harmonic colors (a point array ``sh``, no ``color``) exports
+    each surface vertex with the colors' mean over the directions: the degree-0 term,
+    max(Y_0 k_0 + 0.5, 0) at the vertices, interpolated."""
+    path, V, T, C, S = blob
+    sh = np.random.default_rng(3).normal(scale=0.8, size=(len(V), 4, 3))
+    mean = np.maximum(sh[:, 0] * 0.28209479177387814 + 0.5, 0.0)
+    file = tmp_path / "sh.vtu"
+    write_tetmesh(file, TetMesh(V, T, None, S, {"sh": sh.reshape(len(V), -1)}))
+    export(file, "-o", tmp_path / "sh.ply", "--level", 1.2)
+    mesh = trimesh.load(tmp_path / "sh.ply", process=False)
+    want = field_at(V, T, mean, np.asarray(mesh.vertices))
+    assert np.abs(read_colors(mesh) - np.clip(want, 0, 1)).max() < 0.6 / 255 * 2.4
+
+
 def test_bad_input_is_one_line_each(blob, tmp_path):
     path, V, T, C, S = blob
     empty = tmp_path / "empty.vtu"
