@@ -138,6 +138,9 @@ class BlockWorker:
         else:
             color = pd.get(props.pop("color_attribute", "color"))
             opacity = pd.get(props.pop("opacity_attribute", "opacity"))
+            if "sh" in pd:       # view-dependent colors, in the place of any color
+                color = None
+                props.setdefault("sh", pd["sh"])
             entry = mi_tetvr.tetmesh_dict(vertices, tets, color, opacity, **props)
         diag = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
         del vertices, tets, pd, cd

@@ -180,6 +180,27 @@ def test_post_classified_scalar_in_blocks(cluster, mesh, partitions):
     assert np.abs(got - want).max() < 1e-5
 
 
+def test_view_dependent_colors_in_blocks(cluster, mesh, tmp_path):
+    """Blocks whose pieces carry spherical harmonics (point data ``sh``) render as
+    the whole view-dependent mesh does."""
+    import mitsuba as mi
+
+    import mi_tetvr
+    from mi_tetvr.distributed import PartitionedMesh
+    from mi_tetvr.mesh.partition import partition_mesh
+    V, T, color, opacity, _ = mesh
+    sh = np.random.default_rng(8).normal(scale=0.4, size=(len(V), 4, 3))
+    part = partition_mesh(V, T, tmp_path / "sh.pvtu", 4,
+                          {"opacity": opacity, "sh": sh.reshape(len(V), -1)})
+    whole = mi_tetvr.tetmesh_dict(V, T, opacity=opacity, sh=sh)
+    o, t, _ = views({2: part})["floor"]
+    with PartitionedMesh(part.path, workers=2) as pm:
+        want = np.array(mi.render(mi.load_dict(scene_dict(o, t, True, whole))))
+        got = np.array(pm.render(mi.load_dict(scene_dict(o, t, True))))
+    assert want[..., :3].max() > 0.05
+    assert np.abs(got - want).max() < 1e-5
+
+
 @pytest.mark.parametrize("scalar", [False, True], ids=["colors", "scalar"])
 def test_gradients_across_blocks(cluster, mesh, partitions, scalar):
     """``dr.backward`` of one process and the blocks' adjoints summed over the
