@@ -33,7 +33,9 @@ medium from each model's :meth:`OpticalModel.linear` (color and extinction
 at a piece's ends).
 
 Models here: :class:`EmissionAbsorption` (what ``tetmesh`` shapes use),
-:class:`Scattering` (extinction, albedo and emission: a
+:class:`ViewDependent` (the same with colors that depend on the direction they are
+seen from: spherical harmonics per vertex), :class:`Scattering` (extinction, albedo
+and emission: a
 participating medium), :class:`Absorption` (extinction only), :class:`PostClassified` (a scalar and
 a transfer function), :class:`PreIntegrated` (the same by a table),
 :class:`CellClassified` (a scalar per tet and a transfer function) and
@@ -239,11 +241,6 @@ class ViewDependent(EmissionAbsorption):
 
         def __init__(self, sh=None, opacity=None, basis=None):
             self.sh, self.opacity, self.basis = sh, opacity, basis
-
-    @classmethod
-    def coefficients(cls) -> int:
-        """RGB triples per vertex: ``(degree + 1)^2``."""
-        return (cls.degree + 1) ** 2
 
     @staticmethod
     def vertex_values(mesh: TetMesh) -> dict[str, np.ndarray]:
