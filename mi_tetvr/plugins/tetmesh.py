@@ -102,8 +102,8 @@
      ``mi.traverse`` under ``<id>.phase.``. (Default: ``isotropic``)
  * - sh
    - |tensor|
-   - View-dependent color (:class:`~mi_tetvr.render.optical.ViewDependent`): per
-     vertex the coefficients of real spherical harmonics up to degree 0 to 3, (n, K, 3)
+   - View-dependent colors: per vertex the coefficients of real spherical harmonics
+     up to degree 0 to 3 (:class:`~mi_tetvr.render.optical.ViewDependent`), (n, K, 3)
      or (n, 3 K) with K = 1, 4, 9 or 16 RGB triples, degree by degree (3D Gaussian
      Splatting's order and offset: seen along ``d``, a vertex's color is
      ``max(sum_k Y_k(d) sh_k + 0.5, 0)``). A mesh file's point array ``sh`` is read
