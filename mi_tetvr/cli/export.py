@@ -70,6 +70,9 @@ def run(a):
 
     import numpy as np
 
+    from mi_tetvr.extras import require
+    # (VTK through pyvista, trimesh, scikit-image: before any work)
+    require("recon", "mi-tetvr export", "pyvista", "trimesh", "skimage")
     from mi_tetvr.mesh.export import (POINT_SUFFIXES, SUFFIXES, default_level, level_surface,
                                       write_points, write_surface)
     from mi_tetvr.mesh.io import read_tetmesh

@@ -276,9 +276,8 @@ class TetGroup:
     def for_ray(self, d: mi.Vector3f) -> TetGroup:
         """The same group, its parameters for rays of direction ``d``
         (:meth:`~mi_tetvr.render.optical.OpticalModel.for_ray`)."""
-        params = self.model.for_ray(self.params, d) if hasattr(self.model, "for_ray") \
-            else self.params
-        return TetGroup(self.shapes, self.face_offsets, self.buf, self.model, params)
+        return TetGroup(self.shapes, self.face_offsets, self.buf, self.model,
+                        self.model.for_ray(self.params, d))
 
     def owns(self, si: mi.PreliminaryIntersection3f) -> mi.Bool:
         """Whether a preliminary intersection is on one of :attr:`shapes`."""

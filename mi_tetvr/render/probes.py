@@ -121,6 +121,11 @@ class Probe:
         #: The scalar's classification (value range and texels of the shape).
         self.field = PostClassified()
 
+    def for_ray(self, params: Probe.Params, d: mi.Vector3f) -> Probe.Params:
+        """``params`` as they are: a probe's values do not depend on the rays'
+        direction (see :meth:`~mi_tetvr.render.optical.OpticalModel.for_ray`)."""
+        return params
+
     def read_params(self, shapes: list[mi.Mesh]) -> Probe.Params:
         s = self.field.the_shape(shapes)
         return self.Params(s.attribute_buffer("vertex_scalar"), s.tf_color, s.tf_opacity,
