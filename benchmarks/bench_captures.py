@@ -15,7 +15,9 @@ after the other, never at once::
         --time-budget 10 --code ../before --code-args="--background learn"
 
 ``--code-args`` are extra options of the other checkout's fit (e.g. the
-learned background, which the earlier code did not choose by itself).
+learned background, which the earlier code did not choose by itself), ``--args``
+this checkout's: ``--args="--sh-degree 2" --code . --code-args="--sh-degree 0"``
+compares two settings of one checkout.
 
 The held-out photos are also rendered every ``--every`` seconds of the fit and when it
 stops training, by each checkout's own trainer, and scored here the same way: a curve of
@@ -174,6 +176,9 @@ def main():
                    "(default out/captures)")
     p.add_argument("--code", help="another checkout whose default fit is run too")
     p.add_argument("--code-args", default="", help="extra fit options of --code's run")
+    p.add_argument("--args", default="", help="extra fit options of this checkout's run "
+                   "(e.g. --args=\"--sh-degree 2\" --code . --code-args=\"--sh-degree 0\": "
+                   "one setting against another)")
     p.add_argument("--reuse", action="store_true", help="score the fits already in --out "
                    "(OUT/this, OUT/code) instead of running them again")
     p.add_argument("--every", type=float, default=60.0, help="seconds of the fit between two "
@@ -204,7 +209,7 @@ def main():
           f"({dataset.test[0].camera.width}x{dataset.test[0].camera.height}); "
           f"{dataset.protocol}")
     runs = {"this": [sys.executable]}
-    extra = {"this": []}
+    extra = {"this": shlex.split(a.args)}
     if a.code:
         from checkout_cli import command
         runs["code"] = command(a.code)
@@ -225,7 +230,7 @@ def main():
         r = results[name]
         print(f"{name:>5s}: PSNR {r['psnr']:.2f} dB, SSIM {r['ssim']:.4f}; {r['steps']} steps "
               f"({r['steps_per_second']:.2f}/s), {r['tets']:,} tets ({seconds:.0f} s)"
-              f"{'  ' + a.code_args if name == 'code' and a.code_args else ''}")
+              f"{'  ' + ' '.join(extra[name]) if extra[name] else ''}")
         print("       held-out PSNR at " + ", ".join(f"{t:.0f} s: {q:.2f}"
                                                    for t, _, q in r["curve"]))
     if a.code:

@@ -30,7 +30,7 @@ RENAMED = {"resolution": "grid_resolution"}
 #: The starting meshes made from the data (any other ``init`` is a mesh file).
 INITS = ("auto", "grid", "tetwild", "delaunay", "unbounded")
 #: The settings of a stage (``FitConfig.stages``).
-STAGE_KEYS = ("iterations", "lr_position", "split", "prune", "grid", "downscale")
+STAGE_KEYS = ("iterations", "lr_position", "split", "prune", "grid", "downscale", "sh_degree")
 
 
 def _numbers(n):
@@ -146,6 +146,11 @@ class FitConfig:
                                             "the identity")
     lr_appearance: float = setting(0.005, "the color transforms' step (their mean is kept at "
                                           "the identity: the held-out photos' transform)")
+    sh_degree: int | None = setting(
+        None, "view-dependent colors: spherical harmonics up to this degree (1 to 3) per "
+        "vertex, degree 0 in the first stage and one more in each stage after, all of them in "
+        "the last (as 3D Gaussian Splatting); 0: one color per vertex; default: "
+        "0 (see SH_DEGREE_UNBOUNDED for unbounded scenes)", metavar="DEGREE")
     init_color: float = setting(0.5, "starting color (linear, every channel)")
     init_opacity: float = setting(0.05, "starting opacity: optical depth per cell")
     regularizer: float = setting(10.0, "weight lambda of the tet-quality term (DiffTetVR "
@@ -172,7 +177,8 @@ class FitConfig:
         "refined after the stage, \"prune\": optical depth per cell below which empty tets "
         "are dropped after it, \"grid\": the resolution of a regular grid the stage trains on "
         "(init grid only), \"downscale\": its training photos area-averaged by this factor "
-        "(coarse photos first)}; default: one stage, or with a time budget a coarse grid and then "
+        "(coarse photos first), \"sh_degree\": the degree of the stage's spherical harmonics "
+        "(with sh_degree)}; default: one stage, or with a time budget a coarse grid and then "
         "the fine one (unbounded scenes: four stages with splits and pruning)",
         metavar="JSON", parse=_json)
     target_tets: int | None = setting(None, "no more splits once the mesh has this many tets")
@@ -359,6 +365,12 @@ class FitConfig:
             raise ValueError(f"optimize {self.optimize} needs the scalar mesh as init (a file)")
         if self.optimize == "scalar" and self.transfer_function is None:
             raise ValueError("optimize scalar needs the transfer function (--tf)")
+        if self.sh_degree is not None and not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"sh_degree must be 0 (one color per vertex) to 3, got "
+                             f"{self.sh_degree}")
+        if self.sh_degree and (self.model != "emission" or self.optimize != "volume"):
+            raise ValueError("sh_degree gives an emission-absorption volume view-dependent "
+                             "colors: not with model absorption/scattering or optimize tf/scalar")
         if int(self.tf_resolution) < 2:
             raise ValueError("tf_resolution must be >= 2")
         if self.value_range is not None and not (len(self.value_range) == 2 and
@@ -380,17 +392,31 @@ class FitConfig:
                 raise ValueError(f"bad stage {st}: 'grid' needs init 'grid' and a resolution >= 1")
             if int(st.get("iterations", 0)) < 0 or not 0 <= st.get("split", 0) <= 1:
                 raise ValueError(f"bad stage {st}: iterations >= 0, split in [0, 1]")
+            if st["sh_degree"] is not None and not (
+                    self.sh_degree and 0 <= st["sh_degree"] <= self.sh_degree):
+                raise ValueError(f"bad stage {st}: 'sh_degree' is 0 to the fit's sh_degree "
+                                 f"({self.sh_degree or 0}: view-dependent colors off)")
 
     def stage_list(self):
-        """The stages as dicts with all keys (see ``stages``)."""
+        """The stages as dicts with all keys (see ``stages``); ``sh_degree`` None:
+        one color per vertex."""
         raw = self.stages or [{"iterations": self.iterations, "lr_position": self.lr_position}]
         return [{"iterations": int(st.get("iterations", 0)),
                  "lr_position": float(st.get("lr_position", 0.0)),
                  "split": float(st.get("split", 0.0)),
                  "prune": st.get("prune", None), "grid": st.get("grid", None),
                  "downscale": int(st.get("downscale", 1)),
+                 "sh_degree": st.get("sh_degree", self.stage_sh_degree(i, len(raw))),
                  **{k: v for k, v in st.items() if k not in STAGE_KEYS}}
-                for st in raw]
+                for i, st in enumerate(raw)]
+
+    def stage_sh_degree(self, i, stages):
+        """The default degree of stage ``i`` of ``stages``: none without
+        ``sh_degree``, else degree 0 first and one more per stage, the last stage
+        all of ``sh_degree``."""
+        if not self.sh_degree:
+            return None
+        return self.sh_degree if i + 1 == stages else min(i, self.sh_degree)
 
     def for_stage(self, i):
         """The settings one stage trains with (its iterations and position rate)."""

@@ -6,7 +6,8 @@ render is compared with a target. :class:`~mi_tetvr.recon.trainer.Trainer`,
 the checkpoints and the pipeline go through it, so that one loop fits
 
 * ``volume`` (:class:`VolumeField`): per-vertex color and opacity (emission
-  and absorption), the default;
+  and absorption), the default; with ``sh_degree`` (:class:`ViewDependentField`)
+  the color is spherical harmonics, seen differently from each direction;
 * ``attenuation`` (:class:`AttenuationField`, ``model="absorption"``): a
   per-vertex attenuation from X-ray transmittance images;
 * ``scattering`` (:class:`ScatteringField`, ``model="scattering"``): a
@@ -27,7 +28,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["Field", "VolumeField", "ScatteringField", "AttenuationField", "TransferFunctionField",
+__all__ = ["Field", "VolumeField", "ViewDependentField", "ScatteringField", "AttenuationField", "TransferFunctionField",
            "ScalarField",
            "make_field", "MESH_ID", "key"]
 
@@ -116,8 +117,24 @@ class Field:
 
     def score_weights(self, criterion):
         """``{parameter key: weight}`` of the per-vertex gradients that rank
-        vertices for refinement (``criterion``: gradient | color | opacity)."""
+        vertices for refinement (``criterion``: gradient | color | opacity); a
+        weight is a number, or one number per value of a vertex."""
         return {k: 1.0 for k, _ in self.point_arrays.values()}
+
+    def adopt(self, values):
+        """``values`` (dict of numpy arrays, e.g. an earlier stage's) as this field
+        holds them (another layout of the same unknowns converted)."""
+        return values
+
+    def adopt_moments(self, key, a):
+        """Adam's moments ``a`` (n, c') of the parameter ``key`` as this field holds
+        it (:meth:`adopt`'s conversion)."""
+        return a
+
+    def step_scales(self):
+        """``{parameter key: (c,) factors}``: a per-vertex parameter's step, value by
+        value of a vertex, times these (default: none)."""
+        return {}
 
 
 class VolumeField(Field):
@@ -150,6 +167,91 @@ class VolumeField(Field):
             w[self.point_arrays[self.rgb][0]] = 1.0
         if criterion in ("gradient", "opacity"):
             w[key("vertex_opacity")] = 1.0 / self.h   # per optical depth of a cell
+        return w
+
+
+class ViewDependentField(VolumeField):
+    """Per-vertex view-dependent color, the coefficients of real spherical harmonics
+    up to ``degree`` (``sh``: ``(degree + 1)^2`` RGB triples per vertex, the
+    ``tetmesh``'s ``vertex_sh``), and opacity. A color ``c`` is the degree-0
+    coefficient ``(c - 0.5) / Y_0`` (:meth:`adopt`: a plain color field's values, an
+    earlier stage's of another degree, padded with zeros or cut). As 3D Gaussian
+    Splatting: the degree-0 coefficients step as a color does, the others
+    :data:`REST_RATE` times slower; refinement reads the degree-0 gradients."""
+    point_arrays = {"sh": (key("vertex_sh"), 3), "opacity": (key("vertex_opacity"), 1)}
+    rgb = "sh"
+    #: The higher degrees' step over the degree-0 one (3DGS: ``feature_lr / 20``).
+    REST_RATE = 1.0 / 20.0
+
+    def __init__(self, config, h, values=None, tets=None, degree=0):
+        from mi_tetvr.render.optical import sh_basis
+        super().__init__(config, h, values, tets)
+        if not 0 <= int(degree) <= 3:
+            raise ValueError(f"spherical harmonics have degree 0 to 3, got {degree}")
+        self.degree = int(degree)
+        self.K = (self.degree + 1) ** 2
+        #: Y_0, the degree-0 harmonic (a constant).
+        self.Y0 = float(sh_basis(np.zeros((1, 3)), 0)[0][0])
+        self.point_arrays = {"sh": (key("vertex_sh"), 3 * self.K),
+                             "opacity": (key("vertex_opacity"), 1)}
+
+    def color_to_sh(self, color):
+        """(n, 3 K) coefficients of the view-independent ``color`` (n, 3)."""
+        sh = np.zeros((len(color), 3 * self.K))
+        sh[:, :3] = (np.asarray(color, np.float64).reshape(-1, 3) - 0.5) / self.Y0
+        return sh
+
+    def mean_color(self, sh):
+        """(n, 3) the colors' mean over directions (the degree-0 term), in [0, 1]."""
+        return np.clip(np.asarray(sh, np.float64)[:, :3] * self.Y0 + 0.5, 0.0, 1.0)
+
+    def initial(self, n):
+        return {"sh": self.color_to_sh(np.full((n, 3), self.config.init_color)),
+                "opacity": np.full(n, self.config.init_opacity / self.h)}
+
+    def adopt(self, values):
+        values = dict(values)
+        if "sh" not in values and "color" in values:
+            values["sh"] = self.color_to_sh(values["color"])
+        values.pop("color", None)
+        if "sh" in values:
+            values["sh"] = self.resize(values["sh"])
+        return values
+
+    def resize(self, a):
+        """(n, 3 K) of an (n, 3 K') array of coefficients (or their moments): the
+        degrees beyond K' are zero, those beyond K dropped."""
+        a = np.asarray(a).reshape(-1, np.asarray(a).size // max(len(a), 1))
+        out = np.zeros((len(a), 3 * self.K), a.dtype)
+        c = min(a.shape[1], 3 * self.K)
+        out[:, :c] = a[:, :c]
+        return out
+
+    def adopt_moments(self, k, a):
+        return self.resize(a) if k == key("vertex_sh") else a
+
+    def shape(self, vertices, tets, values):
+        import mi_tetvr
+        sh = np.asarray(values["sh"], np.float64).reshape(len(vertices), self.K, 3)
+        return mi_tetvr.tetmesh_dict(vertices, tets, opacity=values["opacity"], sh=sh)
+
+    def rates(self):
+        return {key("vertex_sh"): self.config.lr_color / self.Y0,
+                key("vertex_opacity"): self.config.lr_opacity / self.h}
+
+    def step_scales(self):
+        if self.K == 1:
+            return {}
+        return {key("vertex_sh"): np.r_[np.ones(3), np.full(3 * self.K - 3, self.REST_RATE)]}
+
+    def project(self, opt):
+        opt[key("vertex_opacity")] = dr.maximum(opt[key("vertex_opacity")], 0.0)
+
+    def score_weights(self, criterion):
+        w = super().score_weights(criterion)
+        if key("vertex_sh") in w:
+            # the degree-0 gradients in color units: what a plain color field's give
+            w[key("vertex_sh")] = np.r_[np.full(3, 1.0 / self.Y0), np.zeros(3 * self.K - 3)]
         return w
 
 
@@ -318,12 +420,15 @@ class ScalarField(_Classified):
 FIELDS = {"volume": VolumeField, "tf": TransferFunctionField}
 
 
-def make_field(config, h, values=None, tets=None, radius=1.0) -> Field:
+def make_field(config, h, values=None, tets=None, radius=1.0, sh_degree=None) -> Field:
     """The :class:`Field` a config fits: ``config.optimize`` (volume | tf |
     scalar), with ``config.model == "absorption"`` an attenuation, on the
     mesh ``tets`` (its edges carry the smoothing priors). ``radius`` is the
     mesh's (half its box diagonal): the unit of a known transfer function's
-    opacity."""
+    opacity. ``sh_degree``: a volume's colors are spherical harmonics of this
+    degree (the stage's, :meth:`FitConfig.stage_list`; None: plain colors)."""
+    if sh_degree is not None and config.model == "emission" and config.optimize == "volume":
+        return ViewDependentField(config, h, values, tets, sh_degree)
     if config.model == "absorption":
         return AttenuationField(config, h, values, tets)
     if config.model == "scattering":

@@ -33,7 +33,7 @@ __all__ = ["run", "next_stage", "for_capture", "capture_kind", "with_sparse_poin
            "evaluate_fit", "initial_mesh", "data_bounds", "scalar_from_colors", "calibrate",
            "resolution_for_budget", "budget_stages", "DEFAULT_RESOLUTION", "check_resume",
            "RESUMABLE",
-           "BUDGET_STEPS", "COARSE_SHARE", "PIXELS_PER_VERTEX",
+           "BUDGET_STEPS", "COARSE_SHARE", "PIXELS_PER_VERTEX", "SH_DEGREE_UNBOUNDED",
            "resolution_limits", "data_warnings"]
 
 
@@ -72,6 +72,9 @@ PIXELS_PER_VERTEX = 2
 UNBOUNDED_PRUNE = 0.01
 UNBOUNDED_SPLIT = 0.05
 UNBOUNDED_SPLITS = 3
+#: The spherical harmonics' degree of an unbounded scene's colors (``sh_degree``
+#: left open).
+SH_DEGREE_UNBOUNDED = 0
 #: The factor each stage's photos are area-averaged by (coarse photos first), at most
 #: the photos' shorter side over :data:`COARSE_PIXELS`. Measured on monstree (20 photos of
 #: 252x189, 4-minute fits, held-out sRGB PSNR): every stage on the whole photos 18.36 dB
@@ -110,6 +113,8 @@ def for_capture(config: FitConfig, dataset):
         changes["appearance"] = unbounded
     if unbounded and config.background is None:
         changes["background"] = "learn"
+    if config.sh_degree is None and config.model == "emission" and config.optimize == "volume":
+        changes["sh_degree"] = SH_DEGREE_UNBOUNDED if unbounded else 0
     return config.updated(**changes)
 
 
@@ -700,7 +705,8 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print):
     new = Trainer(trainer.dataset, vertices, tets, config.for_stage(state.stage), values,
                   state=state, environment=trainer.environment(),
                   appearance=trainer.appearance())
-    new.opt.set_moments({k: (t, data[f"{k}:m"], data[f"{k}:v"])
+    adopt = new.field.adopt_moments
+    new.opt.set_moments({k: (t, adopt(k, data[f"{k}:m"]), adopt(k, data[f"{k}:v"]))
                          for k, (t, _, _) in moments.items()})
     return new
 
@@ -734,7 +740,11 @@ def write_fitted(trainer: Trainer, out: Path):
         write_json(tf, path)
         plot_transfer_functions(out / "transfer_function.png", {"fitted": tf}, field.value_range)
         return
-    if "color" in field.point_arrays:
+    if "sh" in field.point_arrays:
+        # the mean color beside the spherical harmonics: what viewers without them show
+        write_tetmesh(path, TetMesh(vertices, tets, field.mean_color(values["sh"]),
+                                    values["opacity"], point_data={"sh": values["sh"]}))
+    elif "color" in field.point_arrays:
         write_tetmesh(path, TetMesh(vertices, tets, values["color"], values["opacity"]))
     else:
         write_tetmesh(path, TetMesh(vertices, tets, point_data={
@@ -798,11 +808,14 @@ def evaluate_mesh(mesh_path, dataset, background=None, n_sub=4, split="test", re
             f"--model absorption or --optimize scalar/tf is scored from its fit folder, "
             f"mi-tetvr eval FIT_DIR DATA")
     n = len(mesh.vertices)
-    color = np.asarray(mesh.point_data["color"], np.float64).reshape(n, -1)[:, :3]
-    opacity = np.asarray(mesh.point_data["opacity"], np.float64).reshape(n)
+    values = {"color": np.asarray(mesh.point_data["color"], np.float64).reshape(n, -1)[:, :3],
+              "opacity": np.asarray(mesh.point_data["opacity"], np.float64).reshape(n)}
     cfg = FitConfig(background=background, n_sub=n_sub)
-    trainer = Trainer(dataset, mesh.vertices, mesh.tets, cfg,
-                      {"color": color, "opacity": opacity})
+    if "sh" in mesh.point_data:
+        # view-dependent colors (as the fit writes them, beside their mean color)
+        values["sh"] = np.asarray(mesh.point_data["sh"], np.float64).reshape(n, -1)
+        cfg = cfg.updated(sh_degree=int(round(np.sqrt(values["sh"].shape[1] / 3))) - 1)
+    trainer = Trainer(dataset, mesh.vertices, mesh.tets, cfg, values)
     views = dataset.test if split == "test" and dataset.test else dataset.train
     return {**trainer.evaluate(views), "scored": "sRGB"}
 

@@ -147,10 +147,11 @@ class Trainer:
         self.config = config
         self.dataset = dataset
         self.state = state or RunState(rng=np.random.default_rng(config.seed))
-        stages = config.stage_list()
+        stage = config.stage_list()
+        stage = stage[min(self.state.stage, len(stage) - 1)]
         #: The photos this stage trains on: the data set's, area-averaged by the stage's
         #: ``downscale`` (coarse photos first); held-out views are scored as given.
-        self.downscale = int(stages[min(self.state.stage, len(stages) - 1)]["downscale"])
+        self.downscale = int(stage["downscale"])
         self.train = dataset.train if self.downscale == 1 else \
             [v.downscaled(self.downscale) for v in dataset.train]
         if topology is None:
@@ -161,7 +162,8 @@ class Trainer:
         n = len(vertices)
         #: Half the mesh's box diagonal (the unit of a known transfer function's opacity).
         self.radius = bounding_radius(vertices)
-        self.field = make_field(config, self.h, values, self.tets, self.radius)
+        self.field = make_field(config, self.h, values, self.tets, self.radius,
+                                stage["sh_degree"])
         self.cell = np.full(n, self.h)
         initial = self.field.initial(n)
         if self.field.extinction is not None:
@@ -170,7 +172,7 @@ class Trainer:
             if hi > MULTISCALE * lo:
                 self.cell = cell
                 initial[self.field.extinction] = np.full(n, config.init_opacity) / cell
-        values = {**initial, **(values or {})}
+        values = self.field.adopt({**initial, **(values or {})})
         # the shape's tets are the oriented ones: their topology is this one, built once
         shape = mi_tetvr.tetmesh_shape(self.field.shape(vertices, self.tets, values),
                                        topology=dataclasses.replace(topology, n_flipped=0))
@@ -208,10 +210,14 @@ class Trainer:
             rates[K_ENVIRONMENT] = config.lr_color
         self.opt = VertexAdam(self.params, rates, n, shared=self.field.shared + (K_ENVIRONMENT,))
         self.params.update(self.opt)
-        #: Where the opacity step is scaled per vertex (multiscale meshes).
-        self._step_scale = None
-        if self.field.extinction is not None and not np.all(self.cell == self.h):
-            self._step_scale = mi.Float((self.h / self.cell).astype(np.float32))
+        #: Per-vertex parameters whose Adam step is scaled value by value: the
+        #: opacity per vertex's own cell (multiscale meshes), the field's own.
+        self._step_scales = {k: mi.Float(np.tile(np.asarray(f, np.float32), n))
+                             for k, f in self.field.step_scales().items()}
+        self.multiscale = self.field.extinction is not None and not np.all(self.cell == self.h)
+        if self.multiscale:
+            k = self.field.point_arrays[self.field.extinction][0]
+            self._step_scales[k] = mi.Float((self.h / self.cell).astype(np.float32))
         self.appearance_index = {}
         if config.appearance:
             # a training photo's transform, whether it is seen at the stage's scale or whole
@@ -360,13 +366,11 @@ class Trainer:
         if progress is None:
             progress = (state.step - state.stage_start) / max(cfg.iterations, 1)
         lr_scale = cfg.decay ** min(max(progress, 0.0), 1.0)
-        if self._step_scale is not None:
-            k = self.field.point_arrays[self.field.extinction][0]
-            before = dr.detach(self.opt[k])
+        before = {k: dr.detach(self.opt[k]) for k in self._step_scales}
         self.opt.step(lr_scale=lr_scale)
-        if self._step_scale is not None:
-            # Adam's step in units of each vertex's own cell
-            self.opt[k] = before + (self.opt[k] - before) * self._step_scale
+        for k, scale in self._step_scales.items():
+            # (e.g. Adam's step in units of each vertex's own cell)
+            self.opt[k] = before[k] + (self.opt[k] - before[k]) * scale
         if self.appearance_index:
             if cfg.appearance_prior > 0:
                 a = self.appearance_opt["appearance"]
@@ -391,7 +395,7 @@ class Trainer:
         from mi_tetvr.recon.safeguard import safe_step
         new = np.array(self.opt[K_POSITION], np.float64).reshape(-1, 3)
         delta = new - old
-        if self._step_scale is not None:
+        if self.multiscale:
             # Adam's step in units of each vertex's own cell (multiscale meshes)
             delta *= (self.cell / self.h)[:, None]
         if self.config.freeze_boundary:
@@ -429,8 +433,10 @@ class Trainer:
         for k, w in self._score_weights.items():
             g = dr.grad(self.opt[k])
             c = dr.width(g) // n
+            w = np.broadcast_to(np.asarray(w, np.float64), (c,))
             for j in range(c):
-                self._scores += w * dr.abs(dr.gather(mi.Float, g, c * idx + j))
+                if w[j] != 0:
+                    self._scores += float(w[j]) * dr.abs(dr.gather(mi.Float, g, c * idx + j))
         dr.schedule(self._scores)
 
     def split_scores(self):
