@@ -31,7 +31,6 @@ import argparse
 import json
 import shlex
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -208,10 +207,11 @@ def main():
     print(f"{a.data}: {len(dataset.train)} training, {len(dataset.test)} held-out photos "
           f"({dataset.test[0].camera.width}x{dataset.test[0].camera.height}); "
           f"{dataset.protocol}")
-    runs = {"this": [sys.executable]}
+    # this checkout: the one this script is in (whatever the interpreter imports)
+    from checkout_cli import command
+    runs = {"this": command(Path(__file__).resolve().parents[1])}
     extra = {"this": shlex.split(a.args)}
     if a.code:
-        from checkout_cli import command
         runs["code"] = command(a.code)
         extra["code"] = shlex.split(a.code_args)
     results = {}
