@@ -152,17 +152,36 @@ def test_every_fit_setting_is_an_option(field):
 
 
 def test_config_file_print_config_and_overrides(tmp_path, capsys):
+    # an old flat file, with a setting's earlier name: read, with one line saying so
     (tmp_path / "c.yaml").write_text("lr_color: 0.3\nstages:\n  - iterations: 5\n"
-                                     "resolution: 7\n")      # the setting's earlier name
+                                     "resolution: 7\n")
     cli.main(["fit", "data", "-o", "out", "--config", str(tmp_path / "c.yaml"),
               "--lr-opacity", "0.4", "--print-config"])
-    cfg = json.loads(capsys.readouterr().out)
-    assert cfg["lr_color"] == 0.3 and cfg["lr_opacity"] == 0.4
-    assert cfg["stages"] == [{"iterations": 5}] and cfg["grid_resolution"] == 7
-    assert cfg == FitConfig.from_file(tmp_path / "c.yaml").updated(lr_opacity=0.4).to_dict()
-    (tmp_path / "bad.json").write_text('{"lr_colour": 1}')
-    msg = fails(["fit", "d", "-o", "o", "--config", str(tmp_path / "bad.json")])
-    assert msg.startswith("mi-tetvr: unknown fit settings ['lr_colour']")
+    out = capsys.readouterr()
+    assert out.err.strip() == (f"mi-tetvr: warning: {tmp_path / 'c.yaml'}: the setting "
+                               f"'resolution' is now 'grid_resolution' (part 'mesh'); read as "
+                               f"such")
+    cfg = json.loads(out.out)
+    assert list(cfg) == ["data", "mesh", "field", "strategy", "trainer"]
+    assert cfg["trainer"]["lr_color"] == 0.3 and cfg["trainer"]["lr_opacity"] == 0.4
+    assert cfg["strategy"]["stages"] == [{"iterations": 5}]
+    assert cfg["mesh"]["grid_resolution"] == 7
+    with pytest.warns(UserWarning, match="'resolution' is now 'grid_resolution'"):
+        expected = FitConfig.from_file(tmp_path / "c.yaml").updated(lr_opacity=0.4)
+    assert cfg == expected.nested()
+    # what --print-config prints is a --config file of the same settings
+    (tmp_path / "printed.json").write_text(out.out)
+    assert FitConfig.from_file(tmp_path / "printed.json") == expected
+    for text, said in (('{"lr_colour": 1}', "unknown fit settings 'lr_colour' (did you mean "
+                                            "'lr_color'?)"),
+                       ('{"trainer": {"grid_resolution": 8}}', "'grid_resolution' is a "
+                                                               "setting of part 'mesh', not "
+                                                               "'trainer'"),
+                       ('{"trainer": {"lr_colour": 1}}', "unknown fit settings "
+                                                         "'trainer.lr_colour'")):
+        (tmp_path / "bad.json").write_text(text)
+        msg = fails(["fit", "d", "-o", "o", "--config", str(tmp_path / "bad.json")])
+        assert msg.startswith(f"mi-tetvr: {tmp_path / 'bad.json'}: {said}"), msg
     (tmp_path / "photo.json").write_bytes(b"\xff\xd8\xff\xe0 not text")
     msg = fails(["fit", "d", "-o", "o", "--config", str(tmp_path / "photo.json")])
     assert msg.startswith(f"mi-tetvr: cannot read the config {tmp_path / 'photo.json'}")
@@ -170,6 +189,32 @@ def test_config_file_print_config_and_overrides(tmp_path, capsys):
     assert "not found" in msg and "none.json" in msg
     msg = fails(["fit", "d", "-o", "o", "--loss", "l1", "--lr-color", "-1"])
     assert msg == "mi-tetvr: lr_color must be >= 0"
+
+
+def test_config_parts_per_kind_of_fit():
+    """Every setting is in one part; each kind of fit's config holds the settings it
+    reads (an X-ray fit: the solver, no colors; a color fit: no solver, no transfer
+    function), and reads back as the same config."""
+    from mi_tetvr.recon.config import KINDS, PARTS
+    names = [n for _, (_, part) in PARTS.items() for n in part]
+    assert sorted(names) == sorted(f.name for f in dataclasses.fields(FitConfig))
+    configs = {"color": FitConfig(), "scattering": FitConfig(model="scattering", lights="l.xml"),
+               "absorption": FitConfig(model="absorption"),
+               "tf": FitConfig(optimize="tf", init="m.vtu"),
+               "scalar": FitConfig(optimize="scalar", init="m.vtu", transfer_function="t.json")}
+    held = {}
+    for kind, cfg in configs.items():
+        assert cfg.kind == kind
+        nested = cfg.nested()
+        held[kind] = {n for part in nested.values() for n in part}
+        assert FitConfig.from_dict(nested) == cfg
+    assert set(KINDS) == set(held)
+    assert "solver" not in configs["color"].nested() and "tv" in held["absorption"]
+    assert "lr_color" not in held["absorption"] and "tf_smoothing" not in held["color"]
+    assert {"sh_degree", "outer", "appearance"} <= held["color"] - held["scattering"]
+    assert {"tf_init", "tf_smoothing"} <= held["tf"] - held["scalar"]
+    assert {"transfer_function", "lr_scalar"} <= held["scalar"] - held["tf"]
+    assert "lights" in held["scattering"] and "xray_flux" in held["absorption"]
 
 
 # -- errors, not tracebacks ----------------------------------------------------------------

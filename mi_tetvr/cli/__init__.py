@@ -131,12 +131,31 @@ def error_message(e):
     return text or type(e).__name__
 
 
+def _one_line_warnings():
+    """The project's own warnings (a renamed setting read, ...) as one line each,
+    ``mi-tetvr: warning: <message>``; other packages' as Python shows them."""
+    import warnings
+    from pathlib import Path
+    if getattr(warnings.showwarning, "one_line", False):
+        return
+    default, root = warnings.showwarning, str(Path(__file__).resolve().parents[1])
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if category is UserWarning and str(filename).startswith(root):
+            print(f"mi-tetvr: warning: {message}", file=file or sys.stderr)
+        else:
+            default(message, category, filename, lineno, file, line)
+    show.one_line = True
+    warnings.showwarning = show
+
+
 def main(argv=None):
     """Run ``mi-tetvr`` with ``argv`` (default ``sys.argv[1:]``): the one place where the
     command line ends the process on an error, with one line ``mi-tetvr: <message>``
     (status 1; argparse's usage errors: 2). ``MI_TETVR_TRACEBACK=1`` lets the error
     through, with its traceback."""
     a = build_parser().parse_args(argv)
+    _one_line_warnings()
     try:
         return a.func(a)
     except (CommandError, KeyboardInterrupt, ValueError, KeyError, OSError,

@@ -18,10 +18,12 @@ HELP = "reconstruct a tet-mesh volume from a multi-view data set"
 def add_arguments(p):
     p.add_argument("data", help="NeRF-style folder (transforms*.json) or COLMAP model folder")
     flags.out(p, "output folder (also the checkpoint a later run resumes)")
-    p.add_argument("--config", help="fit settings as JSON or YAML (keys: the settings below, "
-                   "with underscores); options given here override it")
+    p.add_argument("--config", help="fit settings as JSON or YAML, by part as --print-config "
+                   "prints them (or one flat mapping: the settings below, with underscores); "
+                   "options given here override it")
     p.add_argument("--print-config", action="store_true",
-                   help="print the settings this command would fit with (JSON) and exit")
+                   help="print the settings this command would fit with, those of its kind of "
+                   "fit by part (JSON: a --config file), and exit")
     p.add_argument("--holdout", type=int, default=8,
                    help="with a train split only: every N-th view is a test view (default 8)")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
@@ -52,10 +54,9 @@ def fit_config(a):
 
 
 def run(a):
-    import dataclasses
     cfg = fit_config(a)
     if a.print_config:
-        print(json.dumps(dataclasses.asdict(cfg), indent=2))
+        print(json.dumps(cfg.nested(), indent=2))
         return
     require("recon", "mi-tetvr fit", "scipy", "skimage", "PIL", "matplotlib")
     if a.viewer:

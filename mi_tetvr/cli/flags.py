@@ -131,11 +131,13 @@ def config_flags(parser):
     fields: ``--name-with-dashes`` (or the field's ``flag``), its type, choices and help
     with the default; booleans have ``--no-...``; every option's default is ``None`` (the
     config file's or the field's value stands). Returns {dest: field name}."""
-    from mi_tetvr.recon.config import FitConfig
-    group = parser.add_argument_group("fit settings (mi_tetvr.recon.config.FitConfig; also "
-                                      "the keys of --config)")
+    from mi_tetvr.recon.config import PART_OF, PARTS, FitConfig
+    groups = {part: parser.add_argument_group(f"fit settings: {part}, {about} (--config's "
+                                              f"'{part}')")
+              for part, (about, _) in PARTS.items()}
     dests = {}
     for f in dataclasses.fields(FitConfig):
+        group = groups[PART_OF[f.name]]
         meta = f.metadata
         default = "chosen by the run" if f.default is None else json.dumps(f.default)
         help = meta["help"] if "default" in meta["help"] else \

@@ -22,10 +22,57 @@ from pathlib import Path
 from mi_tetvr.extras import needs
 
 
-__all__ = ["FitConfig", "coarse_to_fine", "INITS", "RENAMED", "setting", "parse_background"]
+__all__ = ["FitConfig", "coarse_to_fine", "INITS", "RENAMED", "PARTS", "KINDS", "setting",
+           "parse_background"]
 
-#: Settings renamed since: old name -> name (old config files still read).
+#: Settings renamed since: old name -> name (old config files still read, with a warning).
 RENAMED = {"resolution": "grid_resolution"}
+
+#: The fit's parts and the settings of each, in the order a config file lists them: the
+#: ``--config`` file's sections, :meth:`FitConfig.nested`, the groups of ``fit --help``.
+PARTS = {
+    "data": ("what the images are and how they are read",
+             ("scene", "downscale", "jitter", "xray_flux", "lights")),
+    "mesh": ("the starting mesh",
+             ("init", "grid_resolution", "bounds", "outer", "scalar", "repair",
+              "cell_to_point")),
+    "field": ("what is fitted and how it starts",
+              ("model", "optimize", "init_color", "init_opacity", "sh_degree", "background",
+               "appearance", "appearance_prior", "value_range", "transfer_function",
+               "opacity_scale", "tf_resolution", "tf_init", "tf_smoothing", "smoothing",
+               "scalar_init")),
+    "strategy": ("what changes the mesh between stages",
+                 ("stages", "target_tets", "select", "retriangulate")),
+    "trainer": ("the loop, the optimizer and the clock",
+                ("iterations", "time_budget", "views_per_step", "lr_color", "lr_opacity",
+                 "lr_position", "lr_appearance", "lr_scalar", "decay", "loss", "loss_space",
+                 "regularizer", "regularizer_beta", "freeze_boundary", "safeguard", "n_sub",
+                 "spp", "seed", "checkpoint_every", "log_every")),
+    "solver": ("X-ray projections' linear solvers (model absorption)",
+               ("solver", "passes", "relaxation", "tv", "adapt", "validation")),
+}
+#: The kinds of fit (:attr:`FitConfig.kind`): colors and opacities (``color``), a lit
+#: medium (``scattering``), an X-ray attenuation (``absorption``), a transfer function
+#: (``tf``) or the scalar under one (``scalar``).
+KINDS = ("color", "scattering", "absorption", "tf", "scalar")
+#: The settings that apply to some kinds only (the others apply to all).
+ONLY = {
+    "lights": ("scattering",), "xray_flux": ("absorption",), "outer": ("color",),
+    "scalar": ("tf", "scalar"), "sh_degree": ("color",),
+    "background": ("color", "tf", "scalar"), "appearance": ("color", "tf", "scalar"),
+    "appearance_prior": ("color", "tf", "scalar"), "lr_appearance": ("color", "tf", "scalar"),
+    "value_range": ("tf", "scalar"), "tf_resolution": ("tf", "scalar"),
+    "transfer_function": ("scalar",), "opacity_scale": ("scalar",), "lr_scalar": ("scalar",),
+    "scalar_init": ("scalar",), "tf_init": ("tf",), "tf_smoothing": ("tf",),
+    "smoothing": ("absorption", "scalar"), "init_color": ("color", "scattering", "tf"),
+    "lr_color": ("color", "scattering", "tf"),
+    "init_opacity": ("color", "scattering", "absorption", "tf"),
+    "lr_opacity": ("color", "scattering", "absorption", "tf"),
+    "loss_space": ("color", "scattering", "tf", "scalar"),
+    **{name: ("absorption",) for name in PARTS["solver"][1]},
+}
+#: Each setting's part.
+PART_OF = {name: part for part, (_, names) in PARTS.items() for name in names}
 
 #: The starting meshes made from the data (any other ``init`` is a mesh file).
 INITS = ("auto", "grid", "tetwild", "delaunay", "unbounded")
@@ -256,8 +303,9 @@ class FitConfig:
 
     @classmethod
     def from_file(cls, path):
-        """Read a JSON or YAML config (``.yaml``/``.yml``; keys as the field names, unknown
-        keys are an error)."""
+        """Read a JSON or YAML config (``.yaml``/``.yml``): settings by part as
+        :meth:`nested` writes them, or (older files) one flat mapping of names; unknown
+        names are an error, renamed ones read with a warning (:meth:`from_dict`)."""
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"config file not found: {path}")
@@ -275,8 +323,59 @@ class FitConfig:
             raise ValueError(f"cannot read the config {path} (JSON, or YAML for .yaml/.yml): "
                              f"{e}") from None
         if not isinstance(data, dict):
-            raise ValueError(f"the config {path} must be a mapping of setting names to values")
-        return cls().updated(**data)
+            raise ValueError(f"the config {path} must be a mapping of parts (or setting "
+                             f"names) to values")
+        return cls.from_dict(data, str(path))
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "the config"):
+        """The config of ``data``: ``{part: {name: value}}`` (:meth:`nested`) or a flat
+        ``{name: value}``, or both mixed; a setting under the wrong part, or an unknown
+        one, is an error that says where it belongs or what it may have meant."""
+        import difflib
+        import warnings
+        flat = {}
+        for k, v in data.items():
+            if k in PARTS and isinstance(v, dict):
+                for name, value in v.items():
+                    name = RENAMED.get(name, name)
+                    if name in PART_OF and PART_OF[name] != k:
+                        raise ValueError(f"{source}: '{name}' is a setting of part "
+                                         f"'{PART_OF[name]}', not '{k}'")
+                    flat[name if name in PART_OF else f"{k}.{name}"] = value
+            else:
+                flat[k] = v
+        for old, new in RENAMED.items():
+            if old in flat:
+                warnings.warn(f"{source}: the setting '{old}' is now '{new}' (part "
+                              f"'{PART_OF[new]}'); read as such", stacklevel=3)
+                flat[new] = flat.pop(old)
+        unknown = sorted(k for k in flat if k not in PART_OF)
+        if unknown:
+            said = []
+            for k in unknown:
+                close = difflib.get_close_matches(k.split(".")[-1], PART_OF, n=1)
+                said.append(f"'{k}'" + (f" (did you mean '{close[0]}'?)" if close else ""))
+            raise ValueError(f"{source}: unknown fit settings {', '.join(said)}; the parts "
+                             f"and their settings: mi-tetvr fit DATA --print-config")
+        return cls().updated(**flat)
+
+    @property
+    def kind(self) -> str:
+        """The kind of fit (one of :data:`KINDS`), by ``model`` and ``optimize``."""
+        if self.model in ("absorption", "scattering"):
+            return self.model
+        return "color" if self.optimize == "volume" else self.optimize
+
+    def nested(self, kind: str | None = None) -> dict:
+        """``{part: {name: value}}`` of the settings that apply to ``kind`` (default:
+        this config's): what ``--print-config`` prints and a fit's ``config.json`` holds,
+        a file ``--config`` reads."""
+        kind = kind or self.kind
+        values = self.to_dict()
+        return {part: {n: values[n] for n in names if kind in ONLY.get(n, KINDS)}
+                for part, (_, names) in PARTS.items()
+                if any(kind in ONLY.get(n, KINDS) for n in names)}
 
     @property
     def linear_solver(self):
@@ -316,7 +415,14 @@ class FitConfig:
         return out
 
     def validate(self):
-        """Raise ``ValueError`` on a setting out of range."""
+        """Raise ``ValueError`` on a setting out of range, settings that do not go
+        together, or a bad stage."""
+        self._validate_ranges()
+        self._validate_models()
+        self._validate_stages()
+
+    def _validate_ranges(self):
+        """Choices and ranges of single settings."""
         for f in dataclasses.fields(self):
             choices = f.metadata.get("choices")
             value = getattr(self, f.name)
@@ -338,18 +444,29 @@ class FitConfig:
         if (self.tv is not None and self.tv < 0) or self.validation < 0 or \
                 (self.xray_flux is not None and not self.xray_flux > 0):
             raise ValueError("tv and validation must be >= 0 and xray_flux > 0")
-        if self.tv is not None and self.linear_solver not in (None, "pwls"):
-            raise ValueError(f"tv is the penalty weight of solver pwls; solver "
-                             f"{self.linear_solver} has none")
-        if self.solver not in (None, "adam") and self.model != "absorption":
-            raise ValueError(f"solver {self.solver} solves model absorption (X-ray "
-                             f"projections); fits of images use solver adam")
         if not 0 < self.decay <= 1:
             raise ValueError("decay must be in (0, 1]")
         if self.background is not None and self.background != "learn" and \
                 (isinstance(self.background, str) or len(self.background) != 3):
             raise ValueError(f"background must be None, 'learn' or three linear RGB values, "
                              f"got {self.background!r}")
+        if self.sh_degree is not None and not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"sh_degree must be 0 (one color per vertex) to 3, got "
+                             f"{self.sh_degree}")
+        if int(self.tf_resolution) < 2:
+            raise ValueError("tf_resolution must be >= 2")
+        if self.value_range is not None and not (len(self.value_range) == 2 and
+                                                 self.value_range[0] < self.value_range[1]):
+            raise ValueError(f"value_range must be [lo, hi] with lo < hi, got {self.value_range}")
+
+    def _validate_models(self):
+        """Settings that belong to one model, solver or kind of fit."""
+        if self.tv is not None and self.linear_solver not in (None, "pwls"):
+            raise ValueError(f"tv is the penalty weight of solver pwls; solver "
+                             f"{self.linear_solver} has none")
+        if self.solver not in (None, "adam") and self.model != "absorption":
+            raise ValueError(f"solver {self.solver} solves model absorption (X-ray "
+                             f"projections); fits of images use solver adam")
         if self.model == "absorption" and (self.optimize != "volume" or self.background):
             raise ValueError("model absorption fits an attenuation from transmittance images: "
                              "no optimize tf/scalar, no background")
@@ -365,17 +482,12 @@ class FitConfig:
             raise ValueError(f"optimize {self.optimize} needs the scalar mesh as init (a file)")
         if self.optimize == "scalar" and self.transfer_function is None:
             raise ValueError("optimize scalar needs the transfer function (--tf)")
-        if self.sh_degree is not None and not 0 <= self.sh_degree <= 3:
-            raise ValueError(f"sh_degree must be 0 (one color per vertex) to 3, got "
-                             f"{self.sh_degree}")
         if self.sh_degree and (self.model != "emission" or self.optimize != "volume"):
             raise ValueError("sh_degree gives an emission-absorption volume view-dependent "
                              "colors: not with model absorption/scattering or optimize tf/scalar")
-        if int(self.tf_resolution) < 2:
-            raise ValueError("tf_resolution must be >= 2")
-        if self.value_range is not None and not (len(self.value_range) == 2 and
-                                                 self.value_range[0] < self.value_range[1]):
-            raise ValueError(f"value_range must be [lo, hi] with lo < hi, got {self.value_range}")
+
+    def _validate_stages(self):
+        """The stages' settings (see ``stages``)."""
         for i, st in enumerate(self.stage_list()):
             if i and st["grid"] is not None and any(
                     p["split"] or p["prune"] is not None or p["lr_position"]

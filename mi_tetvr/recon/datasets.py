@@ -431,6 +431,17 @@ def load_nerf(path, downscale: int = 1, holdout: Holdout = 8, *, load_images: bo
                    protocol=protocol, pixel_sampling=sampling, xray_flux=flux)
 
 
+def _nerf_camera(c) -> dict:
+    """A camera's intrinsics as a NeRF ``transforms.json`` holds them (an orthographic
+    camera's in this project's own keys)."""
+    if c.is_orthographic:
+        return {"camera_model": "orthographic", "ortho_width": c.pixel_size * c.width,
+                "ortho_height": c.pixel_size * c.height, "pixel_size": c.pixel_size,
+                "cx": c.cx, "cy": c.cy, "w": c.width, "h": c.height}
+    return {"camera_angle_x": 2.0 * math.atan(0.5 * c.width / c.fx),
+            "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy, "w": c.width, "h": c.height}
+
+
 def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train", "test"), *,
                image_format: str = "png") -> Path:
     """Write a NeRF-convention data set that :func:`load_nerf` reads back.
@@ -484,18 +495,8 @@ def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train",
         shared = len(set(intr)) == 1
         meta: dict = {}
 
-        def cam(v: View) -> dict:
-            c = v.camera
-            if c.is_orthographic:
-                return {"camera_model": "orthographic", "ortho_width": c.pixel_size * c.width,
-                        "ortho_height": c.pixel_size * c.height, "pixel_size": c.pixel_size,
-                        "cx": c.cx, "cy": c.cy,
-                        "w": c.width, "h": c.height}
-            return {"camera_angle_x": 2.0 * math.atan(0.5 * c.width / c.fx),
-                    "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy,
-                    "w": c.width, "h": c.height}
         if shared and views:
-            meta.update(cam(views[0]))
+            meta.update(_nerf_camera(views[0].camera))
         if bbox is not None:
             meta["aabb"] = np.asarray(bbox, np.float64).reshape(2, 3).tolist()
         if sampling:
@@ -515,7 +516,7 @@ def write_nerf(dataset_or_views, out_dir, split_names: Sequence[str] = ("train",
             fr = {"file_path": f"./{rel}",
                   "transform_matrix": v.camera.c2w_opengl.tolist()}
             if not shared:
-                fr.update(cam(v))
+                fr.update(_nerf_camera(v.camera))
             frames.append(fr)
         meta["frames"] = frames
         with open(out_dir / f"transforms_{split}.json", "w") as f:
@@ -533,6 +534,19 @@ def _find_colmap_model(path: Path) -> Path:
             return cand
     raise FileNotFoundError(f"{path}: no COLMAP model (cameras.bin/.txt) in it, in sparse/0 "
                             f"or in sparse/")
+
+
+def colmap_points(rec):
+    """A COLMAP reconstruction's 3D points: positions (k, 3), colors (k, 3) uint8,
+    reprojection errors (k,) in pixels and track lengths (k,), by point id; all None
+    when it has none."""
+    pts = sorted(rec.points3D.items())
+    if not pts:
+        return None, None, None, None
+    return (np.array([p.xyz for _, p in pts], np.float64).reshape(-1, 3),
+            np.array([p.color for _, p in pts], np.uint8).reshape(-1, 3),
+            np.array([p.error for _, p in pts], np.float64),
+            np.array([p.track.length() for _, p in pts], np.int64))
 
 
 def load_colmap(path, images=None, downscale: int = 1, holdout: Holdout = 8, *,
@@ -619,14 +633,7 @@ def load_colmap(path, images=None, downscale: int = 1, holdout: Holdout = 8, *,
     views = _pool_map(make, entries)
     train, test = _holdout_split(views, holdout)
 
-    pts = sorted(rec.points3D.items())
-    if pts:
-        points = np.array([p.xyz for _, p in pts], np.float64).reshape(-1, 3)
-        colors = np.array([p.color for _, p in pts], np.uint8).reshape(-1, 3)
-        errors = np.array([p.error for _, p in pts], np.float64)
-        tracks = np.array([p.track.length() for _, p in pts], np.int64)
-    else:
-        points = colors = errors = tracks = None
+    points, colors, errors, tracks = colmap_points(rec)
     name = path.name if path.name not in ("0", "sparse") else model.parent.name
     return Dataset(train=train, test=test, points=points, bbox=None, name=name, root=path,
                    point_colors=colors, point_errors=errors, point_track_lengths=tracks,

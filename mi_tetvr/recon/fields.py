@@ -28,9 +28,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["Field", "VolumeField", "ViewDependentField", "ScatteringField", "AttenuationField", "TransferFunctionField",
-           "ScalarField",
-           "make_field", "MESH_ID", "key"]
+__all__ = ["Field", "VolumeField", "ViewDependentField", "ScatteringField", "AttenuationField",
+           "TransferFunctionField", "ScalarField", "make_field", "MESH_ID", "key"]
 
 #: The fitted mesh's id in the scene.
 MESH_ID = "volume"

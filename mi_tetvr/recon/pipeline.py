@@ -25,10 +25,11 @@ from mi_tetvr.recon.checkpoint import load_checkpoint, save_checkpoint
 from mi_tetvr.recon.config import RENAMED, FitConfig
 from mi_tetvr.recon.metrics import display_rgb, psnr
 from mi_tetvr.recon.plots import plot_history, save_comparison
+from mi_tetvr.recon.strategy import StageRefinement, unbounded_stages
 from mi_tetvr.recon.trainer import RunState, Trainer
 
 __all__ = ["run", "next_stage", "for_capture", "capture_kind", "with_sparse_points",
-           "unbounded_stages", "retriangulates", "write_outputs", "write_fitted", "fitted_file",
+           "write_outputs", "write_fitted", "fitted_file",
            "evaluate_mesh",
            "evaluate_fit", "initial_mesh", "data_bounds", "scalar_from_colors", "calibrate",
            "resolution_for_budget", "budget_stages", "DEFAULT_RESOLUTION", "check_resume",
@@ -65,23 +66,9 @@ RESOLUTION_RANGE = (12, 96)
 #: budgets: 2 gives C60 42.53 dB (384k vertices), 4 gave 42.71 dB (192k) but
 #: cost the engine 2.2 dB and setup.sh's one-minute job 3.2 dB.
 PIXELS_PER_VERTEX = 2
-#: An unbounded scene's stages (:func:`unbounded_stages`): after each of the first
-#: :data:`UNBOUNDED_SPLITS`, tets empty below this optical depth per cell are pruned and the
-#: edges at this fraction of the vertices (largest image-loss gradients) are split; after the
-#: others up to the last, only pruned.
-UNBOUNDED_PRUNE = 0.01
-UNBOUNDED_SPLIT = 0.05
-UNBOUNDED_SPLITS = 3
 #: The spherical harmonics' degree of an unbounded scene's colors (``sh_degree``
 #: left open).
 SH_DEGREE_UNBOUNDED = 0
-#: The factor each stage's photos are area-averaged by (coarse photos first), at most
-#: the photos' shorter side over :data:`COARSE_PIXELS`. Measured on monstree (20 photos of
-#: 252x189, 4-minute fits, held-out sRGB PSNR): every stage on the whole photos 18.36 dB
-#: (102 steps), the first two at half size 18.71 dB (281 steps), 4, 2, 2, 1 19.10 dB (541
-#: steps; benchmarks/README.md).
-UNBOUNDED_DOWNSCALE = (4, 2, 2, 1)
-COARSE_PIXELS = 40
 
 
 def capture_kind(dataset):
@@ -162,29 +149,6 @@ def _full_resolution(dataset):
     if not all(v.name in by_name for v in dataset.train):
         return dataset.train
     return [by_name[v.name] for v in dataset.train]
-
-
-def unbounded_stages(config: FitConfig, dataset):
-    """An unbounded scene's stages: one per :data:`UNBOUNDED_DOWNSCALE` entry, of equal
-    length (time shares with a budget), on photos area-averaged by its factor (at most the
-    shorter side of the smallest photo over :data:`COARSE_PIXELS`), the first
-    :data:`UNBOUNDED_SPLITS` followed by pruning and a split of the vertices with the largest
-    gradients (cells where the error is), the others but the last by pruning."""
-    stages = len(UNBOUNDED_DOWNSCALE)
-    n = max(int(config.iterations) // stages, 1)
-    side = min(min(v.camera.width, v.camera.height) for v in dataset.train)
-    top = max(1, side // COARSE_PIXELS)
-    out = []
-    for i, k in enumerate(UNBOUNDED_DOWNSCALE):
-        st = {"iterations": n if i + 1 < stages else max(int(config.iterations) - n * i, 1)}
-        if min(k, top) > 1:
-            st["downscale"] = int(min(k, top))
-        if i + 1 < stages:
-            st["prune"] = UNBOUNDED_PRUNE
-        if i < UNBOUNDED_SPLITS:
-            st["split"] = UNBOUNDED_SPLIT
-        out.append(st)
-    return out
 
 
 def initial_mesh(config: FitConfig, dataset):
@@ -417,8 +381,10 @@ class _Clock:
     def __init__(self, end, weights, now=time.perf_counter):
         self.end, self.weights, self.now = end, weights, now
         self.stage_begin = self.stage_end = None
+        self.reserve = 0.0          # seconds the outputs of the current mesh take
 
     def begin_stage(self, stage, reserve):
+        self.reserve = reserve
         now = self.now()
         left = max(self.end - reserve - now, 0.0)
         share = self.weights[stage] / max(sum(self.weights[stage:]), 1e-9)
@@ -473,10 +439,6 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     the mesh between steps, within its share of the time, and is stopped at
     the end.
     """
-    from mi_tetvr.progress import progress_bar as tqdm
-
-    from mi_tetvr.mesh.topology import build_topology, format_summary, geometry_summary
-
     t_start = now()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -486,6 +448,42 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
         # X-ray projections: the linear problem, solved as such
         from mi_tetvr.recon.tomography import fit_attenuation
         return fit_attenuation(dataset, out, config, resume, progress, log, now)
+    config, dataset, trainer = prepare(dataset, out, config, resume, budget, progress, log, now)
+    (out / "config.json").write_text(json.dumps(config.nested(), indent=2))
+    loop = _Loop(trainer, config, ckpt_path, progress, log, now)
+    if budget is not None:
+        loop.clock = _Clock(t_start + budget, [max(st["iterations"], 1) for st in loop.stages],
+                            now)
+        loop.clock.begin_stage(trainer.state.stage, output_seconds(trainer, now))
+    loop.live = viewer(trainer) if viewer is not None else None
+    interrupted = False
+    try:
+        loop.run()
+    except KeyboardInterrupt:
+        interrupted = True
+        log(f"interrupted at step {loop.trainer.state.step}: saving")
+    finally:
+        loop.close()
+    trainer, optimization = loop.trainer, now() - loop.train_begin
+    if loop.clock:
+        log(f"time budget: {trainer.state.step - loop.steps_begin} steps in {optimization:.0f} s")
+    result = write_outputs(trainer, out)
+    result["optimization_seconds"] = optimization
+    result["wall_seconds"] = now() - t_start
+    (out / "metrics.json").write_text(json.dumps(result, indent=2))
+    if interrupted:
+        raise KeyboardInterrupt
+    return result
+
+
+def prepare(dataset, out: Path, config: FitConfig, resume=True, budget=None, progress=True,
+            log=print, now=time.perf_counter):
+    """What a fit starts from: the config with what it leaves open decided for the data
+    (:func:`for_capture`, the stages, the box, the grid for the time ``budget`` in
+    seconds), the data set (with sparse points where the mesh is made of them) and the
+    first trainer, or the one checkpointed in ``out`` (``resume``). Returns
+    ``(config, dataset, trainer)``."""
+    ckpt_path = out / "checkpoint.npz"
     config = for_capture(config, dataset)
     saved = check_resume(config, ckpt_path) if resume and ckpt_path.exists() else None
     if config.init in ("unbounded", "delaunay"):
@@ -496,119 +494,137 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
         # the region once (a visual hull is carved from every view): calibration,
         # limits, warnings, the mesh and each grid stage read it, config.json keeps it
         config = dataclasses.replace(config, bounds=data_bounds(config, dataset).tolist())
-    if saved is not None:
-        if config.grid_resolution is None and config.stages is None:
-            # the mesh sizes and stages the run chose when it began
-            config = dataclasses.replace(config, grid_resolution=saved["grid_resolution"],
-                                         stages=saved["stages"])
-        trainer = load_checkpoint(ckpt_path, dataset, config)
-        log(f"resumed from {ckpt_path} at step {trainer.state.step} "
-            f"(stage {trainer.state.stage + 1})")
-    else:
-        for text in data_warnings(config, dataset):
-            log(f"warning: {text}")
-        if config.grid_resolution is None and config.init in ("grid", "tetwild"):
-            resolution = DEFAULT_RESOLUTION
-            if budget is not None:
-                resolution = calibrate(config, dataset, 0.85 * budget, log, now)
-            config = dataclasses.replace(config, grid_resolution=resolution)
-            if budget is not None and config.init == "grid" and config.stages is None:
-                config = config.updated(stages=budget_stages(config, resolution))
-                log("stages: " + " -> ".join(f"grid {st['grid']}" for st in config.stages))
-        vertices, tets, values = initial_mesh(config, dataset)
-        if values is not None and "scalar" in values and config.value_range is None:
-            # recorded in config.json: the range the transfer function spans
-            s = values["scalar"]
-            config = dataclasses.replace(config, value_range=[float(s.min()), float(s.max())])
-        topology = build_topology(vertices, tets)      # once: the summary and the trainer's
-        log(format_summary(geometry_summary(vertices, topology)))
-        if config.optimize == "scalar" and config.scalar_init == "colors":
-            values = {"scalar": scalar_from_colors(config, dataset, vertices, tets, progress,
-                                                   log)}
-        trainer = Trainer(dataset, vertices, tets, config.for_stage(0), values,
-                          topology=topology)
-    (out / "config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2))
-    stages = config.stage_list()
+    if saved is None:
+        config, trainer = first_trainer(dataset, config, budget, progress, log, now)
+        return config, dataset, trainer
+    if config.grid_resolution is None and config.stages is None:
+        # the mesh sizes and stages the run chose when it began
+        config = dataclasses.replace(config, grid_resolution=saved["grid_resolution"],
+                                     stages=saved["stages"])
+    trainer = load_checkpoint(ckpt_path, dataset, config)
+    log(f"resumed from {ckpt_path} at step {trainer.state.step} "
+        f"(stage {trainer.state.stage + 1})")
+    return config, dataset, trainer
 
-    clock = None
-    if budget is not None:
-        clock = _Clock(t_start + budget, [max(st["iterations"], 1) for st in stages], now)
-        reserve = output_seconds(trainer, now)
-        clock.begin_stage(trainer.state.stage, reserve)
-        bar = tqdm(total=round(max(clock.end - reserve - now(), 0.0)),
-                   disable=not progress,
-                   unit="s", dynamic_ncols=True,
-                   bar_format="{l_bar}{bar}| {n:.0f}/{total} s [{elapsed}{postfix}]")
-    else:
-        bar = tqdm(total=sum(st["iterations"] for st in stages), initial=trainer.state.step,
-                   disable=not progress, unit="step", dynamic_ncols=True)
-    live = viewer(trainer) if viewer is not None else None
 
-    def stage_text():
-        st = stages[trainer.state.stage]
-        grid = f", grid {st['grid']}" if st.get("grid") else ""
-        return (f"stage {trainer.state.stage + 1} of {len(stages)}{grid}: "
-                f"{len(trainer.tets):,} tets")
-    steps_begin, train_begin = trainer.state.step, now()
-    seconds = trainer.state.elapsed
-    recent_mse = collections.deque(maxlen=config.log_every)   # sRGB MSE of the last steps
-    interrupted = False
-    try:
+def first_trainer(dataset, config: FitConfig, budget=None, progress=True, log=print,
+                  now=time.perf_counter):
+    """The trainer of a new run's first stage on its starting mesh (:func:`initial_mesh`,
+    a grid sized for the time ``budget`` in seconds when it is not set), and the config
+    with the sizes and ranges it chose. Returns ``(config, trainer)``."""
+    from mi_tetvr.mesh.topology import build_topology, format_summary, geometry_summary
+    for text in data_warnings(config, dataset):
+        log(f"warning: {text}")
+    if config.grid_resolution is None and config.init in ("grid", "tetwild"):
+        resolution = DEFAULT_RESOLUTION
+        if budget is not None:
+            resolution = calibrate(config, dataset, 0.85 * budget, log, now)
+        config = dataclasses.replace(config, grid_resolution=resolution)
+        if budget is not None and config.init == "grid" and config.stages is None:
+            config = config.updated(stages=budget_stages(config, resolution))
+            log("stages: " + " -> ".join(f"grid {st['grid']}" for st in config.stages))
+    vertices, tets, values = initial_mesh(config, dataset)
+    if values is not None and "scalar" in values and config.value_range is None:
+        # recorded in config.json: the range the transfer function spans
+        s = values["scalar"]
+        config = dataclasses.replace(config, value_range=[float(s.min()), float(s.max())])
+    topology = build_topology(vertices, tets)      # once: the summary and the trainer's
+    log(format_summary(geometry_summary(vertices, topology)))
+    if config.optimize == "scalar" and config.scalar_init == "colors":
+        values = {"scalar": scalar_from_colors(config, dataset, vertices, tets, progress, log)}
+    return config, Trainer(dataset, vertices, tets, config.for_stage(0), values,
+                           topology=topology)
+
+
+class _Loop:
+    """A run's steps, stage after stage (:func:`next_stage` between them): the
+    progress bar, log lines, checkpoints, the viewer's hook (``live``) and, with a time
+    budget, the :class:`_Clock` that ends each stage."""
+
+    def __init__(self, trainer, config, ckpt_path, progress, log, now):
+        self.trainer, self.config, self.ckpt_path = trainer, config, ckpt_path
+        self.log, self.now, self.progress = log, now, progress
+        self.stages = config.stage_list()
+        self.clock = self.live = self.bar = None
+        self.steps_begin, self.train_begin = trainer.state.step, now()
+        self.seconds = trainer.state.elapsed
+        # sRGB MSE of the last steps (the PSNR the bar shows)
+        self.recent_mse = collections.deque(maxlen=config.log_every)
+
+    def run(self):
+        self.bar = self._bar()
+        self.steps_begin, self.train_begin = self.trainer.state.step, self.now()
         while True:
-            end = trainer.state.stage_start + stages[trainer.state.stage]["iterations"]
-            while (clock.progress() < 1.0) if clock else (trainer.state.step < end):
-                t0 = now()
-                loss, mse = trainer.step(clock.progress() if clock else None)
-                state = trainer.state
-                dt = now() - t0
-                seconds += dt
-                state.elapsed = seconds
-                h = state.history
-                h["step"].append(state.step)
-                h["time"].append(state.elapsed)
-                h["loss"].append(loss)
-                h["psnr"].append(psnr(mse))
-                recent_mse.append(mse)
-                bar.update(dt if clock else 1)
-                if state.step % config.log_every == 0 or state.step == 1:
-                    recent = float(np.mean(recent_mse))
-                    bar.set_postfix(step=state.step, loss=f"{h['loss'][-1]:.3g}",
-                                    psnr=f"{psnr(recent):.2f}", tets=f"{len(trainer.tets):,}")
-                if state.step % config.checkpoint_every == 0:
-                    save_checkpoint(trainer, ckpt_path)
-                if live is not None:
-                    live.after_step(trainer, loss, h["psnr"][-1], stage_text())
-                if clock is None and state.step == steps_begin + 5:
-                    rate = (now() - train_begin) / 5
-                    total = sum(st["iterations"] for st in stages) - steps_begin
-                    log(f"estimated time: {rate * total / 60:.1f} min "
-                        f"({rate:.2f} s per step; --time-budget fits the run to a time)")
-            if trainer.state.stage + 1 == len(stages):
-                break
-            trainer = next_stage(trainer, config, log)
-            if live is not None:
-                live.set_trainer(trainer)
-            if clock:
-                clock.begin_stage(trainer.state.stage, output_seconds(trainer, now))
-            save_checkpoint(trainer, ckpt_path)
-    except KeyboardInterrupt:
-        interrupted = True
-        log(f"interrupted at step {trainer.state.step}: saving")
-    finally:
-        bar.close()
-        save_checkpoint(trainer, ckpt_path)
-        if live is not None:
-            live.stop()
-    optimization = now() - train_begin
-    if clock:
-        log(f"time budget: {trainer.state.step - steps_begin} steps in {optimization:.0f} s")
-    result = write_outputs(trainer, out)
-    result["optimization_seconds"] = optimization
-    result["wall_seconds"] = now() - t_start
-    (out / "metrics.json").write_text(json.dumps(result, indent=2))
-    if interrupted:
-        raise KeyboardInterrupt
-    return result
+            self.train_stage()
+            if self.trainer.state.stage + 1 == len(self.stages):
+                return
+            self.trainer = next_stage(self.trainer, self.config, self.log)
+            if self.live is not None:
+                self.live.set_trainer(self.trainer)
+            if self.clock:
+                self.clock.begin_stage(self.trainer.state.stage,
+                                       output_seconds(self.trainer, self.now))
+            save_checkpoint(self.trainer, self.ckpt_path)
+
+    def _bar(self):
+        from mi_tetvr.progress import progress_bar as tqdm
+        if self.clock:
+            total = round(max(self.clock.end - self.clock.reserve - self.now(), 0.0))
+            return tqdm(total=total, disable=not self.progress, unit="s", dynamic_ncols=True,
+                        bar_format="{l_bar}{bar}| {n:.0f}/{total} s [{elapsed}{postfix}]")
+        return tqdm(total=sum(st["iterations"] for st in self.stages),
+                    initial=self.trainer.state.step, disable=not self.progress, unit="step",
+                    dynamic_ncols=True)
+
+    def train_stage(self):
+        """The steps of the trainer's stage: until its iterations, or its share of the time."""
+        trainer, clock = self.trainer, self.clock
+        end = trainer.state.stage_start + self.stages[trainer.state.stage]["iterations"]
+        while (clock.progress() < 1.0) if clock else (trainer.state.step < end):
+            t0 = self.now()
+            loss, mse = trainer.step(clock.progress() if clock else None)
+            dt = self.now() - t0
+            self.seconds += dt
+            trainer.state.elapsed = self.seconds
+            self.after_step(loss, mse, dt)
+
+    def after_step(self, loss, mse, dt):
+        """The step recorded: history, progress bar, checkpoint, viewer, time estimate."""
+        trainer, config = self.trainer, self.config
+        state, h = trainer.state, trainer.state.history
+        h["step"].append(state.step)
+        h["time"].append(state.elapsed)
+        h["loss"].append(loss)
+        h["psnr"].append(psnr(mse))
+        self.recent_mse.append(mse)
+        self.bar.update(dt if self.clock else 1)
+        if state.step % config.log_every == 0 or state.step == 1:
+            self.bar.set_postfix(step=state.step, loss=f"{loss:.3g}",
+                                 psnr=f"{psnr(float(np.mean(self.recent_mse))):.2f}",
+                                 tets=f"{len(trainer.tets):,}")
+        if state.step % config.checkpoint_every == 0:
+            save_checkpoint(trainer, self.ckpt_path)
+        if self.live is not None:
+            self.live.after_step(trainer, loss, h["psnr"][-1], self.stage_text())
+        if self.clock is None and state.step == self.steps_begin + 5:
+            rate = (self.now() - self.train_begin) / 5
+            total = sum(st["iterations"] for st in self.stages) - self.steps_begin
+            self.log(f"estimated time: {rate * total / 60:.1f} min "
+                     f"({rate:.2f} s per step; --time-budget fits the run to a time)")
+
+    def stage_text(self):
+        st = self.stages[self.trainer.state.stage]
+        grid = f", grid {st['grid']}" if st.get("grid") else ""
+        return (f"stage {self.trainer.state.stage + 1} of {len(self.stages)}{grid}: "
+                f"{len(self.trainer.tets):,} tets")
+
+    def close(self):
+        """The last checkpoint; the bar and the viewer stopped."""
+        if self.bar is not None:
+            self.bar.close()
+        save_checkpoint(self.trainer, self.ckpt_path)
+        if self.live is not None:
+            self.live.stop()
 
 
 def scalar_from_colors(config: FitConfig, dataset, vertices, tets, progress=True, log=print):
@@ -637,77 +653,23 @@ def scalar_from_colors(config: FitConfig, dataset, vertices, tets, progress=True
     return scalar
 
 
-def retriangulates(config: FitConfig):
-    """Whether a stage that moved the vertices is followed by their Delaunay
-    tetrahedralization (``config.retriangulate``; by default for meshes born Delaunay)."""
-    if config.retriangulate is not None:
-        return bool(config.retriangulate)
-    return config.init in ("unbounded", "delaunay")
-
-
-def next_stage(trainer: Trainer, config: FitConfig, log=print):
-    """After a stage: tetrahedralize the vertices anew if the stage moved them
-    (:func:`retriangulates`), prune empty tets and split the top vertices (by the
-    gradients gathered over the stage, :meth:`Trainer.split_scores`) as the stage says,
-    rebuild the scene, and carry parameters and Adam's moments over (new vertices start
-    from their edge's midpoint values). Returns the next stage's trainer."""
-    from mi_tetvr.mesh.refine import prune_empty, select_top_fraction, split_vertices
-    stages = config.stage_list()
-    stage = stages[trainer.state.stage]
-    vertices, tets, values = trainer.arrays()
-    points = list(trainer.field.point_arrays)      # per-vertex: follow the mesh
+def next_stage(trainer: Trainer, config: FitConfig, log=print, strategy=None):
+    """After a stage: the mesh changed by ``strategy`` (default: the stages' own,
+    :class:`~mi_tetvr.recon.strategy.StageRefinement`), the next stage's trainer on it
+    with the run's state, the learned background and color transforms, and Adam's
+    moments carried over (in the field's layout: a higher degree of spherical
+    harmonics starts from zero). Returns the next stage's trainer."""
+    strategy = strategy or StageRefinement(config)
+    vertices, tets, values, moments = strategy.refine(trainer, log)
     state = dataclasses.replace(trainer.state, stage=trainer.state.stage + 1,
                                 stage_start=trainer.state.step)
-    grid = stages[state.stage]["grid"]
-    if grid is not None:
-        from mi_tetvr.mesh.initial import grid_init, grid_sample
-        bounds = data_bounds(config, trainer.dataset)
-        current = stage["grid"] or config.grid_resolution
-        vertices, tets = grid_init(bounds, grid)
-        values.update({k: grid_sample(bounds, current, values[k], vertices) for k in points})
-        log(f"grid {current} -> {grid}: {len(tets):,} tets")
-        return Trainer(trainer.dataset, vertices, tets, config.for_stage(state.stage), values,
-                       state=state, environment=trainer.environment(),
-                       appearance=trainer.appearance())
-    moments = trainer.opt.moments()
-    data = {k: values[k] for k in points}
-    for k, (_, m, v) in moments.items():
-        data[f"{k}:m"], data[f"{k}:v"] = m, v
-    split = stage["split"] > 0 and (config.target_tets is None or len(tets) < config.target_tets)
-    # Scored on this stage's mesh; the vertices kept carry their scores.
-    scores = trainer.split_scores() if split else None
-    cell = trainer.cell
-    if stage["lr_position"] > 0 and retriangulates(config):
-        from mi_tetvr.mesh.initial import retriangulate
-        count = len(tets)
-        vertices, tets, data, parent = retriangulate(vertices, data, seed=config.seed + state.stage)
-        scores = None if scores is None else scores[parent]
-        cell = cell[parent]
-        log(f"tetrahedralized the moved vertices anew (Delaunay): {count:,} -> {len(tets):,} tets")
-    if stage["prune"] is not None:
-        if trainer.field.extinction is None:
-            raise ValueError("'prune' needs a fitted extinction (colors and opacities or an "
-                             "attenuation)")
-        # in optical depth per each vertex's cell
-        res = prune_empty(vertices, tets, data[trainer.field.extinction] * cell,
-                          float(stage["prune"]), point_data=data)
-        log(f"pruned {len(tets) - len(res.tets):,} empty tets")
-        vertices, tets, data = res.vertices, res.tets, res.point_data
-        scores = None if scores is None else scores[res.vertex_parent]
-    if split:
-        selected = select_top_fraction(scores, stage["split"])
-        res = split_vertices(vertices, tets, selected, point_data=data)
-        log(f"split {len(selected):,} vertices: {len(tets):,} -> {len(res.tets):,} tets")
-        vertices, tets, data = res.vertices, res.tets, res.point_data
-    # build_topology may re-orient tets but keeps the vertex order: the
-    # per-vertex moments carry over directly.
-    values.update({k: data[k] for k in points})
     new = Trainer(trainer.dataset, vertices, tets, config.for_stage(state.stage), values,
                   state=state, environment=trainer.environment(),
                   appearance=trainer.appearance())
-    adopt = new.field.adopt_moments
-    new.opt.set_moments({k: (t, adopt(k, data[f"{k}:m"]), adopt(k, data[f"{k}:v"]))
-                         for k, (t, _, _) in moments.items()})
+    if moments:
+        adopt = new.field.adopt_moments
+        new.opt.set_moments({k: (t, adopt(k, m), adopt(k, v))
+                             for k, (t, m, v) in moments.items()})
     return new
 
 

@@ -232,6 +232,40 @@ def _fractions_from_cubic(k, r):
     return s
 
 
+def _vertex_fractions(xs, ds, tets, r, constrained, floor, max_iter):
+    """(n,) per-vertex step fractions that keep every constrained tet above ``floor``:
+    each offending tet's largest safe fraction given to its vertices, the tets around
+    shortened vertices examined again, until none offends."""
+    n, m = xs.shape[1], len(tets)
+    tt = np.ascontiguousarray(tets.T)              # (4, m)
+    factors = np.ones(n)
+    sub = np.arange(m)                              # tets to (re)examine
+    it = 0
+    while len(sub):
+        idx = tt[:, sub]
+        corners = [xs[:, i] for i in idx]
+        steps = [ds[:, i] * factors[i] for i in idx]
+        s_t = _fractions_from_cubic(_cubic_soa(corners, steps), r)
+        # the moved positions themselves (rounding of the cubic)
+        vt = _volume_soa([p + q for p, q in zip(corners, steps)])
+        fail = constrained[sub] & ~((vt > floor[sub]) & (vt > 0))
+        s_t = np.where(fail & (s_t >= 1.0), 0.5, s_t)
+        off = s_t < 1.0
+        if not off.any():
+            break
+        g = np.ones(n)
+        np.minimum.at(g, idx[:, off].ravel(), np.tile(s_t[off], 4))
+        if it >= max_iter:
+            # freeze the vertices of offending tets: each round stops at
+            # least one more moving vertex, and a tet whose vertices are
+            # all frozen keeps its volume, so this terminates
+            g[idx[:, off].ravel()] = 0.0
+        factors *= g
+        sub = np.flatnonzero((g < 1.0)[tets].any(axis=1))
+        it += 1
+    return factors
+
+
 def safe_step(vertices, tets, step, min_volume_ratio=0.1, per_vertex=True, max_iter=30,
               return_factors=False):
     """Shorten an optimizer step so that no tet inverts.
@@ -300,7 +334,7 @@ def safe_step(vertices, tets, step, min_volume_ratio=0.1, per_vertex=True, max_i
     if not np.all(np.isfinite(d)):
         raise ValueError("step has non-finite entries")
     r = _check_ratio(min_volume_ratio)
-    n, m = len(x), len(tets)
+    n = len(x)
     v0 = signed_volumes(x, tets)
     constrained = v0 > 0
     # acceptance test on the final positions; 0.999 r absorbs the rounding
@@ -308,42 +342,14 @@ def safe_step(vertices, tets, step, min_volume_ratio=0.1, per_vertex=True, max_i
     floor = np.where(constrained, 0.999 * r * v0, np.inf)
     xs, ds = np.ascontiguousarray(x.T), np.ascontiguousarray(d.T)
     tt = np.ascontiguousarray(tets.T)              # (4, m)
-    factors = np.ones(n)
-
     if not per_vertex:
         # one cubic per tet; a scaled step s d has coefficients k_j s^j
-        corners = [xs[:, i] for i in tt]
-        k = _cubic_soa(corners, [ds[:, i] for i in tt])
-        s = float(_fractions_from_cubic(k, r).min())
-        factors[:] = s
+        k = _cubic_soa([xs[:, i] for i in tt], [ds[:, i] for i in tt])
+        factors = np.full(n, float(_fractions_from_cubic(k, r).min()))
     else:
-        sub = np.arange(m)                          # tets to (re)examine
-        it = 0
-        while len(sub):
-            idx = tt[:, sub]
-            corners = [xs[:, i] for i in idx]
-            steps = [ds[:, i] * factors[i] for i in idx]
-            s_t = _fractions_from_cubic(_cubic_soa(corners, steps), r)
-            # the moved positions themselves (rounding of the cubic)
-            vt = _volume_soa([p + q for p, q in zip(corners, steps)])
-            fail = constrained[sub] & ~((vt > floor[sub]) & (vt > 0))
-            s_t = np.where(fail & (s_t >= 1.0), 0.5, s_t)
-            off = s_t < 1.0
-            if not off.any():
-                break
-            g = np.ones(n)
-            np.minimum.at(g, idx[:, off].ravel(), np.tile(s_t[off], 4))
-            if it >= max_iter:
-                # freeze the vertices of offending tets: each round stops at
-                # least one more moving vertex, and a tet whose vertices are
-                # all frozen keeps its volume, so this terminates
-                g[idx[:, off].ravel()] = 0.0
-            factors *= g
-            sub = np.flatnonzero((g < 1.0)[tets].any(axis=1))
-            it += 1
-
+        factors = _vertex_fractions(xs, ds, tets, r, constrained, floor, max_iter)
     # final check with the public volume function on the whole mesh
-    # (halving, then freezing: terminates for the reason given above)
+    # (halving, then freezing: terminates for the reason given in _vertex_fractions)
     it = 0
     while True:
         bad = constrained & ~(signed_volumes(x + factors[:, None] * d, tets) > floor)

@@ -285,84 +285,102 @@ def _summary_of(rec) -> dict:
 # --------------------------------------------------------------------------------------------
 
 def _video_backend(path: Path):
-    """``(name, count(), frames())`` of the first video reader that is installed;
-    ``frames()`` yields (H, W, 3) uint8 RGB."""
-    p = str(path)
-    try:
-        import av
-    except ImportError:
-        av = None
-    if av is not None:
-        def count():
-            with av.open(p) as c:
-                s = c.streams.video[0]
-                return int(s.frames) or sum(1 for pk in c.demux(s) if pk.size)
-
-        def frames():
-            with av.open(p) as c:
-                for f in c.decode(video=0):
-                    yield f.to_ndarray(format="rgb24")
-        return "PyAV", count, frames
-    try:
-        import cv2
-    except ImportError:
-        cv2 = None
-    if cv2 is not None:
-        def count():
-            cap = cv2.VideoCapture(p)
-            try:
-                n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-                if n <= 0:
-                    n = 0
-                    while cap.grab():
-                        n += 1
-                return n
-            finally:
-                cap.release()
-
-        def frames():
-            cap = cv2.VideoCapture(p)
-            try:
-                while True:
-                    ok, f = cap.read()
-                    if not ok:
-                        break
-                    yield np.ascontiguousarray(f[..., ::-1])
-            finally:
-                cap.release()
-        return "OpenCV", count, frames
-    try:
-        import imageio_ffmpeg
-    except ImportError:
-        imageio_ffmpeg = None
-    if imageio_ffmpeg is not None:
-        def count():
-            return int(imageio_ffmpeg.count_frames_and_secs(p)[0])
-
-        def frames():
-            gen = imageio_ffmpeg.read_frames(p)
-            meta = next(gen)
-            w, h = meta["size"]
-            for buf in gen:
-                yield np.frombuffer(buf, np.uint8).reshape(h, w, 3)
-        return "imageio-ffmpeg", count, frames
+    """``(name, count(), frames())`` of the first video reader that is installed
+    (PyAV, OpenCV, imageio-ffmpeg; Pillow for a GIF); ``frames()`` yields (H, W, 3)
+    uint8 RGB."""
+    for backend in (_pyav, _opencv, _imageio_ffmpeg):
+        found = backend(str(path))
+        if found is not None:
+            return found
     if path.suffix.lower() == ".gif":
-        with needs("sfm", "reading a GIF"):
-            from PIL import Image, ImageSequence
-
-        def count():
-            with Image.open(p) as im:
-                return int(getattr(im, "n_frames", 1))
-
-        def frames():
-            with Image.open(p) as im:
-                for f in ImageSequence.Iterator(im):
-                    yield np.asarray(f.convert("RGB"))
-        return "Pillow", count, frames
+        return _pillow(str(path))
     raise MissingExtra(f"reading the video {path} needs a video decoder, and none is "
                        f"installed: pip install \"mi_tetvr[sfm]\" (imageio-ffmpeg; or PyAV or "
                        f"OpenCV), or extract the frames yourself and pass their folder",
                        name="imageio_ffmpeg")
+
+
+def _pyav(p):
+    try:
+        import av
+    except ImportError:
+        return None
+
+    def count():
+        with av.open(p) as c:
+            s = c.streams.video[0]
+            return int(s.frames) or sum(1 for pk in c.demux(s) if pk.size)
+
+    def frames():
+        with av.open(p) as c:
+            for f in c.decode(video=0):
+                yield f.to_ndarray(format="rgb24")
+    return "PyAV", count, frames
+
+
+def _opencv(p):
+    try:
+        import cv2
+    except ImportError:
+        return None
+
+    def count():
+        cap = cv2.VideoCapture(p)
+        try:
+            n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+            if n <= 0:
+                n = 0
+                while cap.grab():
+                    n += 1
+            return n
+        finally:
+            cap.release()
+
+    def frames():
+        cap = cv2.VideoCapture(p)
+        try:
+            while True:
+                ok, f = cap.read()
+                if not ok:
+                    break
+                yield np.ascontiguousarray(f[..., ::-1])
+        finally:
+            cap.release()
+    return "OpenCV", count, frames
+
+
+def _imageio_ffmpeg(p):
+    try:
+        import imageio_ffmpeg
+    except ImportError:
+        return None
+
+    def count():
+        return int(imageio_ffmpeg.count_frames_and_secs(p)[0])
+
+    def frames():
+        gen = imageio_ffmpeg.read_frames(p)
+        meta = next(gen)
+        w, h = meta["size"]
+        for buf in gen:
+            yield np.frombuffer(buf, np.uint8).reshape(h, w, 3)
+    return "imageio-ffmpeg", count, frames
+
+
+def _pillow(p):
+    with needs("sfm", "reading a GIF"):
+        from PIL import Image, ImageSequence
+
+    def count():
+        with Image.open(p) as im:
+            return int(getattr(im, "n_frames", 1))
+
+    def frames():
+        with Image.open(p) as im:
+            for f in ImageSequence.Iterator(im):
+                yield np.asarray(f.convert("RGB"))
+    return "Pillow", count, frames
+
 
 
 def extract_frames(video, out_dir, max_frames: int = 100, *, log: Callable = print
@@ -504,40 +522,12 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
         import pycolmap
     t0 = time.perf_counter()
     src, out_dir = Path(images), Path(out_dir)
-    if not src.exists():
-        raise FileNotFoundError(f"{src}: no such folder or video")
-    if matcher is not None and matcher not in ("exhaustive", "sequential"):
-        raise ValueError(f"matcher must be 'exhaustive' or 'sequential', got {matcher!r}")
-    if camera_model not in pycolmap.CameraModelId.__members__ or camera_model == "INVALID":
-        models = [m for m in pycolmap.CameraModelId.__members__ if m != "INVALID"]
-        raise ValueError(f"unknown camera model {camera_model!r} (one of {', '.join(models)})")
+    _check_sfm_args(src, matcher, camera_model)
     out_dir.mkdir(parents=True, exist_ok=True)
     image_dir = out_dir / "images"
     stages = {}
-
-    # -- the pictures -----------------------------------------------------------------------
     t = time.perf_counter()
-    is_video = src.is_file()
-    if is_video:
-        if src.suffix.lower() not in VIDEO_SUFFIXES:
-            raise ValueError(f"{src}: neither a folder of images nor a video "
-                             f"({', '.join(VIDEO_SUFFIXES)})")
-        _video_backend(src)                    # no decoder: fail before touching out_dir
-        for old in image_dir.glob("frame_*.jpg") if image_dir.is_dir() else ():
-            old.unlink()
-        files, unreadable = extract_frames(src, image_dir, max_frames, log=log), {}
-        matcher = matcher or "sequential"
-    else:
-        given = _images_in(src)
-        if len(given) < 2:
-            raise ValueError(f"structure from motion needs at least 2 images, {src} has "
-                             f"{len(given)} ({', '.join(IMAGE_SUFFIXES)})")
-        image_dir.mkdir(exist_ok=True)
-        if image_dir.resolve() == src.resolve():
-            files, unreadable = _readable_in_place(given, log)
-        else:
-            files, unreadable = _copy_photos(given, image_dir, log)
-        matcher = matcher or "exhaustive"
+    files, unreadable, matcher = _pictures(src, image_dir, matcher, max_frames, log)
     stages["frames"] = time.perf_counter() - t
     n = len(files)
     if n < 2:
@@ -545,128 +535,187 @@ def run_sfm(images, out_dir, *, matcher: Optional[str] = None, max_image_size: i
                          + (f" ({len(unreadable)} could not be read: "
                             f"{', '.join(sorted(unreadable)[:5])})" if unreadable else ""))
     names = [f.name for f in files]
-    affine = n < SMALL_SET if affine_features is None else bool(affine_features)
-
-    database = out_dir / "database.db"
-    for stale in (database, Path(str(database) + "-wal"), Path(str(database) + "-shm")):
-        if stale.exists():
-            stale.unlink()
+    database = _fresh_database(out_dir)
     shutil.rmtree(out_dir / "sparse", ignore_errors=True)
     mapping_dir = out_dir / "sparse" / "_models"
-
-    single = bool(single_camera)
-    groups = [names]
-    sizes = _image_sizes(files)
-    if single and len(set(sizes)) > 1:
-        if camera_params is not None:
-            log("run_sfm: the pictures have different sizes; each gets its own camera")
-            single = False
-        else:
-            # (a phone's portrait and landscape photos: one camera per size)
-            groups = [[f.name for f, s in zip(files, sizes) if s == size]
-                      for size in sorted(set(sizes))]
-            log(f"run_sfm: the pictures have {len(groups)} sizes ("
-                + ", ".join(f"{len(g)} of {w}x{h}"
-                            for g, (w, h) in zip(groups, sorted(set(sizes))))
-                + "); one camera for each size")
-    camera_mode = pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.PER_IMAGE
+    single, groups = _camera_groups(files, bool(single_camera), camera_params, log)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
     if camera_params is not None:
         reader.camera_params = ",".join(repr(float(x)) for x in camera_params)
     pycolmap.set_random_seed(int(seed))
-
+    options = _extraction_options(
+        max_image_size, n < SMALL_SET if affine_features is None else bool(affine_features))
+    mode = pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.PER_IMAGE
     bar = _progress(2 * n + 1, progress, "features")
     try:
         with _quiet_colmap():
-            # -- features -----------------------------------------------------------------
             t = time.perf_counter()
             for group in groups:
                 reader.existing_camera_id = -1
-                _extract(database, image_dir, group, camera_mode, reader,
-                         _extraction_options(max_image_size, affine), bar,
+                _extract(database, image_dir, group, mode, reader, options, bar,
                          chunk=max(2, math.ceil(n / 20)))
             focal_prior = "given" if camera_params is not None else \
                 _focal_priors(database, image_dir, log)
             stages["features"] = time.perf_counter() - t
-
-            # -- matching -----------------------------------------------------------------
-            bar.set_description("matching")
             t = time.perf_counter()
-            mo, vo = _matching_options(seed)
-            if matcher == "sequential":
-                pycolmap.match_sequential(database, matching_options=mo, verification_options=vo,
-                                          device=pycolmap.Device.cpu)
-            else:
-                pycolmap.match_exhaustive(database, matching_options=mo, verification_options=vo,
-                                          device=pycolmap.Device.cpu)
-            _advance(bar, 1)
+            _match(database, matcher, seed, bar)
             stages["matching"] = time.perf_counter() - t
-
-            # -- mapping ------------------------------------------------------------------
-            bar.set_description("mapping")
             t = time.perf_counter()
-            po = pycolmap.IncrementalPipelineOptions()
-            po.min_model_size = 3
-            po.random_seed = int(seed)
-            po.mapper.random_seed = int(seed)
-            po.triangulation.random_seed = int(seed)
-            if n < SMALL_SET:
-                po.triangulation.ignore_two_view_tracks = False
-            mapping_dir.mkdir(parents=True, exist_ok=True)
-            recs = pycolmap.incremental_mapping(
-                database, image_dir, mapping_dir, options=po,
-                initial_image_pair_callback=lambda: _advance(bar, 2),
-                next_image_callback=lambda: _advance(bar, 1))
+            recs = _map(database, image_dir, mapping_dir, n, seed, bar)
             stages["mapping"] = time.perf_counter() - t
-            _advance(bar, bar.total)
     finally:
         bar.close()
-
-    recs = list(recs.values()) if isinstance(recs, dict) else list(recs or [])
-    sizes = sorted((int(r.num_reg_images()) for r in recs), reverse=True)
-    best = max(recs, key=lambda r: (r.num_reg_images(), r.num_points3D())) if recs else None
-    k = int(best.num_reg_images()) if best is not None else 0
-    if k < 3:
-        shutil.rmtree(mapping_dir, ignore_errors=True)
-        placed = {best.images[i].name for i in best.reg_image_ids()} if best is not None else set()
-        why = _why_unregistered(database, [m for m in names if m not in placed])
-        log("run_sfm: not registered: " + "; ".join(f"{m}: {w}" for m, w in why.items()))
-        raise ValueError(
-            f"structure from motion registered {k} of {n} images: the photos need more "
-            f"overlap (each part of the scene seen by 3 or more photos from nearby "
-            f"viewpoints), texture and sharpness"
-            + ("" if max_image_size >= 1600 else f", or a larger max_image_size "
-               f"({max_image_size})") + (f" (models found: {sizes})" if sizes else ""))
+    best, sizes = _best_model(recs, database, names, mapping_dir, max_image_size, log)
     model_dir = out_dir / "sparse" / "0"
     model_dir.mkdir(parents=True, exist_ok=True)
     best.write(model_dir)
     shutil.rmtree(mapping_dir, ignore_errors=True)
-
-    registered = sorted(best.images[i].name for i in best.reg_image_ids())
-    cam = next(iter(best.cameras.values()))
-    summary = {"images_given": n, **_summary_of(best),
-               "seconds": time.perf_counter() - t0, "stage_seconds": stages,
-               "camera": {"model": cam.model_name,
-                          "params": [float(x) for x in np.asarray(cam.params)]},
-               "registered": registered,
-               "unregistered": sorted(set(names) - set(registered)),
-               "why_unregistered": _why_unregistered(
-                   database, sorted(set(names) - set(registered))),
-               "unreadable": unreadable, "focal_prior": focal_prior,
+    summary = {**_run_summary(best, names, database), "seconds": time.perf_counter() - t0,
+               "stage_seconds": stages, "unreadable": unreadable, "focal_prior": focal_prior,
                "models": sizes, "model": str(model_dir), "images": str(image_dir),
                "matcher": matcher}
+    _report(summary, recs, best, log)
+    return summary
+
+
+def _run_summary(best, names, database):
+    """What :func:`run_sfm` reports of the kept model ``best`` of the pictures ``names``."""
+    registered = sorted(best.images[i].name for i in best.reg_image_ids())
+    cam = next(iter(best.cameras.values()))
+    return {"images_given": len(names), **_summary_of(best),
+            "camera": {"model": cam.model_name,
+                       "params": [float(x) for x in np.asarray(cam.params)]},
+            "registered": registered, "unregistered": sorted(set(names) - set(registered)),
+            "why_unregistered": _why_unregistered(database,
+                                                  sorted(set(names) - set(registered)))}
+
+
+def _check_sfm_args(src, matcher, camera_model):
+    import pycolmap
+    if not src.exists():
+        raise FileNotFoundError(f"{src}: no such folder or video")
+    if matcher is not None and matcher not in ("exhaustive", "sequential"):
+        raise ValueError(f"matcher must be 'exhaustive' or 'sequential', got {matcher!r}")
+    if camera_model not in pycolmap.CameraModelId.__members__ or camera_model == "INVALID":
+        models = [m for m in pycolmap.CameraModelId.__members__ if m != "INVALID"]
+        raise ValueError(f"unknown camera model {camera_model!r} (one of {', '.join(models)})")
+
+
+def _fresh_database(folder):
+    """``folder/database.db``, an earlier run's removed (with its write-ahead log)."""
+    database = Path(folder) / "database.db"
+    for stale in (database, Path(str(database) + "-wal"), Path(str(database) + "-shm")):
+        if stale.exists():
+            stale.unlink()
+    return database
+
+
+def _pictures(src, image_dir, matcher, max_frames, log):
+    """The pictures of a run in ``image_dir``: a video's frames extracted (those of an
+    earlier run removed), or the photos copied upright; those that cannot be read and
+    the matcher (default: sequential for a video, exhaustive for photos)."""
+    if src.is_file():
+        if src.suffix.lower() not in VIDEO_SUFFIXES:
+            raise ValueError(f"{src}: neither a folder of images nor a video "
+                             f"({', '.join(VIDEO_SUFFIXES)})")
+        _video_backend(src)                    # no decoder: fail before touching out_dir
+        for old in image_dir.glob("frame_*.jpg") if image_dir.is_dir() else ():
+            old.unlink()
+        return extract_frames(src, image_dir, max_frames, log=log), {}, \
+            matcher or "sequential"
+    given = _images_in(src)
+    if len(given) < 2:
+        raise ValueError(f"structure from motion needs at least 2 images, {src} has "
+                         f"{len(given)} ({', '.join(IMAGE_SUFFIXES)})")
+    image_dir.mkdir(exist_ok=True)
+    if image_dir.resolve() == src.resolve():
+        files, unreadable = _readable_in_place(given, log)
+    else:
+        files, unreadable = _copy_photos(given, image_dir, log)
+    return files, unreadable, matcher or "exhaustive"
+
+
+def _camera_groups(files, single, camera_params, log):
+    """Whether pictures share cameras, and the groups of names that share one: all of
+    them, or (a phone's portrait and landscape photos) one camera per picture size."""
+    names = [f.name for f in files]
+    sizes = _image_sizes(files)
+    if not single or len(set(sizes)) == 1:
+        return single, [names]
+    if camera_params is not None:
+        log("run_sfm: the pictures have different sizes; each gets its own camera")
+        return False, [names]
+    groups = [[f.name for f, s in zip(files, sizes) if s == size] for size in sorted(set(sizes))]
+    log(f"run_sfm: the pictures have {len(groups)} sizes ("
+        + ", ".join(f"{len(g)} of {w}x{h}" for g, (w, h) in zip(groups, sorted(set(sizes))))
+        + "); one camera for each size")
+    return True, groups
+
+
+def _match(database, matcher, seed, bar):
+    """Features matched and geometrically verified: all pairs, or neighbours in name order."""
+    import pycolmap
+    bar.set_description("matching")
+    mo, vo = _matching_options(seed)
+    match = pycolmap.match_sequential if matcher == "sequential" else pycolmap.match_exhaustive
+    match(database, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
+    _advance(bar, 1)
+
+
+def _map(database, image_dir, mapping_dir, n, seed, bar):
+    """COLMAP's incremental mapper, seeded; its models."""
+    import pycolmap
+    bar.set_description("mapping")
+    po = pycolmap.IncrementalPipelineOptions()
+    po.min_model_size = 3
+    po.random_seed = int(seed)
+    po.mapper.random_seed = int(seed)
+    po.triangulation.random_seed = int(seed)
+    if n < SMALL_SET:
+        po.triangulation.ignore_two_view_tracks = False
+    mapping_dir.mkdir(parents=True, exist_ok=True)
+    recs = pycolmap.incremental_mapping(
+        database, image_dir, mapping_dir, options=po,
+        initial_image_pair_callback=lambda: _advance(bar, 2),
+        next_image_callback=lambda: _advance(bar, 1))
+    _advance(bar, bar.total)
+    return list(recs.values()) if isinstance(recs, dict) else list(recs or [])
+
+
+def _best_model(recs, database, names, mapping_dir, max_image_size, log):
+    """The model with the most registered images (then points) and the sizes of all;
+    fewer than 3 images registered is an error that says why the others were not."""
+    sizes = sorted((int(r.num_reg_images()) for r in recs), reverse=True)
+    best = max(recs, key=lambda r: (r.num_reg_images(), r.num_points3D())) if recs else None
+    k = int(best.num_reg_images()) if best is not None else 0
+    if k >= 3:
+        return best, sizes
+    shutil.rmtree(mapping_dir, ignore_errors=True)
+    placed = {best.images[i].name for i in best.reg_image_ids()} if best is not None else set()
+    why = _why_unregistered(database, [m for m in names if m not in placed])
+    log("run_sfm: not registered: " + "; ".join(f"{m}: {w}" for m, w in why.items()))
+    raise ValueError(
+        f"structure from motion registered {k} of {len(names)} images: the photos need more "
+        f"overlap (each part of the scene seen by 3 or more photos from nearby "
+        f"viewpoints), texture and sharpness"
+        + ("" if max_image_size >= 1600 else f", or a larger max_image_size "
+           f"({max_image_size})") + (f" (models found: {sizes})" if sizes else ""))
+
+
+def _report(summary, recs, best, log):
+    """Warnings about the images the kept model left out."""
+    k, n = summary["images_registered"], summary["images_given"]
     if k < _WARN_FRACTION * n:
         log(f"warning: structure from motion registered only {k} of {n} images "
             f"({100 * k / n:.0f} %); the others need more overlap with the rest")
     for name, why in summary["why_unregistered"].items():
         log(f"run_sfm: {name} not registered: {why}")
     elsewhere = sorted({r.images[i].name for r in recs if r is not best
-                        for i in r.reg_image_ids()} - set(registered))
+                        for i in r.reg_image_ids()} - set(summary["registered"]))
     if elsewhere:
         log(f"run_sfm: {len(elsewhere)} image(s) registered only in smaller separate models "
             f"(not kept): {', '.join(elsewhere[:5])}{', ...' if len(elsewhere) > 5 else ''}")
-    return summary
 
 
 # --------------------------------------------------------------------------------------------
@@ -748,10 +797,7 @@ def triangulate(dataset_or_views, work_dir, *, max_image_size: int = 1600,
     shutil.rmtree(image_dir, ignore_errors=True)
     shutil.rmtree(work_dir / "sparse", ignore_errors=True)
     image_dir.mkdir(parents=True)
-    database = work_dir / "database.db"
-    for stale in (database, Path(str(database) + "-wal"), Path(str(database) + "-shm")):
-        if stale.exists():
-            stale.unlink()
+    database = _fresh_database(work_dir)
     n = len(views)
     names = [f"{i:05d}.png" for i in range(n)]
     affine = n < SMALL_SET if affine_features is None else bool(affine_features)
@@ -770,33 +816,8 @@ def triangulate(dataset_or_views, work_dir, *, max_image_size: int = 1600,
                      _extraction_options(max_image_size, affine), bar,
                      chunk=max(2, math.ceil(n / 20)))
 
-            # The database's cameras become the views' pinholes (verification uses them) and
-            # the reconstruction reuses the database's camera and image ids.
-            db = pycolmap.Database.open(database)
-            try:
-                by_name = {im.name: im for im in db.read_all_images()}
-                rec = pycolmap.Reconstruction()
-                for name, v in zip(names, views):
-                    im = by_name[name]
-                    c = v.camera
-                    cam = pycolmap.Camera(camera_id=im.camera_id, model="PINHOLE",
-                                          width=c.width, height=c.height,
-                                          params=[c.fx, c.fy, c.cx, c.cy])
-                    cam.has_prior_focal_length = True
-                    db.update_camera(cam)
-                    rec.add_camera_with_trivial_rig(cam)
-                    rec.add_image_with_trivial_frame(
-                        pycolmap.Image(name=name, camera_id=im.camera_id, image_id=im.image_id),
-                        pycolmap.Rigid3d(_cam_from_world(c)))
-            finally:
-                db.close()
-
-            bar.set_description("matching")
-            mo, vo = _matching_options(seed)
-            pycolmap.match_exhaustive(database, matching_options=mo, verification_options=vo,
-                                      device=pycolmap.Device.cpu)
-            _advance(bar, 1)
-
+            rec = _posed_reconstruction(database, names, views)
+            _match(database, "exhaustive", seed, bar)
             bar.set_description("triangulation")
             po = pycolmap.IncrementalPipelineOptions()
             po.random_seed = int(seed)
@@ -811,16 +832,45 @@ def triangulate(dataset_or_views, work_dir, *, max_image_size: int = 1600,
     finally:
         bar.close()
 
-    pts = sorted(rec.points3D.items())
-    k = len(pts)
+    return _points_of(rec, n, min_points, log)
+
+
+def _posed_reconstruction(database, names, views):
+    """A reconstruction of the known cameras: the database's cameras become the views'
+    pinholes (verification uses them) and the reconstruction reuses the database's
+    camera and image ids."""
+    import pycolmap
+    db = pycolmap.Database.open(database)
+    try:
+        by_name = {im.name: im for im in db.read_all_images()}
+        rec = pycolmap.Reconstruction()
+        for name, v in zip(names, views):
+            im = by_name[name]
+            c = v.camera
+            cam = pycolmap.Camera(camera_id=im.camera_id, model="PINHOLE",
+                                  width=c.width, height=c.height,
+                                  params=[c.fx, c.fy, c.cx, c.cy])
+            cam.has_prior_focal_length = True
+            db.update_camera(cam)
+            rec.add_camera_with_trivial_rig(cam)
+            rec.add_image_with_trivial_frame(
+                pycolmap.Image(name=name, camera_id=im.camera_id, image_id=im.image_id),
+                pycolmap.Rigid3d(_cam_from_world(c)))
+    finally:
+        db.close()
+    return rec
+
+
+def _points_of(rec, n, min_points, log):
+    """The triangulated points' positions, colors, errors and track lengths; fewer than
+    ``min_points`` is an error."""
+    from mi_tetvr.recon.datasets import colmap_points
+    points, colors, errors, tracks = colmap_points(rec)
+    k = 0 if points is None else len(points)
     if k < min_points:
         raise ValueError(f"triangulation with the known poses gave {k} points from {n} views "
                          f"(fewer than {min_points}): the images need more overlap and texture "
                          f"(or the poses do not fit the images)")
-    points = np.array([p.xyz for _, p in pts], np.float64).reshape(-1, 3)
-    colors = np.array([p.color for _, p in pts], np.uint8).reshape(-1, 3)
-    errors = np.array([p.error for _, p in pts], np.float64)
-    tracks = np.array([p.track.length() for _, p in pts], np.int64)
     log(f"triangulated {k} points from {n} views (mean reprojection error "
         f"{errors.mean():.2f} px, mean track length {tracks.mean():.2f})")
     return points, colors, errors, tracks

@@ -128,6 +128,30 @@ def make_dataset(volume: Volume, tf: TransferFunction, views: Union[int, Sequenc
     return result
 
 
+def _render_views(scene, train, test, spp=None, progress=True):
+    """``{"train": views, "test": views}`` of ``scene`` from these cameras: one sample
+    through each pixel centre (``spp`` None), or ``spp`` jittered samples per pixel with a
+    seed of each view's own, the alpha set to 1 (a path-traced scene: opaque)."""
+    import mitsuba as mi
+
+    from mi_tetvr.progress import progress_bar as tqdm
+    from mi_tetvr.recon.datasets import View
+    posed = {"train": [], "test": []}
+    with tqdm(total=len(train) + len(test), desc="render views", disable=not progress) as bar:
+        for split, cams in (("train", train), ("test", test)):
+            for i, cam in enumerate(cams):
+                if spp is None:
+                    d = cam.sensor_dict(sampler="stratified", jitter=False)
+                    image = np.array(mi.render(scene, sensor=mi.load_dict(d), spp=1))
+                else:
+                    image = np.array(mi.render(scene, sensor=mi.load_dict(cam.sensor_dict(
+                        spp=spp, sampler="independent")), seed=bar.n))
+                    image[..., 3] = 1.0
+                posed[split].append(View(f"r_{i}", cam, image))
+                bar.update(1)
+    return posed
+
+
 def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=256,
                       scalar=None, opacity_scale=1.0, fov=40.0, seed=0, value_range=None,
                       repair=False, cell_to_point=False, progress=True, lights=None, spp=256):
@@ -171,14 +195,12 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
     dict
         What ``volume_info.json`` holds.
     """
-    import mitsuba as mi
 
     import mi_tetvr
-    from mi_tetvr.progress import progress_bar as tqdm
 
     from mi_tetvr.mesh.io import choose_scalar, read_tetmesh
     from mi_tetvr.mesh.topology import bounding_radius
-    from mi_tetvr.recon.datasets import Dataset, View, write_nerf
+    from mi_tetvr.recon.datasets import Dataset, write_nerf
     mesh_path = Path(mesh_path).resolve()
     # a file, or a matplotlib colormap's name
     tf_path = Path(tf_path).resolve() if Path(tf_path).exists() else tf_path
@@ -209,20 +231,7 @@ def make_mesh_dataset(mesh_path, tf_path, out_dir, views=8, test_views=8, res=25
         from mi_tetvr.render.surfaces import lights_scene
         scene = mi_tetvr.load_dict({"type": "scene", "integrator": {"type": "tetpath"},
                                     "volume": volume, **lights_scene(lights)})
-    posed = {"train": [], "test": []}
-    with tqdm(total=len(train) + len(test), desc="render views", disable=not progress) as bar:
-        for split, cams in (("train", train), ("test", test)):
-            for i, cam in enumerate(cams):
-                if lights is None:
-                    d = cam.sensor_dict(sampler="stratified", jitter=False)
-                    image = np.array(mi.render(scene, sensor=mi.load_dict(d), spp=1))
-                else:
-                    # (path traced: a seed of its own per view)
-                    image = np.array(mi.render(scene, sensor=mi.load_dict(cam.sensor_dict(
-                        spp=spp, sampler="independent")), seed=bar.n))
-                    image[..., 3] = 1.0
-                posed[split].append(View(f"r_{i}", cam, image))
-                bar.update(1)
+    posed = _render_views(scene, train, test, None if lights is None else spp, progress)
     write_nerf(Dataset(posed["train"], posed["test"],
                        pixel_sampling="centers" if lights is None else "area"), out_dir,
                image_format="exr")

@@ -701,163 +701,227 @@ def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=pr
     set's weights the rays by their counts. ``config.time_budget`` (minutes)
     bounds the passes.
     """
-    from mi_tetvr.mesh.initial import grid_init, grid_shape
-    from mi_tetvr.mesh.sample import sample_field
-    from mi_tetvr.mesh.topology import build_topology, format_summary, geometry_summary
-    from mi_tetvr.progress import progress_bar as tqdm
-    from mi_tetvr.recon.checkpoint import load_checkpoint, save_checkpoint
-    from mi_tetvr.recon.metrics import psnr
-    from mi_tetvr.recon.pipeline import data_bounds, write_outputs
-    from mi_tetvr.recon.trainer import RunState, Trainer
+    fit = _AttenuationFit(dataset, Path(out_dir), config, progress, log, now)
+    x0 = fit.resumed() if resume else None
+    v, t, topology, x = fit.solve(x0)
+    return fit.finish(v, t, topology, x)
 
-    t_start = now()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    # the scanned box the data set records (a volume's), else the region the views show
-    bounds = np.asarray(dataset.bbox, np.float64) if config.bounds is None and \
-        dataset.bbox is not None else data_bounds(config, dataset)
-    cell = detector_cell(dataset, bounds)
-    budget = None if config.time_budget is None else 60.0 * config.time_budget
-    deadline = None if budget is None else (lambda: now() - t_start > 0.9 * budget)
-    solver = config.linear_solver
-    passes = config.passes or DEFAULT_PASSES[solver]
-    flux = config.xray_flux if config.xray_flux is not None else dataset.xray_flux
-    # the box a hair larger than the data's: rays along its faces run inside
-    box = np.stack([bounds[0] - 1e-3 * cell, bounds[1] + 1e-3 * cell])
-    resolution = config.grid_resolution or aligned_resolution(bounds, cell)
-    config = dataclasses.replace(config, bounds=np.asarray(bounds).tolist(),
-                                 grid_resolution=resolution, xray_flux=flux)
-    # coarse to fine: each stage's grid (one without: the fit's), the fit's last
-    grids = [int(st.get("grid") or resolution) for st in (config.stages or [])]
-    grids = [g for g in grids if g != resolution] + [resolution]
-    ckpt = out / "checkpoint.npz"
-    x0 = None
-    if resume and ckpt.is_file():
+
+class _AttenuationFit:
+    """The parts of :func:`fit_attenuation`: the plan of grids (coarse to fine, or a
+    coarse grid and its adaptive refinement), the solve on each, the outputs."""
+
+    def __init__(self, dataset, out, config, progress, log, now):
+        from mi_tetvr.recon.pipeline import data_bounds
+        self.t_start = now()
+        self.dataset, self.out, self.log, self.now = dataset, out, log, now
+        self.progress = progress
+        out.mkdir(parents=True, exist_ok=True)
+        # the scanned box the data set records (a volume's), else the region the views show
+        bounds = np.asarray(dataset.bbox, np.float64) if config.bounds is None and \
+            dataset.bbox is not None else data_bounds(config, dataset)
+        cell = detector_cell(dataset, bounds)
+        self.budget = None if config.time_budget is None else 60.0 * config.time_budget
+        self.solver = config.linear_solver
+        self.passes = config.passes or DEFAULT_PASSES[self.solver]
+        flux = config.xray_flux if config.xray_flux is not None else dataset.xray_flux
+        # the box a hair larger than the data's: rays along its faces run inside
+        self.box = np.stack([bounds[0] - 1e-3 * cell, bounds[1] + 1e-3 * cell])
+        self.resolution = config.grid_resolution or aligned_resolution(bounds, cell)
+        self.config = dataclasses.replace(config, bounds=np.asarray(bounds).tolist(),
+                                          grid_resolution=self.resolution, xray_flux=flux)
+        # coarse to fine: each stage's grid (one without: the fit's), the fit's last
+        grids = [int(st.get("grid") or self.resolution) for st in (config.stages or [])]
+        self.grids = [g for g in grids if g != self.resolution] + [self.resolution]
+        self.ckpt = out / "checkpoint.npz"
+        self.b = depths(dataset.train, flux)
+        self.weights = statistical_weights(dataset.train, flux)
+        self.cameras = [v.camera for v in dataset.train]
+        self.history = {"step": [], "time": [], "loss": [], "psnr": []}
+        self.one_row = all(c.height == 1 and c.is_orthographic for c in self.cameras)
+        # held-out tuning (on the last grid) of the passes, and of pwls's penalty weight
+        self.tuning = config.validation > 0 and len(self.cameras) >= 6 and (
+            (self.solver == "pwls" and config.tv is None) or
+            (self.solver in ("sart", "sirt") and config.passes is None))
+        self.max_passes = MAX_PASSES[self.solver] if self.tuning and self.solver != "pwls" \
+            else self.passes
+        self.saved = self.tuned = None
+
+    def deadline(self, share):
+        """A function that says when ``share`` of the time budget is spent (None: no budget)."""
+        if self.budget is None:
+            return None
+        return lambda: self.now() - self.t_start > share * self.budget
+
+    def resumed(self):
+        """The checkpointed attenuation to go on from (None: none); its mesh is kept."""
+        from mi_tetvr.recon.checkpoint import load_checkpoint
         from mi_tetvr.recon.pipeline import check_resume
-        check_resume(config, ckpt)
-        saved = load_checkpoint(ckpt, dataset, config)
-        saved_v, saved_t, data = saved.arrays()[:3]
-        x0 = data["attenuation"]
-        grids = grids[-1:]
-        log(f"resumed from {ckpt}: more passes from its attenuation")
-    b = depths(dataset.train, flux)
-    weights = statistical_weights(dataset.train, flux)
-    cameras = [v.camera for v in dataset.train]
-    history = {"step": [], "time": [], "loss": [], "psnr": []}
-    x, prev = x0, None
-    train_begin = now()
-    # held-out tuning (on the last grid) of the passes, and of pwls's penalty weight
-    tuning = config.validation > 0 and len(cameras) >= 6 and (
-        (solver == "pwls" and config.tv is None) or
-        (solver in ("sart", "sirt") and config.passes is None))
-    max_passes = MAX_PASSES[solver] if tuning and solver != "pwls" else passes
-    # the tuning leaves a third of the time budget to the final solve
-    tune_deadline = None if budget is None else (lambda: now() - t_start > 0.6 * budget)
-    tuned = None
-    expected = 2 + passes * (len(LAMBDA_START) + 2) // 2 if solver == "pwls" else \
-        max_passes * (2 if tuning else 1)
-    bar = tqdm(total=passes * (len(grids) - 1) + expected * (2 if config.adapt else 1),
-               disable=not progress, unit="pass",
-               desc=f"{solver} ({len(cameras)} views)")
-    one_row = all(c.height == 1 and c.is_orthographic for c in cameras)
-    adapt = config.adapt and solver == "pwls" and not one_row and x0 is None
-    if config.adapt and not adapt:
-        log("adapt: " + ("a one-row detector's slab has no cells to coarsen" if one_row else
-                         "the resumed fit goes on on its own mesh" if x0 is not None else
-                         f"solver {solver} solves on the grid"))
-    stages = [("grid", g) for g in grids] if x0 is None else [("saved", resolution)]
-    if adapt:
-        # the last grid's unknowns, spent where a grid of twice its cells finds detail
-        stages[-1:] = [("coarse", resolution), ("adaptive", resolution)]
-        budget_vertices = int(np.prod(np.asarray(grid_shape(box, resolution)) + 1))
-    lam = None
-    for kind, g in stages:
-        last = (kind, g) == stages[-1]
+        if not self.ckpt.is_file():
+            return None
+        check_resume(self.config, self.ckpt)
+        saved = load_checkpoint(self.ckpt, self.dataset, self.config)
+        self.saved = saved.arrays()[:2]
+        self.grids = self.grids[-1:]
+        self.log(f"resumed from {self.ckpt}: more passes from its attenuation")
+        return saved.arrays()[2]["attenuation"]
+
+    def plan(self, x0):
+        """The meshes solved in turn, as ``(kind, grid resolution)``."""
+        config, solver = self.config, self.solver
+        adapt = config.adapt and solver == "pwls" and not self.one_row and x0 is None
+        if config.adapt and not adapt:
+            self.log("adapt: " + (
+                "a one-row detector's slab has no cells to coarsen" if self.one_row else
+                "the resumed fit goes on on its own mesh" if x0 is not None else
+                f"solver {solver} solves on the grid"))
+        stages = [("grid", g) for g in self.grids] if x0 is None else \
+            [("saved", self.resolution)]
+        if adapt:
+            # the last grid's unknowns, spent where a grid of twice its cells finds detail
+            stages[-1:] = [("coarse", self.resolution), ("adaptive", self.resolution)]
+        return stages
+
+    def progress_bar(self, progress, adapt):
+        from mi_tetvr.progress import progress_bar as tqdm
+        passes = self.passes
+        expected = 2 + passes * (len(LAMBDA_START) + 2) // 2 if self.solver == "pwls" else \
+            self.max_passes * (2 if self.tuning else 1)
+        return tqdm(total=passes * (len(self.grids) - 1) + expected * (2 if adapt else 1),
+                    disable=not progress, unit="pass",
+                    desc=f"{self.solver} ({len(self.cameras)} views)")
+
+    def mesh(self, kind, g, prev):
+        """The vertices and tets of a planned mesh, and (adaptive) the field on it."""
+        from mi_tetvr.mesh.initial import grid_init, grid_shape
         if kind == "adaptive":
+            budget_vertices = int(np.prod(np.asarray(grid_shape(self.box, g)) + 1))
             v, t, x, split = adaptive_mesh(*prev, budget_vertices)
-            log(f"adaptive mesh: split about {split:,} of the coarse grid's {len(prev[0]):,} "
-                f"vertices, where its field changes most: {len(v):,} vertices (the grid: "
-                f"{budget_vertices:,})")
-        elif kind == "coarse":
-            v, t = coarse_grid(box, resolution)
-        elif kind == "saved":
-            v, t = saved_v, saved_t
-        else:
-            v, t = grid_init(box, g)
-        topology = build_topology(v, t)
-        # a slab over a one-row detector: one unknown per vertical pair of vertices
-        unknowns = tied_unknowns(v) if one_row and grid_shape(box, g)[2] == 1 else None
-        if last:
-            log(format_summary(geometry_summary(v, topology)))
+            self.log(f"adaptive mesh: split about {split:,} of the coarse grid's "
+                     f"{len(prev[0]):,} vertices, where its field changes most: {len(v):,} "
+                     f"vertices (the grid: {budget_vertices:,})")
+            return v, t, x
+        if kind == "coarse":
+            return (*coarse_grid(self.box, g), None)
+        if kind == "saved":
+            return (*self.saved, None)
+        return (*grid_init(self.box, g), None)
+
+    def solve(self, x0):
+        """Every planned mesh solved in turn, each from the last one's field. Returns
+        the last mesh's ``(vertices, tets, topology, attenuation)``."""
+        from mi_tetvr.mesh.initial import grid_shape
+        from mi_tetvr.mesh.sample import sample_field
+        from mi_tetvr.mesh.topology import build_topology, format_summary, geometry_summary
+        stages = self.plan(x0)
+        self.bar = self.progress_bar(self.progress, stages[-1][0] == "adaptive")
+        self.train_begin = self.now()
+        x, prev, lam = x0, None, None
+        for kind, g in stages:
+            last = (kind, g) == stages[-1]
+            v, t, adapted = self.mesh(kind, g, prev)
+            topology = build_topology(v, t)
+            # a slab over a one-row detector: one unknown per vertical pair of vertices
+            unknowns = tied_unknowns(v) if self.one_row and grid_shape(self.box, g)[2] == 1 \
+                else None
+            if last:
+                self.log(format_summary(geometry_summary(v, topology)))
+                if unknowns is not None:
+                    self.log(f"one detector row: {unknowns.max() + 1:,} unknowns, the slab's "
+                             f"two vertex layers alike")
+            if adapted is not None:
+                x = adapted
+            elif prev is not None:
+                x = sample_field(*prev[:3], v)
+            if x is not None and unknowns is not None:
+                x = np.bincount(unknowns, x) / np.bincount(unknowns)
+            gradient = TetGradient(v, topology.tets, unknowns) if self.solver == "pwls" \
+                else None
+            self.projector = Projector(v, t, self.cameras, topology, unknowns)
+            x, lam = self.solve_mesh(x, gradient, self.tuning and (last or kind == "coarse"),
+                                     lam)
             if unknowns is not None:
-                log(f"one detector row: {unknowns.max() + 1:,} unknowns, the slab's two vertex "
-                    f"layers alike")
-        if prev is not None and kind != "adaptive":
-            x = sample_field(*prev[:3], v)
-        if x is not None and unknowns is not None:
-            x = np.bincount(unknowns, x) / np.bincount(unknowns)
-        gradient = TetGradient(v, topology.tets, unknowns) if solver == "pwls" else None
-        projector = Projector(v, t, cameras, topology, unknowns)
+                x = x[unknowns]                   # the vertices' values
+            prev = (v, topology.tets, x, gradient)
+        self.bar.close()
+        return v, t, topology, x
 
-        def record(p, xx, residual, mse):
-            history["step"].append(len(history["step"]) + 1)
-            history["time"].append(now() - train_begin)
-            history["loss"].append(residual ** 2)
-            history["psnr"].append(psnr(mse))        # the training projections'
-            bar.update(1)
-            bar.set_postfix(residual=f"{residual:.3g}")
+    def record(self, p, x, residual, mse):
+        """A pass done: the history and the progress bar."""
+        from mi_tetvr.recon.metrics import psnr
+        h = self.history
+        h["step"].append(len(h["step"]) + 1)
+        h["time"].append(self.now() - self.train_begin)
+        h["loss"].append(residual ** 2)
+        h["psnr"].append(psnr(mse))        # the training projections'
+        self.bar.update(1)
+        self.bar.set_postfix(residual=f"{residual:.3g}")
 
-        solve = dict(deadline=deadline, callback=record)
-        tune = tuning and (last or kind == "coarse")
-        if solver == "lsqr":
-            x = least_squares(projector, b, passes, weights, x, record)
-        elif solver == "pwls":
-            x, tuned = _pwls_stage(projector, b, weights, gradient, x, config, passes, tune,
-                                   tune_deadline, solve, log, near=lam)
-            lam = None if tuned is None else tuned["tv"]
-        elif tune:
-            from mi_tetvr.grid.slices import validation_split
-            fit_views, val_views = validation_split(len(cameras), config.validation)
-            subset = len(fit_views) if solver == "sirt" else 1
-            held = HeldOut(projector, b, val_views, patience=3)
-            kept = sart(projector, b, max_passes, weights, subset_size=subset, x0=x,
-                        relaxation=config.relaxation, views=fit_views, held_out=held,
-                        deadline=tune_deadline, callback=record)
-            log(f"held out {len(val_views)} of {len(cameras)} views: {held.best[1]} passes, "
-                f"MSE {held.best[0]:.3g}; all views as long")
-            tuned = {"validation_views": len(val_views), "passes": held.best[1],
-                     "trials": [{"passes": held.best[1], "held_out_mse": held.best[0],
-                                 "errors": held.errors}]}
-            done = len(history["step"])
-            x = sart(projector, b, held.best[1], weights,
-                     subset_size=len(cameras) if solver == "sirt" else 1, x0=x,
-                     relaxation=config.relaxation, stop_at_noise=False, **solve)
-            if len(history["step"]) - done < held.best[1]:
-                # out of time before all views were solved as long: the held-out run's best
-                log("time ran out in the final solve: keeping the tuning's best attenuation")
-                tuned["final"] = "time ran out: the tuning's best (without the held-out views)"
-                x = kept
-        else:
-            x = sart(projector, b, passes, weights,
-                     subset_size=len(cameras) if solver == "sirt" else 1, x0=x,
-                     relaxation=config.relaxation, **solve)
-        if unknowns is not None:
-            x = x[unknowns]                   # the vertices' values
-        prev = (v, topology.tets, x, gradient)
-    bar.close()
-    optimization = now() - train_begin
-    (out / "config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2))
-    state = RunState(rng=np.random.default_rng(config.seed), step=len(history["step"]),
-                     elapsed=optimization, history=history)
-    trainer = Trainer(dataset, v, t, config.for_stage(0), {"attenuation": x},
-                      state=state, topology=topology)
-    save_checkpoint(trainer, ckpt)
-    result = write_outputs(trainer, out)
-    result["unknowns"] = projector.n
-    result["solver"] = {"method": solver, "passes": len(history["step"]),
-                        "weights": "Poisson counts" if weights is not None else "none",
-                        "tuning": tuned}
-    result["optimization_seconds"] = optimization
-    result["wall_seconds"] = now() - t_start
-    (out / "metrics.json").write_text(json.dumps(result, indent=2))
-    return result
+    def solve_mesh(self, x, gradient, tune, lam):
+        """The solver on the current projector from ``x``, its passes (and pwls's
+        weight, near ``lam``) tuned on held-out views when ``tune``. Returns the
+        attenuation and the weight chosen."""
+        projector, b, weights, config = self.projector, self.b, self.weights, self.config
+        solve = dict(deadline=self.deadline(0.9), callback=self.record)
+        if self.solver == "lsqr":
+            return least_squares(projector, b, self.passes, weights, x, self.record), lam
+        if self.solver == "pwls":
+            # the tuning leaves a third of the time budget to the final solve
+            x, self.tuned = _pwls_stage(projector, b, weights, gradient, x, config,
+                                        self.passes, tune, self.deadline(0.6), solve, self.log,
+                                        near=lam)
+            return x, None if self.tuned is None else self.tuned["tv"]
+        subset = len(self.cameras) if self.solver == "sirt" else 1
+        if tune:
+            return self.tuned_sart(x, subset, solve), lam
+        return sart(projector, b, self.passes, weights, subset_size=subset, x0=x,
+                    relaxation=config.relaxation, **solve), lam
+
+    def tuned_sart(self, x, subset, solve):
+        """SART/SIRT: the passes chosen on held-out views, then all views solved as long
+        (or, out of time before that, the held-out run's best)."""
+        from mi_tetvr.grid.slices import validation_split
+        projector, b, weights, config = self.projector, self.b, self.weights, self.config
+        fit_views, val_views = validation_split(len(self.cameras), config.validation)
+        held = HeldOut(projector, b, val_views, patience=3)
+        kept = sart(projector, b, self.max_passes, weights,
+                    subset_size=len(fit_views) if self.solver == "sirt" else 1, x0=x,
+                    relaxation=config.relaxation, views=fit_views, held_out=held,
+                    deadline=self.deadline(0.6), callback=self.record)
+        self.log(f"held out {len(val_views)} of {len(self.cameras)} views: {held.best[1]} "
+                 f"passes, MSE {held.best[0]:.3g}; all views as long")
+        self.tuned = {"validation_views": len(val_views), "passes": held.best[1],
+                      "trials": [{"passes": held.best[1], "held_out_mse": held.best[0],
+                                  "errors": held.errors}]}
+        done = len(self.history["step"])
+        x = sart(projector, b, held.best[1], weights, subset_size=subset, x0=x,
+                 relaxation=config.relaxation, stop_at_noise=False, **solve)
+        if len(self.history["step"]) - done < held.best[1]:
+            # out of time before all views were solved as long: the held-out run's best
+            self.log("time ran out in the final solve: keeping the tuning's best attenuation")
+            self.tuned["final"] = "time ran out: the tuning's best (without the held-out views)"
+            x = kept
+        return x
+
+    def finish(self, v, t, topology, x):
+        """The outputs every fit writes, the checkpoint, and the metrics (returned)."""
+        from mi_tetvr.recon.checkpoint import save_checkpoint
+        from mi_tetvr.recon.pipeline import write_outputs
+        from mi_tetvr.recon.trainer import RunState, Trainer
+        config, out, history = self.config, self.out, self.history
+        optimization = self.now() - self.train_begin
+        (out / "config.json").write_text(json.dumps(config.nested(), indent=2))
+        state = RunState(rng=np.random.default_rng(config.seed), step=len(history["step"]),
+                         elapsed=optimization, history=history)
+        trainer = Trainer(self.dataset, v, t, config.for_stage(0), {"attenuation": x},
+                          state=state, topology=topology)
+        save_checkpoint(trainer, self.ckpt)
+        result = write_outputs(trainer, out)
+        result["unknowns"] = self.projector.n
+        result["solver"] = {"method": self.solver, "passes": len(history["step"]),
+                            "weights": "Poisson counts" if self.weights is not None else "none",
+                            "tuning": self.tuned}
+        result["optimization_seconds"] = optimization
+        result["wall_seconds"] = self.now() - self.t_start
+        (out / "metrics.json").write_text(json.dumps(result, indent=2))
+        return result

@@ -133,10 +133,8 @@ class Trainer:
     def __init__(self, dataset, vertices, tets, config: FitConfig, values=None,
                  state: RunState | None = None, environment=None, appearance=None,
                  topology=None):
-        import dataclasses
         import gc
 
-        import mi_tetvr
         from mi_tetvr.mesh.topology import build_topology
 
         # Free the scenes of earlier trainers that only reference cycles keep:
@@ -159,11 +157,38 @@ class Trainer:
         self.tets = topology.tets.astype(np.int64)
         self.boundary = np.unique(topology.boundary_faces)
         self.h = mean_edge_length(vertices, self.tets)
-        n = len(vertices)
         #: Half the mesh's box diagonal (the unit of a known transfer function's opacity).
         self.radius = bounding_radius(vertices)
         self.field = make_field(config, self.h, values, self.tets, self.radius,
                                 stage["sh_degree"])
+        values = self.field.adopt({**self._initial(vertices), **(values or {})})
+        self.scene = mi.load_dict(self._scene_dict(vertices, values, topology))
+        self.params = mi.traverse(self.scene)
+        if environment is not None:
+            self.params[K_ENVIRONMENT] = mi.TensorXf(np.asarray(environment, np.float32))
+            self.params.update()
+        self.jitter = config.jitter if config.jitter is not None else not pixel_center_data(dataset)
+        self._sensors = {}
+        for v in self.train + dataset.test:
+            self.sensor(v)
+        self.targets = {id(v): mi.TensorXf(np.ascontiguousarray(v.image, np.float32))
+                        for v in self.train}
+        self._optimizer(len(vertices))
+        self._appearance(appearance)
+        #: Per vertex, the absolute image-loss gradients of the training steps so far in this
+        #: stage (:meth:`split_scores`), kept on the device.
+        self._score_weights = self.field.score_weights(config.select)
+        self._scores = dr.zeros(mi.Float, len(vertices))
+        self.regularizer = None
+        if config.regularizer > 0 and config.lr_position > 0:
+            from mi_tetvr.recon.regularizer import QualityRegularizer
+            self.regularizer = QualityRegularizer(self.tets, beta=config.regularizer_beta,
+                                                  weight=config.regularizer)
+
+    def _initial(self, vertices):
+        """The field's starting values; on a multiscale mesh (:data:`MULTISCALE`) the
+        extinction per each vertex's own cell (:attr:`cell`)."""
+        n = len(vertices)
         self.cell = np.full(n, self.h)
         initial = self.field.initial(n)
         if self.field.extinction is not None:
@@ -171,8 +196,16 @@ class Trainer:
             lo, hi = np.percentile(cell, [5, 95])
             if hi > MULTISCALE * lo:
                 self.cell = cell
-                initial[self.field.extinction] = np.full(n, config.init_opacity) / cell
-        values = self.field.adopt({**initial, **(values or {})})
+                initial[self.field.extinction] = np.full(n, self.config.init_opacity) / cell
+        return initial
+
+    def _scene_dict(self, vertices, values, topology):
+        """The scene: the fitted mesh (on ``topology``, built once), its integrator, and
+        the known lights' scene (a lit medium) or the learned background."""
+        import dataclasses
+
+        import mi_tetvr
+        config = self.config
         # the shape's tets are the oriented ones: their topology is this one, built once
         shape = mi_tetvr.tetmesh_shape(self.field.shape(vertices, self.tets, values),
                                        topology=dataclasses.replace(topology, n_flipped=0))
@@ -192,17 +225,12 @@ class Trainer:
             w, h = ENVIRONMENT_SIZE
             scene[K_ENVIRONMENT.split(".")[0]] = {
                 "type": "envmap", "bitmap": mi.Bitmap(np.tile(mean, (h, w, 1)).astype(np.float32))}
-        self.scene = mi.load_dict(scene)
-        self.params = mi.traverse(self.scene)
-        if environment is not None:
-            self.params[K_ENVIRONMENT] = mi.TensorXf(np.asarray(environment, np.float32))
-            self.params.update()
-        self.jitter = config.jitter if config.jitter is not None else not pixel_center_data(dataset)
-        self._sensors = {}
-        for v in self.train + dataset.test:
-            self.sensor(v)
-        self.targets = {id(v): mi.TensorXf(np.ascontiguousarray(v.image, np.float32))
-                        for v in self.train}
+        return scene
+
+    def _optimizer(self, n):
+        """Adam over the field's parameters, the positions (``lr_position``) and a
+        learned background, with the per-value step scales (:meth:`step`)."""
+        config = self.config
         rates = self.field.rates()
         if config.lr_position > 0:
             rates[K_POSITION] = config.lr_position * self.h
@@ -218,26 +246,23 @@ class Trainer:
         if self.multiscale:
             k = self.field.point_arrays[self.field.extinction][0]
             self._step_scales[k] = mi.Float((self.h / self.cell).astype(np.float32))
+
+    def _appearance(self, appearance):
+        """The training photos' color transforms and their optimizer (``config
+        .appearance``; ``appearance``: their values, default the identity)."""
         self.appearance_index = {}
-        if config.appearance:
-            # a training photo's transform, whether it is seen at the stage's scale or whole
-            self.appearance_index = {id(v): i for i, v in enumerate(self.train)}
-            self.appearance_index.update({id(v): i for i, v in enumerate(dataset.train)})
-            init = np.zeros((len(dataset.train), 12)) if appearance is None else appearance
-            start = mi.Float(np.asarray(init, np.float32).reshape(len(dataset.train), 12).ravel())
-            #: The transforms' optimizer (its state is checkpointed as the volume's).
-            self.appearance_opt = VertexAdam({"appearance": start},
-                                             {"appearance": config.lr_appearance},
-                                             len(dataset.train), shared=("appearance",))
-        #: Per vertex, the absolute image-loss gradients of the training steps so far in this
-        #: stage (:meth:`split_scores`), kept on the device.
-        self._score_weights = self.field.score_weights(config.select)
-        self._scores = dr.zeros(mi.Float, n)
-        self.regularizer = None
-        if config.regularizer > 0 and config.lr_position > 0:
-            from mi_tetvr.recon.regularizer import QualityRegularizer
-            self.regularizer = QualityRegularizer(self.tets, beta=config.regularizer_beta,
-                                                  weight=config.regularizer)
+        if not self.config.appearance:
+            return
+        train = self.dataset.train
+        # a training photo's transform, whether it is seen at the stage's scale or whole
+        self.appearance_index = {id(v): i for i, v in enumerate(self.train)}
+        self.appearance_index.update({id(v): i for i, v in enumerate(train)})
+        init = np.zeros((len(train), 12)) if appearance is None else appearance
+        start = mi.Float(np.asarray(init, np.float32).reshape(len(train), 12).ravel())
+        #: The transforms' optimizer (its state is checkpointed as the volume's).
+        self.appearance_opt = VertexAdam({"appearance": start},
+                                         {"appearance": self.config.lr_appearance},
+                                         len(train), shared=("appearance",))
 
     # -- one step ---------------------------------------------------------------
     def sensor(self, view):

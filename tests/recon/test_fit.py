@@ -280,7 +280,8 @@ def test_config_errors(tmp_path):
         FitConfig().updated(loss="l3")
     p = tmp_path / "c.json"
     p.write_text(json.dumps({"resolution": 8, "lr_color": 0.1}))
-    cfg = FitConfig.from_file(p)
+    with pytest.warns(UserWarning, match="'resolution' is now 'grid_resolution'"):
+        cfg = FitConfig.from_file(p)
     assert cfg.grid_resolution == 8 and cfg.lr_color == 0.1 and cfg.loss is None
     with pytest.raises(ValueError, match="unknown stage settings"):
         FitConfig().updated(stages=[{"iterations": 5, "lr": 1}])

@@ -8,6 +8,8 @@ import json
 
 import pytest
 
+from mi_tetvr.recon.config import FitConfig
+
 pytest.importorskip("ray")
 
 
@@ -23,11 +25,11 @@ def test_sweep_table_is_each_trials_fit(tiny_data_path, tmp_path):
     assert sorted(float(r["lr_color"]) for r in rows) == [0.02, 0.08]
     assert float(rows[0]["psnr"]) >= float(rows[1]["psnr"])            # best first
     for r in rows:
-        cfg = json.loads((tmp_path / "sweep" / "trials" / r["dir"].split("/trials/")[1]
-                          / "config.json").read_text())
+        cfg = FitConfig.from_file(tmp_path / "sweep" / "trials" / r["dir"].split("/trials/")[1]
+                                  / "config.json")
         metrics = json.loads((out / "trials" / r["dir"].split("/trials/")[1]
                               / "metrics.json").read_text())
-        assert cfg["lr_color"] == float(r["lr_color"]) and cfg["iterations"] == 12
+        assert cfg.lr_color == float(r["lr_color"]) and cfg.iterations == 12
         assert metrics["mean"]["psnr"] == pytest.approx(float(r["psnr"]), abs=1e-9)
         assert int(r["steps"]) == metrics["step"] == 12
     assert "held-out PSNR" in (out / "sweep.md").read_text()

@@ -1,7 +1,6 @@
 """Fitting the visualization: a transfer function's texels recovered from
 images of a scalar tet mesh, the smoothing prior, texel tensors on the
 ``tetmesh`` shape, and mesh data sets (``make_mesh_dataset``)."""
-import json
 
 import mitsuba as mi
 import numpy as np
@@ -102,8 +101,8 @@ def test_transfer_function_fit_recovers_held_out_images(scalar_data, tmp_path):
     # images are what is asserted
     assert m["mean"]["psnr"] > 38.0 and m["mean"]["psnr"] > before + 15, (before, m["mean"])
     s = values["scalar"]
-    saved = json.loads((tmp_path / "config.json").read_text())
-    assert saved["value_range"] == pytest.approx([s.min(), s.max()])
+    saved = FitConfig.from_file(tmp_path / "config.json")
+    assert saved.value_range == pytest.approx([s.min(), s.max()])
     assert (tmp_path / "transfer_function.png").is_file()
     assert not (tmp_path / "mesh.vtu").exists()
 
@@ -156,9 +155,9 @@ def test_scalar_fit_with_smoothing_from_the_command_line(scalar_data, tmp_path):
     main(["fit", str(data.root), "--init", str(mesh), "--optimize", "scalar", "--tf",
           info["transfer_function"], "--opacity-scale", "1.5", f"--value-range={lo},{hi}",
           "--iterations", "6", "--smoothing", "0.5", "--out", str(tmp_path)])
-    saved = json.loads((tmp_path / "config.json").read_text())
-    assert saved["value_range"] == pytest.approx([lo, hi]) and saved["scalar_init"] == "colors"
-    assert saved["smoothing"] == 0.5
+    saved = FitConfig.from_file(tmp_path / "config.json")
+    assert saved.value_range == pytest.approx([lo, hi]) and saved.scalar_init == "colors"
+    assert saved.smoothing == 0.5
     fitted = mi_tetvr.read_tetmesh(tmp_path / "scalar.vtu", color=None, opacity=None)
     s = fitted.point_data["scalar"]
     assert np.all((s >= lo - 1e-6) & (s <= hi + 1e-6)) and np.ptp(s) > 0

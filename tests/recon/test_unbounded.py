@@ -136,8 +136,8 @@ def test_unbounded_fit_of_real_photos(tmp_path):
     assert Delaunay(V0).find_simplex([v.camera.center for v in photos.views]).min() >= 0
     logs = []
     metrics = run(photos, tmp_path, cfg, progress=False, log=logs.append)
-    saved = json.loads((tmp_path / "config.json").read_text())
-    assert saved["init"] == "unbounded" and saved["background"] == "learn"
+    saved = FitConfig.from_file(tmp_path / "config.json")
+    assert saved.init == "unbounded" and saved.background == "learn"
     assert any(s.startswith("pruned") for s in logs) and any(s.startswith("split") for s in logs)
     assert metrics["tets"] > len(T0)
     psnr = json.loads(str(np.load(tmp_path / "checkpoint.npz")["history"]))["psnr"]
@@ -147,7 +147,7 @@ def test_unbounded_fit_of_real_photos(tmp_path):
     from mi_tetvr.recon.checkpoint import load_checkpoint
     ck = np.load(tmp_path / "checkpoint.npz")
     back = load_checkpoint(tmp_path / "checkpoint.npz", photos, for_capture(
-        cfg.updated(stages=json.loads((tmp_path / "config.json").read_text())["stages"]),
+        cfg.updated(stages=FitConfig.from_file(tmp_path / "config.json").stages),
         photos))
     np.testing.assert_allclose(back.appearance(), ck["appearance"], atol=1e-7)
     assert np.abs(ck["appearance:m"]).max() > 0
