@@ -161,7 +161,8 @@ class Trainer:
         self.radius = bounding_radius(vertices)
         self.field = make_field(config, self.h, values, self.tets, self.radius,
                                 stage["sh_degree"])
-        values = self.field.adopt({**self._initial(vertices), **(values or {})})
+        # (the values given, converted to the field's layout, over its starting ones)
+        values = {**self._initial(vertices), **self.field.adopt(values or {})}
         self.scene = mi.load_dict(self._scene_dict(vertices, values, topology))
         self.params = mi.traverse(self.scene)
         if environment is not None:

@@ -63,6 +63,11 @@ def test_degree_zero_steps_as_a_color_and_a_degree_rise_keeps_the_image(data):
         assert moved > 0.3
         np.testing.assert_allclose(sh.render_view(v), plain.render_view(v), atol=2e-3)
     b = sh.arrays()[2]
+    # given colors (a mesh's, the sparse points') start the coefficients
+    given = {"color": plain.arrays()[2]["color"], "opacity": plain.arrays()[2]["opacity"]}
+    np.testing.assert_allclose(Trainer(data, V, T, cfg, given).render_view(data.test[0]),
+                               Trainer(data, V, T, CFG, given).render_view(data.test[0]),
+                               atol=1e-5)
 
     before = sh.render_view(data.test[0])
     moments = sh.opt.moments()
