@@ -241,6 +241,20 @@ def test_no_function_of_the_renderer_takes_more_than_8_parameters():
     assert not too_many, too_many
 
 
+def test_no_function_of_the_fit_has_more_than_60_lines_of_code():
+    """The fit is written as parts (data, field, strategy, trainer): no function or
+    method in ``recon/`` has more than 60 lines besides its docstring (counted as
+    ``benchmarks/function_lengths.py`` counts them)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from function_lengths import lengths
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    rows = lengths(ROOT / "mi_tetvr" / "recon")
+    assert len(rows) > 300 and rows[0][0] > 40          # it reads the functions
+    assert not [r for r in rows if r[0] > 60], [r for r in rows if r[0] > 60]
+
+
 def test_the_renderer_and_plugins_public_functions_are_typed():
     """The public functions and methods of ``render/`` and ``plugins/`` (module-level
     functions and the methods of module-level classes whose names do not start with

@@ -185,6 +185,7 @@ class ViewDependentField(VolumeField):
     def __init__(self, config, h, values=None, tets=None, degree=0):
         from mi_tetvr.render.optical import sh_basis
         super().__init__(config, h, values, tets)
+        self.fixed.pop("color", None)         # (the coefficients hold it)
         if not 0 <= int(degree) <= 3:
             raise ValueError(f"spherical harmonics have degree 0 to 3, got {degree}")
         self.degree = int(degree)
