@@ -592,7 +592,8 @@ def _run_summary(best, names, database):
 
 
 def _check_sfm_args(src, matcher, camera_model):
-    import pycolmap
+    with needs("sfm", "structure from motion"):
+        import pycolmap
     if not src.exists():
         raise FileNotFoundError(f"{src}: no such folder or video")
     if matcher is not None and matcher not in ("exhaustive", "sequential"):
@@ -655,7 +656,8 @@ def _camera_groups(files, single, camera_params, log):
 
 def _match(database, matcher, seed, bar):
     """Features matched and geometrically verified: all pairs, or neighbours in name order."""
-    import pycolmap
+    with needs("sfm", "structure from motion"):
+        import pycolmap
     bar.set_description("matching")
     mo, vo = _matching_options(seed)
     match = pycolmap.match_sequential if matcher == "sequential" else pycolmap.match_exhaustive
@@ -665,7 +667,8 @@ def _match(database, matcher, seed, bar):
 
 def _map(database, image_dir, mapping_dir, n, seed, bar):
     """COLMAP's incremental mapper, seeded; its models."""
-    import pycolmap
+    with needs("sfm", "structure from motion"):
+        import pycolmap
     bar.set_description("mapping")
     po = pycolmap.IncrementalPipelineOptions()
     po.min_model_size = 3
@@ -839,7 +842,8 @@ def _posed_reconstruction(database, names, views):
     """A reconstruction of the known cameras: the database's cameras become the views'
     pinholes (verification uses them) and the reconstruction reuses the database's
     camera and image ids."""
-    import pycolmap
+    with needs("sfm", "structure from motion"):
+        import pycolmap
     db = pycolmap.Database.open(database)
     try:
         by_name = {im.name: im for im in db.read_all_images()}
