@@ -74,8 +74,8 @@ from mi_tetvr.extras import needs
 
 __all__ = ["Camera", "look_at", "as_rigid", "default_fov", "framing_distance", "FRAMING_MARGIN",
            "fibonacci_cameras", "random_cameras", "fibonacci_sphere", "box_cameras",
-           "orbit_to_world", "check_factor", "camera_path", "OPENGL_TO_MITSUBA",
-           "OPENCV_TO_MITSUBA"]
+           "orbit_to_world", "check_factor", "camera_path", "cameras_focus",
+           "OPENGL_TO_MITSUBA", "OPENCV_TO_MITSUBA"]
 
 #: ``c2w_opengl @ OPENGL_TO_MITSUBA`` is Mitsuba's ``to_world`` (and vice versa: an involution).
 OPENGL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
@@ -549,6 +549,19 @@ class Camera:
 
 #: How much larger than a bounding sphere the sphere is that a framing camera's view holds.
 FRAMING_MARGIN = 1.05
+
+
+def cameras_focus(cameras: Sequence[Camera]) -> np.ndarray:
+    """(3,) the point the cameras look at: the least-squares point nearest to their view
+    axes (their centers' mean where the axes are near parallel, as a forward-facing
+    capture's: a small pull towards it keeps the system well posed)."""
+    c = np.array([cam.center for cam in cameras], np.float64).reshape(-1, 3)
+    f = np.array([cam.to_world[:3, 2] for cam in cameras], np.float64).reshape(-1, 3)
+    f /= np.linalg.norm(f, axis=1, keepdims=True)
+    proj = np.eye(3)[None] - f[:, :, None] * f[:, None, :]     # onto each axis's normal plane
+    a, b = proj.sum(0), np.einsum("kij,kj->i", proj, c)
+    eps = 1e-3 * len(c)
+    return np.linalg.solve(a + eps * np.eye(3), b + eps * c.mean(0))
 
 
 def camera_path(cameras: Sequence[Camera], frames: int) -> List[Camera]:

@@ -46,8 +46,8 @@ PARTS = {
     "trainer": ("the loop, the optimizer and the clock",
                 ("iterations", "time_budget", "views_per_step", "lr_color", "lr_opacity",
                  "lr_position", "lr_appearance", "lr_scalar", "decay", "loss", "loss_space",
-                 "regularizer", "regularizer_beta", "freeze_boundary", "safeguard", "n_sub",
-                 "spp", "seed", "checkpoint_every", "log_every")),
+                 "regularizer", "regularizer_beta", "distortion", "freeze_boundary", "safeguard",
+                 "n_sub", "spp", "seed", "checkpoint_every", "log_every")),
     "solver": ("X-ray projections' linear solvers (model absorption)",
                ("solver", "passes", "relaxation", "tv", "adapt", "validation")),
 }
@@ -58,7 +58,7 @@ KINDS = ("color", "scattering", "absorption", "tf", "scalar")
 #: The settings that apply to some kinds only (the others apply to all).
 ONLY = {
     "lights": ("scattering",), "xray_flux": ("absorption",), "outer": ("color",),
-    "scalar": ("tf", "scalar"), "sh_degree": ("color",),
+    "scalar": ("tf", "scalar"), "sh_degree": ("color",), "distortion": ("color",),
     "background": ("color", "tf", "scalar"), "appearance": ("color", "tf", "scalar"),
     "appearance_prior": ("color", "tf", "scalar"), "lr_appearance": ("color", "tf", "scalar"),
     "value_range": ("tf", "scalar"), "tf_resolution": ("tf", "scalar"),
@@ -204,6 +204,10 @@ class FitConfig:
     regularizer: float = setting(10.0, "weight lambda of the tet-quality term (DiffTetVR "
                                        "Eq. 21) when positions move")
     regularizer_beta: float = setting(100.0, "beta of the tet-quality term (DiffTetVR Eq. 21)")
+    distortion: float = setting(
+        0.0, "weight of the rays' distortion: how far apart, in disparity, the weights of each "
+        "ray lie (the squared-distance form of mip-NeRF 360's distortion loss), on one training "
+        "view per step at half its size; 0: none")
     freeze_boundary: bool = setting(True, "keep boundary vertices fixed when positions move")
     safeguard: bool = setting(True, "shorten position steps that would invert a tet")
     retriangulate: bool | None = setting(
@@ -230,8 +234,11 @@ class FitConfig:
         "the fine one (unbounded scenes: four stages with splits and pruning)",
         metavar="JSON", parse=_json)
     target_tets: int | None = setting(None, "no more splits once the mesh has this many tets")
-    select: str = setting("gradient", "refinement criterion",
-                          choices=("gradient", "color", "opacity"))
+    select: str = setting(
+        "gradient", "refinement criterion: gradient (the absolute image-loss gradients of "
+        "colors and opacities over the stage's steps), color, opacity (of one of them), error "
+        "(the photos' per-pixel error projected into the vertices their rays cross, weighted by "
+        "their contribution)", choices=("gradient", "color", "opacity", "error"))
     optimize: str = setting(
         "volume", "what is fitted: volume (per-vertex colors and opacities), tf (the transfer "
         "function over the init mesh's scalar), scalar (the scalar under a known transfer "
@@ -437,7 +444,7 @@ class FitConfig:
         if self.time_budget is not None and not self.time_budget > 0:
             raise ValueError("time_budget must be > 0 minutes")
         for name in ("lr_color", "lr_opacity", "lr_position", "init_opacity", "regularizer",
-                     "lr_appearance", "appearance_prior"):
+                     "lr_appearance", "appearance_prior", "distortion"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0")
         if not 0 < self.relaxation <= 2:
@@ -483,6 +490,12 @@ class FitConfig:
             raise ValueError(f"optimize {self.optimize} needs the scalar mesh as init (a file)")
         if self.optimize == "scalar" and self.transfer_function is None:
             raise ValueError("optimize scalar needs the transfer function (--tf)")
+        if self.select == "error" and self.kind not in ("color", "scattering"):
+            raise ValueError("select error ranks vertices by the photos' error through their "
+                             "colors: model emission or scattering, optimize volume")
+        if self.distortion and self.kind != "color":
+            raise ValueError("distortion concentrates the rays' weights of a fit of colors and "
+                             "opacities: model emission, optimize volume")
         if self.sh_degree and (self.model != "emission" or self.optimize != "volume"):
             raise ValueError("sh_degree gives an emission-absorption volume view-dependent "
                              "colors: not with model absorption/scattering or optimize tf/scalar")

@@ -160,6 +160,11 @@ class VolumeField(Field):
         opt[rgb] = dr.clip(opt[rgb], 0.0, 1.0)
         opt[key("vertex_opacity")] = dr.maximum(opt[key("vertex_opacity")], 0.0)
 
+    def color_values(self, rgb):
+        """The color parameter (a flat ``mi.Float``) of per-vertex colors ``rgb``
+        (``mi.Vector3f``, any values)."""
+        return dr.ravel(rgb)
+
     def score_weights(self, criterion):
         w = {}
         if criterion in ("gradient", "color"):
@@ -204,6 +209,14 @@ class ViewDependentField(VolumeField):
     def mean_color(self, sh):
         """(n, 3) the colors' mean over directions (the degree-0 term), in [0, 1]."""
         return np.clip(np.asarray(sh, np.float64)[:, :3] * self.Y0 + 0.5, 0.0, 1.0)
+
+    def color_values(self, rgb):
+        n, c = dr.width(rgb), 3 * self.K
+        out = dr.zeros(mi.Float, n * c)
+        idx = dr.arange(mi.UInt32, n) * c
+        for j in range(3):
+            dr.scatter(out, (rgb[j] - 0.5) / self.Y0, idx + j)
+        return out
 
     def initial(self, n):
         return {"sh": self.color_to_sh(np.full((n, 3), self.config.init_color)),

@@ -16,8 +16,8 @@ import numpy as np
 from mi_tetvr.color import linear_to_srgb
 from mi_tetvr.extras import needs
 
-__all__ = ["composite", "display_rgb", "psnr", "ssim", "image_metrics", "transmittance_metrics",
-           "tomography_scores"]
+__all__ = ["composite", "display_rgb", "psnr", "ssim", "ssim_map", "image_metrics",
+           "transmittance_metrics", "tomography_scores"]
 
 
 def composite(rgba, background=None):
@@ -56,13 +56,26 @@ def psnr(mse):
 def ssim(a, b):
     """Structural similarity of two (h, w, c) images with values in [0, 1]
     (scikit-image's 7x7 window, smaller for images under 7 pixels; NaN under 3)."""
+    return _ssim(a, b, False)
+
+
+def ssim_map(a, b):
+    """(h, w) the structural similarity of two (h, w, c) images in [0, 1] at each pixel
+    (scikit-image's map, :func:`ssim`'s window; the mean over channels); ones for images
+    under 3 pixels."""
+    out = _ssim(a, b, True)
+    return np.ones(a.shape[:2]) if out is None else out[1].mean(axis=2)
+
+
+def _ssim(a, b, full):
     with needs("recon", "SSIM"):
         from skimage.metrics import structural_similarity
     win = min(7, a.shape[0], a.shape[1])
     win -= 1 - win % 2
     if win < 3:
-        return float("nan")
-    return float(structural_similarity(a, b, channel_axis=2, data_range=1.0, win_size=win))
+        return None if full else float("nan")
+    out = structural_similarity(a, b, channel_axis=2, data_range=1.0, win_size=win, full=full)
+    return out if full else float(out)
 
 
 def _over_background(rgba, background):

@@ -169,7 +169,7 @@ class Trainer:
             self.params[K_ENVIRONMENT] = mi.TensorXf(np.asarray(environment, np.float32))
             self.params.update()
         self.jitter = config.jitter if config.jitter is not None else not pixel_center_data(dataset)
-        self._sensors = {}
+        self._sensors, self._coarse = {}, {}
         for v in self.train + dataset.test:
             self.sensor(v)
         self.targets = {id(v): mi.TensorXf(np.ascontiguousarray(v.image, np.float32))
@@ -382,6 +382,8 @@ class Trainer:
             total += float(loss.array[0])
             metric += float(mse.array[0]) / len(pick)
         self._accumulate_scores()
+        if cfg.distortion > 0:
+            self.distortion(train[pick[0]], 2 * seed + 1)
         if self.regularizer is not None:
             dr.backward(self.regularizer(self.opt[K_POSITION]))
         prior = self.field.prior(self.opt)
@@ -414,6 +416,58 @@ class Trainer:
         self.params.update(self.opt)
         state.step += 1
         return total, metric
+
+    def distortion(self, view, seed=0):
+        """The rays' distortion of a training view at half its size, times
+        ``config.distortion``, backpropagated (the opacities' gradients); returns its value.
+
+        Per ray, with ``w(t)`` the weights of its color (``T(t) sigma(t)``) and ``s(t)``
+        the disparity ``near / z`` (at most 1, :meth:`disparity`), the distortion is
+        ``1/2 int int w(t) w(u) (s(t) - s(u))^2 dt du = W S_2 - S_1^2``, ``W = int w``,
+        ``S_k = int w s^k``: mip-NeRF 360's distortion loss with the square of the distance
+        (as 2D Gaussian splatting's), small when each ray's weight lies at one depth. The
+        moments are a render of the mesh with ``(s, s^2, 0)`` as its vertex colors (each
+        vertex's disparity from the camera, interpolated over the tets) and no background, so
+        the derivative is the walk's adjoint (memory flat in the tets a ray crosses)."""
+        coarse = self._coarse.get(id(view))
+        if coarse is None:
+            small = min(view.camera.width, view.camera.height) < 16
+            coarse = self._coarse[id(view)] = view if small else view.downscaled(2)
+        k = self.field.point_arrays[self.field.rgb][0]
+        s = self.disparity(coarse.camera)
+        self.params[k] = self.field.color_values(mi.Vector3f(s, dr.square(s), 0.0))
+        if self.learned_background:
+            self.params[K_ENVIRONMENT] = dr.zeros(mi.TensorXf, self.params[K_ENVIRONMENT].shape)
+        self.params.update()
+        try:
+            image = self.render(coarse, self.params, seed=seed)
+            w, s1, s2 = image[..., 3], image[..., 0], image[..., 1]
+            loss = self.config.distortion * dr.mean(w * s2 - dr.square(s1), axis=None)
+            dr.backward(loss)
+        finally:
+            self.params.update(self.opt)
+        return float(loss.array[0])
+
+    def disparity(self, camera):
+        """(n,) ``mi.Float``: each vertex's disparity from ``camera``, ``near / z`` with ``z``
+        its depth along the view axis, at most 1 (:attr:`near`), no gradient."""
+        p = dr.unravel(mi.Point3f, dr.detach(self.params[K_POSITION]))
+        c, f = (camera.to_world[:3, j].tolist() for j in (3, 2))
+        z = dr.dot(p - mi.Point3f(*c), mi.Vector3f(*f))
+        return self.near / dr.maximum(z, self.near)
+
+    @property
+    def near(self):
+        """The depth at which the distortion's disparity is 1: a quarter of the training
+        cameras' median distance from the point they look at
+        (:func:`~mi_tetvr.camera.cameras_focus`)."""
+        if not hasattr(self, "_near"):
+            from mi_tetvr.camera import cameras_focus
+            cams = [v.camera for v in self.dataset.train]
+            focus = cameras_focus(cams)
+            self._near = 0.25 * float(np.median([np.linalg.norm(c.center - focus)
+                                                 for c in cams]))
+        return self._near
 
     def _safe_positions(self, old):
         """Freeze the boundary (optionally) and shorten steps that would
@@ -466,13 +520,54 @@ class Trainer:
         dr.schedule(self._scores)
 
     def split_scores(self):
-        """Per-vertex refinement scores: the absolute image-loss gradients of the field's
-        per-vertex unknowns (:meth:`Field.score_weights
+        """Per-vertex refinement scores. With ``config.select`` ``error`` the photos' error
+        where each vertex contributes (:meth:`error_scores`); else the absolute image-loss
+        gradients of the field's per-vertex unknowns (:meth:`Field.score_weights
         <mi_tetvr.recon.fields.Field.score_weights>` of ``config.select``: for colors and
         opacities ``color``, ``opacity`` in optical depth per cell, or both, ``gradient``)
         summed over the training steps of this stage, as AbsGS accumulates them: every
         photo's gradients as the fit saw them, at no extra render. Returns (n,) float."""
+        if self.config.select == "error":
+            return self.error_scores()[0]
         return np.array(self._scores, np.float64)
+
+    def pixel_error(self, image, view):
+        """(h, w) numpy: a training render's error at each pixel against its photo, the
+        sRGB pictures' (:meth:`metric_mse`'s) mean absolute difference over the channels
+        plus their structural dissimilarity ``(1 - SSIM) / 2`` (scikit-image's map)."""
+        from mi_tetvr.recon.metrics import ssim_map
+        bg = self.background
+        with dr.suspend_grad():
+            a = np.array(display_rgb(self.apply_appearance(dr.detach(image), view), bg))
+        b = np.array(display_rgb(self.targets[id(view)], bg))
+        a, b = a.astype(np.float64), b.astype(np.float64)
+        return np.abs(a - b).mean(axis=2) + 0.5 * (1.0 - ssim_map(a, b))
+
+    def error_scores(self):
+        """The training photos' error (:meth:`pixel_error`) projected into the vertices
+        their rays cross, weighted by each vertex's contribution to the pixel (its weight
+        ``w_vp`` in the pixel's color), summed over the stage's photos; and the same of an
+        error of 1 everywhere: how much each vertex is seen. Both are derivatives of the
+        color: ``d(sum_p e_p I_p) / d c_v = sum_p e_p w_vp``, one render and one
+        derivative pass per photo (the red channel weighted by the error, the green by
+        1). Radiance Meshes splits on such an error (of SSIM). Returns ``(error (n,),
+        seen (n,))``."""
+        rgb = self.field.point_arrays.get(getattr(self.field, "rgb", None))
+        if rgb is None:
+            raise ValueError("select 'error' needs a fitted color (model emission or "
+                             "scattering, optimize volume)")
+        k, n = rgb[0], self.opt.n_vertices
+        w = np.broadcast_to(np.asarray(self.field.score_weights("color")[k], np.float64),
+                            (rgb[1],))
+        self.opt.clear_grads()
+        for i, view in enumerate(self.train):
+            image = self.render(view, self.params, seed=2 * i + 1)
+            seed = np.zeros(image.shape, np.float32)
+            seed[..., 0], seed[..., 1] = self.pixel_error(image, view), 1.0
+            dr.backward(dr.sum(image * mi.TensorXf(seed), axis=None))
+        g = np.array(dr.grad(self.opt[k]), np.float64).reshape(n, -1)
+        self.opt.clear_grads()
+        return g[:, 0] * w[0], g[:, 1] * w[1]
 
     def set_split_scores(self, scores):
         """Restore :meth:`split_scores` (a resumed stage goes on adding to them)."""
