@@ -17,7 +17,8 @@ was allocated before is measured for
 1. ``tetvr``'s adjoint: ``dr.backward`` of an L2 image loss through
    ``mi.render`` with gradients on colors, opacities and positions (this
    includes the primal pass's kept per-ray values and the gradient buffers);
-2. the recorded-loop reference: the same primal renderer run with
+2. the fit's distortion regularizer (a render of the disparity moments, the same adjoint);
+3. the recorded-loop reference: the same primal renderer run with
    ``dr.JitFlag.SymbolicLoops`` off and AD on, then ``dr.backward`` (done on
    ``--ref-res``^2 rays, a smaller image, since its memory grows with the
    number of steps: it is reported also per ray and per step; an evaluated
@@ -116,6 +117,36 @@ def adjoint_memory(scene, params, res):
     return extra
 
 
+def distortion_memory(scene, params, vertices):
+    """The derivative pass of the fit's distortion regularizer
+    (:meth:`Trainer.distortion <mi_tetvr.recon.trainer.Trainer.distortion>`): a render with
+    the disparity moments ``(s, s^2, 0)`` as vertex colors, ``mean(alpha S_2 - S_1^2)``,
+    gradients on opacities and positions."""
+    sensor = scene.sensors()[0]
+    frame = np.array(sensor.world_transform().matrix, np.float64)[0]
+    z = (vertices - frame[:3, 3]) @ frame[:3, 2]
+    near = 0.25 * float(np.median(np.abs(z)))
+    s = near / np.maximum(z, near)
+    color = params["volume.vertex_color"]
+    params["volume.vertex_color"] = mi.Float(np.stack([s, s * s, 0 * s], 1).ravel())
+    params.update()
+    keys = KEYS[1:]
+    for k in keys:
+        dr.enable_grad(params[k])
+    img = mi.render(scene, params, spp=1)
+    loss = dr.mean(img[..., 3] * img[..., 1] - dr.square(img[..., 0]), axis=None)
+    dr.eval(loss)
+    base = start_measure()
+    dr.backward(loss)
+    dr.eval([dr.grad(params[k]) for k in keys])
+    extra = peak_since(base)
+    for k in keys:
+        dr.disable_grad(params[k])
+    params["volume.vertex_color"] = color
+    params.update()
+    return extra
+
+
 def recorded_memory(scene, params, ray):
     integrator = scene.integrator()
     for k in KEYS:
@@ -153,19 +184,22 @@ def main(a):
         params.update()
         mean_tets, max_tets, n_hit = tets_per_ray(scene, rays)
         adj = adjoint_memory(scene, params, a.res)
+        dist = distortion_memory(scene, params, v)
         ref = recorded_memory(scene, params, ref_rays)
-        rows.append((name, mean_tets, max_tets, adj, ref))
+        rows.append((name, mean_tets, max_tets, adj, ref, dist))
     print()
     print(f"{'case':12s} {'tets/ray':>9s} {'max':>5s} {'adjoint [MB]':>13s} "
           f"{'recorded loop [MB]':>19s} {'per ray per max step [B]':>25s}")
     n_ref = a.ref_res * a.ref_res
-    for name, mt, xt, adj, ref in rows:
+    for name, mt, xt, adj, ref, _ in rows:
         print(f"{name:12s} {mt:9.1f} {xt:5d} {adj:13.1f} {ref:19.1f} "
               f"{ref * MB / (n_ref * xt):25.0f}")
-    (_, mt0, _, adj0, ref0), (_, mt1, _, adj1, ref1) = rows
+    (_, mt0, _, adj0, ref0, dist0), (_, mt1, _, adj1, ref1, dist1) = rows
     print()
     print(f"adjoint: transparent - opaque = {adj0 - adj1:+.1f} MB "
           f"({mt0:.0f} vs {mt1:.1f} tets per ray)")
+    print(f"the fit's distortion regularizer (its adjoint): {dist0:.1f} MB transparent, "
+          f"{dist1:.1f} MB opaque ({dist0 - dist1:+.1f} MB)")
     scaled = ("" if a.ref_res == a.res else
               f"; ~{(ref0 - ref1) * (a.res / a.ref_res) ** 2:.0f} MB at {a.res}x{a.res}")
     print(f"recorded loop: transparent / opaque = {ref0 / max(ref1, 1e-9):.1f}x "
@@ -175,8 +209,9 @@ def main(a):
         "image": dict(res=a.res, ref_res=a.ref_res),
         "cases": [dict(case=name, tets_per_ray_mean=mt, tets_per_ray_max=xt, adjoint_mb=adj,
                        recorded_loop_mb=ref,
-                       recorded_bytes_per_ray_per_max_step=ref * MB / (n_ref * xt))
-                  for name, mt, xt, adj, ref in rows],
+                       recorded_bytes_per_ray_per_max_step=ref * MB / (n_ref * xt),
+                       distortion_adjoint_mb=dist)
+                  for name, mt, xt, adj, ref, dist in rows],
         "adjoint_transparent_minus_opaque_mb": adj0 - adj1,
         "recorded_transparent_over_opaque": ref0 / max(ref1, 1e-9),
         "recorded_transparent_minus_opaque_mb": ref0 - ref1})

@@ -35,6 +35,7 @@ def save_checkpoint(trainer: Trainer, path):
              step=state.step,
              stage=state.stage, stage_start=state.stage_start, elapsed=state.elapsed,
              shortened=state.shortened, history=json.dumps(state.history),
+             downscale=state.downscale or 0,
              config=json.dumps(dataclasses.asdict(trainer.config)),
              rng=json.dumps(state.rng.bit_generator.state), **trainer.opt.state_dict(),
              split_scores=trainer.split_scores(),
@@ -67,7 +68,8 @@ def load_checkpoint(path, dataset, config: FitConfig) -> Trainer:
     rng.bit_generator.state = json.loads(str(ckpt["rng"]))
     state = RunState(rng=rng, step=int(ckpt["step"]), stage=int(ckpt["stage"]),
                      stage_start=int(ckpt["stage_start"]), elapsed=float(ckpt["elapsed"]),
-                     shortened=int(ckpt["shortened"]), history=json.loads(str(ckpt["history"])))
+                     shortened=int(ckpt["shortened"]), history=json.loads(str(ckpt["history"])),
+                     downscale=int(ckpt["downscale"]) or None if "downscale" in ckpt else None)
     values = {k[len("value:"):]: ckpt[k] for k in ckpt.files if k.startswith("value:")}
     trainer = Trainer(dataset, ckpt["vertices"], ckpt["tets"], config.for_stage(state.stage),
                       values, state=state,

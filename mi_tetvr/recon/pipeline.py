@@ -25,8 +25,9 @@ from mi_tetvr.recon.checkpoint import load_checkpoint, save_checkpoint
 from mi_tetvr.recon.config import RENAMED, FitConfig
 from mi_tetvr.recon.metrics import display_rgb, psnr
 from mi_tetvr.recon.plots import plot_history, save_comparison
-from mi_tetvr.recon.strategy import StageRefinement, unbounded_stages
-from mi_tetvr.recon.trainer import RunState, Trainer
+from mi_tetvr.recon.strategy import (MIN_STAGE_EPOCHS, StageRefinement, affordable,
+                                     unbounded_stages)
+from mi_tetvr.recon.trainer import TRAINING_VIEWS, RunState, Trainer
 
 __all__ = ["run", "next_stage", "for_capture", "capture_kind", "with_sparse_points",
            "write_outputs", "write_fitted", "fitted_file",
@@ -340,7 +341,8 @@ def output_seconds(trainer: Trainer, now=time.perf_counter):
     t0 = now()
     trainer.render_view(views[0])
     render = now() - t0
-    seconds = 0.5 + 1.5 * len(views) * render
+    # the held-out photos and the training PSNR's (16 samples per pixel when jittered)
+    seconds = 0.5 + 1.5 * (len(views) + TRAINING_VIEWS) * render
     path = flythrough_cameras(trainer)
     if path:
         # one frame timed (a small launch costs more per sample than the test render's)
@@ -549,6 +551,7 @@ class _Loop:
         self.log, self.now, self.progress = log, now, progress
         self.stages = config.stage_list()
         self.clock = self.live = self.bar = None
+        self.between = 0.0          # seconds the last change of stage took (no steps)
         self.steps_begin, self.train_begin = trainer.state.step, now()
         self.seconds = trainer.state.elapsed
         # sRGB MSE of the last steps (the PSNR the bar shows)
@@ -561,13 +564,71 @@ class _Loop:
             self.train_stage()
             if self.trainer.state.stage + 1 == len(self.stages):
                 return
-            self.trainer = next_stage(self.trainer, self.config, self.log)
+            t0 = self.now()
+            self.trainer = self.refine()
             if self.live is not None:
                 self.live.set_trainer(self.trainer)
             if self.clock:
                 self.clock.begin_stage(self.trainer.state.stage,
                                        output_seconds(self.trainer, self.now))
             save_checkpoint(self.trainer, self.ckpt_path)
+            self.between = self.now() - t0
+
+    def refine(self):
+        """The next stage's trainer (:func:`next_stage`), with the training PSNR on whole
+        photos before and after the mesh changed (:meth:`Trainer.training_psnr
+        <mi_tetvr.recon.trainer.Trainer.training_psnr>`) logged and kept in the history
+        (``refinements``: step, before, after)."""
+        before = self.trainer.training_psnr()
+        max_tets, downscale = self.affordable() if self.clock else (None, None)
+        trainer = next_stage(self.trainer, self.config, self.log,
+                             StageRefinement(self.config, max_tets), downscale)
+        after = trainer.training_psnr()
+        if before is not None:
+            trainer.state.history.setdefault("refinements", []).append(
+                [trainer.state.step, trainer.state.elapsed, before, after])
+            self.log(f"training PSNR on whole photos across the change: {before:.2f} -> "
+                     f"{after:.2f} dB")
+        return trainer
+
+    def decay_progress(self):
+        """Where the learning rates' decay stands, in [0, 1]: over the whole run when the
+        stages carry the vertices over (a split keeps the image, and the rates going on
+        down keep the training PSNR from falling after it), over each stage when a stage
+        starts from a new grid. Each stage's share is its ``iterations`` (with a time
+        budget, its share of the time)."""
+        state, i = self.trainer.state, self.trainer.state.stage
+        iterations = self.stages[i]["iterations"]
+        p = self.clock.progress() if self.clock else \
+            (state.step - state.stage_start) / max(iterations, 1)
+        p = min(max(p, 0.0), 1.0)
+        if any(st["grid"] is not None for st in self.stages):
+            return p
+        weights = [max(st["iterations"], 1) for st in self.stages]
+        return (sum(weights[:i]) + weights[i] * p) / sum(weights)
+
+    def affordable(self):
+        """What the next stage can afford in its share of the time left
+        (:func:`~mi_tetvr.recon.strategy.affordable`): at most so many tets, and whether it
+        keeps this stage's photo scale. ``(None, None)`` before 5 steps of this stage."""
+        trainer, clock = self.trainer, self.clock
+        i, times = trainer.state.stage, trainer.state.history["time"]
+        done = trainer.state.step - trainer.state.stage_start
+        if done < 5:
+            return None, None
+        step_seconds = float(np.median(np.diff(times[-min(done, 20):])))
+        left = max(clock.end - clock.reserve - self.now(), 0.0)
+        # (less what the last change of stage took: the refinement, the new trainer, the
+        # outputs' estimate and the checkpoint)
+        share = clock.weights[i + 1] / max(sum(clock.weights[i + 1:]), 1e-9)
+        seconds = max(left * share - self.between, 0.0)
+        steps = MIN_STAGE_EPOCHS * len(trainer.dataset.train) / min(
+            self.config.views_per_step, len(trainer.dataset.train))
+        max_tets, held = affordable(len(trainer.tets), step_seconds, seconds, steps,
+                                    trainer.downscale, self.stages[i + 1]["downscale"])
+        if held:
+            self.log(f"the time left keeps the photos at 1/{held} for the next stage")
+        return max_tets, held
 
     def _bar(self):
         from mi_tetvr.progress import progress_bar as tqdm
@@ -585,7 +646,7 @@ class _Loop:
         end = trainer.state.stage_start + self.stages[trainer.state.stage]["iterations"]
         while (clock.progress() < 1.0) if clock else (trainer.state.step < end):
             t0 = self.now()
-            loss, mse = trainer.step(clock.progress() if clock else None)
+            loss, mse = trainer.step(self.decay_progress())
             dt = self.now() - t0
             self.seconds += dt
             trainer.state.elapsed = self.seconds
@@ -656,16 +717,17 @@ def scalar_from_colors(config: FitConfig, dataset, vertices, tets, progress=True
     return scalar
 
 
-def next_stage(trainer: Trainer, config: FitConfig, log=print, strategy=None):
+def next_stage(trainer: Trainer, config: FitConfig, log=print, strategy=None, downscale=None):
     """After a stage: the mesh changed by ``strategy`` (default: the stages' own,
     :class:`~mi_tetvr.recon.strategy.StageRefinement`), the next stage's trainer on it
     with the run's state, the learned background and color transforms, and Adam's
     moments carried over (in the field's layout: a higher degree of spherical
-    harmonics starts from zero). Returns the next stage's trainer."""
+    harmonics starts from zero); its photos area-averaged by ``downscale`` (None: the
+    stage's own). Returns the next stage's trainer."""
     strategy = strategy or StageRefinement(config)
     vertices, tets, values, moments = strategy.refine(trainer, log)
     state = dataclasses.replace(trainer.state, stage=trainer.state.stage + 1,
-                                stage_start=trainer.state.step)
+                                stage_start=trainer.state.step, downscale=downscale)
     new = Trainer(trainer.dataset, vertices, tets, config.for_stage(state.stage), values,
                   state=state, environment=trainer.environment(),
                   appearance=trainer.appearance())
@@ -733,7 +795,8 @@ def write_outputs(trainer: Trainer, out: Path):
         mi.Bitmap(np.ascontiguousarray(texels)).write(str(out / "background.exr"))
     views = trainer.dataset.test or trainer.dataset.train[:1]
     metrics = trainer.evaluate(views)
-    metrics.update(step=trainer.state.step, seconds=trainer.state.elapsed,
+    metrics.update(training_psnr=trainer.training_psnr(spp=16),
+                   step=trainer.state.step, seconds=trainer.state.elapsed,
                    vertices=len(vertices), tets=len(tets), inverted_tets=trainer.inverted_tets(),
                    shortened_position_steps=trainer.state.shortened,
                    split="test" if trainer.dataset.test else "train (no test views)",

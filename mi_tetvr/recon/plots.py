@@ -36,7 +36,9 @@ def plot_history(history, path, test_psnr=None):
     Parameters
     ----------
     history : dict
-        Lists ``time`` (s), ``loss`` and ``psnr`` (NaN when not an L2 loss), one entry per step.
+        Lists ``time`` (s), ``loss`` and ``psnr`` (NaN when not an L2 loss), one entry per step;
+        optionally ``refinements``: ``[step, time, PSNR before, PSNR after]`` per change of
+        the mesh (drawn as pairs of dots).
     path : str or Path
     test_psnr : float, optional
         Drawn as a horizontal line.
@@ -60,6 +62,10 @@ def plot_history(history, path, test_psnr=None):
         k = max(1, len(ps) // 50)
         ax2.plot(t[k - 1:], np.convolve(ps, np.ones(k) / k, mode="valid"), color="tab:red",
                  label="training PSNR")
+        for i, (_, t_r, before, after) in enumerate(history.get("refinements", [])):
+            # the training PSNR on whole photos just before and after each change of the mesh
+            ax2.plot([t_r / 60.0] * 2, [before, after], "o-", color="black", ms=3, lw=1,
+                     label="whole photos, before | after a refinement" if i == 0 else None)
         if test_psnr is not None:
             ax2.axhline(test_psnr, color="tab:red", ls="--", lw=0.8,
                         label=f"test PSNR {test_psnr:.2f} dB")

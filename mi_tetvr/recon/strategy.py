@@ -24,7 +24,8 @@ import numpy as np
 
 __all__ = ["Strategy", "StageRefinement", "VertexState", "retriangulates", "unbounded_stages",
            "UNBOUNDED_PRUNE", "UNBOUNDED_SPLIT", "UNBOUNDED_SPLITS",
-           "UNBOUNDED_DOWNSCALE", "COARSE_PIXELS"]
+           "UNBOUNDED_DOWNSCALE", "COARSE_PIXELS", "affordable", "MIN_STAGE_EPOCHS",
+           "TET_COST_EXPONENT", "SPLIT_GROWTH"]
 
 #: An unbounded scene's stages (:func:`unbounded_stages`): after each of the first
 #: :data:`UNBOUNDED_SPLITS`, tets empty below this optical depth per cell are pruned and the
@@ -40,6 +41,16 @@ UNBOUNDED_SPLITS = 3
 #: steps; benchmarks/README.md).
 UNBOUNDED_DOWNSCALE = (4, 2, 2, 1)
 COARSE_PIXELS = 40
+#: With a time budget, a stage is to get at least this many passes over the training photos
+#: (:func:`affordable`): the mesh grows, and the photos get finer, only as far as that allows.
+MIN_STAGE_EPOCHS = 5
+#: A step's time grows as the tets' count to this power (the tets a ray crosses grow with
+#: them; measured on the path-traced room's stages at one photo size: twice the tets, 1.49
+#: times the time).
+TET_COST_EXPONENT = 0.5
+#: The tets a split adds per split fraction of the vertices (splitting the edges at 5 % of
+#: the vertices doubled the tets of the room's and monstree's meshes).
+SPLIT_GROWTH = 20.0
 
 
 @dataclass
@@ -86,9 +97,11 @@ class Strategy:
 class StageRefinement(Strategy):
     """The stages' own refinement (see the module docstring), by their settings."""
 
-    def __init__(self, config):
+    def __init__(self, config, max_tets=None):
         self.config = config
         self.stages = config.stage_list()
+        #: The most tets the next stage can afford (:func:`affordable`; None: no limit).
+        self.max_tets = max_tets
 
     def refine(self, trainer, log=print):
         done = trainer.state.stage
@@ -101,7 +114,9 @@ class StageRefinement(Strategy):
         if stage["prune"] is not None:
             state = self.prune(state, trainer.field.extinction, float(stage["prune"]), log)
         if state.scores is not None:
-            state = self.split(state, stage["split"], log)
+            fraction = self.affordable_split(len(state.tets), stage["split"], log)
+            if fraction > 0:
+                state = self.split(state, fraction, log)
         values.update({k: state.data[k] for k in trainer.field.point_arrays})
         # build_topology may re-orient tets but keeps the vertex order: the
         # per-vertex moments carry over directly.
@@ -156,6 +171,18 @@ class StageRefinement(Strategy):
         log(f"pruned {len(state.tets) - len(res.tets):,} empty tets")
         return state.keep(res.vertices, res.tets, res.point_data, res.vertex_parent)
 
+    def affordable_split(self, tets, fraction, log):
+        """The split fraction the next stage can afford (:attr:`max_tets`, :data:`SPLIT_GROWTH`):
+        the stage's, less, or none (under an eighth of it)."""
+        if self.max_tets is None:
+            return fraction
+        can = min(fraction, max(self.max_tets / tets - 1.0, 0.0) / SPLIT_GROWTH)
+        if can < fraction:
+            can = can if can >= fraction / 8 else 0.0
+            log(f"the time left affords about {self.max_tets:,.0f} tets: "
+                + (f"split {can:.2%} of the vertices, not {fraction:.0%}" if can else "no split"))
+        return can
+
     def split(self, state, fraction, log):
         """The edges at the top ``fraction`` of vertices by score split (new vertices
         start from their edge's midpoint values)."""
@@ -195,3 +222,19 @@ def unbounded_stages(config, dataset):
             st["split"] = UNBOUNDED_SPLIT
         out.append(st)
     return out
+
+
+def affordable(tets, step_seconds, seconds, steps, downscale, next_downscale):
+    """``(max_tets, downscale)`` of the next stage under a time budget: the stage is to get
+    ``steps`` steps (:data:`MIN_STAGE_EPOCHS` passes over the photos) in its ``seconds``,
+    a step costing ``step_seconds`` now (on ``tets`` tets, photos area-averaged by
+    ``downscale``), in proportion to the photos' pixels and to the tets to the power
+    :data:`TET_COST_EXPONENT`. The next stage's finer photos (``next_downscale``) are
+    kept only if their steps fit on the mesh as it is; else it keeps this stage's scale
+    (returned; None: its own)."""
+    pixels = (downscale / next_downscale) ** 2
+    held = None
+    if next_downscale < downscale and seconds < steps * step_seconds * pixels:
+        held, pixels = downscale, 1.0
+    room = seconds / max(steps * step_seconds * pixels, 1e-12)
+    return tets * max(room, 0.0) ** (1.0 / TET_COST_EXPONENT), held

@@ -25,12 +25,12 @@ from mi_tetvr.color import linear_to_srgb
 from mi_tetvr.mesh.topology import bounding_radius, mean_edge_length
 from mi_tetvr.recon.config import FitConfig
 from mi_tetvr.recon.fields import MESH_ID, key, make_field
-from mi_tetvr.recon.metrics import (composite, display_rgb, image_metrics, tomography_scores,
-                                    transmittance_metrics)
+from mi_tetvr.recon.metrics import (composite, display_rgb, image_metrics, psnr,
+                                    tomography_scores, transmittance_metrics)
 from mi_tetvr.recon.optim import VertexAdam
 
 __all__ = ["Trainer", "RunState", "K_POSITION", "K_ENVIRONMENT", "ENVIRONMENT_SIZE",
-           "MULTISCALE", "pixel_center_data", "vertex_cell_sizes"]
+           "MULTISCALE", "TRAINING_VIEWS", "pixel_center_data", "vertex_cell_sizes"]
 
 #: A mesh whose vertices' cell sizes (95th over 5th percentile) differ by more
 #: than this is multiscale: opacities start and step per vertex's own cell.
@@ -45,6 +45,9 @@ def vertex_cell_sizes(vertices, tets):
     total = np.bincount(e.ravel(), np.repeat(length, 2), len(vertices))
     count = np.bincount(e.ravel(), minlength=len(vertices))
     return total / np.maximum(count, 1)
+
+#: The training photos :meth:`Trainer.training_psnr` renders (evenly spread over them).
+TRAINING_VIEWS = 3
 
 #: The fitted mesh's vertex positions in the scene.
 K_POSITION = key("vertex_positions")
@@ -78,6 +81,7 @@ class RunState:
     stage_start: int = 0         # the step at which this stage began
     elapsed: float = 0.0         # seconds of training
     shortened: int = 0           # vertex steps the inversion safeguard shortened
+    downscale: int | None = None  # the stage's photo scale when the clock kept the last one
     history: dict = field(default_factory=lambda: {"step": [], "time": [], "loss": [],
                                                    "psnr": []})
 
@@ -149,7 +153,7 @@ class Trainer:
         stage = stage[min(self.state.stage, len(stage) - 1)]
         #: The photos this stage trains on: the data set's, area-averaged by the stage's
         #: ``downscale`` (coarse photos first); held-out views are scored as given.
-        self.downscale = int(stage["downscale"])
+        self.downscale = int(self.state.downscale or stage["downscale"])
         self.train = dataset.train if self.downscale == 1 else \
             [v.downscaled(self.downscale) for v in dataset.train]
         if topology is None:
@@ -362,9 +366,9 @@ class Trainer:
     def step(self, progress=None):
         """One optimizer step over ``views_per_step`` random training views.
 
-        ``progress`` is the fraction of the stage done, in [0, 1], which sets
-        the learning-rate decay (default: steps taken over
-        ``config.iterations``; a time-budgeted run passes its time fraction).
+        ``progress`` is where the learning-rate decay stands, in [0, 1] (default: steps
+        taken over ``config.iterations``; the pipeline passes the fraction of the run, or
+        of the stage, done: in steps or, with a time budget, in time).
         Returns the mean image loss and the mean MSE of the views' sRGB
         pictures (:meth:`metric_mse`).
         """
@@ -577,6 +581,30 @@ class Trainer:
         self._scores = mi.Float(scores)
 
     # -- evaluation -------------------------------------------------------------
+    def training_views(self):
+        """The whole training photos :meth:`training_psnr` scores: :data:`TRAINING_VIEWS`,
+        spread evenly."""
+        train = self.dataset.train
+        pick = np.linspace(0, len(train) - 1, min(TRAINING_VIEWS, len(train))).round()
+        return [train[i] for i in np.unique(pick).astype(int)]
+
+    def training_psnr(self, spp=1):
+        """The PSNR of the sRGB pictures (:meth:`metric_mse`'s) over a fixed few
+        (:data:`TRAINING_VIEWS`) of the whole training photos, each through its color
+        transform, ``spp`` samples per pixel (1: as the steps render them; 16 with jittered
+        samples: as :meth:`evaluate` renders the held-out photos): the training PSNR at one
+        scale across the stages (each step's own is on the stage's photos, area-averaged when
+        coarse). ``None`` for X-ray images."""
+        if self.field.signal == "transmittance":
+            return None
+        bg, mse = self.background, []
+        with dr.suspend_grad():
+            for i, v in enumerate(self.training_views()):
+                image = self.render(v, None, seed=i, spp=spp if self.jitter else 1)
+                a = np.array(display_rgb(self.apply_appearance(image, v), bg), np.float64)
+                mse.append(np.mean((a - display_rgb(np.asarray(v.image, np.float64), bg)) ** 2))
+        return psnr(float(np.mean(mse)))
+
     def render_view(self, view, seed=0):
         """Numpy (h, w, 4) render of a view (no gradients); with jittered
         sampling, 16 samples per pixel approximate the pixel average."""

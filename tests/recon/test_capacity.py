@@ -3,6 +3,8 @@ distortion (:meth:`Trainer.distortion <mi_tetvr.recon.trainer.Trainer.distortion
 and the photos' error projected into the vertices (:meth:`Trainer.error_scores
 <mi_tetvr.recon.trainer.Trainer.error_scores>`), both against the float64 brute-force
 renderer of ``tests/reference.py`` (which the fit does not use)."""
+import json
+
 import drjit as dr
 import numpy as np
 import pytest
@@ -106,3 +108,49 @@ def test_capacity_settings_are_checked():
                       (dict(distortion=-1.0), "distortion must be >= 0")):
         with pytest.raises(ValueError, match=said):
             FitConfig().updated(**bad)
+
+
+def test_a_split_keeps_the_training_psnr_and_the_fit_records_it(data, tmp_path):
+    """A split starts its new vertices at their edge's midpoint values, so the field (linear
+    in each tet) and the image are the same: the training PSNR on whole photos across it is
+    unchanged to 0.01 dB. The fit logs and keeps it (``refinements`` in the history) and
+    writes the final one; ``training_psnr`` is the PSNR of the mean sRGB MSE of the
+    training photos that ``evaluate`` scores one by one (three, at pixel centres)."""
+    from mi_tetvr.recon.metrics import psnr
+    from mi_tetvr.recon.pipeline import run
+    cfg = CFG.updated(stages=[{"iterations": 6, "split": 0.2}, {"iterations": 2}])
+    said = []
+    metrics = run(data, tmp_path, cfg, progress=False, log=said.append)
+    history = json.loads(str(np.load(tmp_path / "checkpoint.npz")["history"]))
+    (step, _, before, after), = history["refinements"]
+    assert step == 6 and before > 10.0 and after == pytest.approx(before, abs=0.01)
+    assert any(s.startswith("training PSNR on whole photos across the change") for s in said)
+    V, T, _ = initial_mesh(CFG, data)
+    trainer = Trainer(data, V, T, CFG, _values(len(V)))
+    assert len(trainer.training_views()) == 3 and not trainer.jitter
+    per_view = trainer.evaluate(trainer.training_views())["views"]
+    want = psnr(float(np.mean([m["mse"] for m in per_view.values()])))
+    assert trainer.training_psnr() == pytest.approx(want, abs=1e-3)
+    assert metrics["training_psnr"] > 10.0
+
+
+def test_the_time_left_sets_the_tets_and_the_photo_scale():
+    """``affordable``: the next stage gets ``steps`` steps in its seconds, a step costing as
+    the pixels and as the tets to the power 1/2; finer photos only where their steps fit
+    on the mesh as it is. ``StageRefinement`` then splits as much as that affords (a split
+    of 5 % of the vertices doubles the tets), or not at all under an eighth of the asked."""
+    from mi_tetvr.recon.strategy import StageRefinement, affordable
+    # same photos: 60 s for 100 steps of 0.1 s leaves 6x the time: 36x the tets
+    assert affordable(1000, 0.1, 60.0, 100, 2, 2) == (pytest.approx(36000.0), None)
+    # twice finer photos cost 4x: 1.5x the time left, 2.25x the tets
+    assert affordable(1000, 0.1, 60.0, 100, 2, 1) == (pytest.approx(2250.0), None)
+    # their steps do not fit (30 s < 40 s): the photos stay at 1/2, 3x the time, 9x the tets
+    assert affordable(1000, 0.1, 30.0, 100, 2, 1) == (pytest.approx(9000.0), 2)
+    said = []
+    refine = StageRefinement(FitConfig(), max_tets=1500)
+    assert refine.affordable_split(1000, 0.05, said.append) == pytest.approx(0.025)
+    assert StageRefinement(FitConfig(), 1050).affordable_split(1000, 0.05, said.append) == 0
+    assert StageRefinement(FitConfig(), 5000).affordable_split(1000, 0.05, said.append) == 0.05
+    assert StageRefinement(FitConfig()).affordable_split(1000, 0.05, said.append) == 0.05
+    assert said == ["the time left affords about 1,500 tets: split 2.50% of the vertices, "
+                    "not 5%", "the time left affords about 1,050 tets: no split"]
