@@ -101,20 +101,26 @@ def tets_per_ray(scene, ray):
     return steps[hit].mean(), steps.max(), hit.sum()
 
 
-def adjoint_memory(scene, params, res):
-    target = mi.TensorXf(dr.zeros(mi.Float, res * res * 4), (res, res, 4))
-    for k in KEYS:
+def backward_memory(scene, params, keys, loss_of):
+    """Peak memory of ``dr.backward`` of ``loss_of(image)`` through ``mi.render`` with
+    gradients on ``keys``."""
+    for k in keys:
         dr.enable_grad(params[k])
-    img = mi.render(scene, params, spp=1)
-    loss = dr.mean(dr.square(img - target), axis=None)
+    loss = loss_of(mi.render(scene, params, spp=1))
     dr.eval(loss)
     base = start_measure()
     dr.backward(loss)
-    dr.eval([dr.grad(params[k]) for k in KEYS])
+    dr.eval([dr.grad(params[k]) for k in keys])
     extra = peak_since(base)
-    for k in KEYS:
+    for k in keys:
         dr.disable_grad(params[k])
     return extra
+
+
+def adjoint_memory(scene, params, res):
+    target = mi.TensorXf(dr.zeros(mi.Float, res * res * 4), (res, res, 4))
+    return backward_memory(scene, params, KEYS,
+                           lambda img: dr.mean(dr.square(img - target), axis=None))
 
 
 def distortion_memory(scene, params, vertices):
@@ -123,25 +129,15 @@ def distortion_memory(scene, params, vertices):
     the disparity moments ``(s, s^2, 0)`` as vertex colors, ``mean(alpha S_2 - S_1^2)``,
     gradients on opacities and positions."""
     sensor = scene.sensors()[0]
-    frame = np.array(sensor.world_transform().matrix, np.float64)[0]
+    frame = np.array(sensor.world_transform().matrix, np.float64).reshape(4, 4)
     z = (vertices - frame[:3, 3]) @ frame[:3, 2]
     near = 0.25 * float(np.median(np.abs(z)))
     s = near / np.maximum(z, near)
     color = params["volume.vertex_color"]
     params["volume.vertex_color"] = mi.Float(np.stack([s, s * s, 0 * s], 1).ravel())
     params.update()
-    keys = KEYS[1:]
-    for k in keys:
-        dr.enable_grad(params[k])
-    img = mi.render(scene, params, spp=1)
-    loss = dr.mean(img[..., 3] * img[..., 1] - dr.square(img[..., 0]), axis=None)
-    dr.eval(loss)
-    base = start_measure()
-    dr.backward(loss)
-    dr.eval([dr.grad(params[k]) for k in keys])
-    extra = peak_since(base)
-    for k in keys:
-        dr.disable_grad(params[k])
+    extra = backward_memory(scene, params, KEYS[1:], lambda img: dr.mean(
+        img[..., 3] * img[..., 1] - dr.square(img[..., 0]), axis=None))
     params["volume.vertex_color"] = color
     params.update()
     return extra
