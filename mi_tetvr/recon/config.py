@@ -177,9 +177,8 @@ class FitConfig:
     lr_color: float = setting(0.02, "color step")
     lr_opacity: float = setting(0.05, "opacity step: optical depth per cell")
     lr_position: float = setting(0.0, "position step in cell sizes; 0: positions fixed")
-    decay: float = setting(0.1, "learning rates fall exponentially to decay * lr, over the "
-                                "whole run (over each stage when the stages start from new "
-                                "grids)")
+    decay: float = setting(0.1, "learning rates fall exponentially to decay * lr over each "
+                                "stage")
     loss: str | None = setting(
         None, "image loss; default: l2, l1 for unbounded scenes (robust to the pixels that "
         "change between photos)", choices=("l1", "l2"))

@@ -344,8 +344,8 @@ def output_seconds(trainer: Trainer, now=time.perf_counter):
     t0 = now()
     trainer.render_view(views[0])
     render = now() - t0
-    # the held-out photos and the training PSNR's (16 samples per pixel when jittered)
-    seconds = 0.5 + 1.5 * (len(views) + TRAINING_VIEWS) * render
+    # the held-out photos (16 samples per pixel when jittered) and the training PSNR's (one)
+    seconds = 0.5 + 1.5 * (len(views) + TRAINING_VIEWS / (16 if trainer.jitter else 1)) * render
     path = flythrough_cameras(trainer)
     if path:
         # one frame timed (a small launch costs more per sample than the test render's)
@@ -594,22 +594,6 @@ class _Loop:
                      f"{after:.2f} dB")
         return trainer
 
-    def decay_progress(self):
-        """Where the learning rates' decay stands, in [0, 1]: over the whole run when the
-        stages carry the vertices over (a split keeps the image, and the rates going on
-        down keep the training PSNR from falling after it), over each stage when a stage
-        starts from a new grid. Each stage's share is its ``iterations`` (with a time
-        budget, its share of the time)."""
-        state, i = self.trainer.state, self.trainer.state.stage
-        iterations = self.stages[i]["iterations"]
-        p = self.clock.progress() if self.clock else \
-            (state.step - state.stage_start) / max(iterations, 1)
-        p = min(max(p, 0.0), 1.0)
-        if any(st["grid"] is not None for st in self.stages):
-            return p
-        weights = [max(st["iterations"], 1) for st in self.stages]
-        return (sum(weights[:i]) + weights[i] * p) / sum(weights)
-
     def affordable(self):
         """What the next stage can afford in its share of the time left
         (:func:`~mi_tetvr.recon.strategy.affordable`): at most so many tets, and whether it
@@ -649,7 +633,7 @@ class _Loop:
         end = trainer.state.stage_start + self.stages[trainer.state.stage]["iterations"]
         while (clock.progress() < 1.0) if clock else (trainer.state.step < end):
             t0 = self.now()
-            loss, mse = trainer.step(self.decay_progress())
+            loss, mse = trainer.step(clock.progress() if clock else None)
             dt = self.now() - t0
             self.seconds += dt
             trainer.state.elapsed = self.seconds
@@ -798,7 +782,7 @@ def write_outputs(trainer: Trainer, out: Path):
         mi.Bitmap(np.ascontiguousarray(texels)).write(str(out / "background.exr"))
     views = trainer.dataset.test or trainer.dataset.train[:1]
     metrics = trainer.evaluate(views)
-    metrics.update(training_psnr=trainer.training_psnr(spp=16),
+    metrics.update(training_psnr=trainer.training_psnr(),
                    step=trainer.state.step, seconds=trainer.state.elapsed,
                    vertices=len(vertices), tets=len(tets), inverted_tets=trainer.inverted_tets(),
                    shortened_position_steps=trainer.state.shortened,

@@ -366,9 +366,9 @@ class Trainer:
     def step(self, progress=None):
         """One optimizer step over ``config.step_views`` random training views.
 
-        ``progress`` is where the learning-rate decay stands, in [0, 1] (default: steps
-        taken over ``config.iterations``; the pipeline passes the fraction of the run, or
-        of the stage, done: in steps or, with a time budget, in time).
+        ``progress`` is the fraction of the stage done, in [0, 1], which sets
+        the learning-rate decay (default: steps taken over
+        ``config.iterations``; a time-budgeted run passes its time fraction).
         Returns the mean image loss and the mean MSE of the views' sRGB
         pictures (:meth:`metric_mse`).
         """
@@ -591,10 +591,10 @@ class Trainer:
     def training_psnr(self, spp=1):
         """The PSNR of the sRGB pictures (:meth:`metric_mse`'s) over a fixed few
         (:data:`TRAINING_VIEWS`) of the whole training photos, each through its color
-        transform, ``spp`` samples per pixel (1: as the steps render them; 16 with jittered
-        samples: as :meth:`evaluate` renders the held-out photos): the training PSNR at one
-        scale across the stages (each step's own is on the stage's photos, area-averaged when
-        coarse). ``None`` for X-ray images."""
+        transform, ``spp`` samples per pixel (1: as the steps render them, a little below
+        the pixel average that :meth:`evaluate` renders with 16 jittered samples): the
+        training PSNR at one scale across the stages (each step's own is on the stage's
+        photos, area-averaged when coarse). ``None`` for X-ray images."""
         if self.field.signal == "transmittance":
             return None
         bg, mse = self.background, []
