@@ -172,7 +172,7 @@ class FitConfig:
         "unless set) fill it; a resumed run gets it again", metavar="MIN")
     views_per_step: int | None = setting(
         None, "training views rendered per optimizer step; default: 2, 1 for unbounded scenes "
-        "(twice the steps: +0.2 to +0.4 dB held out on the project's photo captures in 4- and "
+        "(twice the steps: +0.2 to +0.3 dB held out on the project's photo captures in 4- and "
         "5-minute fits; benchmarks/README.md)")
     lr_color: float = setting(0.02, "color step")
     lr_opacity: float = setting(0.05, "opacity step: optical depth per cell")
