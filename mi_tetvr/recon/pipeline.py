@@ -581,7 +581,7 @@ class _Loop:
         """The next stage's trainer (:func:`next_stage`), with the training PSNR on whole
         photos before and after the mesh changed (:meth:`Trainer.training_psnr
         <mi_tetvr.recon.trainer.Trainer.training_psnr>`) logged and kept in the history
-        (``refinements``: step, before, after)."""
+        (``refinements``: step, seconds of training, before, after)."""
         before = self.trainer.training_psnr()
         max_tets, downscale = self.affordable() if self.clock else (None, None)
         trainer = next_stage(self.trainer, self.config, self.log,
