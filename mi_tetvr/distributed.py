@@ -674,7 +674,7 @@ def fit_blocks(pm: PartitionedMesh, data, out, config, progress=True):
                              disable=not progress):
         if deadline is not None and time.time() > deadline:
             break
-        picks = rng.choice(len(data.train), min(cfg.step_views, len(data.train)),
+        picks = rng.choice(len(data.train), min(cfg.views_per_step, len(data.train)),
                            replace=False)
         total, loss = None, 0.0
         for i in picks:

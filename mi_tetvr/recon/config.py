@@ -170,10 +170,7 @@ class FitConfig:
     time_budget: float | None = setting(
         None, "minutes for the whole command, outputs included: the steps (and the mesh size, "
         "unless set) fill it; a resumed run gets it again", metavar="MIN")
-    views_per_step: int | None = setting(
-        None, "training views rendered per optimizer step; default: 2, 1 for unbounded scenes "
-        "(twice the steps: +0.2 to +0.3 dB held out on the project's photo captures in 4- and "
-        "5-minute fits; benchmarks/README.md)")
+    views_per_step: int = setting(2, "training views rendered per optimizer step")
     lr_color: float = setting(0.02, "color step")
     lr_opacity: float = setting(0.05, "opacity step: optical depth per cell")
     lr_position: float = setting(0.0, "position step in cell sizes; 0: positions fixed")
@@ -371,11 +368,6 @@ class FitConfig:
             raise ValueError(f"{source}: unknown fit settings {', '.join(said)}; the parts "
                              f"and their settings: mi-tetvr fit DATA --print-config")
         return cls().updated(**flat)
-
-    @property
-    def step_views(self) -> int:
-        """The training views of a step: ``views_per_step``, 2 when left open."""
-        return int(self.views_per_step or 2)
 
     @property
     def kind(self) -> str:

@@ -88,8 +88,7 @@ def for_capture(config: FitConfig, dataset):
     ``background`` leave open decided for the data (see :class:`FitConfig`):
     an unbounded scene starts from its sparse points and far shells
     (``init="unbounded"``), learns its background and a color transform per
-    photo, with an L1 loss and one photo per step; an object a grid, L2, no transform, two
-    photos per step."""
+    photo, with an L1 loss; an object a grid, L2, no transform."""
     kind = config.scene
     if kind == "auto":
         kind = "object" if (config.model != "emission" or config.optimize != "volume"
@@ -105,8 +104,6 @@ def for_capture(config: FitConfig, dataset):
         changes["appearance"] = unbounded
     if unbounded and config.background is None:
         changes["background"] = "learn"
-    if config.views_per_step is None:
-        changes["views_per_step"] = 1 if unbounded else 2
     if config.sh_degree is None and config.model == "emission" and config.optimize == "volume":
         changes["sh_degree"] = SH_DEGREE_UNBOUNDED if unbounded else 0
     return config.updated(**changes)
@@ -610,7 +607,7 @@ class _Loop:
         share = clock.weights[i + 1] / max(sum(clock.weights[i + 1:]), 1e-9)
         seconds = max(left * share - self.between, 0.0)
         steps = MIN_STAGE_EPOCHS * len(trainer.dataset.train) / min(
-            self.config.step_views, len(trainer.dataset.train))
+            self.config.views_per_step, len(trainer.dataset.train))
         max_tets, held = affordable(len(trainer.tets), step_seconds, seconds, steps,
                                     trainer.downscale, self.stages[i + 1]["downscale"])
         if held:

@@ -364,7 +364,7 @@ class Trainer:
             return dr.mean(dr.square(a - b), axis=None)
 
     def step(self, progress=None):
-        """One optimizer step over ``config.step_views`` random training views.
+        """One optimizer step over ``config.views_per_step`` random training views.
 
         ``progress`` is the fraction of the stage done, in [0, 1], which sets
         the learning-rate decay (default: steps taken over
@@ -374,7 +374,7 @@ class Trainer:
         """
         cfg, state = self.config, self.state
         train = self.train
-        pick = state.rng.choice(len(train), min(cfg.step_views, len(train)), replace=False)
+        pick = state.rng.choice(len(train), min(cfg.views_per_step, len(train)), replace=False)
         total, metric = 0.0, 0.0
         for j, i in enumerate(pick):
             view = train[i]
