@@ -588,11 +588,11 @@ class Trainer:
         pick = np.linspace(0, len(train) - 1, min(TRAINING_VIEWS, len(train))).round()
         return [train[i] for i in np.unique(pick).astype(int)]
 
-    def training_psnr(self, spp=1):
+    def training_psnr(self):
         """The PSNR of the sRGB pictures (:meth:`metric_mse`'s) over a fixed few
         (:data:`TRAINING_VIEWS`) of the whole training photos, each through its color
-        transform, ``spp`` samples per pixel (1: as the steps render them, a little below
-        the pixel average that :meth:`evaluate` renders with 16 jittered samples): the
+        transform, one sample per pixel as the steps render them (with jittered samples a
+        little below the pixel average that :meth:`evaluate` renders with 16): the
         training PSNR at one scale across the stages (each step's own is on the stage's
         photos, area-averaged when coarse). ``None`` for X-ray images."""
         if self.field.signal == "transmittance":
@@ -600,7 +600,7 @@ class Trainer:
         bg, mse = self.background, []
         with dr.suspend_grad():
             for i, v in enumerate(self.training_views()):
-                image = self.render(v, None, seed=i, spp=spp if self.jitter else 1)
+                image = self.render(v, None, seed=i, spp=1)
                 a = np.array(display_rgb(self.apply_appearance(image, v), bg), np.float64)
                 mse.append(np.mean((a - display_rgb(np.asarray(v.image, np.float64), bg)) ** 2))
         return psnr(float(np.mean(mse)))
