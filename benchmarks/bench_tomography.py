@@ -5,7 +5,7 @@ equal numbers of unknowns, every method scored by one function
 
 The data set is what ``mi-tetvr make-dataset VOLUME --xray`` writes:
 ``--views`` projections (parallel beam over 180 degrees, or ``--beam cone``
-over 360) and ``--test-views`` held-out ones between them, the exact line
+over 360; ``--arc`` degrees for a limited-angle scan) and ``--test-views`` held-out ones between them, the exact line
 integrals of the volume's cubic B-spline sampled ``--detail`` (2) times finer
 than its samples, so that no method's model is the one the data were made
 with (no "inverse crime"); ``--flux N``
@@ -43,6 +43,7 @@ Usage::
     python benchmarks/bench_tomography.py                        # head MR, 64 angles
     python benchmarks/bench_tomography.py --volume engine --flux 1e4 --slices out/engine.png
     python benchmarks/bench_tomography.py --beam cone --json out/cone.json
+    python benchmarks/bench_tomography.py --views 24 --arc 90 --flux 1e5   # limited angle
     python benchmarks/bench_tomography.py --quick                # a 12^3 phantom
     python benchmarks/bench_tomography.py --scan ../shared/data/tomopy-tooth/tooth.h5 --bin 2 \
         --slices out/tooth.png
@@ -74,6 +75,8 @@ def parse_args(argv=None):
     p.add_argument("--views", type=int, default=64, help="training angles (default 64)")
     p.add_argument("--test-views", type=int, default=16, help="held-out angles (default 16)")
     p.add_argument("--beam", choices=("parallel", "cone"), default="parallel")
+    p.add_argument("--arc", type=float, help="the degrees the training angles span (default "
+                   "180 for a parallel beam, 360 for a cone beam; less: limited angle)")
     p.add_argument("--flux", type=float,
                    help="photons per unattenuated pixel: Poisson noise (default: none)")
     p.add_argument("--detail", type=int, default=2,
@@ -97,9 +100,10 @@ def parse_args(argv=None):
     p.add_argument("--out", help="folder for the data set and the fit (default: a temp folder)")
     p.add_argument("--seed", type=int, default=0, help="seed of the photon noise (default 0)")
     p.add_argument("--table", metavar="VOLUMES",
-                   help="the table: VOLUMES (comma-separated, or all) at 24 and 64 views, "
-                   "noise-free and at 1e5 and 1e4 photons (noise seeds 0 and 1); goes on "
-                   "from OUT/table.json when an earlier run stopped")
+                   help="the table: VOLUMES (comma-separated, or all) at 24 and 64 views "
+                   "over 180 degrees and 24 over 120 and 90 (limited angle), noise-free and "
+                   "at 1e5 and 1e4 photons (noise seeds 0 and 1); goes on from "
+                   "OUT/table.json when an earlier run stopped")
     a = p.parse_args(argv)
     if a.quick:
         a.views, a.test_views, a.sart_passes = 16, 4, 3
@@ -110,6 +114,9 @@ def parse_args(argv=None):
 #: The tuned baselines: method, label, most passes tried.
 TUNED = (("sart", "SART tuned", 30), ("sirt", "SIRT tuned", 300),
          ("fista_tv", "FISTA-TV tuned", 100))
+#: The table's scans: views and the degrees they span (parallel beam); the sparse
+#: full scans first, then limited angle.
+TABLE_SCANS = ((24, 180.0), (64, 180.0), (24, 120.0), (24, 90.0))
 
 
 def phantom(n):
@@ -176,7 +183,7 @@ def main(a):
     if a.table:
         return main_table(a, info, out)
     volume, name = load(a)
-    res = run_volume(a, volume, name, a.views, a.flux, a.seed, out)
+    res = run_volume(a, volume, name, a.views, a.flux, a.seed, out, a.arc)
     rows = res["rows"]
     print(f"{'method':<18} {'volume PSNR':>11} {'slice SSIM':>10} {'proj. PSNR views':>16} "
           f"{'pixels':>8} {'unknowns':>9} {'time':>8}")
@@ -197,9 +204,9 @@ def main(a):
     return 0
 
 
-def run_volume(a, volume, name, views, flux, seed, out, log=print):
-    """One data set of ``volume`` (``views`` angles, ``flux`` photons or
-    noise-free, noise ``seed``) reconstructed by every method and scored by
+def run_volume(a, volume, name, views, flux, seed, out, arc=None, log=print):
+    """One data set of ``volume`` (``views`` angles over ``arc`` degrees,
+    ``flux`` photons or noise-free, noise ``seed``) reconstructed by every method and scored by
     the one yardstick. Returns ``rows`` (one per method), the middle-slice
     ``panels`` and what describes the data set."""
     from mi_tetvr.grid.slices import reconstruct_slices, tuned_slices
@@ -213,14 +220,16 @@ def run_volume(a, volume, name, views, flux, seed, out, log=print):
     from mi_tetvr.recon.synthetic import make_xray_dataset
     made = make_xray_dataset(volume, out / "data", views=views, test_views=a.test_views,
                              beam=a.beam, flux=flux, detail=a.detail, seed=seed,
-                             progress=False)
+                             progress=False, arc=arc)
+    arc = made["info"]["arc_deg"]
     volume = made["volume"]                      # what was projected (resampled if need be)
     scale = made["info"]["attenuation_scale"]
     data = load_dataset(out / "data")
     truth = volume.values.astype(np.float64)
     cam = data.train[0].camera
     targets = [1.0 - v.image[..., 3].astype(np.float64) for v in data.test]
-    log(f"{name} {volume.shape}, {views} {a.beam}-beam projections of {cam.width}x"
+    log(f"{name} {volume.shape}, {views} {a.beam}-beam projections over {arc:g} degrees of "
+        f"{cam.width}x"
         f"{cam.height}, {a.test_views} held out, "
         f"{'noise-free' if flux is None else f'Poisson noise at {flux:g} photons (seed {seed})'}"
         f"; {truth.size:,} samples")
@@ -274,13 +283,14 @@ def run_volume(a, volume, name, views, flux, seed, out, log=print):
           fit_metrics_psnr=m["mean"]["psnr"],
           tuning={k: v for k, v in tuning.items() if k != "trials"})
     return {"volume": name, "shape": list(volume.shape), "views": views,
-            "test_views": a.test_views, "beam": a.beam, "flux": flux, "seed": seed,
+            "test_views": a.test_views, "beam": a.beam, "arc": arc, "flux": flux, "seed": seed,
             "attenuation_scale": scale, "detector": [cam.width, cam.height], "rows": rows,
             "panels": {"truth": truth, **classical, "tets": field}, "fit_metrics": m}
 
 
 def main_table(a, info, out):
-    """Every volume at 24 and 64 views, noise-free and at 10^4 and 10^5
+    """Every volume at 24 and 64 views over 180 degrees and 24 over 120 and
+    90 (:data:`TABLE_SCANS`), noise-free and at 10^4 and 10^5
     photons (two noise seeds each): the mean volume PSNR and slice SSIM of
     every method, the spread over the seeds, and the tets' margin over the
     best tuned baseline; a markdown table."""
@@ -293,7 +303,7 @@ def main_table(a, info, out):
         results = json.loads(path.read_text())
     loaded = {}
     # the sparse noisy cases first: a run stopped early has measured them
-    for views in (24, 64) if not a.quick else (a.views,):
+    for views, arc in TABLE_SCANS if not a.quick else ((a.views, a.arc or 180.0),):
         for flux in fluxes:
             for vol_name in volumes:
                 a.volume = vol_name
@@ -302,11 +312,12 @@ def main_table(a, info, out):
                 volume, name = loaded[vol_name]
                 # noise-free data are the same every run: one run
                 for seed in ((0,) if flux is None else (0, 1)):
-                    if any(r["volume"] == name and r["views"] == views and r["flux"] == flux
-                           and r["seed"] == seed for r in results):
+                    if any(scan(r) == (name, views, arc, flux) and r["seed"] == seed
+                           for r in results):
                         continue
-                    d = out / f"{vol_name}_{views}_{flux or 0:g}_{seed}"
-                    res = run_volume(a, volume, name, views, flux, seed, d)
+                    d = out / (f"{vol_name}_{views}_{flux or 0:g}_{seed}" if arc == 180 else
+                               f"{vol_name}_{views}_{arc:g}deg_{flux or 0:g}_{seed}")
+                    res = run_volume(a, volume, name, views, flux, seed, d, arc)
                     res.pop("panels"), res.pop("fit_metrics")
                     results.append(res)
                     path.write_text(json.dumps(results, indent=1))
@@ -325,12 +336,21 @@ def main_table(a, info, out):
     return 0
 
 
+def scan(r):
+    """A table entry's case: volume, views, arc (degrees) and photons."""
+    return r["volume"], r["views"], r.get("arc", 180.0), r["flux"]
+
+
+def views_label(views, arc):
+    return f"{views}" if arc == 180 else f"{views} over {arc:g}°"
+
+
 def plot_table(path, results):
     """The table as bars: per volume, views and photons, each method's mean
     volume PSNR, the seeds' range as error bars."""
     from matplotlib.figure import Figure
     methods = [r["method"] for r in results[0]["rows"]]
-    keys = list(dict.fromkeys((r["volume"], r["views"], r["flux"]) for r in results))
+    keys = list(dict.fromkeys(scan(r) for r in results))
     fig = Figure(figsize=(max(6.0, 0.9 * len(keys) + 2), 3.6))
     ax = fig.subplots()
     width = 0.8 / len(methods)
@@ -338,15 +358,16 @@ def plot_table(path, results):
         mean, lo, hi = [], [], []
         for k in keys:
             p = [next(x for x in r["rows"] if x["method"] == m)["volume_psnr"]
-                 for r in results if (r["volume"], r["views"], r["flux"]) == k]
+                 for r in results if scan(r) == k]
             mean.append(np.mean(p))
             lo.append(np.mean(p) - min(p))
             hi.append(max(p) - np.mean(p))
         ax.bar(np.arange(len(keys)) + (j - (len(methods) - 1) / 2) * width, mean, width,
                yerr=[lo, hi], label=m, capsize=2)
     ax.set_xticks(np.arange(len(keys)))
-    ax.set_xticklabels([f"{v}\n{n} views\n{'clean' if f is None else f'{f:.0e}'}"
-                        for v, n, f in keys], fontsize=7)
+    ax.set_xticklabels([f"{v}\n{views_label(n, arc)} views\n"
+                        f"{'clean' if f is None else f'{f:.0e}'}"
+                        for v, n, arc, f in keys], fontsize=7)
     ax.set_ylabel("volume PSNR (dB)")
     lows = [min(x["volume_psnr"] for x in r["rows"] if x["method"] != "FBP") for r in results]
     ax.set_ylim(min(lows) - 2, None)
@@ -361,12 +382,13 @@ def table_markdown(results):
     methods = [r["method"] for r in results[0]["rows"]]
     head = "| volume | views | photons | " + " | ".join(methods) + " | tets - best tuned |"
     lines = [head, "|" + "---|" * (len(methods) + 4)]
-    # by views, then photons (fewest first, noise-free last), then volume as first met
+    # by scan (full arcs first), then photons (fewest first, noise-free last), then
+    # volume as first met
     names = list(dict.fromkeys(r["volume"] for r in results))
-    keys = sorted({(r["volume"], r["views"], r["flux"]) for r in results},
-                  key=lambda k: (k[1], k[2] is None, k[2] or 0, names.index(k[0])))
+    keys = sorted({scan(r) for r in results},
+                  key=lambda k: (-k[2], k[1], k[3] is None, k[3] or 0, names.index(k[0])))
     for k in keys:
-        runs = [r for r in results if (r["volume"], r["views"], r["flux"]) == k]
+        runs = [r for r in results if scan(r) == k]
         cells, means = [], {}
         for m in methods:
             p = [next(x for x in r["rows"] if x["method"] == m)["volume_psnr"] for r in runs]
@@ -376,8 +398,8 @@ def table_markdown(results):
             cells.append(f"{np.mean(p):.2f}{spread} / {np.mean(q):.3f}")
         tuned = [m for m in methods if "tuned" in m]
         margin = means[methods[-1]] - max(means[m] for m in tuned) if tuned else float("nan")
-        photons = "none" if k[2] is None else f"{k[2]:.0e}".replace("e+0", "e")
-        lines.append(f"| {k[0]} | {k[1]} | {photons} | "
+        photons = "none" if k[3] is None else f"{k[3]:.0e}".replace("e+0", "e")
+        lines.append(f"| {k[0]} | {views_label(k[1], k[2])} | {photons} | "
                      + " | ".join(cells) + f" | {margin:+.2f} dB |")
     return "\n".join(lines)
 

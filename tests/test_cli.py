@@ -167,6 +167,25 @@ def test_transfer_function_and_xray_commands(tmp_path):
     r = run("make-dataset", str(tmp_path / "vol.npy"), "--xray", "--detail", "0",
             "--out", str(noisy))
     assert r.returncode == 1 and "--detail must be a positive integer" in r.stderr
+    # a limited-angle scan: the cameras' own view directions (not the angles it records)
+    # span 90 degrees in even steps of 90 / 6, the held-out ones between them
+    limited = tmp_path / "limited"
+    r = run("make-dataset", str(tmp_path / "vol.npy"), "--xray", "--views", "6",
+            "--test-views", "2", "--arc", "90", "--out", str(limited))
+    assert r.returncode == 0 and "over 90 degrees" in r.stdout, r.stderr
+
+    def directions(split):
+        frames = json.loads((limited / f"transforms_{split}.json").read_text())["frames"]
+        fwd = -np.array([f["transform_matrix"] for f in frames])[:, :3, 2]   # looks down -z
+        return np.degrees(np.unwrap(np.arctan2(fwd[:, 1], fwd[:, 0])))
+    train, test = directions("train"), directions("test")
+    assert np.allclose(np.diff(train), np.diff(train)[0]) and \
+        abs(abs(train[-1] - train[0]) - 75.0) < 1e-6
+    assert np.all((test - train.min()) * (train.max() - test) > 0)   # inside the arc
+    for bad in ("200", "0"):
+        r = run("make-dataset", str(tmp_path / "vol.npy"), "--xray", "--arc", bad,
+                "--out", str(tmp_path / "bad"))
+        assert r.returncode == 1 and "arc must lie in (0, 180]" in r.stderr
     r = run("fit", str(xray), "--model", "absorption", "--grid-resolution", "4", "--iterations",
             "3", "--out", str(fit))
     assert r.returncode == 0, r.stderr

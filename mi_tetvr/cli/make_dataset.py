@@ -44,6 +44,9 @@ def add_arguments(p):
     p.add_argument("--beam", choices=("parallel", "cone"), help="X-ray: parallel beam "
                    "(orthographic, over 180 degrees; default) or cone beam (perspective, "
                    "over 360)")
+    p.add_argument("--arc", type=float, help="X-ray: the degrees the training angles span "
+                   "(default 180 for a parallel beam, 360 for a cone beam; less: a "
+                   "limited-angle scan)")
     p.add_argument("--attenuation", type=float, help="X-ray: attenuation per unit length of a "
                    "normalised value 1 (default: from --max-depth)")
     p.add_argument("--max-depth", type=float, help="X-ray: the largest optical depth of a "
@@ -79,7 +82,8 @@ def check(a, is_mesh, path):
         if (a.beam or "parallel") == "parallel":
             refuse(a, ("fov", "radius"), "to a parallel beam (--beam cone has them)")
     else:
-        refuse(a, ("beam", "attenuation", "max_depth", "flux", "detail"), "without --xray")
+        refuse(a, ("beam", "arc", "attenuation", "max_depth", "flux", "detail"),
+               "without --xray")
         if a.tf is None:
             raise ValueError("make-dataset needs --tf (or --xray for X-ray projections)")
         if is_mesh:
@@ -151,11 +155,12 @@ def xray(a, path, vr, seed):
                              test_views=a.test_views, beam=beam, scale=a.attenuation,
                              max_depth=MAX_DEPTH if a.max_depth is None else a.max_depth,
                              flux=a.flux, seed=seed, detail=a.detail or 1,
-                             progress=not a.quiet, **geometry)["info"]
+                             progress=not a.quiet, arc=a.arc, **geometry)["info"]
     if "resampled_from" in info:
         print(f"the volume's spacings differ ({info['resampled_from']['spacing']}): "
               f"resampled to {info['volume']['shape_xyz']} samples of its x spacing for "
               f"the parallel beam's square pixels on the z samples")
     print(f"wrote {a.views} training and {a.test_views} test {beam}-beam projections "
+          f"over {info['arc_deg']:g} degrees "
           f"(attenuation {info['attenuation_scale']:.4g} per unit, largest optical depth "
           f"{info['max_depth']:.2f}; noise: {info['noise']}) to {a.out}")

@@ -254,10 +254,11 @@ def make_xray_dataset(volume: Volume, out_dir, views: int = 64, test_views: int 
                       beam: str = "parallel", scale: float | None = None,
                       max_depth: float = MAX_DEPTH, distance: float = 3.0, fov: float = 40.0,
                       flux: float | None = None, seed: int = 0, detail: int = 1,
-                      progress: bool = True) -> dict:
+                      progress: bool = True, arc: float | None = None) -> dict:
     """Write an X-ray data set of ``volume``: ``views`` training projections
-    evenly over 180 degrees (parallel beam; 360 for a cone beam) and
-    ``test_views`` held-out ones at angles between them.
+    evenly over 180 degrees (parallel beam; 360 for a cone beam; ``arc``
+    degrees for a limited-angle scan) and ``test_views`` held-out ones at
+    angles between them.
 
     Parameters
     ----------
@@ -278,6 +279,11 @@ def make_xray_dataset(volume: Volume, out_dir, views: int = 64, test_views: int 
         noise-free projections.
     seed : int
         Seed of the noise.
+    arc : float, optional
+        The angles the scan spans, in degrees (default 180 for a parallel
+        beam, 360 for a cone beam): a limited-angle scan over less, its
+        ``views`` angles ``k * arc / views`` from 0 as a full scan's, the
+        held-out ones between them (within the arc too).
     detail : int
         1 (default): the projections are the exact line integrals of the
         volume's trilinear field. k > 1: of its cubic B-spline interpolant
@@ -304,7 +310,10 @@ def make_xray_dataset(volume: Volume, out_dir, views: int = 64, test_views: int 
     if beam == "parallel" and not volume.isotropic():
         # the detector's rows lie on the z samples and its pixels are square
         projected = volume.resampled(float(volume.spacing[0]))
-    span = 180.0 if beam == "parallel" else 360.0
+    full = 180.0 if beam == "parallel" else 360.0
+    span = full if arc is None else float(arc)
+    if not 0.0 < span <= full:
+        raise ValueError(f"arc must lie in (0, {full:g}] degrees for a {beam} beam, got {arc}")
     # held-out angles halfway between training ones, spread over the scan
     angles = {"train": parallel_angles(views) * span / 180.0,
               "test": (np.arange(test_views) * (views / max(test_views, 1)) + 0.5) * span / views}
@@ -336,7 +345,8 @@ def make_xray_dataset(volume: Volume, out_dir, views: int = 64, test_views: int 
     write_nerf(Dataset(posed["train"], posed["test"], bbox=np.stack([lo, hi]),
                        pixel_sampling="centers", xray_flux=flux), out_dir,
                image_format="npy")
-    info = {"volume": projected.info(), "beam": beam, "attenuation_scale": float(scale),
+    info = {"volume": projected.info(), "beam": beam, "arc_deg": span,
+            "attenuation_scale": float(scale),
             "max_depth": float(max(float(x.max()) for x in depth["train"]) * scale),
             "angles_train_deg": angles["train"].tolist(),
             "angles_test_deg": angles["test"].tolist(),
