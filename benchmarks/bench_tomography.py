@@ -5,10 +5,10 @@ equal numbers of unknowns, every method scored by one function
 
 The data set is what ``mi-tetvr make-dataset VOLUME --xray`` writes:
 ``--views`` projections (parallel beam over 180 degrees, or ``--beam cone``
-over 360; ``--arc`` degrees for a limited-angle scan) and ``--test-views`` held-out ones between them, the exact line
-integrals of the volume's cubic B-spline sampled ``--detail`` (2) times finer
-than its samples, so that no method's model is the one the data were made
-with (no "inverse crime"); ``--flux N``
+over 360; ``--arc`` degrees for a limited-angle scan) and ``--test-views``
+held-out ones between them, the exact line integrals of the volume's cubic
+B-spline sampled ``--detail`` (2) times finer than its samples, so that no
+method's model is the one the data were made with (no "inverse crime"); ``--flux N``
 makes the training projections Poisson counts of N photons per
 unattenuated pixel (the held-out ones stay noise-free). Methods:
 
