@@ -105,6 +105,9 @@ def parse_args(argv=None):
                    "at 1e5 and 1e4 photons (noise seeds 0 and 1); goes on from "
                    "OUT/table.json when an earlier run stopped")
     a = p.parse_args(argv)
+    full = 180.0 if a.beam == "parallel" else 360.0
+    if a.arc is not None and not 0.0 < a.arc <= full:
+        p.error(f"--arc must lie in (0, {full:g}] degrees for a {a.beam} beam, got {a.arc:g}")
     if a.quick:
         a.views, a.test_views, a.sart_passes = 16, 4, 3
         a.passes = a.passes or 4
