@@ -86,8 +86,9 @@ def parse_args(argv=None):
     p.add_argument("--sart-passes", type=int, default=30, help="SART passes (default 30)")
     p.add_argument("--solver", help="the tets' solver (default: the fit's)")
     p.add_argument("--passes", type=int, help="the tets' passes (default: the fit's)")
-    p.add_argument("--tv", type=float,
-                   help="the tets' total-variation weight (default: the fit's choice)")
+    p.add_argument("--tv", type=lambda t: t if t == "heldout" else float(t),
+                   help="the tets' total-variation weight, or heldout: chosen on held-out "
+                   "views (default: the fit's rule)")
     p.add_argument("--adapt", action="store_true",
                    help="the tets' fit with --adapt (a coarse grid split where it has detail)")
     p.add_argument("--time-budget", type=float, default=6.0,
@@ -283,7 +284,7 @@ def run_volume(a, volume, name, views, flux, seed, out, arc=None, log=print):
     label = f"tets ({solver}{', adaptive' if a.adapt else ''})"
     score(label, field, tet_projections(mesh, data.test), m["unknowns"],
           tets_time, tets=len(mesh.tets), passes=m["step"],
-          fit_metrics_psnr=m["mean"]["psnr"],
+          fit_metrics_psnr=m["mean"]["psnr"], penalty=m.get("solver", {}).get("penalty"),
           tuning={k: v for k, v in tuning.items() if k != "trials"})
     return {"volume": name, "shape": list(volume.shape), "views": views,
             "test_views": a.test_views, "beam": a.beam, "arc": arc, "flux": flux, "seed": seed,
@@ -485,6 +486,7 @@ def main_scan(a, info, out):
                                   grid.sample_points()).reshape(grid.values.shape)
     score(f"tets ({m['solver']['method']})", None, tet_projections(mesh, data.test),
           m["unknowns"], time.perf_counter() - t0, passes=m["step"],
+          penalty=m["solver"].get("penalty"),
           tuning={k: v for k, v in (m["solver"].get("tuning") or {}).items()
                   if k != "trials"})
     print(f"{'method':<18} {'held-out proj. PSNR views':>25} {'pixels':>9} {'unknowns':>9} "

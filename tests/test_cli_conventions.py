@@ -189,6 +189,16 @@ def test_config_file_print_config_and_overrides(tmp_path, capsys):
     assert "not found" in msg and "none.json" in msg
     msg = fails(["fit", "d", "-o", "o", "--loss", "l1", "--lr-color", "-1"])
     assert msg == "mi-tetvr: lr_color must be >= 0"
+    # the penalty's weight: a number or heldout, which needs views to hold out
+    capsys.readouterr()
+    assert fails(["fit", "d", "-o", "o", "--model", "absorption", "--tv", "auto"]) == 2
+    said = capsys.readouterr().err.strip().splitlines()[-1]
+    assert said.endswith("argument --tv: tv must be a number >= 0 or heldout, got 'auto'")
+    msg = fails(["fit", "d", "-o", "o", "--model", "absorption", "--tv", "heldout",
+                 "--validation", "0"])
+    assert msg.startswith("mi-tetvr:") and "needs validation >= 1" in msg, msg
+    assert FitConfig.from_dict(FitConfig(model="absorption", tv="heldout").nested()).tv == \
+        "heldout"
 
 
 def test_config_parts_per_kind_of_fit():

@@ -18,6 +18,7 @@ from mi_tetvr.recon.config import FitConfig
 from mi_tetvr.recon.datasets import load_nerf
 from mi_tetvr.recon.images import read_image, write_image
 from mi_tetvr.recon.pipeline import run
+from mi_tetvr.recon.tomography import LAMBDA_DEFAULT
 
 
 def dense_integral(volume, o, d, n=200_000):
@@ -346,10 +347,11 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
     pts = vol.sample_points()
     truth = vol.values.astype(np.float64)
     got = {}
-    # the default tunes its weight and passes on held-out views; the others, fixed
-    # passes (their tuning is tested on its own below), keep the test short
+    # the default's weight comes from its rule; "heldout" searches it on held-out views;
+    # the others, fixed passes (their tuning is tested on its own below), keep it short
     fixed = {"validation": 0}
-    for name, kw in (("pwls", {}), ("sart", {"solver": "sart", "passes": 15, **fixed}),
+    for name, kw in (("pwls", {}), ("heldout", {"tv": "heldout"}),
+                     ("sart", {"solver": "sart", "passes": 15, **fixed}),
                      ("sirt", {"solver": "sirt", "passes": 30, **fixed}),
                      ("lsqr", {"solver": "lsqr"}),
                      ("c2f", {"solver": "sart", "passes": 8, **fixed,
@@ -365,7 +367,17 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
         field = sample_field(mesh.vertices, mesh.tets, mesh.opacity / scale, pts)
         got[name] = tomography_scores(field.reshape(truth.shape), truth)["volume_psnr"]
         assert m["solver"]["method"] == kw.get("solver", "pwls")
-    assert got["pwls"] > 40 and got["sart"] > 40 and got["sirt"] > 30 and got["lsqr"] > 30, got
+        penalty, tuning = m["solver"].get("penalty"), m["solver"]["tuning"]
+        if name == "pwls":
+            assert penalty == {"tv": LAMBDA_DEFAULT, "chosen": "the default rule"} and \
+                tuning is None, m["solver"]
+        if name == "heldout":
+            # the weight kept is the trial that predicts the held-out views best
+            best = min(tuning["trials"], key=lambda r: r["held_out_mse"])
+            assert len(tuning["trials"]) >= 3 and penalty["tv"] == best["lam"] == \
+                tuning["tv"] and penalty["chosen"] == "on held-out views", m["solver"]
+    assert got["pwls"] > 40 and got["heldout"] > 40 and got["sart"] > 40, got
+    assert got["sirt"] > 30 and got["lsqr"] > 30, got
     assert got["c2f"] > 40 and got["adapt"] > 35, got
 
 
