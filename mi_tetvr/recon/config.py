@@ -282,7 +282,7 @@ class FitConfig:
         None, "model absorption, pwls: the total-variation penalty's weight, relative to the "
         "data's curvature (0: none); heldout: chosen on held-out views (0.1, 0.3, 0.03, then "
         "on by factors of 3 while the held-out error falls); default 0.1, which holds from "
-        "noise-free data to 10^4 photons, at 24 and 64 views and over limited arcs",
+        "noise-free data to 10^4 photons, at 24 and 64 views and over 90 degrees",
         metavar="W|heldout", parse=_weight)
     adapt: bool = setting(
         False, "model absorption, pwls: solve on a grid of half the cells per axis first, "
