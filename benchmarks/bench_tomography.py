@@ -68,6 +68,7 @@ VOLUMES = {"headmr": ("headmr/HeadMRVolume.mhd", None),
 
 
 def parse_args(argv=None):
+    import argparse
     p = make_parser(__doc__, repeat=None, quick="a 12^3 phantom, 16 angles, 4 passes of the tets")
     p.add_argument("--volume", choices=tuple(VOLUMES), default="headmr",
                    help="headmr (48x62x42, default), engine (256x256x128 averaged 4x4x4 to "
@@ -86,7 +87,13 @@ def parse_args(argv=None):
     p.add_argument("--sart-passes", type=int, default=30, help="SART passes (default 30)")
     p.add_argument("--solver", help="the tets' solver (default: the fit's)")
     p.add_argument("--passes", type=int, help="the tets' passes (default: the fit's)")
-    p.add_argument("--tv", type=lambda t: t if t == "heldout" else float(t),
+    def weight(text):
+        try:
+            return text if text == "heldout" else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"a number or heldout, not {text!r}") from None
+
+    p.add_argument("--tv", type=weight,
                    help="the tets' total-variation weight, or heldout: chosen on held-out "
                    "views (default: the fit's rule)")
     p.add_argument("--adapt", action="store_true",
