@@ -111,7 +111,7 @@ def parse_args(argv=None):
                    help="the table: VOLUMES (comma-separated, or all) at 24 and 64 views "
                    "over 180 degrees and 24 over 120 and 90 (limited angle), noise-free and "
                    "at 1e5 and 1e4 photons (noise seeds 0 and 1); goes on from "
-                   "OUT/table.json when an earlier run stopped")
+                   "OUT/table.json when an earlier run of the same tets settings stopped")
     a = p.parse_args(argv)
     full = 180.0 if a.beam == "parallel" else 360.0
     if a.arc is not None and not 0.0 < a.arc <= full:
@@ -310,8 +310,13 @@ def main_table(a, info, out):
     fluxes = [1e4, 1e5, None]
     results = []
     path = out / "table.json"
+    # the tets' settings: an entry of other settings (or of an older default, which
+    # recorded none) is measured again, not mixed in
+    fit = {k: getattr(a, k) for k in ("solver", "passes", "tv", "adapt", "time_budget")}
+    others = []
     if path.is_file():                 # go on where an earlier run of the table stopped
-        results = json.loads(path.read_text())
+        for r in json.loads(path.read_text()):
+            (results if r.get("tets_settings") == fit else others).append(r)
     loaded = {}
     # the sparse noisy cases first: a run stopped early has measured them
     for views, arc in TABLE_SCANS if not a.quick else ((a.views, a.arc or 180.0),):
@@ -330,8 +335,9 @@ def main_table(a, info, out):
                                f"{vol_name}_{views}_{arc:g}deg_{flux or 0:g}_{seed}")
                     res = run_volume(a, volume, name, views, flux, seed, d, arc)
                     res.pop("panels"), res.pop("fit_metrics")
+                    res["tets_settings"] = fit
                     results.append(res)
-                    path.write_text(json.dumps(results, indent=1))
+                    path.write_text(json.dumps(others + results, indent=1))
                     best = max((r for r in res["rows"] if "tuned" in r["method"]),
                                key=lambda r: r["volume_psnr"], default=None)
                     margin = "" if best is None else f"; tets - best tuned " \
