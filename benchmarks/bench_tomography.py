@@ -69,6 +69,8 @@ VOLUMES = {"headmr": ("headmr/HeadMRVolume.mhd", None),
 
 def parse_args(argv=None):
     import argparse
+
+    from mi_tetvr.recon.config import parse_weight
     p = make_parser(__doc__, repeat=None, quick="a 12^3 phantom, 16 angles, 4 passes of the tets")
     p.add_argument("--volume", choices=tuple(VOLUMES), default="headmr",
                    help="headmr (48x62x42, default), engine (256x256x128 averaged 4x4x4 to "
@@ -88,10 +90,11 @@ def parse_args(argv=None):
     p.add_argument("--solver", help="the tets' solver (default: the fit's)")
     p.add_argument("--passes", type=int, help="the tets' passes (default: the fit's)")
     def weight(text):
+        # the fit's own reading of the setting, its message on argparse's line
         try:
-            return text if text == "heldout" else float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"a number or heldout, not {text!r}") from None
+            return parse_weight(text)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
 
     p.add_argument("--tv", type=weight,
                    help="the tets' total-variation weight, or heldout: chosen on held-out "

@@ -92,7 +92,7 @@ def _numbers(n):
     return parse
 
 
-def _weight(text):
+def parse_weight(text):
     """The penalty's weight from command-line text: a number, or ``heldout``."""
     if str(text) == "heldout":
         return "heldout"
@@ -283,7 +283,7 @@ class FitConfig:
         "data's curvature (0: none); heldout: chosen on held-out views (0.1, 0.3, 0.03, then "
         "on by factors of 3 while the held-out error falls); default 0.1, which holds from "
         "noise-free data to 10^4 photons, at 24 and 64 views and over 90 degrees",
-        metavar="W|heldout", parse=_weight)
+        metavar="W|heldout", parse=parse_weight)
     adapt: bool = setting(
         False, "model absorption, pwls: solve on a grid of half the cells per axis first, "
         "then split its vertices where the field changes most back to the fine grid's "
