@@ -387,6 +387,22 @@ def _load_vtk_image(path: Path):
     return arr.reshape(nz, ny, nx), np.array(img.spacing, np.float64)
 
 
+def _load_npy(path: Path) -> np.ndarray:
+    """A ``.npy`` file's array of numbers, or a message naming the file (numpy's
+    own, for a file that is not one, speaks of pickles)."""
+    try:
+        v = np.load(path)
+    except (ValueError, EOFError):
+        # a file without the .npy header reads as a pickle, which is refused
+        raise ValueError(f"{str(path)!r}: not a numpy array file (what np.save writes of a "
+                         f"3D array of numbers)") from None
+    if not isinstance(v, np.ndarray) or not (np.issubdtype(v.dtype, np.number)
+                                             or v.dtype == bool):
+        raise ValueError(f"{str(path)!r}: holds {getattr(v, 'dtype', type(v).__name__)} "
+                         f"values, not numbers")
+    return v
+
+
 def load_volume(path: PathType, shape=None, dtype=None, spacing=None,
                 value_range=None) -> Volume:
     """Load a scalar grid, normalise it to ``[0, 1]`` and place it in ``[-1, 1]^3``.
@@ -414,7 +430,7 @@ def load_volume(path: PathType, shape=None, dtype=None, spacing=None,
     path = Path(path)
     name = path.name.lower()
     if name.endswith(".npy"):
-        v, sp = np.load(path), np.ones(3)
+        v, sp = _load_npy(path), np.ones(3)
     elif name.endswith(".cvol"):
         v, sp = _load_cvol(path)
     elif name.endswith(".mhd") or name.endswith(".mha"):

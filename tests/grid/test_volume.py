@@ -55,6 +55,15 @@ def test_loaders_round_trip(tmp_path):
     np.save(tmp_path / "v.npy", v)
     a = V.load_volume(tmp_path / "v.npy")
     np.testing.assert_array_equal(a.values, ref.values)
+    # not an array of numbers: one message naming the file, never numpy's about pickles
+    (tmp_path / "t.npy").write_text("not an array")
+    np.save(tmp_path / "o.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    np.save(tmp_path / "s.npy", np.full((2, 2, 2), "a"))
+    for name, says in (("t", "not a numpy array file"), ("o", "not a numpy array file"),
+                       ("s", "not numbers")):
+        with pytest.raises(ValueError, match=says) as e:
+            V.load_volume(tmp_path / f"{name}.npy")
+        assert f"{name}.npy" in str(e.value) and "pickle" not in str(e.value)
 
     V.write_cvol(tmp_path / "v.cvol", v, voxel_size=(1.0, 1.0, 2.0))
     raw = (tmp_path / "v.cvol").read_bytes()
