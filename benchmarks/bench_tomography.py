@@ -99,8 +99,14 @@ def parse_args(argv=None):
     p.add_argument("--tv", type=weight,
                    help="the tets' total-variation weight, or heldout: chosen on held-out "
                    "views (default: the fit's rule)")
-    p.add_argument("--adapt", action="store_true",
-                   help="the tets' fit with --adapt (a coarse grid split where it has detail)")
+    p.add_argument("--adapt", type=float, metavar="SHARE",
+                   help="the tets' fit with --adapt SHARE (a coarse grid split where it has "
+                   "detail, to SHARE of the grid's unknowns)")
+    p.add_argument("--curve", metavar="PNG",
+                   help="volume PSNR against unknowns on one data set (--volume, --views, "
+                   "--arc, --flux): the tets' default fit on uniform grids of 1/2 to 1 of the "
+                   "detector's resolution (1/8 to all of its unknowns) and on adaptive meshes "
+                   "(--adapt 0.25 to 1); a table, and the plot to PNG")
     p.add_argument("--time-budget", type=float, default=6.0,
                    help="the fit's --time-budget in minutes (default 6)")
     p.add_argument("--no-tuned", action="store_true",
@@ -196,6 +202,8 @@ def main(a):
         return main_scan(a, info, out)
     if a.table:
         return main_table(a, info, out)
+    if a.curve:
+        return main_curve(a, info, out)
     volume, name = load(a)
     res = run_volume(a, volume, name, a.views, a.flux, a.seed, out, a.arc)
     rows = res["rows"]
@@ -218,6 +226,52 @@ def main(a):
     return 0
 
 
+def make_case(a, volume, views, flux, seed, out, arc=None):
+    """The data set of one case (``views`` angles over ``arc`` degrees, ``flux``
+    photons or noise-free, noise ``seed``) and what scores a reconstruction of it:
+    a namespace of ``data``, ``volume`` (what was projected), ``truth``, ``targets``
+    (the held-out transmittance images), ``scale`` and ``arc``."""
+    from types import SimpleNamespace
+
+    from mi_tetvr.recon.datasets import load_dataset
+    from mi_tetvr.recon.synthetic import make_xray_dataset
+    made = make_xray_dataset(volume, out / "data", views=views, test_views=a.test_views,
+                             beam=a.beam, flux=flux, detail=a.detail, seed=seed,
+                             progress=False, arc=arc)
+    data = load_dataset(out / "data")
+    volume = made["volume"]                      # what was projected (resampled if need be)
+    return SimpleNamespace(
+        data=data, volume=volume, truth=volume.values.astype(np.float64),
+        targets=[1.0 - v.image[..., 3].astype(np.float64) for v in data.test],
+        scale=made["info"]["attenuation_scale"], arc=made["info"]["arc_deg"])
+
+
+def tets_row(case, config, out, progress=False):
+    """The tets' fit of ``case`` with ``config``, scored by the one yardstick: the
+    row's scores and extras, the field at the samples, and the fit's metrics."""
+    from mi_tetvr.mesh.io import read_tetmesh
+    from mi_tetvr.mesh.sample import sample_field
+    from mi_tetvr.recon.metrics import tomography_scores
+    from mi_tetvr.recon.pipeline import run
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        m = run(case.data, out, config, resume=False, progress=progress, log=lambda *x: None)
+    seconds = time.perf_counter() - t0
+    mesh = read_tetmesh(out / "attenuation.vtu", opacity="attenuation")
+    field = sample_field(mesh.vertices, mesh.tets, mesh.opacity / case.scale,
+                         case.volume.sample_points()).reshape(case.truth.shape)
+    solver = m.get("solver", {})
+    tuning = solver.get("tuning") or {}
+    row = dict(**tomography_scores(field, case.truth, tet_projections(mesh, case.data.test),
+                                   case.targets),
+               unknowns=m["unknowns"], seconds=seconds, tets=len(mesh.tets),
+               passes=m["step"], fit_metrics_psnr=m["mean"]["psnr"],
+               penalty=solver.get("penalty"),
+               tuning={k: v for k, v in tuning.items() if k != "trials"})
+    return row, field, m
+
+
 def run_volume(a, volume, name, views, flux, seed, out, arc=None, log=print):
     """One data set of ``volume`` (``views`` angles over ``arc`` degrees,
     ``flux`` photons or noise-free, noise ``seed``) reconstructed by every method and scored by
@@ -225,23 +279,11 @@ def run_volume(a, volume, name, views, flux, seed, out, arc=None, log=print):
     ``panels`` and what describes the data set."""
     from mi_tetvr.grid.slices import reconstruct_slices, tuned_slices
     from mi_tetvr.grid.xray import fdk
-    from mi_tetvr.mesh.io import read_tetmesh
-    from mi_tetvr.mesh.sample import sample_field
     from mi_tetvr.recon.config import FitConfig
-    from mi_tetvr.recon.datasets import load_dataset
     from mi_tetvr.recon.metrics import tomography_scores
-    from mi_tetvr.recon.pipeline import run
-    from mi_tetvr.recon.synthetic import make_xray_dataset
-    made = make_xray_dataset(volume, out / "data", views=views, test_views=a.test_views,
-                             beam=a.beam, flux=flux, detail=a.detail, seed=seed,
-                             progress=False, arc=arc)
-    arc = made["info"]["arc_deg"]
-    volume = made["volume"]                      # what was projected (resampled if need be)
-    scale = made["info"]["attenuation_scale"]
-    data = load_dataset(out / "data")
-    truth = volume.values.astype(np.float64)
+    case = make_case(a, volume, views, flux, seed, out, arc)
+    data, volume, truth, scale, arc = case.data, case.volume, case.truth, case.scale, case.arc
     cam = data.train[0].camera
-    targets = [1.0 - v.image[..., 3].astype(np.float64) for v in data.test]
     log(f"{name} {volume.shape}, {views} {a.beam}-beam projections over {arc:g} degrees of "
         f"{cam.width}x"
         f"{cam.height}, {a.test_views} held out, "
@@ -250,7 +292,8 @@ def run_volume(a, volume, name, views, flux, seed, out, arc=None, log=print):
     rows = []
 
     def score(label, values, projections, unknowns, seconds, **extra):
-        rows.append(dict(method=label, **tomography_scores(values, truth, projections, targets),
+        rows.append(dict(method=label, **tomography_scores(values, truth, projections,
+                                                           case.targets),
                          unknowns=unknowns, seconds=seconds, **extra))
 
     classical = {}
@@ -280,26 +323,76 @@ def run_volume(a, volume, name, views, flux, seed, out, arc=None, log=print):
     cfg = FitConfig(model="absorption", time_budget=a.time_budget, adapt=a.adapt,
                     **{k: getattr(a, k) for k in ("solver", "passes", "tv")
                        if getattr(a, k) is not None})
-    t0 = time.perf_counter()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        m = run(data, out / "fit", cfg, resume=False, progress=not (a.quick or a.table),
-                log=lambda *x: None)
-    tets_time = time.perf_counter() - t0
-    mesh = read_tetmesh(out / "fit" / "attenuation.vtu", opacity="attenuation")
-    field = sample_field(mesh.vertices, mesh.tets, mesh.opacity / scale,
-                         volume.sample_points()).reshape(truth.shape)
+    row, field, m = tets_row(case, cfg, out / "fit", progress=not (a.quick or a.table))
     solver = m.get("solver", {}).get("method", "adam")
-    tuning = m.get("solver", {}).get("tuning") or {}
-    label = f"tets ({solver}{', adaptive' if a.adapt else ''})"
-    score(label, field, tet_projections(mesh, data.test), m["unknowns"],
-          tets_time, tets=len(mesh.tets), passes=m["step"],
-          fit_metrics_psnr=m["mean"]["psnr"], penalty=m.get("solver", {}).get("penalty"),
-          tuning={k: v for k, v in tuning.items() if k != "trials"})
+    label = f"tets ({solver}{f', adaptive {a.adapt:g}' if a.adapt else ''})"
+    rows.append(dict(method=label, **row))
     return {"volume": name, "shape": list(volume.shape), "views": views,
             "test_views": a.test_views, "beam": a.beam, "arc": arc, "flux": flux, "seed": seed,
             "attenuation_scale": scale, "detector": [cam.width, cam.height], "rows": rows,
             "panels": {"truth": truth, **classical, "tets": field}, "fit_metrics": m}
+
+
+#: The curve's meshes: uniform grids at these shares of the detector's resolution
+#: (about 1/8, 1/4, 1/2 and all of its unknowns), adaptive ones at these shares of its
+#: unknowns.
+CURVE_GRIDS = (0.5, 0.63, 0.79, 1.0)
+CURVE_SHARES = (0.25, 0.5, 0.75, 1.0)
+
+
+def main_curve(a, info, out):
+    """Volume PSNR against unknowns: the tets' default fit of one data set on
+    uniform grids (:data:`CURVE_GRIDS`) and on adaptive meshes
+    (:data:`CURVE_SHARES`), every one scored by the one yardstick; the curve
+    plotted."""
+    from mi_tetvr.recon.config import FitConfig
+    from mi_tetvr.recon.tomography import aligned_resolution, detector_cell
+    volume, name = load(a)
+    case = make_case(a, volume, a.views, a.flux, a.seed, out, a.arc)
+    bbox = np.asarray(case.data.bbox, np.float64)
+    fine = aligned_resolution(bbox, detector_cell(case.data, bbox))
+    print(f"{name} {case.volume.shape}, {a.views} views over {case.arc:g} degrees, "
+          f"{'noise-free' if a.flux is None else f'{a.flux:g} photons (seed {a.seed})'}; "
+          f"the detector's grid: resolution {fine}")
+    grids, shares = ((0.5, 1.0), (0.5,)) if a.quick else (CURVE_GRIDS, CURVE_SHARES)
+    rows = []
+    base = dict(model="absorption", time_budget=a.time_budget,
+                **{k: getattr(a, k) for k in ("passes", "tv") if getattr(a, k) is not None})
+    for kind, values in (("grid", grids), ("adaptive", shares)):
+        for f in values:
+            r = max(2, int(round(f * fine)))
+            cfg = FitConfig(**base, **({"grid_resolution": r} if kind == "grid" else
+                                       {"adapt": f}))
+            label = f"grid {r}" if kind == "grid" else f"adaptive {f:g}"
+            row, _, _ = tets_row(case, cfg, out / label.replace(" ", "_"))
+            rows.append(dict(mesh=kind, share=f, method=label, **row))
+            print(f"{label:<14} {row['unknowns']:>9,} unknowns {row['volume_psnr']:7.2f} dB "
+                  f"SSIM {row['slice_ssim']:.4f} {row['seconds']:7.1f} s", flush=True)
+    plot_curve(a.curve, rows, f"{name}, {a.views} views over {case.arc:g}°, "
+               + ("noise-free" if a.flux is None else f"{a.flux:g} photons"))
+    print(f"curve -> {a.curve}")
+    write_json(a, info, {"volume": name, "views": a.views, "arc": case.arc, "flux": a.flux,
+                         "seed": a.seed, "fine_resolution": fine, "curve": rows})
+    return 0
+
+
+def plot_curve(path, rows, title):
+    """Volume PSNR against unknowns, uniform grids and adaptive meshes."""
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(5.0, 3.4))
+    ax = fig.subplots()
+    for kind, style in (("grid", "o-"), ("adaptive", "s-")):
+        pts = sorted((r["unknowns"], r["volume_psnr"]) for r in rows if r["mesh"] == kind)
+        ax.plot(*zip(*pts), style, label="uniform grid" if kind == "grid" else
+                "adaptive (a coarse grid split where it has detail)")
+    ax.set_xscale("log")
+    ax.set_xlabel("unknowns (vertices)")
+    ax.set_ylabel("volume PSNR (dB)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
 
 
 def main_table(a, info, out):

@@ -199,6 +199,19 @@ def test_config_file_print_config_and_overrides(tmp_path, capsys):
     assert msg.startswith("mi-tetvr:") and "needs validation >= 1" in msg, msg
     assert FitConfig.from_dict(FitConfig(model="absorption", tv="heldout").nested()).tv == \
         "heldout"
+    # the adaptive mesh's share of the grid's unknowns: more than the coarse grid's eighth,
+    # at most all; an earlier config's switch (true) reads as all of them
+    capsys.readouterr()
+    assert fails(["fit", "d", "-o", "o", "--model", "absorption", "--adapt", "half"]) == 2
+    said = capsys.readouterr().err.strip().splitlines()[-1]
+    assert said.endswith("argument --adapt: adapt must be a share of the grid's unknowns in "
+                         "(0.125, 1], got 'half'")
+    for share in ("0.1", "1.5"):
+        msg = fails(["fit", "d", "-o", "o", "--model", "absorption", "--adapt", share])
+        assert msg.startswith("mi-tetvr: adapt must be a share of the grid's unknowns in "
+                              "(0.125, 1]") and share in msg, msg
+    assert [FitConfig.from_dict({"solver": {"adapt": v}}).adapt_share
+            for v in (None, False, True, 0.5)] == [None, None, 1.0, 0.5]
 
 
 def test_config_parts_per_kind_of_fit():

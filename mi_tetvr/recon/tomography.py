@@ -650,7 +650,7 @@ def adaptive_mesh(vertices, tets, x, gradient: TetGradient, budget: int):
     first = np.sort(np.minimum(rank[edges[:, 0]], rank[edges[:, 1]]))
     k = np.arange(len(order) + 1)
     count = len(vertices) + np.searchsorted(first, k, side="left")
-    k = int(k[count <= budget].max())
+    k = int(k[count <= budget].max()) if count[0] <= budget else 0
     res = split_vertices(vertices, tets, order[:k], {"x": x})
     return res.vertices, res.tets, res.point_data["x"], k
 
@@ -780,8 +780,9 @@ class _AttenuationFit:
     def plan(self, x0):
         """The meshes solved in turn, as ``(kind, grid resolution)``."""
         config, solver = self.config, self.solver
-        adapt = config.adapt and solver == "pwls" and not self.one_row and x0 is None
-        if config.adapt and not adapt:
+        share = config.adapt_share
+        adapt = share is not None and solver == "pwls" and not self.one_row and x0 is None
+        if share is not None and not adapt:
             self.log("adapt: " + (
                 "a one-row detector's slab has no cells to coarsen" if self.one_row else
                 "the resumed fit goes on on its own mesh" if x0 is not None else
@@ -808,11 +809,11 @@ class _AttenuationFit:
         """The vertices and tets of a planned mesh, and (adaptive) the field on it."""
         from mi_tetvr.mesh.initial import grid_init, grid_shape
         if kind == "adaptive":
-            budget_vertices = int(np.prod(np.asarray(grid_shape(self.box, g)) + 1))
-            v, t, x, split = adaptive_mesh(*prev, budget_vertices)
+            grid_vertices = int(np.prod(np.asarray(grid_shape(self.box, g)) + 1))
+            v, t, x, split = adaptive_mesh(*prev, int(self.config.adapt_share * grid_vertices))
             self.log(f"adaptive mesh: split about {split:,} of the coarse grid's "
                      f"{len(prev[0]):,} vertices, where its field changes most: {len(v):,} "
-                     f"vertices (the grid: {budget_vertices:,})")
+                     f"vertices ({len(v) / grid_vertices:.0%} of the grid's {grid_vertices:,})")
             return v, t, x
         if kind == "coarse":
             return (*coarse_grid(self.box, g), None)

@@ -171,6 +171,9 @@ def test_adaptive_mesh_puts_the_fine_grid_where_the_field_changes():
     assert lattice(new).max() < 1e-9
     # the new vertices sit by the ramp, and none far from it
     assert np.all(np.abs(new[:, 0] - 0.4) <= 0.5)
+    # a budget under the coarse grid's count splits nothing
+    v1, t1, _, k1 = adaptive_mesh(v, t, x, TetGradient(v, t), len(v) - 1)
+    assert k1 == 0 and len(v1) == len(v) and len(t1) == len(t)
     linear = 0.2 + v[:, 0] - 0.5 * v[:, 1] + 0.3 * v[:, 2]
     v3, _, y3, _ = adaptive_mesh(v, t, linear, TetGradient(v, t), budget)
     np.testing.assert_allclose(y3, 0.2 + v3[:, 0] - 0.5 * v3[:, 1] + 0.3 * v3[:, 2],
