@@ -207,10 +207,11 @@ def main(a):
     volume, name = load(a)
     res = run_volume(a, volume, name, a.views, a.flux, a.seed, out, a.arc)
     rows = res["rows"]
-    print(f"{'method':<18} {'volume PSNR':>11} {'slice SSIM':>10} {'proj. PSNR views':>16} "
+    w = max(18, *(len(row["method"]) for row in rows))
+    print(f"{'method':<{w}} {'volume PSNR':>11} {'slice SSIM':>10} {'proj. PSNR views':>16} "
           f"{'pixels':>8} {'unknowns':>9} {'time':>8}")
     for row in rows:
-        print(f"{row['method']:<18} {row['volume_psnr']:8.2f} dB {row['slice_ssim']:10.4f} "
+        print(f"{row['method']:<{w}} {row['volume_psnr']:8.2f} dB {row['slice_ssim']:10.4f} "
               f"{row['projection_psnr_views']:13.2f} dB {row['projection_psnr_pixels']:5.2f} dB "
               f"{row['unknowns']:>9,} {row['seconds']:7.1f} s")
     # the fit scores itself (metrics.json) by the same function: the same number
