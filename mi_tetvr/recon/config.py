@@ -297,9 +297,9 @@ class FitConfig:
         None, "model absorption, pwls: unknowns where the volume has detail: solve a grid of "
         "half the cells per axis, then split its vertices where the field changes most, back "
         "to the fine grid's vertices, until the mesh has SHARE of the fine grid's unknowns "
-        "(more than 1/8, at most 1; flat regions keep the coarse cells). 0.5: half the "
-        "unknowns, measured 0.4 dB above the grid (engine) to 2 dB below it (phantom) at 24 "
-        "views; 0.75: level with it on the head MR", metavar="SHARE", parse=parse_share)
+        "(more than 1/8, at most 1; flat regions keep the coarse cells), the penalty the "
+        "grid's; default: the grid. What each share gains and costs: the tomography guide",
+        metavar="SHARE", parse=parse_share)
     validation: int = setting(
         8, "model absorption, sart/sirt (and pwls with --tv heldout): every K-th training view "
         "is held out to choose the passes (stopping once they stop improving its projections) "

@@ -444,10 +444,17 @@ class PenalizedLS:
     subsets : int
         ``M`` (at most the views; each subset interleaves views spread over
         the scan).
+    reference : (beta0, cell), optional
+        Another mesh's ``beta0`` and cell size (:func:`grid_penalty_scale`:
+        the detector's grid) for this one's: the weight and the corner are then
+        absolute, the same penalty as on that mesh. A graded mesh's own mean
+        curvatures are its coarse cells' (the data's grows as ``h^3``, the
+        penalty's as ``h``: 4 times the ratio at twice the cell): its
+        ``beta0`` would be larger, the penalty stiffer where it is fine.
     """
 
     def __init__(self, projector: Projector, b, weights, gradient: TetGradient, views=None,
-                 subsets: int = 12):
+                 subsets: int = 12, reference=None):
         self.projector, self.gradient = projector, gradient
         self.b = np.asarray(b, np.float64)
         self.w = np.ones_like(self.b) if weights is None else np.asarray(weights, np.float64)
@@ -461,6 +468,8 @@ class PenalizedLS:
         self.beta0 = float(np.mean(self.d)) / max(float(np.mean(gradient.curvature_scale())),
                                                   1e-30)
         cell = float(np.cbrt(6.0 * np.median(gradient.volumes)))   # a Kuhn cube's side
+        if reference is not None:
+            self.beta0, cell = (float(r) for r in reference)
         self.delta, self.cell = None, cell
 
     def start(self, passes: int = 2, x0=None, callback=None):
@@ -655,17 +664,30 @@ def adaptive_mesh(vertices, tets, x, gradient: TetGradient, budget: int):
     return res.vertices, res.tets, res.point_data["x"], k
 
 
+def grid_penalty_scale(box, resolution, cameras, b, weights):
+    """:class:`PenalizedLS`'s ``(beta0, cell)`` on ``grid_init(box, resolution)``:
+    the penalty a mesh graded from that grid's vertices (:func:`adaptive_mesh`)
+    keeps (its ``reference``). One pass's worth of projections on the grid."""
+    from mi_tetvr.mesh.initial import grid_init
+    from mi_tetvr.mesh.topology import build_topology
+    v, t = grid_init(box, resolution)
+    topology = build_topology(v, t)
+    pls = PenalizedLS(Projector(v, topology.tets, cameras, topology), b, weights,
+                      TetGradient(v, topology.tets))
+    return pls.beta0, pls.cell
+
+
 def _pwls_stage(projector, b, weights, gradient, x0, config, passes, tune, tune_deadline,
-                solve, log, near=None):
+                solve, log, near=None, reference=None):
     """One mesh's :class:`PenalizedLS` solve for :func:`fit_attenuation`:
     with ``tune``, the penalty weight searched on every
     ``config.validation``-th view held out, then all views from the
     tuning's solution (the search starts about ``near``, an earlier mesh's
     weight, when given); else ``config.tv`` (default :data:`LAMBDA_DEFAULT`)
     for ``passes``. Returns ``(x, record)``: the weight (``tv``), how it was
-    chosen, and the tuning's trials."""
+    chosen, and the tuning's trials. ``reference``: :class:`PenalizedLS`'s."""
     if not tune:
-        pls = PenalizedLS(projector, b, weights, gradient)
+        pls = PenalizedLS(projector, b, weights, gradient, reference=reference)
         start = pls.start(x0=x0, callback=solve["callback"])
         given = isinstance(config.tv, (int, float))
         lam = config.tv if given else LAMBDA_DEFAULT
@@ -674,7 +696,7 @@ def _pwls_stage(projector, b, weights, gradient, x0, config, passes, tune, tune_
             {"tv": lam, "chosen": "given" if given else "the default rule"}
     from mi_tetvr.grid.slices import validation_split
     fit_views, val_views = validation_split(len(projector.cameras), config.validation)
-    pls = PenalizedLS(projector, b, weights, gradient, views=fit_views)
+    pls = PenalizedLS(projector, b, weights, gradient, views=fit_views, reference=reference)
     start = pls.start(x0=x0, callback=solve["callback"])
     best, trials = pls.tune(val_views, passes, start, deadline=tune_deadline,
                             callback=solve["callback"],
@@ -683,7 +705,7 @@ def _pwls_stage(projector, b, weights, gradient, x0, config, passes, tune, tune_
     log(f"held out {len(val_views)} of {len(projector.cameras)} views: " + ", ".join(
         f"weight {r['lam']:g}: MSE {r['held_out_mse']:.4g}" for r in trials)
         + f"; all views with weight {best['lam']:g}")
-    full = PenalizedLS(projector, b, weights, gradient)
+    full = PenalizedLS(projector, b, weights, gradient, reference=reference)
     full.delta = pls.delta
     # on from the tuning's solution, with the held-out views back in
     x = full.solve(best["lam"], max(1, passes // 2), best["x"], **solve)
@@ -756,7 +778,7 @@ class _AttenuationFit:
                 f"weight by the default rule")
         self.max_passes = MAX_PASSES[self.solver] if self.tuning and self.solver != "pwls" \
             else self.passes
-        self.saved = self.tuned = self.weight = None
+        self.saved = self.tuned = self.weight = self.reference = None
 
     def deadline(self, share):
         """A function that says when ``share`` of the time budget is spent (None: no budget)."""
@@ -829,6 +851,10 @@ class _AttenuationFit:
         from mi_tetvr.mesh.topology import build_topology, format_summary, geometry_summary
         stages = self.plan(x0)
         self.bar = self.progress_bar(self.progress, stages[-1][0] == "adaptive")
+        if stages[-1][0] == "adaptive":
+            # the coarse and the graded mesh keep the penalty of the grid they stand for
+            self.reference = grid_penalty_scale(self.box, stages[-1][1], self.cameras, self.b,
+                                                self.weights)
         self.train_begin = self.now()
         x, prev, lam = x0, None, None
         for kind, g in stages:
@@ -882,7 +908,8 @@ class _AttenuationFit:
         if self.solver == "pwls":
             # the tuning leaves a third of the time budget to the final solve
             x, record = _pwls_stage(projector, b, weights, gradient, x, config, self.passes,
-                                    tune, self.deadline(0.6), solve, self.log, near=lam)
+                                    tune, self.deadline(0.6), solve, self.log, near=lam,
+                                    reference=self.reference)
             self.weight = {k: record[k] for k in ("tv", "chosen")}
             self.tuned = record if tune else None
             return x, record["tv"]

@@ -333,6 +333,38 @@ def test_one_yardstick_through_every_path(blob_data):
     assert fit["psnr_all_pixels"] == pytest.approx(by_grid["projection_psnr_pixels"], abs=2e-3)
 
 
+def test_graded_mesh_keeps_the_grids_penalty(blob_data):
+    """A coarse grid's own penalty scale is stiffer than the detector's grid's:
+    the data's curvature per vertex, ``A^T W A 1``, grows as ``h^3`` (``A 1`` is
+    a ray's length, the hat functions summing to 1; a vertex meets ``h^2``
+    rays over ``h``), the penalty's as ``h``, so 4 times at twice the cell. A
+    mesh graded from it keeps the grid's scale (``reference``,
+    :func:`grid_penalty_scale`)."""
+    from mi_tetvr.mesh.topology import build_topology
+    from mi_tetvr.recon.tomography import (PenalizedLS, Projector, TetGradient, coarse_grid,
+                                           grid_penalty_scale)
+    from mi_tetvr.recon.tomography import depths
+    vol, _, data = blob_data
+    V, T = sample_grid(vol)
+    lo, hi = vol.bounds()
+    s = float(vol.spacing[0])
+    box = np.stack([lo - 1e-4 * s, hi + 1e-4 * s])
+    cams, b = [v.camera for v in data.train], depths(data.train, None)
+
+    def scale(v, t, **kw):
+        t = build_topology(v, t).tets
+        pls = PenalizedLS(Projector(v, t, cams), b, None, TetGradient(v, t), **kw)
+        return pls.beta0, pls.cell
+
+    fine = scale(V, T)
+    assert grid_penalty_scale(box, 8, cams, b, None) == pytest.approx(fine, rel=1e-6)
+    coarse = scale(*coarse_grid(box, 8))
+    assert coarse[1] == pytest.approx(2 * fine[1], rel=1e-6)
+    # A 1 is the ray's length (the hat functions sum to 1): d grows as h^3, c as h
+    assert coarse[0] / fine[0] == pytest.approx(4.0, rel=1e-3), (coarse, fine)
+    assert scale(*coarse_grid(box, 8), reference=fine) == fine
+
+
 def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path):
     """The default absorption fit (penalized weighted least squares on a tet
     grid on the detector's pixels) lands on the true attenuation at the
