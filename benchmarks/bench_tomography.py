@@ -125,6 +125,10 @@ def parse_args(argv=None):
     full = 180.0 if a.beam == "parallel" else 360.0
     if a.arc is not None and not 0.0 < a.arc <= full:
         p.error(f"--arc must lie in (0, {full:g}] degrees for a {a.beam} beam, got {a.arc:g}")
+    for name in ("curve", "slices"):
+        # a plot's folder is checked before the fits, not after them
+        if getattr(a, name) and not Path(getattr(a, name)).resolve().parent.is_dir():
+            p.error(f"--{name}: no folder {Path(getattr(a, name)).resolve().parent}")
     if a.quick:
         a.views, a.test_views, a.sart_passes = 16, 4, 3
         a.passes = a.passes or 4

@@ -851,8 +851,9 @@ class _AttenuationFit:
         from mi_tetvr.mesh.topology import build_topology, format_summary, geometry_summary
         stages = self.plan(x0)
         self.bar = self.progress_bar(self.progress, stages[-1][0] == "adaptive")
-        if stages[-1][0] == "adaptive":
-            # the coarse and the graded mesh keep the penalty of the grid they stand for
+        if self.config.adapt_share is not None and self.solver == "pwls" and not self.one_row:
+            # the coarse and the graded mesh (a resumed one too) keep the penalty of the
+            # grid they stand for
             self.reference = grid_penalty_scale(self.box, stages[-1][1], self.cameras, self.b,
                                                 self.weights)
         self.train_begin = self.now()
