@@ -1,5 +1,5 @@
 """The reconstruction suite (benchmarks/fit_suite.py), shrunk: the project's own
-volume, 6 views of 24x24, a 6-second budget."""
+volume, 6 views of 24x24, an 18-second budget (--budget 0.3)."""
 import importlib.util
 import json
 
@@ -30,8 +30,11 @@ def test_fit_suite_quick(tmp_path):
     own = json.loads((fit / "metrics.json").read_text())["mean"]
     assert res["psnr"] == pytest.approx(own["psnr"], abs=0.01)
     assert res["ssim"] == pytest.approx(own["ssim"], abs=1e-3)
-    # and the fit learned: its training loss fell (the last tenth of the steps against the
-    # first tenth; measured 0.0063 against 0.023)
+    # and the fit learned: its training loss fell, the last tenth of the steps against
+    # the first 20 steps (a fixed window: the steps the budget allows depend on the
+    # machine, and the loss levels off after about 100 of them; a first tenth of 670 steps
+    # had mostly levelled off too). Measured 0.0060 against 0.0225 at 505 to 680 steps.
     loss = np.array(json.loads(str(np.load(fit / "checkpoint.npz")["history"]))["loss"])
-    k = max(len(loss) // 10, 1)
-    assert loss[-k:].mean() < 0.5 * loss[:k].mean(), (loss[:k].mean(), loss[-k:].mean())
+    assert len(loss) >= 40, len(loss)
+    k = len(loss) // 10
+    assert loss[-k:].mean() < 0.5 * loss[:20].mean(), (loss[:20].mean(), loss[-k:].mean())
