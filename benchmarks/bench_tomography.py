@@ -446,7 +446,7 @@ def main_table(a, info, out):
             f"{res['rows'][-1]['volume_psnr'] - best['volume_psnr']:+.2f} dB"
         print("  " + ", ".join(f"{r['method']} {r['volume_psnr']:.2f}"
                                for r in res["rows"]) + margin, flush=True)
-    md = table_markdown(results)
+    md = table_markdown(results) + "\n\n" + times_markdown(results)
     print(md)
     (out / "table.md").write_text(md + "\n")
     plot_table(out / "table.png", results)
@@ -503,12 +503,7 @@ def table_markdown(results):
     head = "| volume | views | photons | " + " | ".join(methods) + " |" + (
         " tets - best tuned |" if tuned else "")
     lines = [head, "|" + "---|" * (len(methods) + 3 + bool(tuned))]
-    # by scan (full arcs first), then photons (fewest first, noise-free last), then
-    # volume as first met
-    names = list(dict.fromkeys(r["volume"] for r in results))
-    keys = sorted({scan(r) for r in results},
-                  key=lambda k: (-k[2], k[1], k[3] is None, k[3] or 0, names.index(k[0])))
-    for k in keys:
+    for k in table_keys(results):
         runs = [r for r in results if scan(r) == k]
         cells, means = [], {}
         for m in methods:
@@ -519,10 +514,38 @@ def table_markdown(results):
             cells.append(f"{np.mean(p):.2f}{spread} / {np.mean(q):.3f}")
         margin = (f" {means[methods[-1]] - max(means[m] for m in tuned):+.2f} dB |"
                   if tuned else "")
-        photons = "none" if k[3] is None else f"{k[3]:.0e}".replace("e+0", "e")
-        lines.append(f"| {k[0]} | {views_label(k[1], k[2])} | {photons} | "
+        lines.append(f"| {k[0]} | {views_label(k[1], k[2])} | {photons_label(k[3])} | "
                      + " | ".join(cells) + " |" + margin)
     return "\n".join(lines)
+
+
+def times_markdown(results):
+    """Seconds per reconstruction, mean over the seeds, in the order of
+    :func:`table_markdown`: the tets' whole fit, the tuned baselines' with their
+    held-out tuning."""
+    methods = [m for m in (results[0]["rows"][-1]["method"], "FISTA-TV tuned", "SART tuned",
+                           "SIRT tuned") if any(x["method"] == m for x in results[0]["rows"])]
+    lines = ["| volume | views | photons | " + " | ".join(f"{m} (s)" for m in methods) + " |",
+             "|" + "---|" * (len(methods) + 3)]
+    for k in table_keys(results):
+        runs = [r for r in results if scan(r) == k]
+        secs = [np.mean([next(x for x in r["rows"] if x["method"] == m)["seconds"]
+                         for r in runs]) for m in methods]
+        lines.append(f"| {k[0]} | {views_label(k[1], k[2])} | {photons_label(k[3])} | "
+                     + " | ".join(f"{t:.0f}" for t in secs) + " |")
+    return "\n".join(lines)
+
+
+def table_keys(results):
+    """The table's cases in its order: by scan (full arcs first), then photons
+    (fewest first, noise-free last), then volume as first met."""
+    names = list(dict.fromkeys(r["volume"] for r in results))
+    return sorted({scan(r) for r in results},
+                  key=lambda k: (-k[2], k[1], k[3] is None, k[3] or 0, names.index(k[0])))
+
+
+def photons_label(flux):
+    return "none" if flux is None else f"{flux:.0e}".replace("e+0", "e")
 
 
 def scan_grid_volume(data_dir):
