@@ -465,32 +465,38 @@ def views_label(views, arc):
 
 
 def plot_table(path, results):
-    """The table as bars: per volume, views and photons, each method's mean
-    volume PSNR, the seeds' range as error bars."""
+    """The table as bars, one panel per scan (views and arc): per volume and
+    photons, each method's mean volume PSNR, the seeds' range as error bars."""
     from matplotlib.figure import Figure
     methods = [r["method"] for r in results[0]["rows"]]
-    keys = list(dict.fromkeys(scan(r) for r in results))
-    fig = Figure(figsize=(max(6.0, 0.9 * len(keys) + 2), 3.6))
-    ax = fig.subplots()
+    keys = table_keys(results)
+    scans = list(dict.fromkeys(k[1:3] for k in keys))
+    cases = max(sum(k[1:3] == s for k in keys) for s in scans)
+    fig = Figure(figsize=(max(6.0, 0.9 * cases + 2), 0.6 + 2.6 * len(scans)))
+    axes = fig.subplots(len(scans), 1, squeeze=False)[:, 0]
+    # the axis from 2 dB under the worst method but FBP (far below where it is shown at all)
+    shown = [m for m in methods if m != "FBP"] if len(methods) > 2 else methods
+    low = min(x["volume_psnr"] for r in results for x in r["rows"] if x["method"] in shown) - 2
+    high = max(x["volume_psnr"] for r in results for x in r["rows"]) + 0.5
     width = 0.8 / len(methods)
-    for j, m in enumerate(methods):
-        mean, lo, hi = [], [], []
-        for k in keys:
-            p = [next(x for x in r["rows"] if x["method"] == m)["volume_psnr"]
-                 for r in results if scan(r) == k]
-            mean.append(np.mean(p))
-            lo.append(np.mean(p) - min(p))
-            hi.append(max(p) - np.mean(p))
-        ax.bar(np.arange(len(keys)) + (j - (len(methods) - 1) / 2) * width, mean, width,
-               yerr=[lo, hi], label=m, capsize=2)
-    ax.set_xticks(np.arange(len(keys)))
-    ax.set_xticklabels([f"{v}\n{views_label(n, arc)} views\n"
-                        f"{'clean' if f is None else f'{f:.0e}'}"
-                        for v, n, arc, f in keys], fontsize=7)
-    ax.set_ylabel("volume PSNR (dB)")
-    lows = [min(x["volume_psnr"] for x in r["rows"] if x["method"] != "FBP") for r in results]
-    ax.set_ylim(min(lows) - 2, None)
-    ax.legend(fontsize=7, ncol=len(methods), loc="lower center", bbox_to_anchor=(0.5, 1.0))
+    for ax, (views, arc) in zip(axes, scans):
+        ks = [k for k in keys if k[1:3] == (views, arc)]
+        for j, m in enumerate(methods):
+            p = [[next(x for x in r["rows"] if x["method"] == m)["volume_psnr"]
+                  for r in results if scan(r) == k] for k in ks]
+            mean = np.array([np.mean(q) for q in p])
+            ax.bar(np.arange(len(ks)) + (j - (len(methods) - 1) / 2) * width, mean, width,
+                   yerr=[mean - [min(q) for q in p], [max(q) for q in p] - mean],
+                   label=m, capsize=2, color=f"C{j}")
+        ax.set_xticks(np.arange(len(ks)))
+        ax.set_xticklabels([f"{v}\n{photons_label(f) if f else 'noise-free'}"
+                            for v, _, _, f in ks], fontsize=7)
+        ax.set_xlim(-0.5, cases - 0.5)
+        ax.set_ylim(low, high)
+        ax.set_ylabel("volume PSNR (dB)", fontsize=8)
+        ax.set_title(f"{views} views over {arc:g}°", fontsize=9)
+    axes[0].legend(fontsize=7, ncol=len(methods), loc="lower center",
+                   bbox_to_anchor=(0.5, 1.12))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
