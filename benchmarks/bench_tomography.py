@@ -474,13 +474,15 @@ def plot_table(path, results):
     cases = max(sum(k[1:3] == s for k in keys) for s in scans)
     fig = Figure(figsize=(max(6.0, 0.9 * cases + 2), 0.6 + 2.6 * len(scans)))
     axes = fig.subplots(len(scans), 1, squeeze=False)[:, 0]
-    # the axis from 2 dB under the worst method but FBP (far below where it is shown at all)
+    # each panel's axis from 1 dB under its worst method but FBP (far below where it is
+    # shown at all): the differences between the best methods are a fraction of a dB
     shown = [m for m in methods if m != "FBP"] if len(methods) > 2 else methods
-    low = min(x["volume_psnr"] for r in results for x in r["rows"] if x["method"] in shown) - 2
-    high = max(x["volume_psnr"] for r in results for x in r["rows"]) + 0.5
     width = 0.8 / len(methods)
     for ax, (views, arc) in zip(axes, scans):
         ks = [k for k in keys if k[1:3] == (views, arc)]
+        psnr = [x["volume_psnr"] for r in results if scan(r) in ks for x in r["rows"]
+                if x["method"] in shown]
+        low, high = min(psnr) - 1.0, max(psnr) + 0.5
         for j, m in enumerate(methods):
             p = [[next(x for x in r["rows"] if x["method"] == m)["volume_psnr"]
                   for r in results if scan(r) == k] for k in ks]
