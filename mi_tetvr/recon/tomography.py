@@ -799,12 +799,18 @@ class _AttenuationFit:
         self.log(f"resumed from {self.ckpt}: more passes from its attenuation")
         return saved.arrays()[2]["attenuation"]
 
+    @property
+    def graded(self):
+        """Whether the fit's meshes are graded (``--adapt`` with the penalized
+        solver on a detector of more than one row): a coarse grid split where it
+        has detail, or a resumed such mesh."""
+        return self.config.adapt_share is not None and self.solver == "pwls" and not self.one_row
+
     def plan(self, x0):
         """The meshes solved in turn, as ``(kind, grid resolution)``."""
-        config, solver = self.config, self.solver
-        share = config.adapt_share
-        adapt = share is not None and solver == "pwls" and not self.one_row and x0 is None
-        if share is not None and not adapt:
+        solver = self.solver
+        adapt = self.graded and x0 is None
+        if self.config.adapt_share is not None and not adapt:
             self.log("adapt: " + (
                 "a one-row detector's slab has no cells to coarsen" if self.one_row else
                 "the resumed fit goes on on its own mesh" if x0 is not None else
@@ -851,7 +857,7 @@ class _AttenuationFit:
         from mi_tetvr.mesh.topology import build_topology, format_summary, geometry_summary
         stages = self.plan(x0)
         self.bar = self.progress_bar(self.progress, stages[-1][0] == "adaptive")
-        if self.config.adapt_share is not None and self.solver == "pwls" and not self.one_row:
+        if self.graded:
             # the coarse and the graded mesh (a resumed one too) keep the penalty of the
             # grid they stand for
             self.reference = grid_penalty_scale(self.box, stages[-1][1], self.cameras, self.b,
