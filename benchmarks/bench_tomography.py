@@ -130,6 +130,22 @@ def parse_args(argv=None):
         # a plot's folder is checked before the fits, not after them
         if getattr(a, name) and not Path(getattr(a, name)).resolve().parent.is_dir():
             p.error(f"--{name}: no folder {Path(getattr(a, name)).resolve().parent}")
+    if a.out and Path(a.out).exists() and not Path(a.out).is_dir():
+        p.error(f"--out: {a.out} is a file, not a folder")
+    if a.table:
+        bad = [v for v in a.table.split(",") if v not in VOLUMES] if a.table != "all" else []
+        if bad:
+            p.error(f"--table: unknown volumes {bad}; known: {', '.join(VOLUMES)} or all")
+        table = Path(a.out) / "table.json" if a.out else None
+        if table is not None and table.is_file():   # an earlier run's entries, before any fit
+            import json
+            try:
+                entries = json.loads(table.read_text())
+            except ValueError:
+                entries = None
+            if not isinstance(entries, list):
+                p.error(f"--table: {table} is not a table this benchmark wrote (a JSON list); "
+                        "move it away to start over")
     if a.quick:
         a.views, a.test_views, a.sart_passes = 16, 4, 3
         a.passes = a.passes or 4
@@ -484,8 +500,7 @@ def plot_table(path, results):
                 if x["method"] in shown]
         low, high = min(psnr) - 1.0, max(psnr) + 0.5
         for j, m in enumerate(methods):
-            p = [[next(x for x in r["rows"] if x["method"] == m)["volume_psnr"]
-                  for r in results if scan(r) == k] for k in ks]
+            p = [case_values(results, k, m) for k in ks]
             mean = np.array([np.mean(q) for q in p])
             ax.bar(np.arange(len(ks)) + (j - (len(methods) - 1) / 2) * width, mean, width,
                    yerr=[mean - [min(q) for q in p], [max(q) for q in p] - mean],
@@ -512,11 +527,9 @@ def table_markdown(results):
         " tets - best tuned |" if tuned else "")
     lines = [head, "|" + "---|" * (len(methods) + 3 + bool(tuned))]
     for k in table_keys(results):
-        runs = [r for r in results if scan(r) == k]
         cells, means = [], {}
         for m in methods:
-            p = [next(x for x in r["rows"] if x["method"] == m)["volume_psnr"] for r in runs]
-            q = [next(x for x in r["rows"] if x["method"] == m)["slice_ssim"] for r in runs]
+            p, q = case_values(results, k, m), case_values(results, k, m, "slice_ssim")
             means[m] = float(np.mean(p))
             spread = f" ±{(max(p) - min(p)) / 2:.2f}" if len(p) > 1 else ""
             cells.append(f"{np.mean(p):.2f}{spread} / {np.mean(q):.3f}")
@@ -536,12 +549,16 @@ def times_markdown(results):
     lines = ["| volume | views | photons | " + " | ".join(f"{m} (s)" for m in methods) + " |",
              "|" + "---|" * (len(methods) + 3)]
     for k in table_keys(results):
-        runs = [r for r in results if scan(r) == k]
-        secs = [np.mean([next(x for x in r["rows"] if x["method"] == m)["seconds"]
-                         for r in runs]) for m in methods]
+        secs = [np.mean(case_values(results, k, m, "seconds")) for m in methods]
         lines.append(f"| {k[0]} | {views_label(k[1], k[2])} | {photons_label(k[3])} | "
                      + " | ".join(f"{t:.0f}" for t in secs) + " |")
     return "\n".join(lines)
+
+
+def case_values(results, key, method, score="volume_psnr"):
+    """A method's ``score`` in every run (noise seed) of a table case."""
+    return [next(x for x in r["rows"] if x["method"] == method)[score]
+            for r in results if scan(r) == key]
 
 
 def table_keys(results):
