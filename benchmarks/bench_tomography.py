@@ -143,9 +143,10 @@ def parse_args(argv=None):
                 entries = json.loads(table.read_text())
             except ValueError:
                 entries = None
-            if not isinstance(entries, list):
-                p.error(f"--table: {table} is not a table this benchmark wrote (a JSON list); "
-                        "move it away to start over")
+            if not isinstance(entries, list) or not all(
+                    isinstance(e, dict) and isinstance(e.get("rows"), list) for e in entries):
+                p.error(f"--table: {table} is not a table this benchmark wrote (a JSON list of "
+                        "runs with their rows); move it away to start over")
     if a.quick:
         a.views, a.test_views, a.sart_passes = 16, 4, 3
         a.passes = a.passes or 4
