@@ -68,6 +68,24 @@ VOLUMES = {"headmr": ("headmr/HeadMRVolume.mhd", None),
            "phantom": (None, None)}
 
 
+def scans_arg(text):
+    """``--scans``: ``VIEWS[@ARC]`` items, each one of :data:`TABLE_SCANS`."""
+    import argparse
+    out = []
+    for item in text.split(","):
+        views, _, arc = item.partition("@")
+        try:
+            key = (int(views), float(arc or 180))
+        except ValueError:
+            key = None
+        if key not in TABLE_SCANS:
+            raise argparse.ArgumentTypeError(
+                f"{item!r} is not a table scan; known: "
+                + ", ".join(f"{v}" if a == 180 else f"{v}@{a:g}" for v, a in TABLE_SCANS))
+        out.append(key)
+    return tuple(out)
+
+
 def parse_args(argv=None):
     import argparse
 
@@ -100,6 +118,8 @@ def parse_args(argv=None):
     p.add_argument("--tv", type=weight,
                    help="the tets' total-variation weight, or heldout: chosen on held-out "
                    "views (default: the fit's rule)")
+    p.add_argument("--basis", choices=("linear", "trilinear"), default="linear",
+                   help="the tets' fit with --basis (default linear: the fit's default)")
     p.add_argument("--adapt", type=float, metavar="SHARE",
                    help="the tets' fit with --adapt SHARE (a coarse grid split where it has "
                    "detail, to SHARE of the grid's unknowns)")
@@ -121,7 +141,12 @@ def parse_args(argv=None):
                    help="the table: VOLUMES (comma-separated, or all) at 24 and 64 views "
                    "over 180 degrees and 24 over 120 and 90 (limited angle), noise-free and "
                    "at 1e5 and 1e4 photons (noise seeds 0 and 1); goes on from "
-                   "OUT/table.json when an earlier run of the same tets settings stopped")
+                   "OUT/table.json when an earlier run of the same tets settings stopped; "
+                   "a case OUT/table.json holds with other tets settings lends its rows "
+                   "(the same data set), the tets' fit is added beside them")
+    p.add_argument("--scans", type=scans_arg, metavar="VIEWS[@ARC],...",
+                   help="--table: these scans only, e.g. 64 or 24@90 (default: all of "
+                   "24, 64, 24@120, 24@90)")
     a = p.parse_args(argv)
     full = 180.0 if a.beam == "parallel" else 360.0
     if a.arc is not None and not 0.0 < a.arc <= full:
@@ -295,11 +320,13 @@ def tets_row(case, config, out, progress=False):
     return row, field, m
 
 
-def run_volume(a, volume, name, views, flux, seed, out, arc=None, log=print):
+def run_volume(a, volume, name, views, flux, seed, out, arc=None, log=print, lent=None):
     """One data set of ``volume`` (``views`` angles over ``arc`` degrees,
     ``flux`` photons or noise-free, noise ``seed``) reconstructed by every method and scored by
     the one yardstick. Returns ``rows`` (one per method), the middle-slice
-    ``panels`` and what describes the data set."""
+    ``panels`` and what describes the data set. ``lent``: the other methods' rows
+    of an earlier run on the same data set, kept instead of computed again (no
+    panels then but the tets')."""
     from mi_tetvr.grid.slices import reconstruct_slices, tuned_slices
     from mi_tetvr.grid.xray import fdk
     from mi_tetvr.recon.config import FitConfig
@@ -324,7 +351,7 @@ def run_volume(a, volume, name, views, flux, seed, out, arc=None, log=print):
                                        ((f"SART ({a.sart_passes} passes)", "sart",
                                          a.sart_passes),))
                if a.beam == "parallel" else (("FDK", "fdk", 0),))
-    for label, method, passes in methods:
+    for label, method, passes in methods if lent is None else ():
         t0 = time.perf_counter()
         if method == "fdk":
             recon = fdk(volume, data.train, scale)
@@ -334,7 +361,8 @@ def run_volume(a, volume, name, views, flux, seed, out, arc=None, log=print):
         classical[label] = recon
         score(label, recon, grid_projections(recon, volume, data.test, scale), truth.size,
               seconds)
-    if a.beam == "parallel" and not a.no_tuned:
+    rows.extend(lent or [])
+    if a.beam == "parallel" and not a.no_tuned and lent is None:
         for method, label, most in TUNED:
             t0 = time.perf_counter()
             recon, chosen = tuned_slices(volume, data.train, scale, method,
@@ -344,14 +372,16 @@ def run_volume(a, volume, name, views, flux, seed, out, arc=None, log=print):
                   truth.size, time.perf_counter() - t0, passes=chosen["passes"],
                   tv=chosen["tv"])
     cfg = FitConfig(model="absorption", time_budget=a.time_budget, adapt=a.adapt,
-                    **{k: getattr(a, k) for k in ("solver", "passes", "tv")
-                       if getattr(a, k) is not None})
+                    basis=a.basis, **{k: getattr(a, k) for k in ("solver", "passes", "tv")
+                                      if getattr(a, k) is not None})
     row, field, m = tets_row(case, cfg, out / "fit", progress=not (a.quick or a.table))
     solver = m.get("solver", {}).get("method", "adam")
-    label = f"tets ({solver}{f', adaptive {a.adapt:g}' if a.adapt else ''})"
-    rows.append(dict(method=label, **row))
+    label = f"tets ({solver}{f', adaptive {a.adapt:g}' if a.adapt else ''}" \
+        f"{', trilinear' if a.basis == 'trilinear' else ''})"
+    rows[:] = [r for r in rows if r["method"] != label] + [dict(method=label, **row)]
     return {"volume": name, "shape": list(volume.shape), "views": views,
-            "test_views": a.test_views, "beam": a.beam, "arc": arc, "flux": flux, "seed": seed,
+            "test_views": a.test_views, "detail": a.detail, "beam": a.beam, "arc": arc,
+            "flux": flux, "seed": seed,
             "attenuation_scale": scale, "detector": [cam.width, cam.height], "rows": rows,
             "panels": {"truth": truth, **classical, "tets": field}, "fit_metrics": m}
 
@@ -431,16 +461,21 @@ def main_table(a, info, out):
     path = out / "table.json"
     # the tets' settings: an entry of other settings (or of an older default, which
     # recorded none) is measured again, not mixed in
-    fit = {k: getattr(a, k) for k in ("solver", "passes", "tv", "adapt", "time_budget")}
+    fit = {k: getattr(a, k) for k in ("solver", "passes", "tv", "adapt", "time_budget",
+                                      "basis")}
     others = []
     if path.is_file():                 # go on where an earlier run of the table stopped
         for r in json.loads(path.read_text()):
-            (results if r.get("tets_settings") == fit else others).append(r)
+            # entries from before the basis was a setting were of the linear one
+            settings = r.get("tets_settings")
+            if settings is not None and "basis" not in settings:
+                settings = {**settings, "basis": "linear"}
+            (results if settings == fit else others).append(r)
     loaded = {}
     # every case with noise seed 0 first, then seed 1 (noise-free data are the same
     # every run: one run), each the sparse noisy cases first: a run stopped early has
     # measured every case once
-    scans = TABLE_SCANS if not a.quick else ((a.views, a.arc or 180.0),)
+    scans = a.scans or TABLE_SCANS if not a.quick else ((a.views, a.arc or 180.0),)
     for seed, (views, arc), flux, vol_name in itertools.product((0, 1), scans, fluxes, volumes):
         if seed and flux is None:
             continue
@@ -452,7 +487,11 @@ def main_table(a, info, out):
             continue
         d = out / (f"{vol_name}_{views}_{flux or 0:g}_{seed}" if arc == 180 else
                    f"{vol_name}_{views}_{arc:g}deg_{flux or 0:g}_{seed}")
-        res = run_volume(a, volume, name, views, flux, seed, d, arc)
+        same = [r for r in others if scan(r) == (name, views, arc, flux) and
+                r["seed"] == seed and r["test_views"] == a.test_views and
+                r.get("detail", 2) == a.detail and r["beam"] == a.beam]
+        res = run_volume(a, volume, name, views, flux, seed, d, arc,
+                         lent=[dict(x) for x in same[0]["rows"]] if same else None)
         res.pop("panels"), res.pop("fit_metrics")
         res["tets_settings"] = fit
         results.append(res)
@@ -485,7 +524,7 @@ def plot_table(path, results):
     """The table as bars, one panel per scan (views and arc): per volume and
     photons, each method's mean volume PSNR, the seeds' range as error bars."""
     from matplotlib.figure import Figure
-    methods = [r["method"] for r in results[0]["rows"]]
+    methods = table_methods(results)
     keys = table_keys(results)
     scans = list(dict.fromkeys(k[1:3] for k in keys))
     cases = max(sum(k[1:3] == s for k in keys) for s in scans)
@@ -522,7 +561,7 @@ def plot_table(path, results):
 def table_markdown(results):
     """The table's markdown: one row per volume, views and photons; per method
     the mean volume PSNR / slice SSIM over the seeds (the spread after +-)."""
-    methods = [r["method"] for r in results[0]["rows"]]
+    methods = table_methods(results)
     tuned = [m for m in methods if "tuned" in m]     # none: no margin column (--no-tuned)
     head = "| volume | views | photons | " + " | ".join(methods) + " |" + (
         " tets - best tuned |" if tuned else "")
@@ -554,6 +593,13 @@ def times_markdown(results):
         lines.append(f"| {k[0]} | {views_label(k[1], k[2])} | {photons_label(k[3])} | "
                      + " | ".join(f"{t:.0f}" for t in secs) + " |")
     return "\n".join(lines)
+
+
+def table_methods(results):
+    """The methods every run of the table has, in the first run's order (the
+    tets' fit last)."""
+    return [x["method"] for x in results[0]["rows"]
+            if all(any(y["method"] == x["method"] for y in r["rows"]) for r in results)]
 
 
 def case_values(results, key, method, score="volume_psnr"):

@@ -143,7 +143,7 @@ def test_every_fit_setting_is_an_option(field):
     extra = []
     if field == "optimize":          # tf needs the scalar mesh
         extra = ["--init", "m.vtu"]
-    if field == "solver":            # the linear solvers solve X-ray projections
+    if field in ("solver", "basis"):  # the linear solvers solve X-ray projections
         extra = ["--model", "absorption"]
     if field == "lights":            # the known lighting of a scattering medium
         extra = ["--model", "scattering"]
@@ -212,6 +212,12 @@ def test_config_file_print_config_and_overrides(tmp_path, capsys):
                               "(0.125, 1]") and share in msg, msg
     assert [FitConfig.from_dict({"solver": {"adapt": v}}).adapt_share
             for v in (None, False, True, 0.5)] == [None, None, 1.0, 0.5]
+    # the trilinear basis is a grid's field: not an adaptive mesh's, not an image fit's
+    msg = fails(["fit", "d", "-o", "o", "--model", "absorption", "--basis", "trilinear",
+                 "--adapt", "0.5"])
+    assert msg.startswith("mi-tetvr: basis trilinear") and "use one or the other" in msg, msg
+    msg = fails(["fit", "d", "-o", "o", "--basis", "trilinear"])
+    assert msg.startswith("mi-tetvr: basis trilinear is the field of model absorption"), msg
 
 
 def test_config_parts_per_kind_of_fit():

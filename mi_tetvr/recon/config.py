@@ -49,7 +49,7 @@ PARTS = {
                  "regularizer", "regularizer_beta", "distortion", "freeze_boundary", "safeguard",
                  "n_sub", "spp", "seed", "checkpoint_every", "log_every")),
     "solver": ("X-ray projections' linear solvers (model absorption)",
-               ("solver", "passes", "relaxation", "tv", "adapt", "validation")),
+               ("solver", "passes", "relaxation", "tv", "adapt", "basis", "validation")),
 }
 #: The kinds of fit (:attr:`FitConfig.kind`): colors and opacities (``color``), a lit
 #: medium (``scattering``), an X-ray attenuation (``absorption``), a transfer function
@@ -300,6 +300,13 @@ class FitConfig:
         "(more than 1/8, at most 1; flat regions keep the coarse cells), the penalty the "
         "grid's; default: the grid. What each share gains and costs: the tomography guide",
         metavar="SHARE", parse=parse_share)
+    basis: str = setting(
+        "linear", "model absorption, linear solvers: the attenuation between the grid's "
+        "unknowns (one per vertex): linear in each of its tets, or trilinear (the grid's "
+        "trilinear field, walked on tets of twice its cells per axis: the same unknowns, "
+        "eight times the tets, about twice the time; not with --adapt). What each gains "
+        "and costs: the tomography guide",
+        choices=("linear", "trilinear"))
     validation: int = setting(
         8, "model absorption, sart/sirt (and pwls with --tv heldout): every K-th training view "
         "is held out to choose the passes (stopping once they stop improving its projections) "
@@ -512,6 +519,11 @@ class FitConfig:
 
     def _validate_models(self):
         """Settings that belong to one model, solver or kind of fit."""
+        if self.basis != "linear" and (self.linear_solver is None or self.adapt_share):
+            raise ValueError(f"basis {self.basis} is the field of model absorption's linear "
+                             f"solvers on a grid" + (": adapt splits the tets of the linear "
+                                                     "field; use one or the other"
+                                                     if self.adapt_share else ""))
         if self.tv is not None and self.linear_solver not in (None, "pwls"):
             raise ValueError(f"tv is the penalty weight of solver pwls; solver "
                              f"{self.linear_solver} has none")

@@ -134,7 +134,7 @@ def test_tied_unknowns_make_the_projector_act_on_them(small_problem):
     assert all(np.ptp(V[tie == k][:, :2], axis=0).max() < 1e-12 for k in range(25))
     E = np.zeros((len(V), 25))
     E[np.arange(len(V)), tie] = 1.0
-    tied = Projector(V, T, small_problem[2].cameras, unknowns=tie)
+    tied = Projector(V, T, small_problem[2].cameras, basis=tie)
     rng = np.random.default_rng(4)
     u = rng.uniform(0, 1, 25)
     y = rng.uniform(-1, 1, len(b))

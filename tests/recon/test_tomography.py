@@ -390,6 +390,7 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
                      ("c2f", {"solver": "sart", "passes": 8, **fixed,
                               "stages": [{"iterations": 1, "grid": 4}, {"iterations": 1}]}),
                      ("adapt", {"adapt": 0.75, "tv": 0.1, "passes": 12}),
+                     ("trilinear", {"basis": "trilinear"}),
                      ("grid7", {"grid_resolution": 7, "tv": 0.1, "passes": 12})):
         m = run(data, tmp_path / name, FitConfig(model="absorption", **kw), progress=False,
                 log=lambda *a: None)
@@ -397,11 +398,14 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
         # one vertex per sample; the adaptive mesh at most 3/4 as many (its share)
         assert len(mesh.vertices) == truth.size or \
             (name == "adapt" and truth.size // 2 < len(mesh.vertices) <= 0.75 * truth.size) \
-            or (name == "grid7" and len(mesh.vertices) == 8 ** 3)
-        assert m["unknowns"] == len(mesh.vertices)
+            or (name == "grid7" and len(mesh.vertices) == 8 ** 3) \
+            or (name == "trilinear" and len(mesh.vertices) == 17 ** 3)
+        # the trilinear basis walks tets of twice the cells: its unknowns are the grid's
+        assert m["unknowns"] == (truth.size if name == "trilinear" else len(mesh.vertices))
         field = sample_field(mesh.vertices, mesh.tets, mesh.opacity / scale, pts)
         got[name] = tomography_scores(field.reshape(truth.shape), truth)["volume_psnr"]
         assert m["solver"]["method"] == kw.get("solver", "pwls")
+        assert m["solver"]["basis"] == kw.get("basis", "linear")
         penalty, tuning = m["solver"].get("penalty"), m["solver"]["tuning"]
         if name == "pwls":
             assert penalty == {"tv": LAMBDA_DEFAULT, "chosen": "the default rule"} and \
@@ -412,6 +416,7 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
             assert len(tuning["trials"]) >= 3 and penalty["tv"] == best["lam"] == \
                 tuning["tv"] and penalty["chosen"] == "on held-out views", m["solver"]
     assert got["pwls"] > 40 and got["heldout"] > 40 and got["sart"] > 40, got
+    assert got["trilinear"] > 40, got
     assert got["sirt"] > 30 and got["lsqr"] > 30, got
     # the split pays: above the uniform grid of about as many unknowns (512 against 542)
     assert got["c2f"] > 40 and got["adapt"] > 35 and got["adapt"] > got["grid7"], got
@@ -582,3 +587,42 @@ def test_held_out_stopping_returns_the_best_pass(tmp_path):
     assert len(held.errors) == 12 or len(held.errors) - held.best[1] == 2
     got = float(np.mean((np.exp(-proj.forward(x, [2, 9])) - held.target) ** 2))
     assert got == pytest.approx(min(held.errors), rel=1e-6)
+
+
+def test_trilinear_basis_walks_the_trilinear_field(blob_data):
+    """``basis trilinear``: the tets of twice the cells take the grid's trilinear
+    field at their vertices (scipy's ``RegularGridInterpolator`` says so), the
+    projector through them is ``A E`` with adjoint ``E^T A^T``, and its optical
+    depths approach the trilinear field's exact line integrals
+    (:func:`~mi_tetvr.grid.xray.line_integrals`, against a dense quadrature
+    above) at a quarter of the error of the grid's own tets (h^2)."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    from mi_tetvr.grid.volume import Volume
+    from mi_tetvr.recon.tomography import Projector, aligned_resolution, trilinear_grid
+    vol, _, data = blob_data
+    lo, hi = vol.bounds()
+    s = float(vol.spacing[0])
+    box = np.stack([lo - 1e-4 * s, hi + 1e-4 * s])
+    res = aligned_resolution(np.stack([lo, hi]), s)
+    V, T = grid_init(box, res)
+    Vf, Tf, E = trilinear_grid(box, res)
+    assert E.shape == (len(Vf), len(V)) and len(Tf) == 8 * len(T)
+    rng = np.random.default_rng(5)
+    u = rng.uniform(0, 1, len(V))                      # rough: every cell twisted
+    axes = [np.unique(V[:, i]) for i in range(3)]
+    values = u.reshape([len(a) for a in axes])          # (x, y, z): grid_init's order
+    np.testing.assert_allclose(E @ u, RegularGridInterpolator(axes, values)(Vf), atol=1e-12)
+    cams = [v.camera for v in data.train[:3]]
+    tri, lin = Projector(Vf, Tf, cams, basis=E), Projector(V, T, cams)
+    assert tri.shape == lin.shape
+    y = rng.uniform(-1, 1, tri.shape[0])
+    lhs, rhs = np.dot(tri.forward(u), y), np.dot(u, tri.adjoint(y))
+    assert abs(lhs - rhs) <= 2e-5 * np.sum(np.abs(tri.forward(u)) * np.abs(y))
+    grid = Volume(values.transpose(2, 1, 0).astype(np.float64), (box[1] - box[0]) /
+                  (np.array(values.shape) - 1), box[0])
+    ref = np.concatenate([line_integrals(grid, *c.rays()) for c in cams])
+    hit = ref > 0.1 * ref.max()
+    err = {k: np.sqrt(np.mean((p.forward(u)[hit] - ref[hit]) ** 2))
+           for k, p in (("trilinear", tri), ("linear", lin))}
+    assert err["trilinear"] < 0.35 * err["linear"], err
