@@ -155,6 +155,8 @@ def parse_args(argv=None):
         # a plot's folder is checked before the fits, not after them
         if getattr(a, name) and not Path(getattr(a, name)).resolve().parent.is_dir():
             p.error(f"--{name}: no folder {Path(getattr(a, name)).resolve().parent}")
+    if a.scans and not a.table:
+        p.error("--scans chooses the table's scans: give --table too")
     if a.out and Path(a.out).exists() and not Path(a.out).is_dir():
         p.error(f"--out: {a.out} is a file, not a folder")
     if a.table:

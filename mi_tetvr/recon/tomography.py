@@ -22,6 +22,10 @@ voxels:
 * :func:`least_squares`: CGLS/LSQR (``scipy.sparse.linalg.lsqr``) on the
   weighted operator :meth:`Projector.operator`, then ``x >= 0``.
 
+The unknowns may be fewer than the walked vertices, ``x = E u``
+(:func:`basis_matrix`): a one-row slab's tied layers, or a grid's trilinear
+field walked on tets of twice its cells (:func:`trilinear_grid`).
+
 The default was chosen by measurement (``benchmarks/bench_tomography.py``,
 see ``benchmarks/README.md``). :func:`fit_attenuation` is ``mi-tetvr fit
 --model absorption``'s run: a tet mesh over the scanned box, the solver, and
