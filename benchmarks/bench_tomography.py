@@ -118,8 +118,8 @@ def parse_args(argv=None):
     p.add_argument("--tv", type=weight,
                    help="the tets' total-variation weight, or heldout: chosen on held-out "
                    "views (default: the fit's rule)")
-    p.add_argument("--basis", choices=("linear", "trilinear"), default="linear",
-                   help="the tets' fit with --basis (default linear: the fit's default)")
+    p.add_argument("--basis", choices=("linear", "trilinear"),
+                   help="the tets' fit with --basis (default: the fit's)")
     p.add_argument("--adapt", type=float, metavar="SHARE",
                    help="the tets' fit with --adapt SHARE (a coarse grid split where it has "
                    "detail, to SHARE of the grid's unknowns)")
@@ -377,15 +377,22 @@ def run_volume(a, volume, name, views, flux, seed, out, arc=None, log=print, len
                     basis=a.basis, **{k: getattr(a, k) for k in ("solver", "passes", "tv")
                                       if getattr(a, k) is not None})
     row, field, m = tets_row(case, cfg, out / "fit", progress=not (a.quick or a.table))
-    solver = m.get("solver", {}).get("method", "adam")
-    label = f"tets ({solver}{f', adaptive {a.adapt:g}' if a.adapt else ''}" \
-        f"{', trilinear' if a.basis == 'trilinear' else ''})"
+    label = tets_label(m, a.adapt)
     rows[:] = [r for r in rows if r["method"] != label] + [dict(method=label, **row)]
     return {"volume": name, "shape": list(volume.shape), "views": views,
             "test_views": a.test_views, "detail": a.detail, "beam": a.beam, "arc": arc,
             "flux": flux, "seed": seed,
             "attenuation_scale": scale, "detector": [cam.width, cam.height], "rows": rows,
             "panels": {"truth": truth, **classical, "tets": field}, "fit_metrics": m}
+
+
+def tets_label(m, adapt=None):
+    """The tets' row of a fit's ``metrics.json`` ``m``: its solver, the share of an
+    adaptive mesh, and the basis when it is trilinear."""
+    solver = m.get("solver", {}).get("method", "adam")
+    basis = m.get("solver", {}).get("basis")
+    return f"tets ({solver}{f', adaptive {adapt:g}' if adapt else ''}" \
+        f"{', trilinear' if basis == 'trilinear' else ''})"
 
 
 #: The curve's meshes: uniform grids at these shares of the detector's resolution
@@ -416,11 +423,12 @@ def main_curve(a, info, out):
     for kind, values in (("grid", grids), ("adaptive", shares)):
         for f in values:
             r = max(2, int(round(f * fine)))
-            cfg = FitConfig(**base, **({"grid_resolution": r} if kind == "grid" else
-                                       {"adapt": f}))
+            cfg = FitConfig(**base, **({"grid_resolution": r, "basis": a.basis}
+                                       if kind == "grid" else {"adapt": f}))
             label = f"grid {r}" if kind == "grid" else f"adaptive {f:g}"
-            row, _, _ = tets_row(case, cfg, out / label.replace(" ", "_"))
-            rows.append(dict(mesh=kind, share=f, method=label, **row))
+            row, _, m = tets_row(case, cfg, out / label.replace(" ", "_"))
+            rows.append(dict(mesh=kind, share=f, method=label, basis=m["solver"]["basis"],
+                             **row))
             print(f"{label:<14} {row['unknowns']:>9,} unknowns {row['volume_psnr']:7.2f} dB "
                   f"SSIM {row['slice_ssim']:.4f} {row['seconds']:7.1f} s", flush=True)
     plot_curve(a.curve, rows, f"{name}, {a.views} views over {case.arc:g}°, "
@@ -437,9 +445,11 @@ def plot_curve(path, rows, title):
     fig = Figure(figsize=(5.0, 3.4))
     ax = fig.subplots()
     for kind, style in (("grid", "o-"), ("adaptive", "s-")):
-        pts = sorted((r["unknowns"], r["volume_psnr"]) for r in rows if r["mesh"] == kind)
-        ax.plot(*zip(*pts), style, label="uniform grid" if kind == "grid" else
-                "adaptive (a coarse grid split where it has detail)")
+        mine = [r for r in rows if r["mesh"] == kind]
+        pts = sorted((r["unknowns"], r["volume_psnr"]) for r in mine)
+        basis = f" ({mine[0].get('basis', 'linear')} field)"
+        ax.plot(*zip(*pts), style, label=("uniform grid" if kind == "grid" else
+                "adaptive (a coarse grid split where it has detail)") + basis)
     ax.set_xscale("log")
     ax.set_xlabel("unknowns (vertices)")
     ax.set_ylabel("volume PSNR (dB)")
@@ -698,7 +708,7 @@ def main_scan(a, info, out):
     from mi_tetvr.mesh.sample import sample_field
     panels["tets"] = sample_field(mesh.vertices, mesh.tets, mesh.opacity,
                                   grid.sample_points()).reshape(grid.values.shape)
-    score(f"tets ({m['solver']['method']})", None, tet_projections(mesh, data.test),
+    score(tets_label(m), None, tet_projections(mesh, data.test),
           m["unknowns"], time.perf_counter() - t0, passes=m["step"],
           penalty=m["solver"].get("penalty"),
           tuning={k: v for k, v in (m["solver"].get("tuning") or {}).items()

@@ -6,14 +6,15 @@ along each ray. With ``model="absorption"`` the ``tetmesh`` has a per-vertex
 attenuation ``mu`` and no emission; ``tetvr`` renders ``alpha = 1 - T``
 exactly (the attenuation is linear inside a tet), and the fit matches the
 optical depths ``-log T`` of the projections: a linear problem, solved by
-the default absorption fit as penalized weighted least squares (the tets'
-total variation, its weight chosen on views held out of the training ones).
+the default absorption fit as penalized weighted least squares (total
+variation at a fixed weight relative to the data's curvature).
 
 Steps: project a grid volume into parallel-beam views over 180 degrees
 (:func:`mi_tetvr.grid.xray.make_xray_dataset`: exact line integrals of the
 trilinear field, ``.npy`` transmittance images, orthographic cameras), fit
-the attenuation on a tet grid with one vertex per voxel (the default fit
-on the data set's box, :func:`mi_tetvr.recon.pipeline.run`), reconstruct
+the attenuation with one unknown per voxel (the default fit on the data
+set's box, :func:`mi_tetvr.recon.pipeline.run`: the grid's trilinear field,
+walked on tets of twice its cells per axis), reconstruct
 the same slices by scikit-image's filtered back-projection
 (:func:`mi_tetvr.grid.slices.reconstruct_slices`), and compare both with the
 truth at the voxels. Writes ``slices.png`` (truth | FBP | tets, the middle
@@ -77,9 +78,8 @@ def main(argv=None):
                              progress=not a.quiet)
     scale = made["info"]["attenuation_scale"]
     data = load_dataset(out / "data")
-    # 2. the tet fit, as `mi-tetvr fit DATA --model absorption` runs it: a grid with a
-    #    vertex on every voxel of the data set's box, the penalty's weight and the passes
-    #    chosen on training views held out of the solve
+    # 2. the tet fit, as `mi-tetvr fit DATA --model absorption` runs it: an unknown on
+    #    every voxel of the data set's box, their trilinear field walked on tets
     cfg = FitConfig(model="absorption", passes=a.passes)
     t0 = time.perf_counter()
     with warnings.catch_warnings():
@@ -100,7 +100,7 @@ def main(argv=None):
 
     result = {"psnr_tets": psnr(tets), "psnr_fbp": psnr(fbp),
               "projection_psnr": metrics["mean"]["psnr"], "seconds": seconds,
-              "vertices": len(mesh.vertices), "voxels": truth.size,
+              "unknowns": metrics["unknowns"], "voxels": truth.size,
               "files": {"mesh": str(out / "fit" / "attenuation.vtu"),
                         "slices": str(out / "slices.png")}}
     import matplotlib
@@ -118,7 +118,7 @@ def main(argv=None):
     plt.close(fig)
     if not a.quiet:
         print(f"{volume.shape} voxels, {a.views} projections: volume PSNR tets "
-              f"{result['psnr_tets']:.2f} dB ({result['vertices']:,} vertices, {seconds:.0f} s), "
+              f"{result['psnr_tets']:.2f} dB ({result['unknowns']:,} unknowns, {seconds:.0f} s), "
               f"FBP {result['psnr_fbp']:.2f} dB; held-out projections "
               f"{result['projection_psnr']:.2f} dB -> {out / 'slices.png'}")
     return result

@@ -115,24 +115,30 @@ def signed_volumes(vertices, tets):
     return _tet_geometry(vertices, tets)[0]
 
 
-def _tet_geometry(vertices, tets, longest=False):
-    """``(signed volumes, longest edges or None)`` (m,) float64, in chunks of
-    :data:`CHUNK` tets from one gather of their corners (no (m, 4, 3) or
-    (m, 6, 3) arrays)."""
+def _tet_geometry(vertices, tets, edges=None):
+    """``(signed volumes, edges or None)`` (m,) float64, ``edges`` per tet: its longest
+    edge (``"longest"``), the mean of its six edges' lengths (``"mean"``) or of their
+    squares (``"mean_square"``); in chunks of :data:`CHUNK` tets from one gather of
+    their corners (no (m, 4, 3) or (m, 6, 3) arrays)."""
     vertices, tets = np.asarray(vertices, dtype=np.float64), np.asarray(tets)
     vol = np.empty(len(tets))
-    edge = np.empty(len(tets)) if longest else None
+    edge = None if edges is None else np.empty(len(tets))
     for s in chunk_slices(len(tets)):
         p0, p1, p2, p3 = (vertices[tets[s, k]] for k in range(4))
         a, b, c = p1 - p0, p2 - p0, p3 - p0
         vol[s] = (a[:, 0] * (b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1])
                   + a[:, 1] * (b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2])
                   + a[:, 2] * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])) / 6.0
-        if longest:
-            l2 = np.zeros(s.stop - s.start)
-            for d in (a, b, c, p2 - p1, p3 - p1, p3 - p2):
-                np.maximum(l2, d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2], out=l2)
-            edge[s] = np.sqrt(l2)
+        if edges is None:
+            continue
+        acc = np.zeros(s.stop - s.start)
+        for d in (a, b, c, p2 - p1, p3 - p1, p3 - p2):       # the order of EDGES
+            l2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
+            if edges == "longest":
+                np.maximum(acc, l2, out=acc)
+            else:
+                acc += np.sqrt(l2) if edges == "mean" else l2
+        edge[s] = np.sqrt(acc) if edges == "longest" else acc / 6.0
     return vol, edge
 
 
@@ -218,7 +224,7 @@ def orient_tets(vertices, tets, flat_tol=FLAT_TOLERANCE) -> Orientation:
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     tets = np.asarray(tets)
-    vol, longest = _tet_geometry(vertices, tets, longest=True)
+    vol, longest = _tet_geometry(vertices, tets, "longest")
     flat = ~(np.abs(vol) > flat_tol * longest ** 3)  # NaN volumes count as flat
     flipped = (vol < 0) & ~flat
     return Orientation(flip_tets(tets, flipped), vol, flipped, flat)
@@ -383,7 +389,7 @@ def edge_lengths(vertices, tets):
 
 def longest_edges(vertices, tets):
     """(m,) float64: the longest edge of each tet (in chunks: no (m, 6, 3) array)."""
-    return _tet_geometry(vertices, tets, longest=True)[1]
+    return _tet_geometry(vertices, tets, "longest")[1]
 
 
 def bounding_radius(points) -> float:
@@ -407,7 +413,7 @@ def mean_edge_length(vertices, tets) -> float:
     -------
     float
     """
-    return float(edge_lengths(vertices, tets).mean())
+    return float(_tet_geometry(vertices, tets, "mean")[1].mean())
 
 
 def quality(vertices, tets):
@@ -424,9 +430,7 @@ def quality(vertices, tets):
     (m,) float64
         NaN for a tet whose four vertices coincide.
     """
-    d = _edge_vectors(vertices, tets)
-    l2 = sum(np.sum(d[:, k] ** 2, axis=1) for k in range(len(EDGES))) / 6.0
-    v = signed_volumes(vertices, tets)
+    v, l2 = _tet_geometry(vertices, tets, "mean_square")
     with np.errstate(divide="ignore", invalid="ignore"):
         q = 6.0 * np.sqrt(2.0) * v / np.maximum(l2, 1e-300) ** 1.5
     return q

@@ -300,12 +300,13 @@ class FitConfig:
         "(more than 1/8, at most 1; flat regions keep the coarse cells), the penalty the "
         "grid's; default: the grid. What each share gains and costs: the tomography guide",
         metavar="SHARE", parse=parse_share)
-    basis: str = setting(
-        "linear", "model absorption, linear solvers: the attenuation between the grid's "
+    basis: str | None = setting(
+        None, "model absorption, linear solvers: the attenuation between the grid's "
         "unknowns (one per vertex): linear in each of its tets, or trilinear (the grid's "
         "trilinear field, walked on tets of twice its cells per axis: the same unknowns, "
-        "eight times the tets, about twice the time; not with --adapt). What each gains "
-        "and costs: the tomography guide",
+        "eight times the tets, two to four times the time; not with --adapt); default: "
+        "trilinear where that walk has at most 16M tets, else linear (linear with --adapt; "
+        "a resumed fit keeps its own). What each gains and costs: the tomography guide",
         choices=("linear", "trilinear"))
     validation: int = setting(
         8, "model absorption, sart/sirt (and pwls with --tv heldout): every K-th training view "
@@ -519,7 +520,7 @@ class FitConfig:
 
     def _validate_models(self):
         """Settings that belong to one model, solver or kind of fit."""
-        if self.basis != "linear" and (self.linear_solver is None or self.adapt_share):
+        if self.basis == "trilinear" and (self.linear_solver is None or self.adapt_share):
             raise ValueError(f"basis {self.basis} is the field of model absorption's linear "
                              f"solvers on a grid" + (": adapt splits the tets of the linear "
                                                      "field; use one or the other"

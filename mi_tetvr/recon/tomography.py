@@ -56,6 +56,11 @@ DEFAULT_PASSES = {"pwls": 24, "sart": 15, "sirt": 200, "lsqr": 12}
 #: Held-out tuning: the most passes tried (the solve stops earlier once the
 #: held-out views stop improving).
 MAX_PASSES = {"sart": 30, "sirt": 300}
+#: The default basis is trilinear where its walk (48 tets per grid cell) has at most
+#: this many tets (a grid of about 70^3 cells), else linear: a fit's memory peaks at
+#: about 600 bytes per walked tet (3.5 GB on the 5.6M of a 47x61x41-cell grid's walk),
+#: eight times the linear field's tets at the same unknowns.
+TRILINEAR_TETS = 16_000_000
 #: Noisy data: the passes stop when the weighted residual falls by less than
 #: this fraction in a pass (on the head MR at 10^4 photons the volume PSNR
 #: peaked there, at 6 passes of SART).
@@ -849,7 +854,25 @@ class _AttenuationFit:
         self.max_passes = MAX_PASSES[self.solver] if self.tuning and self.solver != "pwls" \
             else self.passes
         self.saved = self.tuned = self.weight = self.reference = None
-        self.trilinear, self.vertex_basis = config.basis == "trilinear", None
+        self.vertex_basis, self.basis_given = None, config.basis
+        self.set_basis(config.basis or self.default_basis())
+
+    def default_basis(self):
+        """Trilinear where its walk has at most :data:`TRILINEAR_TETS` tets (and the fit
+        is on a grid, not an adaptive mesh), else linear; logged."""
+        from mi_tetvr.mesh.initial import grid_shape
+        walked = 48 * int(np.prod(grid_shape(self.box, self.resolution)))
+        why = "a graded mesh's field is linear" if self.config.adapt_share is not None else \
+            f"its walk would have {walked:,} tets, more than {TRILINEAR_TETS:,}" \
+            if walked > TRILINEAR_TETS else None
+        basis = "trilinear" if why is None else "linear"
+        self.log(f"basis {basis} (the default" + (f": {why})" if why else ")"))
+        return basis
+
+    def set_basis(self, basis):
+        """The field between the unknowns, in the config the fit saves."""
+        self.config = dataclasses.replace(self.config, basis=basis)
+        self.trilinear = basis == "trilinear"
 
     def deadline(self, share):
         """A function that says when ``share`` of the time budget is spent (None: no budget)."""
@@ -863,7 +886,12 @@ class _AttenuationFit:
         from mi_tetvr.recon.pipeline import check_resume
         if not self.ckpt.is_file():
             return None
-        check_resume(self.config, self.ckpt)
+        # the default basis is the saved fit's (linear before there was a choice)
+        given = self.basis_given
+        settings = check_resume(dataclasses.replace(self.config, basis=given), self.ckpt)
+        if given is None and (settings.get("basis") or "linear") != self.config.basis:
+            self.set_basis(settings.get("basis") or "linear")
+            self.log(f"basis {self.config.basis}: the resumed fit's")
         saved = load_checkpoint(self.ckpt, self.dataset, self.config)
         self.saved = saved.arrays()[:2]
         self.grids = self.grids[-1:]

@@ -174,7 +174,8 @@ def test_one_row_scan_fits_as_many_unknowns_as_its_slice(tmp_path):
     cli(["process-xray", str(tmp_path / "s.h5"), "-o", str(tmp_path / "d"), "--center",
          str(CENTER), "--pixel-size", str(PIXEL), "--flux", "none", "-q"])
     data = load_dataset(tmp_path / "d")
-    m = run(data, tmp_path / "fit", FitConfig(model="absorption", passes=8, validation=0),
+    m = run(data, tmp_path / "fit", FitConfig(model="absorption", passes=8, validation=0,
+                                              basis="linear"),
             progress=False, log=lambda *a: None)
     nx, ny, nz = vol.shape
     assert nz == 1 and m["unknowns"] == nx * ny
@@ -191,11 +192,11 @@ def test_one_row_scan_fits_as_many_unknowns_as_its_slice(tmp_path):
     fbp = reconstruct_slices(vol, data.train, 2.0, "fbp")
     rms = lambda v: np.sqrt(np.mean((np.clip(v, 0, 1) - truth) ** 2))  # noqa: E731
     assert rms(tets) < rms(fbp), (rms(tets), rms(fbp))
-    # the trilinear basis ties them alike: the walked tets' three layers are one slice
-    m = run(data, tmp_path / "tri", FitConfig(model="absorption", passes=8, validation=0,
-                                              basis="trilinear"),
+    # the trilinear basis (the default) ties them alike: the walked tets' three layers
+    # are one slice
+    m = run(data, tmp_path / "tri", FitConfig(model="absorption", passes=8, validation=0),
             progress=False, log=lambda *a: None)
-    assert m["unknowns"] == nx * ny
+    assert m["unknowns"] == nx * ny and m["solver"]["basis"] == "trilinear"
     mesh = read_tetmesh(tmp_path / "tri" / "attenuation.vtu", opacity="attenuation")
     layers = np.round(mesh.vertices[:, 2], 9)
     assert len(np.unique(layers)) == 3 and len(mesh.vertices) == 3 * (2 * nx - 1) * (2 * ny - 1)

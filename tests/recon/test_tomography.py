@@ -366,8 +366,8 @@ def test_graded_mesh_keeps_the_grids_penalty(blob_data):
 
 
 def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path):
-    """The default absorption fit (penalized weighted least squares on a tet
-    grid on the detector's pixels) lands on the true attenuation at the
+    """The default absorption fit (penalized weighted least squares on the
+    trilinear field of a tet grid on the detector's pixels) lands on the true attenuation at the
     samples; SART, SIRT and LSQR too; the coarse-to-fine stages start the
     fine grid from the coarse one's field; the adaptive mesh (a coarse grid
     split where its field changes, to 3/4 of the grid's unknowns) stays within
@@ -390,22 +390,26 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
                      ("c2f", {"solver": "sart", "passes": 8, **fixed,
                               "stages": [{"iterations": 1, "grid": 4}, {"iterations": 1}]}),
                      ("adapt", {"adapt": 0.75, "tv": 0.1, "passes": 12}),
-                     ("trilinear", {"basis": "trilinear"}),
-                     ("grid7", {"grid_resolution": 7, "tv": 0.1, "passes": 12})):
+                     ("linear", {"basis": "linear"}),
+                     ("grid7", {"grid_resolution": 7, "tv": 0.1, "passes": 12,
+                                "basis": "linear"})):
         m = run(data, tmp_path / name, FitConfig(model="absorption", **kw), progress=False,
                 log=lambda *a: None)
         mesh = mi_tetvr.read_tetmesh(tmp_path / name / "attenuation.vtu", opacity="attenuation")
-        # one vertex per sample; the adaptive mesh at most 3/4 as many (its share)
-        assert len(mesh.vertices) == truth.size or \
+        # by default the grid's trilinear field, walked on tets of twice its cells (so
+        # small a walk is well under the default's cap); an adaptive mesh's is linear
+        basis = kw.get("basis") or ("linear" if "adapt" in kw else "trilinear")
+        assert m["solver"]["basis"] == basis, (name, m["solver"])
+        # one vertex per sample (or per walked vertex); the adaptive mesh at most 3/4 as
+        # many (its share)
+        assert len(mesh.vertices) == (17 ** 3 if basis == "trilinear" else truth.size) or \
             (name == "adapt" and truth.size // 2 < len(mesh.vertices) <= 0.75 * truth.size) \
-            or (name == "grid7" and len(mesh.vertices) == 8 ** 3) \
-            or (name == "trilinear" and len(mesh.vertices) == 17 ** 3)
+            or (name == "grid7" and len(mesh.vertices) == 8 ** 3)
         # the trilinear basis walks tets of twice the cells: its unknowns are the grid's
-        assert m["unknowns"] == (truth.size if name == "trilinear" else len(mesh.vertices))
+        assert m["unknowns"] == (truth.size if basis == "trilinear" else len(mesh.vertices))
         field = sample_field(mesh.vertices, mesh.tets, mesh.opacity / scale, pts)
         got[name] = tomography_scores(field.reshape(truth.shape), truth)["volume_psnr"]
         assert m["solver"]["method"] == kw.get("solver", "pwls")
-        assert m["solver"]["basis"] == kw.get("basis", "linear")
         penalty, tuning = m["solver"].get("penalty"), m["solver"]["tuning"]
         if name == "pwls":
             assert penalty == {"tv": LAMBDA_DEFAULT, "chosen": "the default rule"} and \
@@ -416,10 +420,35 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
             assert len(tuning["trials"]) >= 3 and penalty["tv"] == best["lam"] == \
                 tuning["tv"] and penalty["chosen"] == "on held-out views", m["solver"]
     assert got["pwls"] > 40 and got["heldout"] > 40 and got["sart"] > 40, got
-    assert got["trilinear"] > 40, got
+    assert got["linear"] > 40, got
     assert got["sirt"] > 30 and got["lsqr"] > 30, got
     # the split pays: above the uniform grid of about as many unknowns (512 against 542)
     assert got["c2f"] > 40 and got["adapt"] > 35 and got["adapt"] > got["grid7"], got
+
+
+def test_default_basis_is_trilinear_under_its_cap(blob_data, tmp_path, monkeypatch):
+    """The default basis is trilinear where its walk has at most ``TRILINEAR_TETS``
+    tets, else linear, and the log says why; a resumed fit keeps its own basis by
+    default, and another one given is refused in one line."""
+    import mi_tetvr.recon.tomography as tomo
+    data = blob_data[2]
+    quick = dict(model="absorption", solver="sart", passes=2, validation=0)
+    # the blob's grid has 8^3 cells: the walk 48 tets each, one more than the cap
+    monkeypatch.setattr(tomo, "TRILINEAR_TETS", 48 * 8 ** 3 - 1)
+    logs = []
+    m = run(data, tmp_path / "fit", FitConfig(**quick), progress=False, log=logs.append)
+    assert m["solver"]["basis"] == "linear" and m["unknowns"] == 9 ** 3
+    assert "basis linear (the default: its walk would have 24,576 tets, more than " \
+        "24,575)" in logs, logs
+    monkeypatch.setattr(tomo, "TRILINEAR_TETS", 48 * 8 ** 3)
+    logs.clear()
+    m = run(data, tmp_path / "fit", FitConfig(**quick), progress=False, log=logs.append)
+    assert m["solver"]["basis"] == "linear" and "basis linear: the resumed fit's" in logs
+    with pytest.raises(ValueError, match='basis: "linear" there, "trilinear" now'):
+        run(data, tmp_path / "fit", FitConfig(**quick, basis="trilinear"), progress=False,
+            log=logs.append)
+    m = run(data, tmp_path / "new", FitConfig(**quick), progress=False, log=logs.append)
+    assert m["solver"]["basis"] == "trilinear" and "basis trilinear (the default)" in logs
 
 
 def test_faces_are_in_the_projections_and_cameras_survive_json(tmp_path):
