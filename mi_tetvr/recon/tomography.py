@@ -57,9 +57,9 @@ DEFAULT_PASSES = {"pwls": 24, "sart": 15, "sirt": 200, "lsqr": 12}
 #: held-out views stop improving).
 MAX_PASSES = {"sart": 30, "sirt": 300}
 #: The default basis is trilinear where its walk (48 tets per grid cell) has at most
-#: this many tets (a grid of about 70^3 cells), else linear: a fit's memory peaks at
-#: about 600 bytes per walked tet (3.5 GB on the 5.6M of a 47x61x41-cell grid's walk),
-#: eight times the linear field's tets at the same unknowns.
+#: this many tets (a grid of about 70^3 cells, about 8 GB), else linear: a fit's memory
+#: peaks at about 500 bytes per walked tet (2.8 GB on the 5.6M of a 47x61x41-cell grid's
+#: walk, against 0.9 GB for the linear field's 0.7M tets).
 TRILINEAR_TETS = 16_000_000
 #: Noisy data: the passes stop when the weighted residual falls by less than
 #: this fraction in a pass (on the head MR at 10^4 photons the volume PSNR
