@@ -872,7 +872,10 @@ class _AttenuationFit:
     def set_basis(self, basis):
         """The field between the unknowns, in the config the fit saves."""
         self.config = dataclasses.replace(self.config, basis=basis)
-        self.trilinear = basis == "trilinear"
+
+    @property
+    def trilinear(self):
+        return self.config.basis == "trilinear"
 
     def deadline(self, share):
         """A function that says when ``share`` of the time budget is spent (None: no budget)."""
