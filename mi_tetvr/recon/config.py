@@ -295,18 +295,19 @@ class FitConfig:
         metavar="W|heldout", parse=parse_weight)
     adapt: float | None = setting(
         None, "model absorption, pwls: unknowns where the volume has detail: solve a grid of "
-        "half the cells per axis, then split its vertices where the field changes most, back "
-        "to the fine grid's vertices, until the mesh has SHARE of the fine grid's unknowns "
-        "(more than 1/8, at most 1; flat regions keep the coarse cells), the penalty the "
-        "grid's; default: the grid. What each share gains and costs: the tomography guide",
+        "half the cells per axis, then split its cells (trilinear basis) or vertices (linear) "
+        "where the field changes most, back to the fine grid's vertices, until there are "
+        "SHARE of the fine grid's unknowns (more than 1/8, at most 1; flat regions keep the "
+        "coarse cells, and are walked on coarse tets), the penalty the grid's; default: the "
+        "grid. What each share gains and costs: the tomography guide",
         metavar="SHARE", parse=parse_share)
     basis: str | None = setting(
         None, "model absorption, linear solvers: the attenuation between the grid's "
         "unknowns (one per vertex): linear in each of its tets, or trilinear (the grid's "
         "trilinear field, walked on tets of twice its cells per axis: the same unknowns, "
-        "eight times the tets, two to four times the time; not with --adapt); default: "
-        "trilinear where that walk has at most 16M tets, else linear (linear with --adapt; "
-        "a resumed fit keeps its own). What each gains and costs: the tomography guide",
+        "eight times the tets, two to four times the time); default: trilinear where that "
+        "walk has at most 16M tets, else linear (a resumed fit keeps its own). What each "
+        "gains and costs: the tomography guide",
         choices=("linear", "trilinear"))
     validation: int = setting(
         8, "model absorption, sart/sirt (and pwls with --tv heldout): every K-th training view "
@@ -520,11 +521,9 @@ class FitConfig:
 
     def _validate_models(self):
         """Settings that belong to one model, solver or kind of fit."""
-        if self.basis == "trilinear" and (self.linear_solver is None or self.adapt_share):
+        if self.basis == "trilinear" and self.linear_solver is None:
             raise ValueError(f"basis {self.basis} is the field of model absorption's linear "
-                             f"solvers on a grid" + (": adapt splits the tets of the linear "
-                                                     "field; use one or the other"
-                                                     if self.adapt_share else ""))
+                             f"solvers")
         if self.tv is not None and self.linear_solver not in (None, "pwls"):
             raise ValueError(f"tv is the penalty weight of solver pwls; solver "
                              f"{self.linear_solver} has none")

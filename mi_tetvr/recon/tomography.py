@@ -33,8 +33,8 @@ the same outputs as every fit.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
-import itertools
 import json
 import time
 from pathlib import Path
@@ -257,27 +257,16 @@ def trilinear_grid(box, resolution: int):
         Each vertex's trilinear weights on the grid's ``n`` vertices
         (:class:`Projector`'s ``basis``).
     """
-    with needs("recon", "the absorption fit"):
-        from scipy.sparse import csr_matrix
     from mi_tetvr.mesh.generate import grid_mesh
     from mi_tetvr.mesh.initial import grid_shape
     from mi_tetvr.mesh.topology import check_bounds
+    from mi_tetvr.recon.octree import trilinear_rows
     box = check_bounds(box)
     cells = np.asarray(grid_shape(box, resolution))
     v, t = grid_mesh(tuple(int(c) for c in 2 * cells), box[0], box[1])
     idx = np.stack(np.meshgrid(*[np.arange(2 * c + 1) for c in cells], indexing="ij"),
                    -1).reshape(-1, 3)
-    low = np.minimum(idx // 2, cells - 1)               # the grid cell of each fine vertex
-    frac = idx / 2.0 - low
-    rows, cols, vals = [], [], []
-    for corner in itertools.product((0, 1), repeat=3):
-        w = np.prod(np.where(corner, frac, 1.0 - frac), axis=1)
-        i = low + corner
-        col = (i[:, 0] * (cells[1] + 1) + i[:, 1]) * (cells[2] + 1) + i[:, 2]
-        keep = np.nonzero(w > 0)[0]
-        rows.append(keep), cols.append(col[keep]), vals.append(w[keep])
-    basis = csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                       shape=(len(v), int(np.prod(cells + 1))))
+    basis = trilinear_rows(idx, cells)
     return v.astype(np.float64), t.astype(np.int64), basis
 
 
@@ -416,7 +405,8 @@ class TetGradient:
     vertices : (n, 3) float
     tets : (m, 4) int
     unknowns : (n,) int, optional
-        Each vertex's unknown, as :class:`Projector`'s: ``G`` then acts on them.
+        Each vertex's unknown, as :class:`Projector`'s: ``G`` then acts on them
+        (weights on them: :meth:`on`).
     """
 
     def __init__(self, vertices, tets, unknowns=None):
@@ -438,11 +428,21 @@ class TetGradient:
         if unknowns is not None:
             cols = np.asarray(unknowns, np.int64)[cols]
             n = int(np.max(unknowns)) + 1
-        self.G = csr_matrix((grads.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * m, n))
+        self._set(csr_matrix((grads.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * m, n)))
+
+    def _set(self, G):
+        self.G = G
         self.G_abs = abs(self.G)
         self._row_abs = np.asarray(self.G_abs.sum(axis=1)).ravel()
         self._abs_T = self.G_abs.T.tocsr()
         self._T = self.G.T.tocsr()
+
+    def on(self, basis) -> TetGradient:
+        """This gradient acting on unknowns ``u`` whose vertex values are ``x = E u``
+        (``basis``: a scipy.sparse matrix, as :class:`Projector`'s)."""
+        other = copy.copy(self)
+        other._set((self.G @ basis).tocsr())
+        return other
 
     def total_variation(self, x) -> float:
         """``sum_t vol_t |G_t x|``."""
@@ -519,13 +519,16 @@ class PenalizedLS:
     subsets : int
         ``M`` (at most the views; each subset interleaves views spread over
         the scan).
-    reference : (beta0, cell), optional
+    reference : (beta0, cell) or (beta0, cell, E), optional
         Another mesh's ``beta0`` and cell size (:func:`grid_penalty_scale`:
         the detector's grid) for this one's: the weight and the corner are then
-        absolute, the same penalty as on that mesh. A graded mesh's own mean
-        curvatures are its coarse cells' (the data's grows as ``h^3``, the
-        penalty's as ``h``: 4 times the ratio at twice the cell): its
-        ``beta0`` would be larger, the penalty stiffer where it is fine.
+        absolute, the same penalty as on that mesh. ``E`` (sparse, that grid's
+        vertices by these unknowns): the grid's values, whose percentile sets
+        ``delta`` (a graded grid's unknowns crowd where the volume has
+        detail). A graded mesh's own mean curvatures are its coarse cells'
+        (the data's grows as ``h^3``, the penalty's as ``h``: 4 times the ratio
+        at twice the cell): its ``beta0`` would be larger, the penalty stiffer
+        where it is fine.
     """
 
     def __init__(self, projector: Projector, b, weights, gradient: TetGradient, views=None,
@@ -543,15 +546,18 @@ class PenalizedLS:
         self.beta0 = float(np.mean(self.d)) / max(float(np.mean(gradient.curvature_scale())),
                                                   1e-30)
         cell = float(np.cbrt(6.0 * np.median(gradient.volumes)))   # a Kuhn cube's side
+        self.values = None
         if reference is not None:
-            self.beta0, cell = (float(r) for r in reference)
+            self.beta0, cell = (float(r) for r in reference[:2])
+            self.values = reference[2] if len(reference) > 2 else None
         self.delta, self.cell = None, cell
 
     def start(self, passes: int = 2, x0=None, callback=None):
         """Unregularized passes from ``x0`` (default 0); sets ``delta`` from
         their result, which it returns."""
         x = self.solve(0.0, passes, x0, callback=callback)
-        self.delta = EDGE * max(float(np.percentile(x, 99.5)), 1e-12) / self.cell
+        grid = x if self.values is None else self.values @ x
+        self.delta = EDGE * max(float(np.percentile(grid, 99.5)), 1e-12) / self.cell
         return x
 
     def solve(self, lam: float, passes: int, x0=None, held_out: HeldOut | None = None,
@@ -752,6 +758,21 @@ def grid_penalty_scale(box, resolution, cameras, b, weights):
     return pls.beta0, pls.cell
 
 
+def fine_penalty_scale(projector, weights, gradient):
+    """:class:`PenalizedLS`'s ``(beta0, cell)`` with one unknown per vertex of
+    ``gradient``'s grid (its plain :class:`TetGradient`), from a ``projector`` over the
+    same box with any basis whose rows sum to 1 (:class:`~mi_tetvr.recon.octree.GradedGrid`'s):
+    the data's curvatures ``A^T W A 1`` then sum to ``sum_i w_i L_i^2`` (``L_i`` a
+    ray's length in the box) whatever the unknowns, so one projection gives their
+    mean over the grid's vertices. The penalty a graded grid keeps, as
+    :func:`grid_penalty_scale`'s."""
+    length = projector.forward(np.ones(projector.n))
+    w = np.ones_like(length) if weights is None else np.asarray(weights, np.float64)
+    d = float(np.sum(w * length * length)) / gradient.G.shape[1]
+    return (d / max(float(np.mean(gradient.curvature_scale())), 1e-30),
+            float(np.cbrt(6.0 * np.median(gradient.volumes))))
+
+
 def _pwls_stage(projector, b, weights, gradient, x0, config, passes, tune, tune_deadline,
                 solve, log, near=None, reference=None):
     """One mesh's :class:`PenalizedLS` solve for :func:`fit_attenuation`:
@@ -854,16 +875,16 @@ class _AttenuationFit:
         self.max_passes = MAX_PASSES[self.solver] if self.tuning and self.solver != "pwls" \
             else self.passes
         self.saved = self.tuned = self.weight = self.reference = None
+        self.octree = self.fine_gradient = None
         self.vertex_basis, self.basis_given = None, config.basis
         self.set_basis(config.basis or self.default_basis())
 
     def default_basis(self):
-        """Trilinear where its walk has at most :data:`TRILINEAR_TETS` tets (and the fit
-        is on a grid, not an adaptive mesh), else linear; logged."""
+        """Trilinear where the grid's walk has at most :data:`TRILINEAR_TETS` tets (an
+        adaptive one's has fewer), else linear; logged."""
         from mi_tetvr.mesh.initial import grid_shape
         walked = 48 * int(np.prod(grid_shape(self.box, self.resolution)))
-        why = "a graded mesh's field is linear" if self.config.adapt_share is not None else \
-            f"its walk would have {walked:,} tets, more than {TRILINEAR_TETS:,}" \
+        why = f"its walk would have {walked:,} tets, more than {TRILINEAR_TETS:,}" \
             if walked > TRILINEAR_TETS else None
         basis = "trilinear" if why is None else "linear"
         self.log(f"basis {basis} (the default" + (f": {why})" if why else ")"))
@@ -910,18 +931,19 @@ class _AttenuationFit:
 
     def plan(self, x0):
         """The meshes solved in turn, as ``(kind, grid resolution)``."""
-        solver = self.solver
-        adapt = self.graded and x0 is None
-        if self.config.adapt_share is not None and not adapt:
-            self.log("adapt: " + (
-                "a one-row detector's slab has no cells to coarsen" if self.one_row else
-                "the resumed fit goes on on its own mesh" if x0 is not None else
-                f"solver {solver} solves on the grid"))
-        stages = [("grid", g) for g in self.grids] if x0 is None or self.trilinear else \
-            [("saved", self.resolution)]
-        if adapt:
+        if self.config.adapt_share is not None and not self.graded:
+            self.log("adapt: " + ("a one-row detector's slab has no cells to coarsen"
+                                  if self.one_row else f"solver {self.solver} solves on the grid"))
+        if x0 is not None and not self.trilinear:
+            if self.graded:
+                self.log("adapt: the resumed fit goes on on its own mesh")
+            return [("saved", self.resolution)]
+        stages = [("grid", g) for g in self.grids]
+        if self.graded:
             # the last grid's unknowns, spent where a grid of twice its cells finds detail
-            stages[-1:] = [("coarse", self.resolution), ("adaptive", self.resolution)]
+            # (the trilinear field's cells split anew from a resumed one's field)
+            stages[-1:] = [("coarse", self.resolution)] * (x0 is None) + \
+                [("adaptive", self.resolution)]
         return stages
 
     def progress_bar(self, progress, adapt):
@@ -938,6 +960,8 @@ class _AttenuationFit:
     def mesh(self, kind, g, prev):
         """The vertices and tets of a planned mesh, and (adaptive) the field on it."""
         from mi_tetvr.mesh.initial import grid_init, grid_shape
+        if self.trilinear and kind in ("coarse", "adaptive"):
+            return self.graded_grid(kind, g, prev)
         if kind == "adaptive":
             grid_vertices = int(np.prod(np.asarray(grid_shape(self.box, g)) + 1))
             v, t, x, split = adaptive_mesh(*prev, int(self.config.adapt_share * grid_vertices))
@@ -951,6 +975,35 @@ class _AttenuationFit:
             return (*self.saved, None)
         return (*grid_init(self.box, g), None)
 
+    def graded_grid(self, kind, g, prev):
+        """The trilinear field's graded grid (:class:`~mi_tetvr.recon.octree.GradedGrid`,
+        :attr:`octree`) over the cells of ``grid_init(box, g)``, two per coarse cell: none
+        split (``coarse``), or split where ``prev``'s field changes most, within
+        ``config.adapt`` of the grid's unknowns. Returns the fine grid's vertices and
+        tets (its penalty's) and the field to start from: none after the coarse grid
+        (whose field only chooses the cells split: the graded grid starts from zero, as
+        the grid does), a resumed fit's on its vertices."""
+        from mi_tetvr.mesh.initial import grid_shape
+        from mi_tetvr.mesh.sample import sample_field
+        from mi_tetvr.recon.octree import GradedGrid, fine_mesh
+        fine = np.asarray(grid_shape(self.box, g))
+        cell, coarse = (self.box[1] - self.box[0]) / fine, (fine + 1) // 2
+        if kind == "coarse":
+            self.octree = GradedGrid.uniform(self.box[0], cell, coarse)
+            return (*self.octree.fine_mesh(), None)
+        v, t = fine_mesh(self.box[0], cell, 2 * coarse)
+        # after the coarse grid its field is on these vertices; a resumed walk's, sampled
+        resumed = self.octree is None
+        u = sample_field(*prev[:3], v) if resumed else prev[2]
+        grid = int(np.prod(fine + 1))                  # the grid's unknowns
+        self.octree = GradedGrid.refined(self.box[0], cell, coarse, u,
+                                         int(self.config.adapt_share * grid))
+        split = self.octree.split
+        self.log(f"adaptive grid: split {int(split.sum()):,} of the {split.size:,} coarse "
+                 f"cells, where the field changes most: {self.octree.n:,} unknowns "
+                 f"({self.octree.n / grid:.0%} of the grid's {grid:,})")
+        return v, t, u if resumed else None
+
     def solve(self, x0):
         """Every planned mesh solved in turn, each from the last one's field. Returns
         the last mesh's ``(vertices, tets, topology, attenuation)``."""
@@ -959,9 +1012,9 @@ class _AttenuationFit:
         from mi_tetvr.mesh.topology import build_topology
         stages = self.plan(x0)
         self.bar = self.progress_bar(self.progress, stages[-1][0] == "adaptive")
-        if self.graded:
+        if self.graded and not self.trilinear:
             # the coarse and the graded mesh (a resumed one too) keep the penalty of the
-            # grid they stand for
+            # grid they stand for (the trilinear field's: :meth:`penalty`)
             self.reference = grid_penalty_scale(self.box, stages[-1][1], self.cameras, self.b,
                                                 self.weights)
         self.train_begin = self.now()
@@ -973,23 +1026,26 @@ class _AttenuationFit:
             last = (kind, g) == stages[-1]
             v, t, adapted = self.mesh(kind, g, prev)
             topology = build_topology(v, t)
+            graded = self.trilinear and kind in ("coarse", "adaptive")
             # a slab over a one-row detector: one unknown per vertical pair of vertices
-            unknowns = tied_unknowns(v) if self.one_row and grid_shape(self.box, g)[2] == 1 \
-                else None
-            walk = self.walk(v, t, topology, g, unknowns, last)
+            unknowns = self.octree.P if graded else tied_unknowns(v) \
+                if self.one_row and grid_shape(self.box, g)[2] == 1 else None
+            walk = self.walk(v, t, topology, g, unknowns, last, graded)
             if adapted is not None:
                 x = adapted
-            elif prev is not None:
+            elif prev is not None and kind != "adaptive":
                 x = sample_field(*prev[:3], v)
             if x is not None and unknowns is not None:
-                x = np.bincount(unknowns, x) / np.bincount(unknowns)
-            gradient = TetGradient(v, topology.tets, unknowns) if self.solver == "pwls" \
-                else None
+                x = x[self.octree.free] if graded else \
+                    np.bincount(unknowns, x) / np.bincount(unknowns)
             self.projector = Projector(*walk[:2], self.cameras, *walk[2:])
+            gradient = self.penalty(v, topology, unknowns, graded)
+            # a graded grid's corner from its fine grid's values
+            reference = (*self.reference, unknowns) if graded else self.reference
             x, lam = self.solve_mesh(x, gradient, self.tuning and (last or kind == "coarse"),
-                                     lam)
+                                     lam, reference)
             if unknowns is not None:
-                x = x[unknowns]                   # the vertices' values
+                x = unknowns @ x if graded else x[unknowns]       # the vertices' values
             prev = (v, topology.tets, x, gradient)
         self.bar.close()
         if self.trilinear:
@@ -997,27 +1053,40 @@ class _AttenuationFit:
             return *walk[:3], self.vertex_basis @ x
         return v, t, topology, x
 
-    def walk(self, v, t, topology, g, unknowns, last):
+    def penalty(self, v, topology, unknowns, graded):
+        """pwls's :class:`TetGradient` on the mesh's tets, on its unknowns (None for
+        the other solvers). A graded grid's is its fine grid's on the unknowns, its
+        weight that grid's (:func:`fine_penalty_scale`, :attr:`reference`)."""
+        if self.solver != "pwls":
+            return None
+        if not graded:
+            return TetGradient(v, topology.tets, unknowns)
+        fine = TetGradient(v, topology.tets)
+        if self.reference is None:
+            self.reference = fine_penalty_scale(self.projector, self.weights, fine)
+        return fine.on(unknowns)
+
+    def walk(self, v, t, topology, g, unknowns, last, graded=False):
         """The tets the projections walk and the unknowns' basis on them, as
         :class:`Projector`'s ``(vertices, tets, topology, basis)``: the grid's own tets
-        and its vertices (tied on a slab), or :func:`trilinear_grid`'s. Logs the
-        last mesh's summary."""
+        and its vertices (tied on a slab), :func:`trilinear_grid`'s, or (``graded``)
+        :attr:`octree`'s. Logs the last mesh's summary."""
         from mi_tetvr.mesh.topology import build_topology, format_summary, geometry_summary
         basis = unknowns
         if self.trilinear:
-            v, t, basis = trilinear_grid(self.box, g)
+            v, t, basis = self.octree.walk() if graded else trilinear_grid(self.box, g)
             topology = build_topology(v, t)
             self.vertex_basis = basis                # on the grid's vertices, not tied
             if unknowns is not None:
                 basis = basis @ basis_matrix(unknowns, basis.shape[1])
         if last:
             self.log(format_summary(geometry_summary(v, topology)))
-            if unknowns is not None:
+            if unknowns is not None and not graded:
                 self.log(f"one detector row: {unknowns.max() + 1:,} unknowns, the slab's "
                          f"two vertex layers alike")
             if self.trilinear:
-                self.log(f"basis trilinear: the grid's {basis.shape[1]:,} unknowns, their "
-                         f"trilinear field walked on {len(t):,} tets")
+                self.log(f"basis trilinear: the {'graded ' * graded}grid's {basis.shape[1]:,} "
+                         f"unknowns, their trilinear field walked on {len(t):,} tets")
         return v, t, topology, basis
 
     def record(self, p, x, residual, mse):
@@ -1031,10 +1100,11 @@ class _AttenuationFit:
         self.bar.update(1)
         self.bar.set_postfix(residual=f"{residual:.3g}")
 
-    def solve_mesh(self, x, gradient, tune, lam):
+    def solve_mesh(self, x, gradient, tune, lam, reference=None):
         """The solver on the current projector from ``x``, its passes (and pwls's
-        weight, near ``lam``) tuned on held-out views when ``tune``. Returns the
-        attenuation and the weight chosen."""
+        weight, near ``lam``) tuned on held-out views when ``tune``; pwls's penalty
+        scaled by ``reference`` (:class:`PenalizedLS`'s). Returns the attenuation and
+        the weight chosen."""
         projector, b, weights, config = self.projector, self.b, self.weights, self.config
         solve = dict(deadline=self.deadline(0.9), callback=self.record)
         if self.solver == "lsqr":
@@ -1043,7 +1113,7 @@ class _AttenuationFit:
             # the tuning leaves a third of the time budget to the final solve
             x, record = _pwls_stage(projector, b, weights, gradient, x, config, self.passes,
                                     tune, self.deadline(0.6), solve, self.log, near=lam,
-                                    reference=self.reference)
+                                    reference=reference)
             self.weight = {k: record[k] for k in ("tv", "chosen")}
             self.tuned = record if tune else None
             return x, record["tv"]

@@ -369,9 +369,10 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
     """The default absorption fit (penalized weighted least squares on the
     trilinear field of a tet grid on the detector's pixels) lands on the true attenuation at the
     samples; SART, SIRT and LSQR too; the coarse-to-fine stages start the
-    fine grid from the coarse one's field; the adaptive mesh (a coarse grid
-    split where its field changes, to 3/4 of the grid's unknowns) stays within
-    them and beats the uniform grid of about as many."""
+    fine grid from the coarse one's field; the adaptive grid (a coarse grid's
+    cells split where its trilinear field changes, to 3/4 of the grid's unknowns)
+    and the adaptive linear mesh (its vertices split) stay within them and beat the
+    uniform grid of about as many."""
     from mi_tetvr.mesh.sample import sample_field
     from mi_tetvr.recon.metrics import tomography_scores
     vol, made, data = blob_data
@@ -390,6 +391,8 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
                      ("c2f", {"solver": "sart", "passes": 8, **fixed,
                               "stages": [{"iterations": 1, "grid": 4}, {"iterations": 1}]}),
                      ("adapt", {"adapt": 0.75, "tv": 0.1, "passes": 12}),
+                     ("adapt_linear", {"adapt": 0.75, "tv": 0.1, "passes": 12,
+                                       "basis": "linear"}),
                      ("linear", {"basis": "linear"}),
                      ("grid7", {"grid_resolution": 7, "tv": 0.1, "passes": 12,
                                 "basis": "linear"})):
@@ -397,16 +400,23 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
                 log=lambda *a: None)
         mesh = mi_tetvr.read_tetmesh(tmp_path / name / "attenuation.vtu", opacity="attenuation")
         # by default the grid's trilinear field, walked on tets of twice its cells (so
-        # small a walk is well under the default's cap); an adaptive mesh's is linear
-        basis = kw.get("basis") or ("linear" if "adapt" in kw else "trilinear")
+        # small a walk is well under the default's cap)
+        basis = kw.get("basis") or "trilinear"
         assert m["solver"]["basis"] == basis, (name, m["solver"])
-        # one vertex per sample (or per walked vertex); the adaptive mesh at most 3/4 as
-        # many (its share)
-        assert len(mesh.vertices) == (17 ** 3 if basis == "trilinear" else truth.size) or \
-            (name == "adapt" and truth.size // 2 < len(mesh.vertices) <= 0.75 * truth.size) \
-            or (name == "grid7" and len(mesh.vertices) == 8 ** 3)
-        # the trilinear basis walks tets of twice the cells: its unknowns are the grid's
-        assert m["unknowns"] == (truth.size if basis == "trilinear" else len(mesh.vertices))
+        # one vertex per sample (or per walked vertex); the adaptive meshes' unknowns at
+        # most 3/4 as many (their share), the graded grid's walked on fewer tets than the
+        # grid's
+        if name.startswith("adapt"):
+            assert truth.size // 2 < m["unknowns"] <= 0.75 * truth.size, m["unknowns"]
+            assert len(mesh.tets) < (48 * 8 ** 3 if basis == "trilinear" else 6 * 8 ** 3)
+        else:
+            assert len(mesh.vertices) == (17 ** 3 if basis == "trilinear" else truth.size) \
+                or (name == "grid7" and len(mesh.vertices) == 8 ** 3)
+            # the trilinear basis walks tets of twice the cells: its unknowns the grid's
+            assert m["unknowns"] == (truth.size if basis == "trilinear"
+                                     else len(mesh.vertices))
+        if name == "adapt_linear":
+            assert m["unknowns"] == len(mesh.vertices)
         field = sample_field(mesh.vertices, mesh.tets, mesh.opacity / scale, pts)
         got[name] = tomography_scores(field.reshape(truth.shape), truth)["volume_psnr"]
         assert m["solver"]["method"] == kw.get("solver", "pwls")
@@ -422,8 +432,10 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
     assert got["pwls"] > 40 and got["heldout"] > 40 and got["sart"] > 40, got
     assert got["linear"] > 40, got
     assert got["sirt"] > 30 and got["lsqr"] > 30, got
-    # the split pays: above the uniform grid of about as many unknowns (512 against 542)
-    assert got["c2f"] > 40 and got["adapt"] > 35 and got["adapt"] > got["grid7"], got
+    # the split pays: above the uniform grid of about as many unknowns (512 against 542
+    # and 546)
+    assert got["c2f"] > 40 and got["adapt_linear"] > 35 and got["adapt"] > 40, got
+    assert got["adapt"] > got["grid7"] and got["adapt_linear"] > got["grid7"], got
 
 
 def test_default_basis_is_trilinear_under_its_cap(blob_data, tmp_path, monkeypatch):
@@ -449,6 +461,30 @@ def test_default_basis_is_trilinear_under_its_cap(blob_data, tmp_path, monkeypat
             log=logs.append)
     m = run(data, tmp_path / "new", FitConfig(**quick), progress=False, log=logs.append)
     assert m["solver"]["basis"] == "trilinear" and "basis trilinear (the default)" in logs
+
+
+def test_adaptive_grid_resumes_and_splits_anew(blob_data, tmp_path):
+    """A resumed adaptive fit on the trilinear field splits the coarse cells anew from the
+    saved field, within its share, and goes on from that field: its first pass fits the
+    projections far better than a fresh fit's first."""
+    data = blob_data[2]
+
+    def first_and_last_residual():
+        with np.load(tmp_path / "fit" / "checkpoint.npz") as saved:
+            history = json.loads(str(saved["history"]))
+        return history["loss"][0], history["loss"][-1]
+
+    config = FitConfig(model="absorption", adapt=0.75, tv=0.1, passes=4)
+    first = run(data, tmp_path / "fit", config, progress=False, log=lambda *a: None)
+    fresh, _ = first_and_last_residual()
+    logs = []
+    again = run(data, tmp_path / "fit", config, progress=False, log=logs.append)
+    assert any(line.startswith("resumed from") for line in logs), logs
+    assert any(line.startswith("adaptive grid: split") for line in logs), logs
+    assert again["solver"]["basis"] == first["solver"]["basis"] == "trilinear"
+    assert 729 // 2 < again["unknowns"] <= 0.75 * 729
+    resumed, _ = first_and_last_residual()
+    assert resumed < 1e-2 * fresh, (fresh, resumed)
 
 
 def test_faces_are_in_the_projections_and_cameras_survive_json(tmp_path):
