@@ -23,8 +23,10 @@ voxels:
   weighted operator :meth:`Projector.operator`, then ``x >= 0``.
 
 The unknowns may be fewer than the walked vertices, ``x = E u``
-(:func:`basis_matrix`): a one-row slab's tied layers, or a grid's trilinear
-field walked on tets of twice its cells (:func:`trilinear_grid`).
+(:func:`basis_matrix`): a one-row slab's tied layers, a grid's trilinear
+field walked on tets of twice its cells (:func:`trilinear_grid`), or that of a
+graded grid whose cells are split where the volume has detail
+(:class:`~mi_tetvr.recon.octree.GradedGrid`).
 
 The default was chosen by measurement (``benchmarks/bench_tomography.py``,
 see ``benchmarks/README.md``). :func:`fit_attenuation` is ``mi-tetvr fit
@@ -1031,9 +1033,9 @@ class _AttenuationFit:
             unknowns = self.octree.P if graded else tied_unknowns(v) \
                 if self.one_row and grid_shape(self.box, g)[2] == 1 else None
             walk = self.walk(v, t, topology, g, unknowns, last, graded)
-            if adapted is not None:
-                x = adapted
-            elif prev is not None and kind != "adaptive":
+            if kind == "adaptive":
+                x = adapted                          # None: the graded grid from zero
+            elif prev is not None:
                 x = sample_field(*prev[:3], v)
             if x is not None and unknowns is not None:
                 x = x[self.octree.free] if graded else \
