@@ -423,8 +423,8 @@ def main_curve(a, info, out):
     for kind, values in (("grid", grids), ("adaptive", shares)):
         for f in values:
             r = max(2, int(round(f * fine)))
-            cfg = FitConfig(**base, **({"grid_resolution": r, "basis": a.basis}
-                                       if kind == "grid" else {"adapt": f}))
+            cfg = FitConfig(**base, basis=a.basis,
+                            **({"grid_resolution": r} if kind == "grid" else {"adapt": f}))
             label = f"grid {r}" if kind == "grid" else f"adaptive {f:g}"
             row, _, m = tets_row(case, cfg, out / label.replace(" ", "_"))
             rows.append(dict(mesh=kind, share=f, method=label, basis=m["solver"]["basis"],

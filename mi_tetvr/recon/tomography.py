@@ -877,7 +877,7 @@ class _AttenuationFit:
         self.max_passes = MAX_PASSES[self.solver] if self.tuning and self.solver != "pwls" \
             else self.passes
         self.saved = self.tuned = self.weight = self.reference = None
-        self.octree = self.fine_gradient = None
+        self.octree = None                           # the graded grid (--adapt, trilinear)
         self.vertex_basis, self.basis_given = None, config.basis
         self.set_basis(config.basis or self.default_basis())
 
