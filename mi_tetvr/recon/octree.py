@@ -55,6 +55,26 @@ def fine_mesh(lo, cell, fine):
     return np.asarray(v, np.float64), np.asarray(t, np.int64)
 
 
+def _vertex_cells(split):
+    """For the fine grid's vertices (C order) of coarse cells ``split``: their lattice
+    indices, which are unknowns (the coarse corners, and the vertices every coarse cell
+    about which is split), which lie within split cells only, and an unsplit coarse
+    cell about each (-1 where none)."""
+    coarse = np.asarray(split.shape)
+    idx = np.indices(2 * coarse + 1).reshape(3, -1).T
+    even = idx % 2 == 0
+    all_split = np.ones(len(idx), bool)
+    unsplit = np.full((len(idx), 3), -1)
+    # the coarse cells about a vertex: an odd index lies in one, an even in two
+    for o in itertools.product((0, 1), repeat=3):
+        c = idx // 2 - np.asarray(o) * even
+        valid = np.all((c >= 0) & (c < coarse), axis=1)
+        s = split[tuple(np.clip(c, 0, coarse - 1).T)]
+        all_split &= ~valid | s
+        unsplit[valid & ~s] = c[valid & ~s]
+    return idx, np.all(even, axis=1) | all_split, all_split, unsplit
+
+
 class GradedGrid:
     """Coarse cells, ``split`` ones cut in eight, with the trilinear field of their
     corners (module docstring).
@@ -83,31 +103,18 @@ class GradedGrid:
         self.lo = np.asarray(lo, np.float64)
         self.cell = np.asarray(cell, np.float64)
         self.split = np.asarray(split, bool)
-        coarse = np.asarray(self.split.shape)
-        self.fine = 2 * coarse
-        idx = np.indices(self.fine + 1).reshape(3, -1).T
-        even = idx % 2 == 0
-        all_split = np.ones(len(idx), bool)
-        self.unsplit = np.full((len(idx), 3), -1)      # an unsplit cell about each vertex
-        # the coarse cells about a vertex: an odd index lies in one, an even in two
-        for o in itertools.product((0, 1), repeat=3):
-            c = idx // 2 - np.asarray(o) * even
-            valid = np.all((c >= 0) & (c < coarse), axis=1)
-            s = self.split[tuple(np.clip(c, 0, coarse - 1).T)]
-            all_split &= ~valid | s
-            self.unsplit[valid & ~s] = c[valid & ~s]
-        self.free = np.all(even, axis=1) | all_split
-        self.inside = all_split                        # within split cells only
+        self.fine = 2 * np.asarray(self.split.shape)
+        idx, self.free, self.inside, unsplit = _vertex_cells(self.split)
         self.n = int(self.free.sum())
-        self.P = self._interpolation(idx)
+        self.P = self._interpolation(idx, unsplit)
 
-    def _interpolation(self, idx):
+    def _interpolation(self, idx, unsplit):
         with needs("recon", "the absorption fit"):
             from scipy.sparse import csr_matrix
         number = np.cumsum(self.free) - 1
         dims = self.fine + 1
         hang = np.nonzero(~self.free)[0]
-        c = self.unsplit[hang]
+        c = unsplit[hang]
         t = (idx[hang] - 2 * c) / 2.0                  # in the cell: 0, 1/2 or 1 per axis
         rows, cols, vals = [np.nonzero(self.free)[0]], [np.arange(self.n)], [np.ones(self.n)]
         for corner in itertools.product((0, 1), repeat=3):
@@ -160,14 +167,16 @@ class GradedGrid:
         order = np.argsort(-change, kind="stable")
         order = order[change[order] > 0]                # a flat cell gains nothing split
 
-        def grid(k):
-            split = np.zeros(int(np.prod(coarse)), bool)
-            split[order[:k]] = True
-            return cls(lo, cell, split.reshape(tuple(coarse)))
+        def split(k):
+            s = np.zeros(int(np.prod(coarse)), bool)
+            s[order[:k]] = True
+            return s.reshape(tuple(coarse))
 
-        # the unknowns grow with the cells split: the most within the budget
+        # the unknowns grow with the cells split: the most within the budget (counted
+        # without building the interpolation)
         lo_k, hi_k = 0, len(order)
         while lo_k < hi_k:
             k = (lo_k + hi_k + 1) // 2
-            lo_k, hi_k = (k, hi_k) if grid(k).n <= budget else (lo_k, k - 1)
-        return grid(lo_k)
+            count = int(_vertex_cells(split(k))[1].sum())
+            lo_k, hi_k = (k, hi_k) if count <= budget else (lo_k, k - 1)
+        return cls(lo, cell, split(lo_k))

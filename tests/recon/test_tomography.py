@@ -365,6 +365,33 @@ def test_graded_mesh_keeps_the_grids_penalty(blob_data):
     assert scale(*coarse_grid(box, 8), reference=fine) == fine
 
 
+def test_graded_grid_keeps_the_fine_grids_penalty(blob_data):
+    """``fine_penalty_scale`` from the coarse trilinear field's projector (no cell
+    split) is the fine grid's own :class:`PenalizedLS` scale (every cell split: one
+    unknown per fine vertex): the data's curvatures sum to ``sum_i w_i L_i^2``
+    whatever the unknowns, since every basis row sums to 1."""
+    from mi_tetvr.recon.octree import GradedGrid
+    from mi_tetvr.recon.tomography import (PenalizedLS, Projector, TetGradient, depths,
+                                           fine_penalty_scale)
+    vol, _, data = blob_data
+    lo, hi = vol.bounds()
+    cell = (hi - lo) / 8
+    cams, b = [v.camera for v in data.train], depths(data.train, None)
+    w = np.random.default_rng(0).uniform(0.5, 2.0, len(b))        # weights of any kind
+
+    def projector(split):
+        g = GradedGrid(lo, cell, split)
+        v, t, basis = g.walk()
+        return g, Projector(v, t, cams, basis=basis @ g.P)
+
+    g, coarse = projector(np.zeros((4, 4, 4), bool))
+    plain = TetGradient(*g.fine_mesh())
+    _, fine = projector(np.ones((4, 4, 4), bool))
+    own = PenalizedLS(fine, b, w, plain)
+    assert fine_penalty_scale(coarse, w, plain) == pytest.approx((own.beta0, own.cell),
+                                                                  rel=1e-4)
+
+
 def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path):
     """The default absorption fit (penalized weighted least squares on the
     trilinear field of a tet grid on the detector's pixels) lands on the true attenuation at the
