@@ -66,7 +66,8 @@ TRILINEAR_TETS = 16_000_000
 #: The trilinear field's ``--adapt``: the coarse grid, whose field only chooses the cells
 #: to split (the graded grid starts from zero), is solved for this share of the passes
 #: (at 24 views and 10^4 photons, a third against all of them: engine 32.87 against
-#: 32.82 dB, head MR 31.44 against 31.52, phantom 34.83 against 34.84; 14-20% less time).
+#: 32.82 dB, head MR 31.44 against 31.52, phantom 34.83 against 34.84; the fit in 0.94-1.02x
+#: the grid's time, where it took 1.2-1.3x).
 COARSE_PASSES = 1 / 3
 #: Noisy data: the passes stop when the weighted residual falls by less than
 #: this fraction in a pass (on the head MR at 10^4 photons the volume PSNR
