@@ -295,7 +295,8 @@ class FitConfig:
         metavar="W|heldout", parse=parse_weight)
     adapt: float | None = setting(
         None, "model absorption, pwls: unknowns where the volume has detail: solve a grid of "
-        "half the cells per axis, then split its cells (trilinear basis) or vertices (linear) "
+        "half the cells per axis (trilinear basis: for a third of the passes, its field only "
+        "choosing the cells), then split its cells (trilinear) or vertices (linear basis) "
         "where the field changes most, back to the fine grid's vertices, until there are "
         "SHARE of the fine grid's unknowns (more than 1/8, at most 1; flat regions keep the "
         "coarse cells, and are walked on coarse tets), the penalty the grid's; default: the "
