@@ -958,8 +958,7 @@ class _AttenuationFit:
         from mi_tetvr.progress import progress_bar as tqdm
         total = 0
         for kind, g in stages:
-            passes = self.stage_passes(kind)
-            tuned = self.tuning and ((kind, g) == stages[-1] or kind == "coarse")
+            passes, tuned = self.stage_solve(kind, (kind, g) == stages[-1])
             if self.solver == "pwls":
                 # the unregularized start's 2 passes, the tuning's trials, the solve
                 total += 2 + (passes * (len(LAMBDA_START) + 2) // 2 if tuned else passes)
@@ -968,12 +967,14 @@ class _AttenuationFit:
         return tqdm(total=total, disable=not progress, unit="pass",
                     desc=f"{self.solver} ({len(self.cameras)} views)")
 
-    def stage_passes(self, kind):
-        """The passes of a planned mesh: the trilinear field's coarse grid (whose field
-        only chooses the cells to split) :data:`COARSE_PASSES` of the fit's."""
-        if kind == "coarse" and self.trilinear:
-            return max(2, round(COARSE_PASSES * self.passes))
-        return self.passes
+    def stage_solve(self, kind, last):
+        """A planned mesh's passes (the trilinear field's coarse grid, whose field only
+        chooses the cells to split: :data:`COARSE_PASSES` of the fit's) and whether they
+        (and pwls's weight) are tuned on held-out views: on the last mesh and the coarse
+        grid."""
+        passes = max(2, round(COARSE_PASSES * self.passes)) \
+            if kind == "coarse" and self.trilinear else self.passes
+        return passes, self.tuning and (last or kind == "coarse")
 
     def mesh(self, kind, g, prev):
         """The vertices and tets of a planned mesh, and (adaptive) the field on it."""
@@ -1060,8 +1061,8 @@ class _AttenuationFit:
             gradient = self.penalty(v, topology, unknowns, graded)
             # a graded grid's corner from its fine grid's values
             reference = (*self.reference, unknowns) if graded else self.reference
-            x, lam = self.solve_mesh(x, gradient, self.tuning and (last or kind == "coarse"),
-                                     lam, reference, self.stage_passes(kind))
+            x, lam = self.solve_mesh(x, gradient, *self.stage_solve(kind, last), lam,
+                                     reference)
             if unknowns is not None:
                 x = unknowns @ x if graded else x[unknowns]       # the vertices' values
             prev = (v, topology.tets, x, gradient)
@@ -1118,19 +1119,18 @@ class _AttenuationFit:
         self.bar.update(1)
         self.bar.set_postfix(residual=f"{residual:.3g}")
 
-    def solve_mesh(self, x, gradient, tune, lam, reference=None, passes=None):
-        """The solver on the current projector from ``x``, its passes (and pwls's
-        weight, near ``lam``) tuned on held-out views when ``tune``; pwls's penalty
-        scaled by ``reference`` (:class:`PenalizedLS`'s), solved for ``passes`` (None:
-        the fit's). Returns the attenuation and the weight chosen."""
+    def solve_mesh(self, x, gradient, passes, tune, lam, reference=None):
+        """The solver on the current projector from ``x`` for ``passes``, its passes
+        (and pwls's weight, near ``lam``) tuned on held-out views when ``tune``; pwls's
+        penalty scaled by ``reference`` (:class:`PenalizedLS`'s). Returns the
+        attenuation and the weight chosen."""
         projector, b, weights, config = self.projector, self.b, self.weights, self.config
         solve = dict(deadline=self.deadline(0.9), callback=self.record)
         if self.solver == "lsqr":
-            return least_squares(projector, b, self.passes, weights, x, self.record), lam
+            return least_squares(projector, b, passes, weights, x, self.record), lam
         if self.solver == "pwls":
             # the tuning leaves a third of the time budget to the final solve
-            x, record = _pwls_stage(projector, b, weights, gradient, x, config,
-                                    passes or self.passes,
+            x, record = _pwls_stage(projector, b, weights, gradient, x, config, passes,
                                     tune, self.deadline(0.6), solve, self.log, near=lam,
                                     reference=reference)
             self.weight = {k: record[k] for k in ("tv", "chosen")}
@@ -1139,7 +1139,7 @@ class _AttenuationFit:
         subset = len(self.cameras) if self.solver == "sirt" else 1
         if tune:
             return self.tuned_sart(x, subset, solve), lam
-        return sart(projector, b, self.passes, weights, subset_size=subset, x0=x,
+        return sart(projector, b, passes, weights, subset_size=subset, x0=x,
                     relaxation=config.relaxation, **solve), lam
 
     def tuned_sart(self, x, subset, solve):
