@@ -1,18 +1,25 @@
-"""Where a walk step's time goes: the code of the walk's loop and timed
-variants of it, beside the plain walk (``plain_walk.py``).
+"""Where a walk step's time goes: the code of the walk's loops and timed
+variants of them, beside the plain walk (``plain_walk.py``).
 
 Scene and rays as ``bench_render.py`` (a jittered grid carrying the blob
 field, pixel-center rays, no early termination). Printed:
 
-1. **The loop's code.** The LLVM IR of the kernel that Dr.Jit generates for
-   one image (kernel history with the IR kept), cut to the body of the
-   walk's symbolic loop (``tetvr_walk``; ``plain_walk`` for the baseline):
-   its instructions by kind: gathers (reads of memory at per-lane
-   addresses), divisions, ``floor`` calls (one per exponential), selects
-   (among them the loop state kept where a lane is done), float arithmetic
-   (``fmul``, ``fadd``, ``fsub``, ``fma``), compares, shuffles and inserts
-   (packet reads, constants).
-   This is the work of one step of 8 rays (AVX2) or 16 (AVX-512).
+1. **The loops' code.** The LLVM IR of the kernels that Dr.Jit generates
+   (kernel history with the IR kept), cut into the bodies of their symbolic
+   loops, each without the loops nested in it, and counted by kind: gathers
+   (reads of memory at per-lane addresses; a tet record read as one 16-byte
+   packet counts once), scatters (atomic or per-thread additions into
+   gradient buffers, one call per component), divisions, ``floor`` calls
+   (one per exponential), selects (among them the loop state kept where a
+   lane is done), float arithmetic (``fmul``, ``fadd``, ``fsub``, ``fma``),
+   compares, shuffles and inserts (packet reads, constants). This is the
+   work of one iteration of 8 rays (AVX2) or 16 (AVX-512). The loops:
+   ``tetvr``'s walk (one step: ``tetvr_walk``), its trace loop around the
+   walks (once per entry into the mesh and once after the last exit:
+   Mitsuba's ray tracer, the entry face, the cursor's first face;
+   ``tetvr_walk_trace``), the plain walk (``plain_walk``), and the adjoint
+   walk of ``mi.render`` + ``dr.backward`` with gradients on colors,
+   opacities and positions (one step).
 2. **Timed variants** (median of ``--repeat`` warm runs, each in the same
    process on the same rays): the walk as it is; the same walk with a
    trivial segment integral (``C = c0 tau``, ``T = 1 - tau``: what the
@@ -53,27 +60,67 @@ from mi_tetvr.render.cursor import WalkSettings  # noqa: E402
 from mi_tetvr.render.walk import trace  # noqa: E402
 from plain_walk import plain_trace  # noqa: E402
 
-#: What the loop's instructions are counted as (LLVM IR).
-KINDS = {"gather": r"@llvm\.masked\.gather", "fdiv": r"= fdiv ", "floor": r"@llvm\.floor",
+#: What the loops' instructions are counted as (LLVM IR).
+KINDS = {"gather": r"@llvm\.masked\.gather|@gather_\d+x",
+         "scatter": r"call fastcc void @reduce_\w+\(",
+         "fdiv": r"= fdiv ", "floor": r"@llvm\.floor",
          "select": r"= select ", "arith": r"= f(mul|add|sub) |@llvm\.fma",
          "compare": r"= [fi]cmp ", "shuffle": r"= (shufflevector|insertelement) "}
 
 
-def loop_body(ir: str, label: str) -> str:
-    """The body of the symbolic loop named ``label`` in a kernel's LLVM IR."""
-    at = ir.find(f"; Symbolic loop: {label}")
-    if at < 0:
-        return ""
-    start = ir.find("_body:", at)
-    end = ir.find("_end:", start)
-    return ir[start:end]
+def loop_bodies(ir: str) -> dict[str, str]:
+    """The body of each symbolic loop in a kernel's LLVM IR, by its label,
+    without the loops nested in it (a loop ``l_N`` runs from ``l_N_cond:``,
+    which names it, through ``l_N_body:`` to ``l_N_end:``)."""
+    spans = {}
+    for m in re.finditer(r"^(l_\d+)_cond:\n\s*; Symbolic loop: (\S+)$", ir, re.M):
+        name, label = m.group(1), m.group(2)
+        body = ir.index(f"{name}_body:", m.end())
+        end = ir.index(f"{name}_end:", body)
+        spans[label] = (m.start(), body, end)
+    out = {}
+    for label, (_, body, end) in spans.items():
+        inner = sorted((s, e) for lab, (s, _, e) in spans.items()
+                       if lab != label and body < s < end)
+        parts, at = [], body
+        for s, e in inner:
+            if s >= at:
+                parts.append(ir[at:s])
+                at = e
+        parts.append(ir[at:end])
+        out[label] = "".join(parts)
+    return out
+
+
+def split_branches(body: str) -> tuple[str, str]:
+    """``(straight, branched)``: a loop body's code that every iteration runs,
+    and the code of its symbolic ``if`` branches (``l_N_t:`` or ``l_N_f:``
+    up to their trailer), which a packet of lanes runs only where one of
+    them takes the branch."""
+    straight, branched, at = [], [], 0
+    for m in re.finditer(r"^(l_\d+_[tf]):$", body, re.M):
+        if m.start() < at:
+            continue                                  # (nested in a branch already cut)
+        end = body.index(f"{m.group(1)}_trailer:", m.end())
+        straight.append(body[at:m.start()])
+        branched.append(body[m.start():end])
+        at = end
+    straight.append(body[at:])
+    return "".join(straight), "".join(branched)
+
+
+def n_instructions(code: str) -> int:
+    return sum(1 for x in code.splitlines() if x.strip().startswith("%"))
 
 
 def counts(body: str):
-    lines = [x for x in body.splitlines() if x.strip().startswith("%")]
-    out = {"instructions": len(lines)}
+    """Instructions by kind of the code that every iteration runs, and how
+    many more lie in branches (:func:`split_branches`)."""
+    straight, branched = split_branches(body)
+    out = {"instructions": n_instructions(straight)}
     for name, pattern in KINDS.items():
-        out[name] = len(re.findall(pattern, body))
+        out[name] = len(re.findall(pattern, straight))
+    out["in branches"] = n_instructions(branched)
     return out
 
 
@@ -86,6 +133,28 @@ def kernel_ir(fn):
     dr.set_flag(dr.JitFlag.KernelHistory, False)
     big = max(history, key=lambda k: k.get("operation_count", 0))
     return big["ir"].getvalue() if hasattr(big["ir"], "getvalue") else str(big["ir"])
+
+
+def adjoint_ir(scene):
+    """The IR of the largest kernel of ``mi.render`` and ``dr.backward`` with
+    gradients on the volume's colors, opacities and positions (the adjoint
+    walk: more operations than the primal's)."""
+    params = mi.traverse(scene)
+    keys = [k for k in params.keys() if k.split(".")[-1] in
+            ("vertex_color", "vertex_opacity", "vertex_positions")]
+    for k in keys:
+        dr.enable_grad(params[k])
+    params.update()
+
+    def run():
+        loss = dr.mean(dr.square(mi.render(scene, params, spp=1)), axis=None)
+        dr.backward(loss)
+        dr.eval([dr.grad(params[k]) for k in keys])
+    ir = kernel_ir(run)
+    for k in keys:
+        dr.disable_grad(params[k])
+    params.update()
+    return ir
 
 
 def main(a):
@@ -122,14 +191,18 @@ def main(a):
     print(f"mesh: {a.cells}^3 cells, {len(tets):,} tets; {a.res}x{a.res} pixel-center rays, "
           f"no early termination")
     print()
-    print("The walk's loop body (LLVM IR of one step, all lanes):")
-    cols = ["instructions"] + list(KINDS)
-    print(f"{'':<14}" + "".join(f"{c:>13}" for c in cols))
-    for name, fn, label in (("tetvr walk", run_tetvr, "tetvr_walk"),
-                            ("plain walk", run_plain, "plain_walk")):
-        c = counts(loop_body(kernel_ir(fn), label))
+    print("The walks' loop bodies (LLVM IR of one iteration, all lanes; nested loops apart):")
+    cols = ["instructions"] + list(KINDS) + ["in branches"]
+    print(f"{'':<24}" + "".join(f"{c:>13}" for c in cols))
+    forward = loop_bodies(kernel_ir(run_tetvr))
+    rows = (("tetvr walk, a step", forward, "tetvr_walk"),
+            ("tetvr trace, an entry", forward, "tetvr_walk_trace"),
+            ("plain walk, a step", loop_bodies(kernel_ir(run_plain)), "plain_walk"),
+            ("adjoint walk, a step", loop_bodies(adjoint_ir(scene)), "tetvr_walk"))
+    for name, bodies, label in rows:
+        c = counts(bodies.get(label, ""))
         results["loops"][name] = c
-        print(f"{name:<14}" + "".join(f"{c[k]:>13}" for k in cols))
+        print(f"{name:<24}" + "".join(f"{c[k]:>13}" for k in cols))
     print()
     print(f"{'variant':<44}{'median [s]':>11}{'Msteps/s':>10}   runs [s]")
     for name, fn, integral in (("tetvr walk", run_tetvr, exact),
