@@ -62,7 +62,7 @@ from plain_walk import plain_trace  # noqa: E402
 
 #: What the loops' instructions are counted as (LLVM IR).
 KINDS = {"gather": r"@llvm\.masked\.gather|@gather_\d+x",
-         "scatter": r"call fastcc void @reduce_\w+\(",
+         "scatter": r"call fastcc void @(reduce|scatter)_\w+\(",
          "fdiv": r"= fdiv ", "floor": r"@llvm\.floor",
          "select": r"= select ", "arith": r"= f(mul|add|sub) |@llvm\.fma",
          "compare": r"= [fi]cmp ", "shuffle": r"= (shufflevector|insertelement) "}

@@ -77,12 +77,10 @@ class TetPathIntegrator(mi.ad.integrators.common.RBIntegrator):
         if max_steps < 1:
             raise ValueError("tetpath: max_steps must be >= 1")
         self.retrace_epsilon = float(props.get("retrace_epsilon", 1e-5))
-        # (plain atomics on the LLVM backend, as tetvr's reduce_mode "auto":
-        # per-thread copies of the gradient buffers are not made inside the
-        # path's loop)
-        llvm = dr.backend_v(mi.Float) == dr.JitBackend.LLVM
-        self.settings = WalkSettings(0.0, max_steps, reduce=dr.ReduceMode.Direct if llvm
-                                     else dr.ReduceMode.Auto)
+        # (the walk's own scatter strategy: plain atomics on the LLVM backend,
+        # as per-thread copies of the gradient buffers are not made inside
+        # the path's loop)
+        self.settings = WalkSettings(0.0, max_steps)
         self.parts = SceneParts()
         self._empty = None
         self._index = None

@@ -22,11 +22,12 @@ shapes by walking the tet adjacency.
  * - reduce_mode
    - |string|
    - How gradients of shared vertices are scatter-added in the derivative
-     modes: ``auto`` (plain atomics on the LLVM backend, where they beat
-     per-thread copies of the gradient buffers in ``benchmarks/bench_backward.py``;
-     Dr.Jit's own choice on CUDA), ``expand`` (per-thread copies up to
-     ``dr.expand_threshold()`` entries), ``local`` (pre-reduce within a SIMD
-     packet / warp) or ``direct`` (plain atomics). See ``dr.ReduceMode``.
+     modes (one packet of a vertex's gradients per vertex a ray leaves
+     behind): ``auto`` (on the LLVM backend into per-thread copies, without
+     atomics, where they take at most 1 GiB, else plain atomics; Dr.Jit's
+     own choice on CUDA), ``expand`` (per-thread copies), ``local``
+     (pre-reduce within a SIMD packet / warp) or ``direct`` (plain atomics).
+     See ``dr.ReduceMode`` and ``benchmarks/bench_backward.py``.
      (Default: ``auto``)
  * - alpha
    - |bool|
@@ -131,9 +132,7 @@ class TetVRIntegrator(RBIntegrator):
         if max_steps < 1:
             raise ValueError("tetvr: max_steps must be >= 1")
         self.retrace_epsilon = float(props.get("retrace_epsilon", 1e-5))
-        llvm = dr.backend_v(mi.Float) == dr.JitBackend.LLVM
-        modes = {"auto": dr.ReduceMode.Direct if llvm else dr.ReduceMode.Auto,
-                 "expand": dr.ReduceMode.Expand,
+        modes = {"auto": None, "expand": dr.ReduceMode.Expand,
                  "local": dr.ReduceMode.Local, "direct": dr.ReduceMode.Direct}
         reduce = str(props.get("reduce_mode", "auto")).lower()
         if reduce not in modes:

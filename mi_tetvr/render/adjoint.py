@@ -42,6 +42,7 @@ tangent over as the next entry's.
 """
 from __future__ import annotations
 
+import importlib
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -49,10 +50,11 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.render.buffers import TetGroup
-from mi_tetvr.render.cursor import Piece, Span
+from mi_tetvr.render.cursor import Piece, Span, WalkSettings
 from mi_tetvr.render.geometry import RayFrame, crossing_vjp, face_crossing, face_weights
 from mi_tetvr.render.optical import OpticalModel
-from mi_tetvr.render.pytree import tree_add, tree_copy, tree_dot, tree_lerp, tree_map, tree_select
+from mi_tetvr.render.pytree import (tree_add, tree_copy, tree_dot, tree_leaves, tree_lerp,
+                                     tree_map, tree_select)
 from mi_tetvr.render.segment import clip_segment
 
 if TYPE_CHECKING:
@@ -232,6 +234,80 @@ def scatter(ts_ad: TetGroup, i: mi.UInt32, g: Any, active: mi.Bool,
         dr.backward_from(y, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
 
 
+class VertexSums:
+    """Where the backward mode of a walk adds each vertex's complete
+    gradient (:func:`segment`, :func:`finish`): one packet of floats per
+    vertex (its attributes' gradients, then its position's, padded to a
+    power of two), summed over the rays in one scatter per vertex a ray
+    leaves behind, and passed to the parameters once the walk is done
+    (:meth:`flush`: the chain rule through the optical model's ``gather``
+    of every vertex, which is the same for every ray).
+
+    A packet's scatter-add is one read-modify-write per lane: on the LLVM
+    backend into per-thread copies of the sums, without atomics
+    (``settings.sums_mode``). The derivative of a gather, which this
+    replaces, costs one atomic addition per float and lane (seven per
+    vertex with colors, opacities and positions).
+
+    A model whose vertex values depend on the ray (``model.per_ray_values``:
+    view-dependent colors) has no such per-vertex sum: its gradients go to
+    the parameters at every vertex (:func:`scatter`)."""
+
+    def __init__(self, ts_ad: TetGroup, settings: WalkSettings) -> None:
+        self.ts_ad, self.atomics = ts_ad, settings.atomics
+        model = ts_ad.model
+        self.summed = not model.per_ray_values
+        self.geometric = moves_vertices(ts_ad)
+        self.sums = None
+        if not self.summed:
+            return
+        self.n = dr.width(ts_ad.buf.positions) // 3
+        self.k = len(tree_leaves(_flat(dr.zeros(model.Attributes)))) + (3 if self.geometric
+                                                                        else 0)
+        self.width = 1 << max(self.k - 1, 0).bit_length()
+        self.sums = dr.zeros(mi.Float, self.width * self.n)
+        self.mode = settings.sums_mode(4 * self.width * self.n)
+
+    def add(self, i: mi.UInt32, g: Any, active: mi.Bool) -> None:
+        """Add a vertex's gradient ``g`` (of its position ``g.p`` and
+        attributes ``g.a``) where ``active``."""
+        if not self.summed:
+            scatter(self.ts_ad, i, g, active, self.atomics)
+            return
+        leaves = tree_leaves(_flat(g.a)) + (tree_leaves(_flat(g.p)) if self.geometric else [])
+        leaves += [mi.Float(0.0)] * (self.width - len(leaves))
+        packet = leaves[0] if self.width == 1 else _packet_type()(*leaves)
+        dr.scatter_add(self.sums, packet, i, active, mode=self.mode)
+
+    def flush(self) -> None:
+        """Pass the sums to the parameters' gradients (after the walk)."""
+        if self.sums is None:
+            return
+        ts_ad, n = self.ts_ad, self.n
+        with dr.resume_grad():
+            idx = dr.arange(mi.UInt32, n)
+            a = tree_leaves(_flat(ts_ad.model.gather(ts_ad.params, idx)))
+            if self.geometric:
+                a += tree_leaves(_flat(ts_ad.buf.position(idx)))
+            y = mi.Float(0.0)
+            for j, x in enumerate(a):
+                y += x * dr.gather(mi.Float, self.sums, idx * self.width + j)
+            dr.backward_from(y, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+        self.sums = None
+
+
+def _packet_type() -> type:
+    """The variant's ``ArrayXf``: a packet of floats per lane (a scatter of one
+    reads and writes them together)."""
+    return importlib.import_module(mi.Float.__module__).ArrayXf
+
+
+def _flat(tree: Any) -> Any:
+    """A structure with its vector leaves (``Color3f``, ``Point3f``) as their
+    components, for :func:`~mi_tetvr.render.pytree.tree_leaves`."""
+    return tree_map(lambda x: [x[j] for j in range(len(x))] if dr.depth_v(x) > 1 else x, tree)
+
+
 def ray_leaves(deriv: Derivative, fr: RayFrame) -> tuple[mi.Point3f, mi.Vector3f]:
     """The ray's origin and direction as AD leaves: where the camera enters
     a derivative pass's graph (forward mode: carrying the rays' tangents,
@@ -327,11 +403,23 @@ def segment(deriv: Derivative, walker: EmissionDerivative, p: Piece, acc: Radian
                         else (e, x_t))
         (t0, a0), (t1, a1) = x
         length, b0, b1 = clip_segment(t0, a0, t1, a1, span.begin, span.end)
-        C_d, T_d, tau = model.segment(ts_ad.params, length, b0, b1,
-                                      *((tet,) if model.per_tet else ()))
-        C_seg = dr.detach(C_d)
-        T_seg = dr.detach(T_d)
-        adj = inversion(deriv, acc.adj, acc.L, acc.T, C_seg, C_d, tau)
+        extra = (tet,) if model.per_tet else ()
+        closed = model.segment_vjp(ts_ad.params, *dr.detach((length, b0, b1)), *extra) \
+            if backward else None
+        if dr.hint(closed is not None, mode="scalar"):
+            # The segment's derivative in closed form (the inversion's seeds:
+            # d L_pix = T dC - R dtau, d alpha = T_fin dtau).
+            C_seg, T_seg, _, vjp = closed
+            adj = acc.adj
+            R = adj.L_pix - (acc.L + acc.T * C_seg)
+            g_len, g_b0, g_b1 = vjp(acc.T * adj.dL, adj.dalpha * adj.T_fin - dr.dot(adj.dL, R))
+            dr.backward_from(g_len * length + tree_dot(g_b0, b0) + tree_dot(g_b1, b1),
+                             flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+        else:
+            C_d, T_d, tau = model.segment(ts_ad.params, length, b0, b1, *extra)
+            C_seg = dr.detach(C_d)
+            T_seg = dr.detach(T_d)
+            adj = inversion(deriv, acc.adj, acc.L, acc.T, C_seg, C_d, tau)
         if dr.hint(backward, mode="scalar"):
             g_entry, g_exit = dr.grad(x)
     if dr.hint(not backward, mode="scalar"):
@@ -354,7 +442,7 @@ def segment(deriv: Derivative, walker: EmissionDerivative, p: Piece, acc: Radian
     replaced = st.slot
     drop = dr.select(replaced[0], ids[0], dr.select(replaced[1], ids[1], ids[2]))
     drop_g = tree_select(replaced[0], pend[0], tree_select(replaced[1], pend[1], pend[2]))
-    scatter(ts_ad, drop, drop_g, active & advance, walker.reduce)
+    walker.sums.add(drop, drop_g, active & advance)
     new_pend = tuple(tree_select(replaced[j], dr.zeros(G), pend[j]) for j in range(3))
     if dr.hint(not cuts, mode="scalar"):
         return C_seg, T_seg, adj, (g_exit, new_pend)
@@ -377,7 +465,7 @@ def finish(deriv: Derivative, walker: EmissionDerivative, acc: Radiance, carry: 
     that tet's entry face, and ``exit_face = (exit_carry, inside)`` the
     tet's exit face, which takes the exit crossing's gradient so far where
     ``inside``."""
-    ts_ad, reduce, adj = walker.ts_ad, walker.reduce, acc.adj
+    ts_ad, adj = walker.ts_ad, acc.adj
     if ts_ad.model.cuts:
         e, e_x, _, pend = acc.pending
     else:
@@ -387,12 +475,12 @@ def finish(deriv: Derivative, walker: EmissionDerivative, acc: Radiance, carry: 
     if camera:
         adj = camera_grads(adj, carry, vg, fr, walked)
     for j in range(3):
-        scatter(ts_ad, carry[0][j].i, tree_add(pend[j], vg[j]), walked, reduce)
+        walker.sums.add(carry[0][j].i, tree_add(pend[j], vg[j]), walked)
     if exit_face is not None:
         exit_carry, inside = exit_face
         vg = crossing_grads(deriv, ts_ad, exit_carry, e_x, fr)
         if camera:
             adj = camera_grads(adj, exit_carry, vg, fr, inside)
         for j in range(3):
-            scatter(ts_ad, exit_carry[0][j].i, vg[j], inside, reduce)
+            walker.sums.add(exit_carry[0][j].i, vg[j], inside)
     return adj

@@ -51,18 +51,46 @@ class WalkSettings:
     ``max_steps``: the most tets (or pieces) one walk crosses;
     ``retrace_eps``: how far past a mesh's exit face the ray tracer looks for
     the next boundary; ``reduce``: the scatter strategy (``dr.ReduceMode``)
-    of the gradient accumulation into shared vertices (``Auto`` expands the
-    gradient buffers per CPU thread on the LLVM backend, without atomics,
-    up to ``dr.expand_threshold()`` entries, and uses atomics on CUDA).
+    of the gradient accumulation into shared vertices, or None (the
+    default) for the walk's own choice (:meth:`sums_mode`; plain atomics on
+    the LLVM backend and Dr.Jit's ``Auto`` on CUDA where gradients go to a
+    parameter directly, :attr:`atomics`).
     """
 
     def __init__(self, t_min: float = 1e-4, max_steps: int = 100_000,
-                 retrace_eps: float = 1e-5,
-                 reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> None:
+                 retrace_eps: float = 1e-5, reduce: dr.ReduceMode | None = None) -> None:
         self.t_min = float(t_min)
         self.max_steps = int(max_steps)
         self.retrace_eps = float(retrace_eps)
         self.reduce = reduce
+
+    @property
+    def atomics(self) -> dr.ReduceMode:
+        """The scatter strategy of a gather's reverse-mode derivative (a
+        vertex's gradient added to a parameter at once): ``reduce``, or by
+        default plain atomics on the LLVM backend (where they beat Dr.Jit's
+        per-thread copies of a parameter's gradient, ``benchmarks/bench_backward.py``)
+        and Dr.Jit's own choice on CUDA."""
+        if self.reduce is not None:
+            return self.reduce
+        llvm = dr.backend_v(mi.Float) == dr.JitBackend.LLVM
+        return dr.ReduceMode.Direct if llvm else dr.ReduceMode.Auto
+
+    def sums_mode(self, nbytes: int) -> dr.ReduceMode:
+        """The scatter strategy of the adjoint's per-vertex sums of
+        ``nbytes`` (:class:`~mi_tetvr.render.adjoint.VertexSums`): ``reduce``,
+        or by default per-thread copies on the LLVM backend where they take
+        at most :data:`EXPAND_BYTES` (no atomics: one read-modify-write of a
+        vertex's packet of gradients per lane), else :attr:`atomics`."""
+        if self.reduce is None and dr.backend_v(mi.Float) == dr.JitBackend.LLVM \
+                and dr.thread_count() * nbytes <= EXPAND_BYTES:
+            return dr.ReduceMode.Expand
+        return self.atomics
+
+
+#: The most memory (bytes) the per-thread copies of the adjoint's vertex
+#: gradients may take (:meth:`WalkSettings.sums_mode`).
+EXPAND_BYTES = 1 << 30
 
 
 @dataclass

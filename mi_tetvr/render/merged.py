@@ -90,7 +90,7 @@ class MergedEmission:
                  deriv: adjoint.Derivative | None = None) -> None:
         self.members = [Emission(ts, settings) for ts in tss]
         self.tss, self.n_sub, self.deriv = tss, n_sub, deriv
-        self.t_min, self.reduce = settings.t_min, settings.reduce
+        self.t_min, self.reduce = settings.t_min, settings.atomics
         self.boundary_terms = deriv is not None and any(deriv.geometric(g) for g in deriv.groups)
 
     def piece(self, acc: Radiance, pc: Pieces, fr: RayFrame,

@@ -59,7 +59,7 @@ from mi_tetvr.mesh import TetMesh
 from mi_tetvr.render.buffers import concat
 from mi_tetvr.render.linear import TetFrame
 from mi_tetvr.render.pytree import weighted_sum
-from mi_tetvr.render.segment import segment_integral
+from mi_tetvr.render.segment import segment_integral, segment_integral_vjp
 
 
 def piece_of(x: mi.Float, n: int) -> mi.UInt32:
@@ -95,6 +95,10 @@ class OpticalModel:
     #: Whether :meth:`segment` takes the index of the segment's tet (in the
     #: walk's buffers) as a fifth argument.
     per_tet = False
+    #: Whether a vertex's values depend on the ray (:meth:`for_ray`): then the
+    #: adjoint passes each vertex's gradient to the parameters ray by ray,
+    #: instead of summing it over the rays first.
+    per_ray_values = False
 
     def __init__(self, n_sub: int = 4) -> None:
         self.n_sub = int(n_sub)
@@ -133,6 +137,17 @@ class OpticalModel:
         """``(C : Color3f, T : Float, tau : Float)`` of a segment of
         ``length`` whose attributes go linearly from ``a0`` to ``a1``."""
         raise NotImplementedError
+
+    def segment_vjp(self, params: Any, length: mi.Float, a0: Any, a1: Any, *tet: mi.UInt32
+                    ) -> tuple[mi.Color3f, mi.Float, mi.Float, Any] | None:
+        """:meth:`segment` with its reverse-mode derivative in closed form,
+        ``(C, T, tau, vjp)``, where ``vjp(g_C, g_tau)`` gives the gradients
+        ``(g_length, g_a0, g_a1)`` of ``g_C . C + g_tau tau`` w.r.t. the
+        segment's length and end attributes (the backward pass's adjoint
+        then runs it instead of differentiating :meth:`segment` by Dr.Jit's
+        AD). None (the default) for a model without one, or whose segment
+        reads differentiable parameters of its own (a transfer function)."""
+        return None
 
     def linear(self, params: Any, a0: Any, a1: Any,
                tet: mi.UInt32) -> tuple[mi.Color3f, mi.Color3f, mi.Float, mi.Float]:
@@ -183,6 +198,26 @@ class EmissionAbsorption(OpticalModel):
         # The midpoint sums of the sub-intervals: exact for a linear extinction.
         tau = length * (a0.s + a1.s) * 0.5
         return C, T, tau
+
+    def segment_vjp(self, params: Any, length: mi.Float, a0: Any,
+                    a1: Any) -> tuple[mi.Color3f, mi.Float, mi.Float, Any]:
+        C, T, back = segment_integral_vjp(length, a0.c, a1.c, a0.s, a1.s, self.n_sub)
+        tau = length * (a0.s + a1.s) * 0.5
+
+        def vjp(g_C: mi.Color3f, g_tau: mi.Float) -> tuple[mi.Float, Any, Any]:
+            g_L, g_c0, g_c1, g_s0, g_s1 = back(g_C)
+            half = g_tau * 0.5
+            g_s = half * length
+            return (g_L + half * (a0.s + a1.s), self._attributes_grad(g_c0, g_s0 + g_s),
+                    self._attributes_grad(g_c1, g_s1 + g_s))
+        return C, T, tau, vjp
+
+    def _attributes_grad(self, c: mi.Color3f, s: mi.Float) -> Any:
+        """Gradients of ``Attributes`` whose color is ``c`` and extinction
+        ``s`` (any other field, e.g. an albedo, zero)."""
+        g = dr.zeros(self.Attributes, dr.width(s))
+        g.c, g.s = c, s
+        return g
 
     def linear(self, params: Any, a0: Any, a1: Any,
                tet: mi.UInt32) -> tuple[mi.Color3f, mi.Color3f, mi.Float, mi.Float]:
@@ -235,6 +270,7 @@ class ViewDependent(EmissionAbsorption):
 
     #: The spherical harmonics' degree (0 to 3).
     degree = 0
+    per_ray_values = True
 
     class Params:
         DRJIT_STRUCT = {"sh": mi.Float, "opacity": mi.Float, "basis": list}

@@ -292,11 +292,11 @@ def flight(ps: PathInputs, ray: mi.Ray3f, target: float | mi.Float, entry: Entry
     span = Span(zero, mi.Float(ray.maxt))
     target = mi.Float(target)
     if ps.apart is not None:
-        client = MergedDepth(ps.meshes, target, grad, ps.settings.reduce,
+        client = MergedDepth(ps.meshes, target, grad, ps.settings.atomics,
                              mi.Float(0.5) if pick is None else mi.Float(pick))
         acc, _ = traverse_merged(ps.apart, client, fr, acc, span, ps.settings, active)
         return acc
-    client = Depth(ps.ts, ps.ts_ad, target, grad, ps.settings.reduce)
+    client = Depth(ps.ts, ps.ts_ad, target, grad, ps.settings.atomics)
     acc, _ = traverse(ps.boundaries, [client], fr, acc, span, ps.settings, active, entry)
     return acc
 
@@ -337,13 +337,13 @@ def _collision_attributes(ps: PathInputs, fl: Flight, p, active, attached: bool)
     the buffers attached to the AD graph."""
     if ps.apart is None:
         ts = ps.ts_ad if attached else ps.ts
-        return attributes_at(ts, fl.tet, p, active, ps.settings.reduce if attached
+        return attributes_at(ts, fl.tet, p, active, ps.settings.atomics if attached
                              else dr.ReduceMode.Auto)
     out = None
     for k, (ts, ts_ad) in enumerate(ps.meshes):
         mine = active & (fl.mesh == k)
         a = attributes_at(ts_ad if attached else ts, fl.tet, p, mine,
-                          ps.settings.reduce if attached else dr.ReduceMode.Auto)
+                          ps.settings.atomics if attached else dr.ReduceMode.Auto)
         out = a if out is None else tree_select(mine, a, out)
     return out
 

@@ -87,7 +87,9 @@ class EmissionDerivative(Emission):
     def __init__(self, ts: TetGroup, ts_ad: TetGroup, deriv: adjoint.Derivative,
                  settings: WalkSettings) -> None:
         super().__init__(ts, settings)
-        self.ts_ad, self.deriv, self.reduce = ts_ad, deriv, settings.reduce
+        self.ts_ad, self.deriv = ts_ad, deriv
+        #: The vertices' gradients (backward mode), passed on after the walk.
+        self.sums = adjoint.VertexSums(ts_ad, settings) if deriv.backward else None
 
     def begin(self, acc: Radiance, cur: Cursor, fr: RayFrame, active: mi.Bool) -> Radiance:
         entry_ids = tuple(c.i for c in cur.carry[0])
@@ -161,4 +163,7 @@ def trace(scene: mi.Scene, ts: TetGroup | list[TetGroup], ray: mi.Ray3f,
     acc = Radiance(L, dr.full(mi.Float, 1.0, dr.width(ray.o)), adj)
     acc, steps = traverse(scene, clients, fr, acc, Span(mi.Float(t_start), mi.Float(ray.maxt)),
                           settings, active, Entry(t=t_enter) if t_enter is not None else None)
+    for c in clients:
+        if getattr(c, "sums", None) is not None:
+            c.sums.flush()
     return acc.L, acc.T, steps, acc.adj

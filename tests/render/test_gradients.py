@@ -213,11 +213,12 @@ def test_reduce_modes_agree_and_bad_mode_is_refused():
     mesh = jittered(rng)
     o, d = rays_at(rng, 64)
     grads = []
-    for mode in ("auto", "direct", "local"):
+    # (auto: the walk's choice, per-thread copies of the vertices' sums on LLVM)
+    for mode in ("auto", "direct", "local", "expand"):
         problem = Problem(mesh, o, d, np.random.default_rng(1))
-        problem.integrator.settings.reduce = {"auto": dr.ReduceMode.Auto,
-                                              "direct": dr.ReduceMode.Direct,
-                                              "local": dr.ReduceMode.Local}[mode]
+        problem.integrator.settings.reduce = {"auto": None, "direct": dr.ReduceMode.Direct,
+                                              "local": dr.ReduceMode.Local,
+                                              "expand": dr.ReduceMode.Expand}[mode]
         grads.append(problem.backward())
     for other in grads[1:]:
         for k in KEYS:
