@@ -39,7 +39,7 @@ __all__ = ["FACES", "EDGES", "FLAT_TOLERANCE", "SLIVER_QUALITY", "REPAIR_HINT", 
            "check_bounds", "signed_volumes", "bbox_diagonal", "flip_tets", "orient_tets",
            "face_keys", "edge_lengths", "mean_edge_length", "quality", "validate_arrays",
            "validate_attributes", "build_topology", "repair_tets", "geometry_summary",
-           "format_summary"]
+           "format_summary", "convex_boundary"]
 
 #: Local vertex indices of face i (opposite vertex i), outward-oriented.
 FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int64)
@@ -689,6 +689,70 @@ def _edge_adjacency(tris):
     adj.ravel()[a] = c // 3
     adj.ravel()[c] = a // 3
     return adj.astype(np.int32)
+
+
+#: The relative tolerance of :func:`convex_boundary`'s test of an edge (the
+#: sine of the angle by which it may bend inwards): float64 rounding of the
+#: float32 positions the renderer walks, no more.
+CONVEX_RTOL = 1e-12
+
+
+def _connected(adjacency) -> bool:
+    """Whether the faces of a closed surface (``adjacency``: the face across
+    each edge, all ``>= 0``) form one connected surface: labels spread to
+    the smallest of each face's neighbours, shortcut by pointer jumping."""
+    lab = np.arange(len(adjacency))
+    while True:
+        low = np.minimum(lab, lab[adjacency].min(axis=1))
+        if np.array_equal(low, lab):
+            return bool((lab == lab[0]).all())
+        np.minimum.at(lab, lab, low)
+        while True:
+            nxt = lab[lab]
+            if np.array_equal(nxt, lab):
+                break
+            lab = nxt
+
+
+def convex_boundary(vertices, faces, adjacency) -> bool:
+    """Whether the boundary surface ``faces`` ((b, 3), wound outwards) of a
+    tet mesh bounds a convex body: one closed, connected, manifold surface
+    (every edge in two faces) none of whose edges bends inwards (across each
+    edge, the other face's third vertex lies on or below the face's plane,
+    to :data:`CONVEX_RTOL`). A closed connected surface that is convex at
+    every edge bounds a convex body (Tietze's theorem), so a line crosses it
+    at most twice: a ray that leaves the mesh does not come back.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    faces : (b, 3) int
+    adjacency : (b, 3) int
+        The face across the edge opposite each corner
+        (:attr:`Topology.boundary_adjacency`).
+    """
+    faces = np.asarray(faces, np.int64)
+    adjacency = np.asarray(adjacency, np.int64)
+    if len(faces) < 4 or (adjacency < 0).any():
+        return False
+    edges = np.sort(np.concatenate([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]]), 1)
+    _, counts = np.unique(edges[:, 0] * (int(faces.max()) + 1) + edges[:, 1],
+                          return_counts=True)
+    if (counts != 2).any() or not _connected(adjacency):
+        return False
+    V = np.asarray(vertices, np.float64)
+    A, B, C = V[faces[:, 0]], V[faces[:, 1]], V[faces[:, 2]]
+    n = np.cross(B - A, C - A)
+    n_len = np.linalg.norm(n, axis=1)
+    total = faces.sum(1)
+    for j in range(3):
+        across = adjacency[:, j]
+        # (manifold: the face across shares the edge opposite corner j)
+        W = V[total[across] - (total - faces[:, j])]
+        side = np.einsum("ij,ij->i", n, W - A)
+        if (side > CONVEX_RTOL * n_len * np.linalg.norm(W - A, axis=1)).any():
+            return False
+    return True
 
 
 #: Meshes of at least this many tets show the topology's progress (a few seconds).

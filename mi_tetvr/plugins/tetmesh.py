@@ -158,7 +158,7 @@ import mitsuba as mi
 import numpy as np
 import numpy.typing as npt
 
-from mi_tetvr.mesh.topology import Topology, longest_edges
+from mi_tetvr.mesh.topology import Topology, convex_boundary, longest_edges
 from mi_tetvr.plugins import constructor
 from mi_tetvr.render.buffers import drjit_index_arrays, owned, shape_index_arrays
 from mi_tetvr.render.optical import (CellClassified, EmissionAbsorption, PostClassified,
@@ -252,6 +252,26 @@ class TetMeshShape(mi.Mesh):
         self.cell_order = owned(mi.UInt32, arrays["order"]) if (
             "order" in arrays and self.optical_model is CellClassified) else None
         self.tet_count = topo.n_tets
+        self._convex = convex_boundary(mesh.vertices.astype(np.float32), topo.boundary_faces,
+                                       topo.boundary_adjacency)
+
+    def convex(self) -> bool:
+        """Whether the mesh's boundary bounds a convex body
+        (:func:`~mi_tetvr.mesh.topology.convex_boundary`, for the positions
+        it has now): a ray that leaves it never comes back, so the walk asks
+        the ray tracer once per ray (:func:`~mi_tetvr.render.cursor.traverse`).
+        After the positions change it is found again from them (read back)."""
+        if self._convex is None:
+            b = self.tet_buffers
+            self._convex = convex_boundary(
+                np.asarray(self.vertex_positions_buffer(), np.float32).reshape(-1, 3),
+                np.asarray(b["faces"]).reshape(-1, 3), np.asarray(b["face_adj"]).reshape(-1, 3))
+        return self._convex
+
+    def parameters_changed(self, keys: list[str] = []) -> None:  # noqa: B006 (Mitsuba's)
+        super().parameters_changed(keys)
+        if not keys or "vertex_positions" in keys:
+            self._convex = None
 
     def set_mesh(self, params: mi.SceneParameters, vertices: npt.ArrayLike, tets: npt.ArrayLike,
                  values: dict[str, npt.ArrayLike], topology: Topology | None = None) -> None:

@@ -349,8 +349,12 @@ def tangent(deriv: Derivative, ts_ad: TetGroup, ids: Sequence[mi.UInt32], fr: Ra
             fr = leaf_frame(ray_leaves(deriv, fr), True)
         t, w = face_crossing(ts_ad.buf, ids, fr, active)
         a = ts_ad.model.interpolate(ts_ad.params, ids, w, active)
-        # AllowNoGrad: the tangents may all be elsewhere (e.g. the environment's)
-        return dr.forward_to(t, a, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+        # AllowNoGrad: the tangents may all be elsewhere (e.g. the environment's);
+        # not ClearInput: the parameters' tangents serve every crossing (a
+        # walk's first crossing is taken outside any loop, where clearing them
+        # would be for good)
+        return dr.forward_to(t, a, flags=dr.ADFlag.ClearEdges | dr.ADFlag.ClearInterior
+                             | dr.ADFlag.AllowNoGrad)
 
 
 def _scaled(g, w):

@@ -180,14 +180,16 @@ def locate(buf: MeshBuffers, tet: mi.UInt32, f_out: mi.UInt32, fr: RayFrame, t_s
     f_in = mi.UInt32(f_out)
     steps = mi.UInt32(0)
     active = mi.Bool(active)
+    # (the face walked in by, carried from step to step as the walk does)
+    carry = entry_carry(buf, tet, f_in, back, active)
     while dr.hint(active, label="tetvr_locate"):
-        st = walk_step(buf, tet, f_in, back, active)
+        st = walk_step(buf, tet, f_in, back, active, carry)
         found = -st.t <= t_start
-        f_in = mi.UInt32(st.f_out)
         go = ~found & (st.link >= 0)
         nxt_tet, nxt_f = unpack_link(st.link)
         tet = dr.select(go, nxt_tet, tet)
-        f_in = dr.select(go, nxt_f, f_in)
+        f_in = dr.select(go, nxt_f, st.f_out)
+        carry = tree_select(go, st.carry, carry)
         steps += 1
         active &= go & (steps < max_steps)
     return tet, f_in
@@ -272,6 +274,9 @@ def traverse(scene: mi.Scene, clients: list, fr: RayFrame, acc: Any, span: Span,
     inside = entry.tet is not None
     if inside and len(clients) != 1:
         raise ValueError("a ray that starts inside a tet walks one group of meshes")
+    if dr.hint(not inside and entry.t is None and len(clients) == 1 and convex_scene(scene),
+               mode="scalar"):
+        return traverse_convex(scene, clients[0], fr, acc, span, settings, active)
     t_max = mi.Float(span.end)
     start = mi.Float(span.begin if entry.t is None else entry.t)
     active = mi.Bool(active)
@@ -302,6 +307,45 @@ def traverse(scene: mi.Scene, clients: list, fr: RayFrame, acc: Any, span: Span,
         active = (hit | first) & clients[0].alive(acc) & (start < t_max)
         first = mi.Bool(False)
     return acc, steps
+
+
+def convex_scene(scene: mi.Scene) -> bool:
+    """Whether ``scene`` is one tet mesh's boundary, and that mesh is convex
+    (its shape's ``convex()``): a line meets it in one interval."""
+    shapes = scene.shapes()
+    return len(shapes) == 1 and bool(getattr(shapes[0], "convex", lambda: False)())
+
+
+def traverse_convex(scene: mi.Scene, client: Client, fr: RayFrame, acc: Any, span: Span,
+                    settings: WalkSettings, active: bool | mi.Bool) -> tuple[Any, mi.UInt32]:
+    """:func:`traverse` where ``scene`` is one convex mesh
+    (:func:`convex_scene`): a ray that leaves it never comes back, so the
+    ray tracer is asked once, and there is no loop around the walk. A ray
+    that starts inside the mesh (its first boundary face is one it leaves
+    by) enters it where its line does, behind the start: the first face
+    found from a point beyond the mesh's bounds, back along the ray; the
+    walk's pieces before ``span.begin`` are clipped away, as the general
+    traverse clips the piece it locates the start in. (No walk back to the
+    start, :func:`locate`, and none of its code.)"""
+    buf = client.ts.buf
+    start = mi.Float(span.begin)
+    active = mi.Bool(active)
+    si = scene.ray_intersect_preliminary(mi.Ray3f(fr.at(start), fr.d), active=active)
+    hit = active & si.is_valid()
+    tet, f, outward = face_entry(buf, mi.UInt32(si.prim_index), fr, hit)
+    behind = hit & outward
+    box = scene.bbox()
+    far = dr.norm(fr.at(start) - box.center()) + dr.norm(box.extents()) + 1.0
+    si = scene.ray_intersect_preliminary(mi.Ray3f(fr.at(start - far), fr.d), active=behind)
+    tet_b, f_b, _ = face_entry(buf, mi.UInt32(si.prim_index), fr, behind)
+    # (a line through the mesh is found from behind; where round-off says
+    # otherwise, the ray is not walked rather than walked from a face it leaves by)
+    hit &= ~behind | si.is_valid()
+    tet = dr.select(behind, tet_b, tet)
+    f = dr.select(behind, f_b, f)
+    cur = Cursor.at(client, tet, f, fr, hit)
+    acc, _, steps = walk(client, fr, cur, acc, Span(start, mi.Float(span.end)), settings, hit)
+    return acc, dr.select(hit, steps, 0)
 
 
 # ----------------------------------------------------------------------------
@@ -504,3 +548,4 @@ def traverse_merged(scenes: list, client: MergedClient, fr: RayFrame, acc: Any, 
             pending |= inside[k] | need[k] | (t_next[k] < t_max)
         active &= pending & (t < t_max) & more & (steps < settings.max_steps)
     return acc, steps
+

@@ -252,6 +252,7 @@ def _boundary_corners(buf, face, fr: RayFrame, active):
 BOUNDARY_WALK_STEPS = 8
 
 
+@dr.syntax
 def face_entry(buf: MeshBuffers, face: mi.UInt32, fr: RayFrame,
                active: bool | mi.Bool) -> tuple[mi.UInt32, mi.UInt32, mi.Bool]:
     """The tet behind the boundary face a ray hits.
@@ -259,7 +260,8 @@ def face_entry(buf: MeshBuffers, face: mi.UInt32, fr: RayFrame,
     The face found by Mitsuba's ray tracer is first moved, over the boundary
     surface, to the face that the ray crosses by the walk's own (consistent)
     edge predicate: a ray hitting a vertex or an edge of the boundary must
-    start in the tet the walk agrees with.
+    start in the tet the walk agrees with. (A loop that lanes leave as soon
+    as their face is the one: most rays stay on the ray tracer's face.)
 
     Parameters
     ----------
@@ -275,8 +277,10 @@ def face_entry(buf: MeshBuffers, face: mi.UInt32, fr: RayFrame,
         True when the ray leaves the mesh through this face.
     """
     face = mi.UInt32(face)
-    for _ in range(BOUNDARY_WALK_STEPS):
-        (ia, ib, ic), _, (pa, pb, pc) = _boundary_corners(buf, face, fr, active)
+    move = mi.Bool(active)
+    steps = mi.UInt32(0)
+    while dr.hint(move, label="tetvr_entry_face"):
+        (ia, ib, ic), _, (pa, pb, pc) = _boundary_corners(buf, face, fr, move)
         e_bc, s_bc = edge_function(ib, pb, ic, pc)
         e_ca, s_ca = edge_function(ic, pc, ia, pa)
         e_ab, s_ab = edge_function(ia, pa, ib, pb)
@@ -284,9 +288,12 @@ def face_entry(buf: MeshBuffers, face: mi.UInt32, fr: RayFrame,
         # every edge sign agrees, else cross the first edge that disagrees.
         back = (e_bc + e_ca + e_ab) > 0
         adj = dr.select(s_bc != back, 0, dr.select(s_ca != back, 1, 2))
-        move = active & ((s_bc != back) | (s_ca != back) | (s_ab != back))
+        move &= (s_bc != back) | (s_ca != back) | (s_ab != back)
         nxt = dr.gather(mi.Int32, buf.face_adj, face * 3 + adj, move)
-        face = dr.select(move & (nxt >= 0), mi.UInt32(nxt), face)
+        move &= nxt >= 0
+        face = dr.select(move, mi.UInt32(nxt), face)
+        steps += 1
+        move &= steps < BOUNDARY_WALK_STEPS
     _, (Pa, Pb, Pc), _ = _boundary_corners(buf, face, fr, active)
     code = dr.gather(mi.UInt32, buf.boundary, face, active)
     outward = dr.dot(dr.cross(Pb - Pa, Pc - Pa), fr.d) > 0
