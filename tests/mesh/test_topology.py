@@ -11,8 +11,9 @@ from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.io import read_tetmesh, write_tetmesh
 from mi_tetvr.mesh.tetmesh import TetMesh
 from mi_tetvr.mesh.topology import (EDGES, FACES, MeshError, bbox_diagonal, build_topology,
-                                    edge_lengths, face_keys, flip_tets, mean_edge_length,
-                                    orient_tets, quality, signed_volumes, validate_arrays)
+                                    convex_boundary, edge_lengths, face_keys, flip_tets,
+                                    mean_edge_length, orient_tets, quality, signed_volumes,
+                                    validate_arrays)
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -493,3 +494,49 @@ def test_topology_matches_the_reference_on_real_meshes(path):
         assert got == ref
     else:
         _same_topology(got, ref, v)
+
+
+def _convexity_cases():
+    """Meshes whose boundary is convex or not, each with a name."""
+    rng = np.random.default_rng(3)
+    cube_v, cube_t = grid_mesh(4)
+    cent = cube_v[cube_t].mean(1)
+    yield "cube", cube_v, cube_t
+    yield "jittered inside", *grid_mesh(5, jitter=0.15, seed=2)
+    yield "L", cube_v, cube_t[~((cent[:, 0] > 0) & (cent[:, 1] > 0))]
+    yield "cavity", cube_v, cube_t[np.abs(cent).max(1) > 0.5]
+    yield "two cubes", np.concatenate([cube_v, cube_v + 3]), np.concatenate(
+        [cube_t, cube_t + len(cube_v)])
+    yield "corner tet off", cube_v, np.delete(cube_t, np.argmax(cent.sum(1)), 0)
+    for name, shift in (("dent", -1e-4), ("bump", 1e-4)):
+        v = cube_v.copy()
+        v[np.argmin(np.abs(v - [1.0, 0.0, 0.0]).sum(1)), 0] += shift
+        yield name, v, cube_t
+    try:
+        from scipy.spatial import Delaunay
+    except ImportError:
+        return
+    for i in range(3):
+        p = rng.normal(size=(60, 3)) * [1.0, 0.5, 2.0]
+        yield f"Delaunay {i}", p, Delaunay(p).simplices
+
+
+@pytest.mark.parametrize("case", list(_convexity_cases()), ids=lambda c: c[0])
+def test_convex_boundary_against_the_convex_hull(case):
+    """A boundary is convex exactly where the mesh fills its convex hull
+    (scipy's Qhull: equal volumes), whatever its tets inside."""
+    ConvexHull = pytest.importorskip("scipy.spatial").ConvexHull
+    _, v, t = case
+    topo = build_topology(v, t, warn=False)
+    hull = ConvexHull(v[np.unique(topo.tets)]).volume
+    fills = np.isclose(signed_volumes(v, topo.tets).sum(), hull, rtol=1e-9, atol=0)
+    assert convex_boundary(v, topo.boundary_faces, topo.boundary_adjacency) == fills
+
+
+def test_convex_boundary_refuses_an_open_surface():
+    v, t = grid_mesh(2)
+    topo = build_topology(v, t)
+    faces, adj = topo.boundary_faces, topo.boundary_adjacency.copy()
+    assert convex_boundary(v, faces, adj)
+    adj[0, 0] = -1                              # (an edge with one face)
+    assert not convex_boundary(v, faces, adj)

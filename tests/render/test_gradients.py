@@ -208,17 +208,24 @@ def test_mi_render_workflow_forward_backward_and_fd():
     assert abs(fd - reverse) < 0.02 * abs(reverse), (fd, reverse)
 
 
-def test_reduce_modes_agree_and_bad_mode_is_refused():
+def test_reduce_modes_agree_and_bad_mode_is_refused(monkeypatch):
+    """Every scatter strategy gives the same gradients, and so do the
+    per-vertex sums passed on after the walk and the gather's derivative at
+    every vertex (what a model whose values depend on the ray takes)."""
+    from mi_tetvr.render.optical import EmissionAbsorption
     rng = np.random.default_rng(28)
     mesh = jittered(rng)
     o, d = rays_at(rng, 64)
     grads = []
     # (auto: the walk's choice, per-thread copies of the vertices' sums on LLVM)
-    for mode in ("auto", "direct", "local", "expand"):
+    for mode in ("auto", "direct", "local", "expand", "per vertex"):
         problem = Problem(mesh, o, d, np.random.default_rng(1))
         problem.integrator.settings.reduce = {"auto": None, "direct": dr.ReduceMode.Direct,
                                               "local": dr.ReduceMode.Local,
-                                              "expand": dr.ReduceMode.Expand}[mode]
+                                              "expand": dr.ReduceMode.Expand,
+                                              "per vertex": None}[mode]
+        if mode == "per vertex":
+            monkeypatch.setattr(EmissionAbsorption, "per_ray_values", True)
         grads.append(problem.backward())
     for other in grads[1:]:
         for k in KEYS:

@@ -220,3 +220,61 @@ def test_a_scene_built_again_reuses_its_kernels():
             if attempt > 0:
                 assert compiled == [], [k["hash"] for k in compiled]
     assert all(np.array_equal(images[0], im) for im in images[1:])
+
+
+def test_convex_mesh_walks_as_the_general_traversal(jittered, monkeypatch):
+    """A convex mesh is traced once per ray (``traverse_convex``): from
+    outside, from inside (entered from behind, its pieces before the start
+    clipped), clipped by a box, and along grid edges, the image is the
+    general traversal's (one more trace after the exit, a walk back to a
+    start inside) and the float64 reference's."""
+    import mi_tetvr.render.cursor as cursor
+    rng = np.random.default_rng(17)
+    k = 128
+    inside = rng.uniform(-0.7, 0.7, (k, 3))
+    outside, d_out = rays_at(rng, k)
+    d_in = rng.normal(size=(k, 3))
+    d_in /= np.linalg.norm(d_in, axis=1, keepdims=True)
+    o, d = np.concatenate([outside, inside]), np.concatenate([d_out, d_in])
+    scene = make_scene(jittered)
+    assert [s.convex() for s in scene.shapes()] == [True]
+    rgb, alpha = check(scene, jittered, o, d)
+    clip = dict(clip_min=[-0.5, -2.0, -0.4], clip_max=[0.6, 2.0, 2.0])
+    rgb_clip, _ = render_rays(make_scene(jittered, **clip), o, d)
+    monkeypatch.setattr(cursor, "convex_scene", lambda scene: False)
+    general = render_rays(make_scene(jittered), o, d)
+    np.testing.assert_allclose(rgb, general[0], atol=2e-6)
+    np.testing.assert_allclose(alpha, general[1], atol=2e-6)
+    np.testing.assert_allclose(rgb_clip, render_rays(make_scene(jittered, **clip), o, d)[0],
+                               atol=2e-6)
+
+
+def test_a_mesh_made_concave_is_walked_again_after_its_exit():
+    """Moving boundary vertices inwards (a scene parameter) makes the mesh
+    concave: ``convex()`` follows the positions, and rays that leave and
+    come back are integrated both times, as the reference says."""
+    import mitsuba as mi
+    rng = np.random.default_rng(19)
+    V, T = grid_mesh((6, 6, 2), jitter=0.0)
+    C, S = random_attributes(len(V), rng)
+    scene = make_scene((V, T, C, S))
+    shape = scene.shapes()[0]
+    assert shape.convex()
+    # A notch: the +y face's vertices with |x| < 0.5 pushed down to y = 0.8
+    # (the top layer of cells is 1/3 deep: its tets stay positive).
+    W = V.copy()
+    notch = (W[:, 1] > 0.99) & (np.abs(W[:, 0]) < 0.5)
+    W[notch, 1] = 0.8
+    params = mi.traverse(scene)
+    key = [k for k in params.keys() if k.endswith("vertex_positions")][0]
+    params[key] = mi.Float(W.astype(np.float32).ravel())
+    params.update()
+    assert not shape.convex()
+    k = 128
+    o = np.stack([np.full(k, -3.0), rng.uniform(0.82, 0.98, k), rng.uniform(-0.9, 0.9, k)], 1)
+    d = np.stack([np.ones(k), rng.uniform(-0.002, 0.002, k), rng.uniform(-0.05, 0.05, k)], 1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    rgb, _ = check(scene, (W, T, C, S), o, d)
+    # (the rays that came back: more than the first part of the mesh gives)
+    first, _ = reference_render(W, T[W[T].mean(1)[:, 0] < -0.5], C, S, o, d)
+    assert (np.abs(rgb - first).max(1) > 0.01).sum() > k // 2
