@@ -408,15 +408,17 @@ def segment(deriv: Derivative, walker: EmissionDerivative, p: Piece, acc: Radian
         (t0, a0), (t1, a1) = x
         length, b0, b1 = clip_segment(t0, a0, t1, a1, span.begin, span.end)
         extra = (tet,) if model.per_tet else ()
-        closed = model.segment_vjp(ts_ad.params, *dr.detach((length, b0, b1)), *extra) \
-            if backward else None
+        adj = acc.adj
+
+        def seeds(C):
+            # The inversion's seeds: d L_pix = T dC - R dtau, d alpha = T_fin dtau.
+            R = adj.L_pix - (acc.L + acc.T * C)
+            return acc.T * adj.dL, adj.dalpha * adj.T_fin - dr.dot(adj.dL, R)
+        closed = model.segment_adjoint(ts_ad.params, *dr.detach((length, b0, b1)), seeds,
+                                       *extra) if backward else None
         if dr.hint(closed is not None, mode="scalar"):
-            # The segment's derivative in closed form (the inversion's seeds:
-            # d L_pix = T dC - R dtau, d alpha = T_fin dtau).
-            C_seg, T_seg, _, vjp = closed
-            adj = acc.adj
-            R = adj.L_pix - (acc.L + acc.T * C_seg)
-            g_len, g_b0, g_b1 = vjp(acc.T * adj.dL, adj.dalpha * adj.T_fin - dr.dot(adj.dL, R))
+            # The segment's derivative in closed form.
+            C_seg, T_seg, g_len, g_b0, g_b1 = closed
             dr.backward_from(g_len * length + tree_dot(g_b0, b0) + tree_dot(g_b1, b1),
                              flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         else:

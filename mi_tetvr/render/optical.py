@@ -59,7 +59,8 @@ from mi_tetvr.mesh import TetMesh
 from mi_tetvr.render.buffers import concat
 from mi_tetvr.render.linear import TetFrame
 from mi_tetvr.render.pytree import weighted_sum
-from mi_tetvr.render.segment import segment_integral, segment_integral_vjp
+from mi_tetvr.render.segment import (segment_integral, segment_integral_vjp,
+                                     zero_opacity_derivatives)
 
 
 def piece_of(x: mi.Float, n: int) -> mi.UInt32:
@@ -138,15 +139,23 @@ class OpticalModel:
         ``length`` whose attributes go linearly from ``a0`` to ``a1``."""
         raise NotImplementedError
 
-    def segment_vjp(self, params: Any, length: mi.Float, a0: Any, a1: Any, *tet: mi.UInt32
-                    ) -> tuple[mi.Color3f, mi.Float, mi.Float, Any] | None:
-        """:meth:`segment` with its reverse-mode derivative in closed form,
-        ``(C, T, tau, vjp)``, where ``vjp(g_C, g_tau)`` gives the gradients
-        ``(g_length, g_a0, g_a1)`` of ``g_C . C + g_tau tau`` w.r.t. the
-        segment's length and end attributes (the backward pass's adjoint
-        then runs it instead of differentiating :meth:`segment` by Dr.Jit's
-        AD). None (the default) for a model without one, or whose segment
-        reads differentiable parameters of its own (a transfer function)."""
+    def segment_adjoint(self, params: Any, length: mi.Float, a0: Any, a1: Any, seeds: Any,
+                        *tet: mi.UInt32) -> tuple | None:
+        """A segment's emission and transmittance and their reverse-mode
+        derivative in closed form, ``(C, T, g_length, g_a0, g_a1)``: the
+        gradients w.r.t. the segment's length and end attributes of ``g_C .
+        C + g_tau tau``, where ``(g_C, g_tau) = seeds(C)`` (the backward
+        pass's adjoint runs it instead of differentiating :meth:`segment` by
+        Dr.Jit's AD). None (the default) for a model without one, or whose
+        segment reads differentiable parameters of its own (a transfer
+        function)."""
+        return None
+
+    def empty(self, a0: Any, a1: Any) -> mi.Bool | None:
+        """Where a segment from attributes ``a0`` to ``a1`` is empty: its
+        emission is exactly 0 and its transmittance 1, so the walk skips its
+        integral (a branch of the kernel that packets of rays in empty space
+        do not enter); None for a model that never says so."""
         return None
 
     def linear(self, params: Any, a0: Any, a1: Any,
@@ -199,18 +208,37 @@ class EmissionAbsorption(OpticalModel):
         tau = length * (a0.s + a1.s) * 0.5
         return C, T, tau
 
-    def segment_vjp(self, params: Any, length: mi.Float, a0: Any,
-                    a1: Any) -> tuple[mi.Color3f, mi.Float, mi.Float, Any]:
-        C, T, back = segment_integral_vjp(length, a0.c, a1.c, a0.s, a1.s, self.n_sub)
-        tau = length * (a0.s + a1.s) * 0.5
+    def empty(self, a0: Any, a1: Any) -> mi.Bool:
+        # (zero extinction at both ends, and so all along: C = 0, T = 1 exactly)
+        return (a0.s == 0.0) & (a1.s == 0.0)
 
-        def vjp(g_C: mi.Color3f, g_tau: mi.Float) -> tuple[mi.Float, Any, Any]:
+    def segment_adjoint(self, params: Any, length: mi.Float, a0: Any, a1: Any,
+                        seeds: Any) -> tuple:
+        # (tau = length (s0 + s1) / 2 is linear: its part of the gradients
+        # is added here; empty segments take the scheme's derivatives at zero
+        # extinction, without an exponential)
+        n_sub = self.n_sub
+
+        def full():
+            C, T, back = segment_integral_vjp(length, a0.c, a1.c, a0.s, a1.s, n_sub)
+            g_C, g_tau = seeds(C)
             g_L, g_c0, g_c1, g_s0, g_s1 = back(g_C)
             half = g_tau * 0.5
-            g_s = half * length
-            return (g_L + half * (a0.s + a1.s), self._attributes_grad(g_c0, g_s0 + g_s),
-                    self._attributes_grad(g_c1, g_s1 + g_s))
-        return C, T, tau, vjp
+            return (C, T, g_L + half * (a0.s + a1.s),
+                    self._attributes_grad(g_c0, g_s0 + half * length),
+                    self._attributes_grad(g_c1, g_s1 + half * length))
+
+        def empty():
+            C = mi.Color3f(0.0)
+            g_C, g_tau = seeds(C)
+            g_P, g_Q = dr.dot(g_C, a0.c), dr.dot(g_C, a1.c)
+            p0, q0, p1, q1 = zero_opacity_derivatives(n_sub)
+            half = g_tau * 0.5
+            zero = mi.Color3f(0.0)
+            return (C, mi.Float(1.0), mi.Float(0.0),
+                    self._attributes_grad(zero, length * (g_P * p0 + g_Q * q0 + half)),
+                    self._attributes_grad(zero, length * (g_P * p1 + g_Q * q1 + half)))
+        return dr.if_stmt((), ~self.empty(a0, a1), full, empty, label="segment_adjoint")
 
     def _attributes_grad(self, c: mi.Color3f, s: mi.Float) -> Any:
         """Gradients of ``Attributes`` whose color is ``c`` and extinction

@@ -200,6 +200,24 @@ def segment_integral_vjp(length: mi.Float, c0: mi.Color3f, c1: mi.Color3f, s0: m
     return c0 * P + c1 * Q, T, vjp
 
 
+def zero_opacity_derivatives(n_sub: int) -> tuple[float, float, float, float]:
+    """``(dP/ds0, dQ/ds0, dP/ds1, dQ/ds1)`` per unit length of the scheme of
+    :func:`segment_integral` (``C = c0 P + c1 Q``) where the extinction is
+    zero at both ends: with ``m_k = (k + 1/2) / n``, sub-interval ``k``'s
+    depth takes ``dP/dx_k = 1 - m_k`` and ``dQ/dx_k = m_k``, and ``dx_k /
+    ds0 = (1 - m_k) / n``, ``dx_k / ds1 = m_k / n``; even counts extrapolated
+    as the integral is (which gives the exact 1/3 and 1/6). Constants: the
+    adjoint of an empty segment needs no exponential."""
+    def raw(n):
+        m = [(k + 0.5) / n for k in range(n)]
+        return (sum((1 - mk) ** 2 for mk in m) / n, sum(mk * (1 - mk) for mk in m) / n,
+                sum((1 - mk) * mk for mk in m) / n, sum(mk * mk for mk in m) / n)
+    d = raw(n_sub)
+    if n_sub % 2 == 0:
+        d = tuple((4.0 * f - c) / 3.0 for f, c in zip(d, raw(n_sub // 2)))
+    return d
+
+
 def clip_segment(t0: mi.Float, x0: Any, t1: mi.Float, x1: Any, t_begin: mi.Float,
                  t_end: mi.Float) -> tuple[mi.Float, Any, Any]:
     """Restrict a segment with linear attributes (``t0 -> t1``, values ``x0 ->

@@ -7,7 +7,8 @@ from scipy.integrate import quad
 
 import drjit as dr
 import mitsuba as mi
-from mi_tetvr.render.segment import interval_terms, segment_integral, segment_integral_vjp
+from mi_tetvr.render.segment import (interval_terms, segment_integral, segment_integral_vjp,
+                                     zero_opacity_derivatives)
 
 X = np.array([0.0, 1e-7, 1e-4, 5e-3, 0.0099, 0.0101, 0.099, 0.101, 0.3, 2.0, 30.0, 1e4])
 
@@ -232,3 +233,21 @@ def test_segment_integral_vjp_against_float64_differences(n_sub):
             # the other argument, which cancel: a few ulps of them)
             terms = (abs(a) + abs(b)) * (s0[i] + s1[i] if j == 0 else length[i])
             assert abs(got - fd) <= 1e-3 * abs(fd) + 4e-6 * terms, (n_sub, i, j, got, fd)
+
+
+@pytest.mark.parametrize("n_sub", [1, 2, 3, 4, 8])
+def test_zero_opacity_derivatives(n_sub):
+    """The constants an empty segment's adjoint takes are the closed-form
+    derivative's at zero extinction, and for even counts those of the exact
+    integral, ``C = length (c0 (s0/3 + s1/6) + c1 (s0/6 + s1/3))`` to first
+    order in the extinction."""
+    c0, c1 = mi.Color3f(1.0, 0.0, 0.0), mi.Color3f(0.0, 1.0, 0.0)
+    _, _, vjp = segment_integral_vjp(mi.Float(2.0), c0, c1, mi.Float(0.0), mi.Float(0.0),
+                                     n_sub)
+    p0, q0, p1, q1 = zero_opacity_derivatives(n_sub)
+    for g_C, (w0, w1) in ((mi.Color3f(1.0, 0.0, 0.0), (p0, p1)),
+                          (mi.Color3f(0.0, 1.0, 0.0), (q0, q1))):
+        _, _, _, g_s0, g_s1 = vjp(g_C)
+        np.testing.assert_allclose([g_s0[0], g_s1[0]], [2.0 * w0, 2.0 * w1], rtol=1e-6)
+    if n_sub % 2 == 0:
+        np.testing.assert_allclose([p0, q0, p1, q1], [1 / 3, 1 / 6, 1 / 6, 1 / 3], rtol=1e-12)
