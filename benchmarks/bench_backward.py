@@ -16,10 +16,17 @@ Usage::
 
     python benchmarks/bench_backward.py            # 64^3 cells, 256x256
     python benchmarks/bench_backward.py --quick    # 16^3 cells, 64x64
+    python benchmarks/bench_backward.py --code ../before --rounds 3   # against another checkout
+
+With ``--code DIR`` the script runs in turns with this checkout's package and
+with ``DIR``'s (each run in a process of its own, ``--rounds`` times; each
+with its integrator's default ``reduce_mode``) and prints render + backward /
+render of both, per round and over the rounds.
 """
 from __future__ import annotations
 
-from common import grid_scene, header, make_parser, timed, write_json
+from common import (add_code_options, alternate, check_code, grid_scene, header, make_parser,
+                    spread, timed, write_json)
 
 
 def parse_args(argv=None):
@@ -30,7 +37,9 @@ def parse_args(argv=None):
     p.add_argument("--modes", default="auto,direct,local",
                    help="tetvr's reduce modes to compare (default auto,direct,local; also "
                         "expand)")
+    add_code_options(p)
     a = p.parse_args(argv)
+    check_code(p, a)
     if a.quick:
         a.cells, a.res = 16, 64
     return a
@@ -47,7 +56,41 @@ import mi_tetvr  # noqa: E402,F401
 KEYS = ("volume.vertex_color", "volume.vertex_opacity", "volume.vertex_positions")
 
 
+def compare(a):
+    """This checkout against ``--code``, in turns (see the module docstring)."""
+    argv = ["--cells", str(a.cells), "--res", str(a.res), "--n-sub", str(a.n_sub),
+            "--repeat", str(a.repeat), "--variant", a.variant, "--modes", "auto"]
+    info = header("backward benchmark, this checkout against --code " + str(a.code))
+    rounds = alternate(__file__, argv, a.code, a.rounds)
+    rows = []
+    print(f"{'round':<7}{'render this':>12}{'+ backward':>12}{'ratio':>8}"
+          f"{'render --code':>15}{'+ backward':>12}{'ratio':>8}")
+    for r, row in enumerate(rounds):
+        x = {}
+        for name, res in row.items():
+            by = {b["name"]: b for b in res["rows"]}
+            x[name] = (by["primal mi.render"]["median_s"],
+                       by["render + backward, all 3, reduce=auto"]["median_s"])
+        rows.append(dict(this_primal_s=x["this"][0], this_backward_s=x["this"][1],
+                         other_primal_s=x["other"][0], other_backward_s=x["other"][1],
+                         this_ratio=x["this"][1] / x["this"][0],
+                         other_ratio=x["other"][1] / x["other"][0]))
+        y = rows[-1]
+        print(f"{r + 1:<7}{y['this_primal_s']:>11.3f}s{y['this_backward_s']:>11.3f}s"
+              f"{y['this_ratio']:>7.2f}x{y['other_primal_s']:>14.3f}s{y['other_backward_s']:>11.3f}s"
+              f"{y['other_ratio']:>7.2f}x")
+    print()
+    print(f"render + backward / render: this {spread([y['this_ratio'] for y in rows])}x, --code "
+          f"{spread([y['other_ratio'] for y in rows])}x; render + backward this / --code "
+          f"{spread([y['this_backward_s'] / y['other_backward_s'] for y in rows])}x "
+          f"(median [range] of {len(rows)} rounds)")
+    write_json(a, info, {"code": a.code, "rounds": rows, "runs": rounds})
+    return 0
+
+
 def main(a):
+    if a.code:
+        return compare(a)
     info = header("backward benchmark")
     scene, v, tets, color, opacity = grid_scene(a.cells, a.res, n_sub=a.n_sub)
     print(f"mesh: {a.cells}^3 cells, {len(tets):,} tets; image {a.res}x{a.res}, 1 spp")
@@ -87,7 +130,7 @@ def main(a):
     rows.append(("primal mi.render", p_first, p_med, p_all))
     integrator = scene.integrator()
     # ("auto": tetvr's default, the walk's own choice per backend)
-    modes = {"auto": None, "local": dr.ReduceMode.Local,
+    modes = {"auto": integrator.settings.reduce, "local": dr.ReduceMode.Local,
              "direct": dr.ReduceMode.Direct, "expand": dr.ReduceMode.Expand}
     results = {}
     # (tetvr's default first: the rows below and the headline ratio use it)
@@ -97,7 +140,7 @@ def main(a):
         results[name] = m
         rows.append((f"render + backward, all 3, reduce={name}", f, m, al))
     best = min(results, key=results.get)
-    integrator.settings.reduce = None
+    integrator.settings.reduce = modes["auto"]
     f, m, al, _ = timed(backward(KEYS[:2]), a.repeat)
     results["colors_opacities"] = m
     rows.append(("render + backward, colors and opacities", f, m, al))

@@ -29,6 +29,12 @@ Usage::
     python benchmarks/bench_render.py            # 64^3 cells, 384x384
     python benchmarks/bench_render.py --quick    # 16^3 cells, 96x96 smoke run
     python benchmarks/bench_render.py --shuffle  # vertices and tets in random order
+    python benchmarks/bench_render.py --code ../before --rounds 3   # against another checkout
+
+With ``--code DIR`` the script runs in turns with this checkout's package and
+with ``DIR``'s (each run in a process of its own, ``--rounds`` times) and
+prints, per round and over the rounds, each checkout's ``trace()`` and the
+plain walk beside it: plain / ``tetvr`` for both, and this / ``--code``.
 """
 from __future__ import annotations
 
@@ -36,7 +42,8 @@ import sys
 
 import numpy as np
 
-from common import grid_scene, header, make_parser, pixel_rays, timed, write_json
+from common import (add_code_options, alternate, check_code, grid_scene, header, make_parser,
+                    pixel_rays, spread, timed, write_json)
 
 
 def parse_args(argv=None):
@@ -55,7 +62,9 @@ def parse_args(argv=None):
     p.add_argument("--baseline-n-sub", type=int, default=8,
                    help="sub-intervals of the plain walk's Alg. 1 integral (default 8, the "
                         "n_sub tetvr used with it)")
+    add_code_options(p)
     a = p.parse_args(argv)
+    check_code(p, a)
     if a.quick:
         a.cells, a.res = 16, 96
     return a
@@ -87,7 +96,44 @@ def rgb_np(C):
     return np.stack([np.asarray(C.x), np.asarray(C.y), np.asarray(C.z)], -1)
 
 
+def compare(a):
+    """This checkout against ``--code``, in turns (see the module docstring)."""
+    argv = ["--cells", str(a.cells), "--res", str(a.res), "--jitter", str(a.jitter),
+            "--scale", str(a.scale), "--repeat", str(a.repeat), "--variant", a.variant,
+            "--baseline-n-sub", str(a.baseline_n_sub)]
+    argv += ["--n-sub", str(a.n_sub)] if a.n_sub is not None else []
+    info = header("render benchmark, this checkout against --code " + str(a.code))
+    rounds = alternate(__file__, argv, a.code, a.rounds)
+
+    def medians(res):
+        return {m["method"]: m["median_s"] for m in res["methods"]}
+    trace, plain = "tetvr trace()", [m["method"] for m in rounds[0]["this"]["methods"]][2]
+    rows = []
+    print(f"{'round':<7}{'trace() this':>14}{'trace() --code':>16}{'plain walk':>12}"
+          f"{'plain/this':>12}{'plain/--code':>14}{'this/--code':>13}")
+    for r, row in enumerate(rounds):
+        t, o = medians(row["this"]), medians(row["other"])
+        # (the plain walk timed beside each: the mean of its two runs)
+        pl = 0.5 * (t[plain] + o[plain])
+        rows.append(dict(this_s=t[trace], other_s=o[trace], plain_s=pl,
+                         plain_over_this=t[plain] / t[trace], plain_over_other=o[plain] / o[trace],
+                         this_over_other=t[trace] / o[trace]))
+        x = rows[-1]
+        print(f"{r + 1:<7}{x['this_s']:>13.3f}s{x['other_s']:>15.3f}s{pl:>11.3f}s"
+              f"{x['plain_over_this']:>11.2f}x{x['plain_over_other']:>13.2f}x"
+              f"{x['this_over_other']:>12.2f}x")
+    print()
+    for k, what in (("plain_over_this", "plain walk / tetvr, this checkout"),
+                    ("plain_over_other", "plain walk / tetvr, --code"),
+                    ("this_over_other", "tetvr this / --code (below 1: faster)")):
+        print(f"{what}: {spread([x[k] for x in rows])}x (median [range] of {len(rows)} rounds)")
+    write_json(a, info, {"code": a.code, "rounds": rows, "runs": rounds})
+    return 0
+
+
 def main(a):
+    if a.code:
+        return compare(a)
     res, n_rays = a.res, a.res * a.res
     info = header("render benchmark")
     extra = {} if a.n_sub is None else {"n_sub": a.n_sub}

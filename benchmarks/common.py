@@ -208,6 +208,53 @@ def timed(fn, repeat, warmup=True):
     return first, statistics.median(times), times, out
 
 
+def add_code_options(p):
+    """``--code DIR`` and ``--rounds N``: the benchmark also run with another
+    checkout's package, alternating (:func:`alternate`)."""
+    p.add_argument("--code", metavar="DIR",
+                   help="another checkout of mi_tetvr (e.g. a worktree of the code before a "
+                        "change): this script runs with its package too, in turns with this "
+                        "checkout's, each in a process of its own")
+    p.add_argument("--rounds", type=int, default=2,
+                   help="turns of this checkout and --code (default 2)")
+
+
+def check_code(p, a):
+    """Refuse a ``--code`` that is not a checkout of mi_tetvr, in one line."""
+    if getattr(a, "code", None) and not (Path(a.code) / "mi_tetvr").is_dir():
+        p.error(f"--code {a.code}: not a checkout of mi_tetvr (no mi_tetvr/ in it)")
+
+
+def alternate(script, argv, code, rounds):
+    """Run ``script`` with ``argv`` (its own options, without ``--code``) with
+    this checkout's package and with ``code``'s, in turn, ``rounds`` times,
+    each run in a process of its own and one after the other (never at
+    once). Returns per round ``{"this": results, "other": results}`` (the
+    ``results`` of each run's JSON)."""
+    import tempfile
+
+    from checkout_cli import command
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(rounds):
+            row = {}
+            for name, prefix in (("this", [sys.executable]), ("other", command(code))):
+                path = Path(tmp) / f"{name}_{r}.json"
+                cmd = prefix + [str(Path(script).resolve()), *argv, "--json", str(path)]
+                run = subprocess.run(cmd, capture_output=True, text=True)
+                if run.returncode != 0:
+                    raise RuntimeError(f"{' '.join(cmd)} failed:\n{run.stderr[-3000:]}")
+                row[name] = json.loads(path.read_text())["results"]
+            out.append(row)
+    return out
+
+
+def spread(values):
+    """``"median [min-max]"`` of a few ratios or seconds."""
+    return (f"{statistics.median(values):.2f} [{min(values):.2f}-{max(values):.2f}]"
+            if len(values) > 1 else f"{values[0]:.2f}")
+
+
 # ----------------------------------------------------------------------------
 # Scene (needs a Mitsuba variant)
 # ----------------------------------------------------------------------------
