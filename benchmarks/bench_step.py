@@ -56,6 +56,7 @@ import mitsuba as mi  # noqa: E402
 mi.set_variant(ARGS.variant)
 
 import mi_tetvr  # noqa: E402,F401
+from mi_tetvr.render import cursor  # noqa: E402
 from mi_tetvr.render.cursor import WalkSettings  # noqa: E402
 from mi_tetvr.render.walk import trace  # noqa: E402
 from plain_walk import plain_trace  # noqa: E402
@@ -92,21 +93,24 @@ def loop_bodies(ir: str) -> dict[str, str]:
     return out
 
 
-def split_branches(body: str) -> tuple[str, str]:
-    """``(straight, branched)``: a loop body's code that every iteration runs,
-    and the code of its symbolic ``if`` branches (``l_N_t:`` or ``l_N_f:``
-    up to their trailer), which a packet of lanes runs only where one of
-    them takes the branch."""
-    straight, branched, at = [], [], 0
-    for m in re.finditer(r"^(l_\d+_[tf]):$", body, re.M):
+def split_branches(body: str) -> tuple[str, str, str]:
+    """``(straight, taken, skipped)``: a loop body's code that every
+    iteration runs, and the code of the true and false sides of its
+    symbolic ``if`` statements (``l_N_t:`` or ``l_N_f:`` up to their
+    trailer), which a packet of lanes runs only where one of them takes that
+    side. The walk's branches are true where a segment is not empty: a step
+    through a medium runs ``straight + taken``, one in empty space
+    ``straight + skipped``."""
+    parts, at = {"straight": [], "t": [], "f": []}, 0
+    for m in re.finditer(r"^(l_\d+)_([tf]):$", body, re.M):
         if m.start() < at:
             continue                                  # (nested in a branch already cut)
-        end = body.index(f"{m.group(1)}_trailer:", m.end())
-        straight.append(body[at:m.start()])
-        branched.append(body[m.start():end])
+        end = body.index(f"{m.group(1)}_{m.group(2)}_trailer:", m.end())
+        parts["straight"].append(body[at:m.start()])
+        parts[m.group(2)].append(body[m.start():end])
         at = end
-    straight.append(body[at:])
-    return "".join(straight), "".join(branched)
+    parts["straight"].append(body[at:])
+    return tuple("".join(parts[k]) for k in ("straight", "t", "f"))
 
 
 def n_instructions(code: str) -> int:
@@ -114,13 +118,15 @@ def n_instructions(code: str) -> int:
 
 
 def counts(body: str):
-    """Instructions by kind of the code that every iteration runs, and how
-    many more lie in branches (:func:`split_branches`)."""
-    straight, branched = split_branches(body)
-    out = {"instructions": n_instructions(straight)}
+    """Instructions by kind of one iteration through a medium (the code
+    outside branches and the true sides, :func:`split_branches`), and how
+    many an iteration in empty space runs."""
+    straight, taken, skipped = split_branches(body)
+    code = straight + taken
+    out = {"instructions": n_instructions(code)}
     for name, pattern in KINDS.items():
-        out[name] = len(re.findall(pattern, straight))
-    out["in branches"] = n_instructions(branched)
+        out[name] = len(re.findall(pattern, code))
+    out["empty space"] = n_instructions(straight + skipped)
     return out
 
 
@@ -192,17 +198,29 @@ def main(a):
           f"no early termination")
     print()
     print("The walks' loop bodies (LLVM IR of one iteration, all lanes; nested loops apart):")
-    cols = ["instructions"] + list(KINDS) + ["in branches"]
+    cols = ["instructions"] + list(KINDS) + ["empty space"]
     print(f"{'':<24}" + "".join(f"{c:>13}" for c in cols))
     forward = loop_bodies(kernel_ir(run_tetvr))
+    # (a mesh that is not convex is traced again after each exit: the trace
+    # loop around the walks, timed on this grid by pretending it is not convex)
+    convex_scene = cursor.convex_scene
+    cursor.convex_scene = lambda scene: False
+    try:
+        general = loop_bodies(kernel_ir(run_tetvr))
+    finally:
+        cursor.convex_scene = convex_scene
     rows = (("tetvr walk, a step", forward, "tetvr_walk"),
-            ("tetvr trace, an entry", forward, "tetvr_walk_trace"),
             ("plain walk, a step", loop_bodies(kernel_ir(run_plain)), "plain_walk"),
-            ("adjoint walk, a step", loop_bodies(adjoint_ir(scene)), "tetvr_walk"))
+            ("adjoint walk, a step", loop_bodies(adjoint_ir(scene)), "tetvr_walk"),
+            ("trace loop, an entry *", general, "tetvr_walk_trace"))
     for name, bodies, label in rows:
         c = counts(bodies.get(label, ""))
         results["loops"][name] = c
         print(f"{name:<24}" + "".join(f"{c[k]:>13}" for k in cols))
+    print("(a step through a medium; 'empty space': the instructions of a step through a "
+          "segment of zero extinction, which skips the integral's branch)")
+    print("(* a mesh that is not convex: the loop that traces each ray again after it leaves "
+          "the mesh, besides its walk; a convex mesh is traced once, without it)")
     print()
     print(f"{'variant':<44}{'median [s]':>11}{'Msteps/s':>10}   runs [s]")
     for name, fn, integral in (("tetvr walk", run_tetvr, exact),

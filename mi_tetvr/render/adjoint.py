@@ -410,12 +410,11 @@ def segment(deriv: Derivative, walker: EmissionDerivative, p: Piece, acc: Radian
         extra = (tet,) if model.per_tet else ()
         adj = acc.adj
 
-        def seeds(C):
+        def g_tau(C):
             # The inversion's seeds: d L_pix = T dC - R dtau, d alpha = T_fin dtau.
-            R = adj.L_pix - (acc.L + acc.T * C)
-            return acc.T * adj.dL, adj.dalpha * adj.T_fin - dr.dot(adj.dL, R)
-        closed = model.segment_adjoint(ts_ad.params, *dr.detach((length, b0, b1)), seeds,
-                                       *extra) if backward else None
+            return adj.dalpha * adj.T_fin - dr.dot(adj.dL, adj.L_pix - (acc.L + acc.T * C))
+        closed = model.segment_adjoint(ts_ad.params, *dr.detach((length, b0, b1)),
+                                       acc.T * adj.dL, g_tau, *extra) if backward else None
         if dr.hint(closed is not None, mode="scalar"):
             # The segment's derivative in closed form.
             C_seg, T_seg, g_len, g_b0, g_b1 = closed

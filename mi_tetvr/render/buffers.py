@@ -13,6 +13,7 @@ parameters in a :class:`TetGroup`.
 """
 from __future__ import annotations
 
+import importlib
 from typing import TYPE_CHECKING, Any
 
 import drjit as dr
@@ -186,21 +187,61 @@ class MeshBuffers:
     faces : UInt32 (3 b)         boundary face vertices (outward)
     face_adj : Int32 (3 b)       boundary face across the edge opposite each corner
     positions : Float (3 n)      vertex positions (differentiable)
+    record : Float (w n)         (a walk's, :meth:`with_record`) per vertex its position
+                                 and the optical model's values, in one packet
     """
     DRJIT_STRUCT = {"tets": mi.UInt32, "nbr": mi.Int32, "boundary": mi.UInt32,
-                    "faces": mi.UInt32, "face_adj": mi.Int32, "positions": mi.Float}
+                    "faces": mi.UInt32, "face_adj": mi.Int32, "positions": mi.Float,
+                    "record": mi.Float}
 
     def __init__(self, tets: mi.UInt32 | None = None, nbr: mi.Int32 | None = None,
                  boundary: mi.UInt32 | None = None, faces: mi.UInt32 | None = None,
-                 face_adj: mi.Int32 | None = None, positions: mi.Float | None = None) -> None:
+                 face_adj: mi.Int32 | None = None, positions: mi.Float | None = None,
+                 record: mi.Float | None = None) -> None:
         self.tets, self.nbr, self.boundary, self.faces = tets, nbr, boundary, faces
-        self.face_adj, self.positions = face_adj, positions
+        self.face_adj, self.positions, self.record = face_adj, positions, record
 
     def position(self, i: mi.UInt32, active: bool | mi.Bool = True,
                  reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> mi.Point3f:
         """Position of vertex ``i``; ``reduce`` is the scatter strategy of the
         gather's reverse-mode derivative (gradients of shared vertices meet there)."""
+        if self.record is not None:
+            p = self.packet(i, active)
+            return mi.Point3f(p[0], p[1], p[2])
         return dr.gather(mi.Point3f, self.positions, i, active, mode=reduce)
+
+    def packet(self, i: mi.UInt32, active: bool | mi.Bool = True) -> Any:
+        """Vertex ``i``'s packet of the :attr:`record` (one read of all its
+        floats; the reads of one vertex's position and values are one)."""
+        w = dr.width(self.record) // (dr.width(self.positions) // 3)
+        return dr.gather(_packet_type(), self.record, i, active, shape=(w, dr.width(i)))
+
+    def with_record(self, values: list[mi.Float]) -> MeshBuffers:
+        """These buffers with a :attr:`record` of each vertex's position and
+        ``values`` (each of one float per vertex), padded to a power of two
+        floats: the walk reads a vertex it crosses in one packet (instead of
+        a gather per float, from as many buffers). Built once per walk (an
+        ``8 n`` floats kernel for colors and opacities; what a walk reads per
+        step: ``bench_step.py``), attached to the AD graph where AD is on
+        (the derivative passes walk detached buffers; Dr.Jit's AD of the
+        primal pass, through recorded loops, reaches the parameters)."""
+        n = dr.width(self.positions) // 3
+        leaves = [dr.gather(mi.Float, self.positions, 3 * dr.arange(mi.UInt32, n) + j)
+                  for j in range(3)] + list(values)
+        w = 1 << (len(leaves) - 1).bit_length()
+        record = dr.zeros(mi.Float, w * n)
+        idx = dr.arange(mi.UInt32, n) * w
+        for j, x in enumerate(leaves):
+            dr.scatter(record, x, idx + j)
+        dr.eval(record)
+        return MeshBuffers(self.tets, self.nbr, self.boundary, self.faces, self.face_adj,
+                           self.positions, record)
+
+
+def _packet_type() -> type:
+    """The variant's ``ArrayXf``: a packet of floats per lane (a gather or
+    scatter of one reads or writes them together)."""
+    return importlib.import_module(mi.Float.__module__).ArrayXf
 
 
 def scene_tetmeshes(scene: mi.Scene) -> list[mi.Mesh]:
@@ -272,6 +313,30 @@ class TetGroup:
         """The same group with its buffers detached from the AD graph."""
         return TetGroup(self.shapes, self.face_offsets, dr.detach(self.buf), self.model,
                         dr.detach(self.params))
+
+    def walked(self) -> TetGroup:
+        """The same group laid out for a walk: where the model's values of a
+        vertex are the same for every ray (``model.per_ray_values`` False),
+        its buffers carry a record of each vertex's position and values
+        (:meth:`MeshBuffers.with_record`), which :meth:`values` reads."""
+        if self.model.per_ray_values or self.buf.record is not None:
+            return self
+        from mi_tetvr.render.pytree import scalar_leaves
+        n = dr.width(self.buf.positions) // 3
+        values = scalar_leaves(self.model.gather(self.params, dr.arange(mi.UInt32, n)))
+        return TetGroup(self.shapes, self.face_offsets, self.buf.with_record(values),
+                        self.model, self.params)
+
+    def values(self, i: mi.UInt32, active: bool | mi.Bool = True) -> Any:
+        """The model's values (``Attributes``) of vertex ``i``: from the
+        buffers' record where there is one (the same packet as its
+        position), else the model's gather."""
+        if self.buf.record is None:
+            return self.model.gather(self.params, i, active)
+        from mi_tetvr.render.pytree import from_scalar_leaves
+        p = self.buf.packet(i, active)
+        return from_scalar_leaves(dr.zeros(self.model.Attributes), [p[3 + j] for j in range(
+            len(p) - 3)])
 
     def for_ray(self, d: mi.Vector3f) -> TetGroup:
         """The same group, its parameters for rays of direction ``d``

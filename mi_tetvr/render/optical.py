@@ -59,7 +59,7 @@ from mi_tetvr.mesh import TetMesh
 from mi_tetvr.render.buffers import concat
 from mi_tetvr.render.linear import TetFrame
 from mi_tetvr.render.pytree import weighted_sum
-from mi_tetvr.render.segment import (segment_integral, segment_integral_vjp,
+from mi_tetvr.render.segment import (emission_weights_vjp, segment_integral,
                                      zero_opacity_derivatives)
 
 
@@ -139,14 +139,15 @@ class OpticalModel:
         ``length`` whose attributes go linearly from ``a0`` to ``a1``."""
         raise NotImplementedError
 
-    def segment_adjoint(self, params: Any, length: mi.Float, a0: Any, a1: Any, seeds: Any,
-                        *tet: mi.UInt32) -> tuple | None:
+    def segment_adjoint(self, params: Any, length: mi.Float, a0: Any, a1: Any,
+                        g_C: mi.Color3f, g_tau: Any, *tet: mi.UInt32) -> tuple | None:
         """A segment's emission and transmittance and their reverse-mode
         derivative in closed form, ``(C, T, g_length, g_a0, g_a1)``: the
         gradients w.r.t. the segment's length and end attributes of ``g_C .
-        C + g_tau tau``, where ``(g_C, g_tau) = seeds(C)`` (the backward
-        pass's adjoint runs it instead of differentiating :meth:`segment` by
-        Dr.Jit's AD). None (the default) for a model without one, or whose
+        C + g_tau(C) tau`` (the optical depth's gradient depends on the
+        emission: the radiance behind the segment). The backward pass's
+        adjoint runs it instead of differentiating :meth:`segment` by
+        Dr.Jit's AD. None (the default) for a model without one, or whose
         segment reads differentiable parameters of its own (a transfer
         function)."""
         return None
@@ -213,32 +214,30 @@ class EmissionAbsorption(OpticalModel):
         return (a0.s == 0.0) & (a1.s == 0.0)
 
     def segment_adjoint(self, params: Any, length: mi.Float, a0: Any, a1: Any,
-                        seeds: Any) -> tuple:
-        # (tau = length (s0 + s1) / 2 is linear: its part of the gradients
-        # is added here; empty segments take the scheme's derivatives at zero
-        # extinction, without an exponential)
+                        g_C: mi.Color3f, g_tau: Any) -> tuple:
+        # The integral's weights of the two colors and its transmittance, and
+        # their derivative, in a branch that empty segments skip (they take
+        # the scheme's derivatives at zero extinction, no exponential); the
+        # colors' gradients and the optical depth's (linear) outside it.
         n_sub = self.n_sub
+        g_P, g_Q = dr.dot(g_C, a0.c), dr.dot(g_C, a1.c)
 
         def full():
-            C, T, back = segment_integral_vjp(length, a0.c, a1.c, a0.s, a1.s, n_sub)
-            g_C, g_tau = seeds(C)
-            g_L, g_c0, g_c1, g_s0, g_s1 = back(g_C)
-            half = g_tau * 0.5
-            return (C, T, g_L + half * (a0.s + a1.s),
-                    self._attributes_grad(g_c0, g_s0 + half * length),
-                    self._attributes_grad(g_c1, g_s1 + half * length))
+            P, Q, T, back = emission_weights_vjp(length, a0.s, a1.s, n_sub)
+            return (P, Q, T, *back(g_P, g_Q))
 
         def empty():
-            C = mi.Color3f(0.0)
-            g_C, g_tau = seeds(C)
-            g_P, g_Q = dr.dot(g_C, a0.c), dr.dot(g_C, a1.c)
             p0, q0, p1, q1 = zero_opacity_derivatives(n_sub)
-            half = g_tau * 0.5
-            zero = mi.Color3f(0.0)
-            return (C, mi.Float(1.0), mi.Float(0.0),
-                    self._attributes_grad(zero, length * (g_P * p0 + g_Q * q0 + half)),
-                    self._attributes_grad(zero, length * (g_P * p1 + g_Q * q1 + half)))
-        return dr.if_stmt((), ~self.empty(a0, a1), full, empty, label="segment_adjoint")
+            zero = mi.Float(0.0)
+            return (zero, zero, mi.Float(1.0), zero, length * (g_P * p0 + g_Q * q0),
+                    length * (g_P * p1 + g_Q * q1))
+        P, Q, T, g_L, g_s0, g_s1 = dr.if_stmt((), ~self.empty(a0, a1), full, empty,
+                                              label="segment_adjoint")
+        C = a0.c * P + a1.c * Q
+        half = g_tau(C) * 0.5
+        return (C, T, g_L + half * (a0.s + a1.s),
+                self._attributes_grad(g_C * P, g_s0 + half * length),
+                self._attributes_grad(g_C * Q, g_s1 + half * length))
 
     def _attributes_grad(self, c: mi.Color3f, s: mi.Float) -> Any:
         """Gradients of ``Attributes`` whose color is ``c`` and extinction

@@ -102,6 +102,8 @@ class Probe:
     per_tet = True
     #: (probes are not cut into pieces)
     cuts = False
+    #: (a vertex's values are the same for every ray)
+    per_ray_values = False
     #: ``L`` holds an integral (``L.x``) over a length (``L.y``).
     mean = False
     #: The accumulator's value before the first pick (every channel).

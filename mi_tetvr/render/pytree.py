@@ -40,6 +40,28 @@ def tree_leaves(tree: Any) -> list[Any]:
     return [tree]
 
 
+def scalar_leaves(tree: Any) -> list[Any]:
+    """The leaves of a structure with vector leaves (``Color3f``,
+    ``Point3f``) split into their components, in field order: what a
+    packet of floats per vertex holds."""
+    out = []
+    for x in tree_leaves(tree):
+        out += [x[j] for j in range(len(x))] if dr.depth_v(x) > 1 else [x]
+    return out
+
+
+def from_scalar_leaves(template: Any, leaves: Sequence[Any]) -> Any:
+    """A structure laid out as ``template`` whose components are ``leaves``
+    (the inverse of :func:`scalar_leaves`)."""
+    it = iter(leaves)
+
+    def take(x):
+        if dr.depth_v(x) > 1:
+            return type(x)(*(next(it) for _ in range(len(x))))
+        return type(x)(next(it))
+    return tree_map(take, template)
+
+
 def tree_copy(tree: Any) -> Any:
     """New Dr.Jit wrappers of the same values (``enable_grad`` on the copy
     leaves the original alone)."""

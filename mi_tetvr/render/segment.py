@@ -155,20 +155,19 @@ def segment_integral(length: mi.Float, c0: mi.Color3f, c1: mi.Color3f, s0: mi.Fl
     return c0 * P + c1 * Q, T
 
 
-def segment_integral_vjp(length: mi.Float, c0: mi.Color3f, c1: mi.Color3f, s0: mi.Float,
-                         s1: mi.Float, n_sub: int) -> tuple[mi.Color3f, mi.Float, Any]:
-    """:func:`segment_integral` and its reverse-mode derivative in closed
-    form: ``(C, T, vjp)`` where ``vjp(g_C)`` gives the gradients ``(g_length,
-    g_c0, g_c1, g_s0, g_s1)`` of ``g_C . C`` (the transmittance is
-    differentiated through the optical depth, which is linear).
+def emission_weights_vjp(length: mi.Float, s0: mi.Float, s1: mi.Float,
+                         n_sub: int) -> tuple[mi.Float, mi.Float, mi.Float, Any]:
+    """The weights of :func:`segment_integral`'s emission, ``C = c0 P + c1
+    Q``, its transmittance, and their reverse-mode derivative in closed
+    form: ``(P, Q, T, vjp)`` where ``vjp(g_P, g_Q)`` gives the gradients
+    ``(g_length, g_s0, g_s1)`` of ``g_P P + g_Q Q``.
 
-    ``C = c0 P + c1 Q`` with ``P = 1 - M`` and ``Q = M - T`` (``M`` the mean
-    transmittance, extrapolated as :func:`segment_integral` does), so
-    ``g_c0 = g_C P``, ``g_c1 = g_C Q``, and the sub-intervals' optical
-    depths ``x_k = (length / n) lerp(s0, s1, (k + 1/2) / n)`` take ``(g_Q -
-    g_P) dM/dx_k + g_Q T`` (:func:`_mean_derivatives`; ``g_P = g_C . c0``,
-    ``g_Q = g_C . c1``). The same function as :func:`segment_integral`'s
-    derivative by Dr.Jit's AD, in about a fifth of its instructions.
+    ``P = 1 - M`` and ``Q = M - T`` (``M`` the mean transmittance,
+    extrapolated as :func:`segment_integral` does), so the sub-intervals'
+    optical depths ``x_k = (length / n) lerp(s0, s1, (k + 1/2) / n)`` take
+    ``(g_Q - g_P) dM/dx_k + g_Q T`` (:func:`_mean_derivatives`). The same
+    function as Dr.Jit's AD of :func:`segment_integral`, in about a fifth of
+    its instructions.
     """
     n = n_sub
     dt = length * (1.0 / n)
@@ -185,8 +184,7 @@ def segment_integral_vjp(length: mi.Float, c0: mi.Color3f, c1: mi.Color3f, s0: m
         P = (4.0 * P - Pc) * (1.0 / 3.0)
         Q = (4.0 * Q - Qc) * (1.0 / 3.0)
 
-    def vjp(g_C: mi.Color3f) -> tuple[mi.Float, mi.Color3f, mi.Color3f, mi.Float, mi.Float]:
-        g_P, g_Q = dr.dot(g_C, c0), dr.dot(g_C, c1)
+    def vjp(g_P: mi.Float, g_Q: mi.Float) -> tuple[mi.Float, mi.Float, mi.Float]:
         dM = _mean_derivatives(x, A)
         if pairs:
             dMc = _mean_derivatives(xc, Ac)
@@ -196,7 +194,23 @@ def segment_integral_vjp(length: mi.Float, c0: mi.Color3f, c1: mi.Color3f, s0: m
         g_L = sum(g * si for g, si in zip(g_x, sigma)) * (1.0 / n)
         g_s1 = sum(g * mk for g, mk in zip(g_x, m))
         g_s0 = sum(g_x) - g_s1
-        return g_L, g_C * P, g_C * Q, dt * g_s0, dt * g_s1
+        return g_L, dt * g_s0, dt * g_s1
+    return P, Q, T, vjp
+
+
+def segment_integral_vjp(length: mi.Float, c0: mi.Color3f, c1: mi.Color3f, s0: mi.Float,
+                         s1: mi.Float, n_sub: int) -> tuple[mi.Color3f, mi.Float, Any]:
+    """:func:`segment_integral` and its reverse-mode derivative in closed
+    form: ``(C, T, vjp)`` where ``vjp(g_C)`` gives the gradients ``(g_length,
+    g_c0, g_c1, g_s0, g_s1)`` of ``g_C . C`` (the transmittance is
+    differentiated through the optical depth, which is linear): ``g_c0 =
+    g_C P``, ``g_c1 = g_C Q`` and :func:`emission_weights_vjp` with ``g_P =
+    g_C . c0``, ``g_Q = g_C . c1``."""
+    P, Q, T, back = emission_weights_vjp(length, s0, s1, n_sub)
+
+    def vjp(g_C: mi.Color3f) -> tuple[mi.Float, mi.Color3f, mi.Color3f, mi.Float, mi.Float]:
+        g_L, g_s0, g_s1 = back(dr.dot(g_C, c0), dr.dot(g_C, c1))
+        return g_L, g_C * P, g_C * Q, g_s0, g_s1
     return c0 * P + c1 * Q, T, vjp
 
 

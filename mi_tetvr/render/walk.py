@@ -50,7 +50,7 @@ class Emission:
         self.t_min = settings.t_min
 
     def gather(self, i: mi.UInt32, active: bool | mi.Bool) -> Any:
-        return self.model.gather(self.params, i, active)
+        return self.ts.values(i, active)
 
     def cut(self, a0: Any, a1: Any) -> mi.Float:
         return self.model.cut(a0, a1)
@@ -162,7 +162,7 @@ def trace(scene: mi.Scene, ts: TetGroup | list[TetGroup], ray: mi.Ray3f,
     """
     fr = RayFrame.of(ray.o, ray.d)
     d = dr.detach(fr.d)
-    groups = [g.for_ray(d) for g in (ts if isinstance(ts, (list, tuple)) else [ts])]
+    groups = [g.for_ray(d).walked() for g in (ts if isinstance(ts, (list, tuple)) else [ts])]
     if grad is None:
         clients, adj = [Emission(g, settings) for g in groups], None
     else:
