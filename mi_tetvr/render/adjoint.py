@@ -55,7 +55,7 @@ from mi_tetvr.render.geometry import RayFrame, crossing_vjp, face_crossing, face
 from mi_tetvr.render.optical import OpticalModel
 from mi_tetvr.render.pytree import (tree_add, tree_copy, tree_dot, tree_leaves, tree_lerp,
                                      tree_map, tree_select)
-from mi_tetvr.render.segment import clip_segment
+from mi_tetvr.render.segment import clip_segment, clip_segment_vjp
 
 if TYPE_CHECKING:
     from mi_tetvr.render.walk import EmissionDerivative, Radiance
@@ -397,36 +397,41 @@ def segment(deriv: Derivative, walker: EmissionDerivative, p: Piece, acc: Radian
         F_end = dr.select(p.stay, F + (1.0 - F) * p.f, 1.0)
     else:
         e, pend = pending
-    with dr.resume_grad():
-        x = tree_copy(((p.cur.t, p.cur.a), (p.t1, p.a1)))
-        # The crossings' ray parameters matter only when vertices move.
-        dr.enable_grad(x if deriv.geometric(ts_ad) else (x[0][1], x[1][1]))
-        if dr.hint(not backward, mode="scalar"):
-            x_t = tangent(deriv, ts_ad, st.exit, fr, active)
-            dr.set_grad(x, (tree_lerp(e, x_t, F), tree_lerp(e, x_t, F_end)) if cuts
-                        else (e, x_t))
-        (t0, a0), (t1, a1) = x
-        length, b0, b1 = clip_segment(t0, a0, t1, a1, span.begin, span.end)
-        extra = (tet,) if model.per_tet else ()
-        adj = acc.adj
+    extra = (tet,) if model.per_tet else ()
+    adj = acc.adj
 
-        def g_tau(C):
-            # The inversion's seeds: d L_pix = T dC - R dtau, d alpha = T_fin dtau.
-            return adj.dalpha * adj.T_fin - dr.dot(adj.dL, adj.L_pix - (acc.L + acc.T * C))
-        closed = model.segment_adjoint(ts_ad.params, *dr.detach((length, b0, b1)),
-                                       acc.T * adj.dL, g_tau, *extra) if backward else None
-        if dr.hint(closed is not None, mode="scalar"):
-            # The segment's derivative in closed form.
-            C_seg, T_seg, g_len, g_b0, g_b1 = closed
-            dr.backward_from(g_len * length + tree_dot(g_b0, b0) + tree_dot(g_b1, b1),
-                             flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
-        else:
+    def g_tau(C):
+        # The inversion's seeds: d L_pix = T dC - R dtau, d alpha = T_fin dtau.
+        return adj.dalpha * adj.T_fin - dr.dot(adj.dL, adj.L_pix - (acc.L + acc.T * C))
+    closed = None
+    if dr.hint(backward, mode="scalar"):
+        # The segment's and its clip's derivatives in closed form, where the
+        # model has one.
+        length, b0, b1, clip_back = clip_segment_vjp(p.cur.t, p.cur.a, p.t1, p.a1, span.begin,
+                                                     span.end)
+        closed = model.segment_adjoint(ts_ad.params, length, b0, b1, acc.T * adj.dL, g_tau,
+                                       *extra)
+    if dr.hint(closed is not None, mode="scalar"):
+        C_seg, T_seg, g_len, g_b0, g_b1 = closed
+        g_t0, g_a0, g_t1, g_a1 = clip_back(g_len, g_b0, g_b1)
+        g_entry, g_exit = (g_t0, g_a0), (g_t1, g_a1)
+    else:
+        with dr.resume_grad():
+            x = tree_copy(((p.cur.t, p.cur.a), (p.t1, p.a1)))
+            # The crossings' ray parameters matter only when vertices move.
+            dr.enable_grad(x if deriv.geometric(ts_ad) else (x[0][1], x[1][1]))
+            if dr.hint(not backward, mode="scalar"):
+                x_t = tangent(deriv, ts_ad, st.exit, fr, active)
+                dr.set_grad(x, (tree_lerp(e, x_t, F), tree_lerp(e, x_t, F_end)) if cuts
+                            else (e, x_t))
+            (t0, a0), (t1, a1) = x
+            length, b0, b1 = clip_segment(t0, a0, t1, a1, span.begin, span.end)
             C_d, T_d, tau = model.segment(ts_ad.params, length, b0, b1, *extra)
             C_seg = dr.detach(C_d)
             T_seg = dr.detach(T_d)
             adj = inversion(deriv, acc.adj, acc.L, acc.T, C_seg, C_d, tau)
-        if dr.hint(backward, mode="scalar"):
-            g_entry, g_exit = dr.grad(x)
+            if dr.hint(backward, mode="scalar"):
+                g_entry, g_exit = dr.grad(x)
     if dr.hint(not backward, mode="scalar"):
         if cuts:
             return C_seg, T_seg, adj, (tree_select(p.stay, e, x_t), e_x,

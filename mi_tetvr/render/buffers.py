@@ -226,13 +226,14 @@ class MeshBuffers:
         (the derivative passes walk detached buffers; Dr.Jit's AD of the
         primal pass, through recorded loops, reaches the parameters)."""
         n = dr.width(self.positions) // 3
-        leaves = [dr.gather(mi.Float, self.positions, 3 * dr.arange(mi.UInt32, n) + j)
-                  for j in range(3)] + list(values)
+        idx = dr.arange(mi.UInt32, n)
+        leaves = [dr.gather(mi.Float, self.positions, 3 * idx + j) for j in range(3)]
+        leaves += list(values)
         w = 1 << (len(leaves) - 1).bit_length()
+        leaves += [dr.zeros(mi.Float, n)] * (w - len(leaves))
         record = dr.zeros(mi.Float, w * n)
-        idx = dr.arange(mi.UInt32, n) * w
-        for j, x in enumerate(leaves):
-            dr.scatter(record, x, idx + j)
+        # (one packet scatter: one kernel)
+        dr.scatter(record, _packet_type()(*leaves), idx)
         dr.eval(record)
         return MeshBuffers(self.tets, self.nbr, self.boundary, self.faces, self.face_adj,
                            self.positions, record)

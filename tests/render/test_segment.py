@@ -7,7 +7,8 @@ from scipy.integrate import quad
 
 import drjit as dr
 import mitsuba as mi
-from mi_tetvr.render.segment import (interval_terms, segment_integral, segment_integral_vjp,
+from mi_tetvr.render.segment import (clip_segment, clip_segment_vjp, interval_terms,
+                                     segment_integral, segment_integral_vjp,
                                      zero_opacity_derivatives)
 
 X = np.array([0.0, 1e-7, 1e-4, 5e-3, 0.0099, 0.0101, 0.099, 0.101, 0.3, 2.0, 30.0, 1e4])
@@ -251,3 +252,34 @@ def test_zero_opacity_derivatives(n_sub):
         np.testing.assert_allclose([g_s0[0], g_s1[0]], [2.0 * w0, 2.0 * w1], rtol=1e-6)
     if n_sub % 2 == 0:
         np.testing.assert_allclose([p0, q0, p1, q1], [1 / 3, 1 / 6, 1 / 6, 1 / 3], rtol=1e-12)
+
+
+def test_clip_segment_vjp_against_ad():
+    """The clip's closed-form derivative against Dr.Jit's AD of
+    :func:`clip_segment`: segments unclipped, clipped at the start, the end,
+    both or entirely, of zero length, with an infinite end of the span."""
+    from mi_tetvr.render.optical import EmissionAbsorption
+    from mi_tetvr.render.pytree import scalar_leaves, tree_dot
+    A = EmissionAbsorption.Attributes
+    rng = np.random.default_rng(5)
+    k = 4000
+    t0 = rng.uniform(-1, 1, k)
+    t1 = t0 + np.where(rng.random(k) < 0.05, 0.0, rng.uniform(0, 2, k))
+    tb = np.where(rng.random(k) < 0.5, -10.0, rng.uniform(-1.5, 1.5, k))
+    te = np.where(rng.random(k) < 0.5, np.inf, rng.uniform(-1, 3, k))
+
+    def attributes():
+        return A(mi.Color3f(rng.normal(size=(3, k))), mi.Float(rng.normal(size=k)))
+    x = [mi.Float(t0), attributes(), mi.Float(t1), attributes()]
+    g_len, g_b0, g_b1 = mi.Float(rng.normal(size=k)), attributes(), attributes()
+    _, _, _, vjp = clip_segment_vjp(*x, mi.Float(tb), mi.Float(te))
+    closed = vjp(g_len, g_b0, g_b1)
+    dr.enable_grad(x)
+    length, b0, b1 = clip_segment(*x, mi.Float(tb), mi.Float(te))
+    dr.backward_from(g_len * length + tree_dot(g_b0, b0) + tree_dot(g_b1, b1))
+    for ours, xi in zip(closed, x):
+        ad = np.array(scalar_leaves(dr.grad(xi)), np.float64)
+        np.testing.assert_allclose(np.array(scalar_leaves(ours), np.float64), ad, rtol=1e-5,
+                                   atol=1e-5 * np.abs(ad).max())
+    clipped = (t0 < tb) | (t1 > te)
+    assert 0.2 < clipped.mean() < 0.8
