@@ -692,9 +692,13 @@ def _edge_adjacency(tris):
 
 
 #: The relative tolerance of :func:`convex_boundary`'s test of an edge (the
-#: sine of the angle by which it may bend inwards): float64 rounding of the
-#: float32 positions the renderer walks, no more.
-CONVEX_RTOL = 1e-12
+#: sine of the angle by which it may bend inwards): a few float32 roundings of
+#: the positions the renderer walks (the midpoint of a boundary edge, a rotated
+#: box), no more. A ray that left through such an edge could come back only
+#: within about this fraction of a face's size of the surface, where the
+#: walk of a mesh that is not convex does not look either (it traces again
+#: from ``retrace_epsilon`` = 1e-5 of the scene's size past the exit).
+CONVEX_RTOL = 1e-6
 
 
 def _connected(adjacency) -> bool:

@@ -154,6 +154,7 @@ parameters are named by:
 """
 from __future__ import annotations
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import numpy.typing as npt
@@ -262,10 +263,14 @@ class TetMeshShape(mi.Mesh):
         the ray tracer once per ray (:func:`~mi_tetvr.render.cursor.traverse`).
         After the positions change it is found again from them (read back)."""
         if self._convex is None:
+            # (the boundary's vertices alone read back)
             b = self.tet_buffers
-            self._convex = convex_boundary(
-                np.asarray(self.vertex_positions_buffer(), np.float32).reshape(-1, 3),
-                np.asarray(b["faces"]).reshape(-1, 3), np.asarray(b["face_adj"]).reshape(-1, 3))
+            faces = np.asarray(b["faces"]).reshape(-1, 3)
+            ids, local = np.unique(faces, return_inverse=True)
+            P = dr.gather(mi.Point3f, self.vertex_positions_buffer(), mi.UInt32(ids))
+            self._convex = convex_boundary(np.asarray(dr.detach(P), np.float32).T,
+                                           local.reshape(-1, 3),
+                                           np.asarray(b["face_adj"]).reshape(-1, 3))
         return self._convex
 
     def parameters_changed(self, keys: list[str] = []) -> None:  # noqa: B006 (Mitsuba's)
