@@ -42,6 +42,22 @@ def _local(f, j):
         f == 1, int(FACES[1][j]), dr.select(f == 2, int(FACES[2][j]), int(FACES[3][j])))))
 
 
+def _vertex(buf, tet, j, active):
+    """Corner ``j`` of ``tet`` (a 32-byte cell of corners and links per tet,
+    or, in checkouts before it, a record of four corners)."""
+    if getattr(buf, "cells", None) is not None:
+        return dr.gather(mi.UInt32, buf.cells, tet * 8 + j, active)
+    return dr.gather(mi.UInt32, buf.tets, tet * 4 + j, active)
+
+
+def _link(buf, tet, f, active):
+    """The link across local face ``f`` of ``tet`` (see :func:`_vertex`)."""
+    if getattr(buf, "cells", None) is not None:
+        return dr.reinterpret_array(mi.Int32, dr.gather(mi.UInt32, buf.cells, tet * 8 + 4 + f,
+                                                        active))
+    return dr.gather(mi.Int32, buf.nbr, tet * 4 + f, active)
+
+
 def _exit_point_weights(X, Pa, Pb, Pc, n):
     """Barycentric weights of the point ``X`` of the plane of triangle
     ``(Pa, Pb, Pc)`` with normal ``n`` (sub-triangle areas)."""
@@ -94,7 +110,7 @@ def plain_trace(scene, ts, ray, t_min: float, max_steps: int, integral: str = "m
     tet, f_in, outward = face_entry(buf, ts.boundary_face(si), RayFrame(o, d, u, v), active)
     # Attributes where the ray enters: weights of the hit point in the face.
     t = mi.Float(dr.select(active, si.t, 0.0))
-    ids = [dr.gather(mi.UInt32, buf.tets, tet * 4 + _local(f_in, j), active) for j in range(3)]
+    ids = [_vertex(buf, tet, _local(f_in, j), active) for j in range(3)]
     Pe = [buf.position(i, active) for i in ids]
     we = _exit_point_weights(o + t * d, *Pe, dr.cross(Pe[1] - Pe[0], Pe[2] - Pe[0]))
     a = weighted_sum(we, [model.gather(params, i, active) for i in ids])
@@ -102,7 +118,7 @@ def plain_trace(scene, ts, ray, t_min: float, max_steps: int, integral: str = "m
     T = mi.Float(1.0)
     steps = mi.UInt32(0)
     while dr.hint(active, label="plain_walk"):
-        vid = [dr.gather(mi.UInt32, buf.tets, tet * 4 + j, active) for j in range(4)]
+        vid = [_vertex(buf, tet, j, active) for j in range(4)]
         P = [buf.position(i, active) for i in vid]
         t_out = mi.Float(dr.inf)
         f_out = mi.UInt32(0)
@@ -135,7 +151,7 @@ def plain_trace(scene, ts, ray, t_min: float, max_steps: int, integral: str = "m
         t = t_out
         a = tree_select(active, a_out, a)
         steps += 1
-        link = dr.gather(mi.Int32, buf.nbr, tet * 4 + f_out, active)
+        link = _link(buf, tet, f_out, active)
         tet, f_in = unpack_link(link)
         active &= found & (link >= 0) & (T > t_min) & (steps < max_steps)
     return L, T, steps

@@ -161,7 +161,7 @@ import numpy.typing as npt
 
 from mi_tetvr.mesh.topology import Topology, convex_boundary, longest_edges
 from mi_tetvr.plugins import constructor
-from mi_tetvr.render.buffers import drjit_index_arrays, owned, shape_index_arrays
+from mi_tetvr.render.buffers import drjit_index_arrays, owned, shape_index_arrays, tets_of
 from mi_tetvr.render.optical import (CellClassified, EmissionAbsorption, PostClassified,
                                      Scattering)
 from mi_tetvr.render.properties import (LIGHTING, LIGHTING_DEFAULTS, MODELS,
@@ -313,7 +313,7 @@ class TetMeshShape(mi.Mesh):
         """(m, 4) int64: the shape's tets, positively oriented, in the walk's
         order (read from its index buffer), e.g. for
         :class:`~mi_tetvr.recon.regularizer.QualityRegularizer`."""
-        return np.asarray(self.tet_buffers["tets"], np.int64).reshape(-1, 4)
+        return tets_of(np.asarray(self.tet_buffers["cells"])).astype(np.int64)
 
     def traverse(self, callback: mi.TraversalCallback) -> None:
         super().traverse(callback)

@@ -9,7 +9,9 @@ The ``tetmesh`` shape packs its topology into per-shape index arrays
 (:func:`shape_index_arrays`, numpy, local indices); the integrator
 concatenates the shapes of a scene into one :class:`MeshBuffers`
 (:func:`index_buffers`, global indices) and pairs it with the optical model's
-parameters in a :class:`TetGroup`.
+parameters in a :class:`TetGroup`. A tet's record is one 32-byte cell: its
+four corners and its four links, so that a step of the walk reads one cache
+line of the tets (:func:`tets_of`, :func:`links_of` read them in numpy).
 """
 from __future__ import annotations
 
@@ -120,11 +122,22 @@ def centroids(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return out
 
 
+def tets_of(cells: np.ndarray) -> np.ndarray:
+    """(m, 4) view of the corners in the cells of :func:`shape_index_arrays`."""
+    return np.asarray(cells).reshape(-1, 8)[:, :4]
+
+
+def links_of(cells: np.ndarray) -> np.ndarray:
+    """(m, 4) int32 view of the links in the cells of :func:`shape_index_arrays`."""
+    return np.asarray(cells).reshape(-1, 8)[:, 4:].view(np.int32)
+
+
 def shape_index_arrays(topology: Topology, vertices: np.ndarray,
                        reorder: bool | None = None) -> dict[str, np.ndarray]:
     """The index arrays a ``tetmesh`` shape hands the integrator (numpy,
     32-bit, indices local to the shape); see :class:`MeshBuffers` for their
-    meaning: 32 bytes per tet (corners and links), 24 per boundary face.
+    meaning: 32 bytes per tet (its cell: corners and links), 24 per boundary
+    face.
 
     A mesh whose tets are listed in scattered order (more than
     :data:`FAR_FRACTION` of the neighbour links jump far in memory, see
@@ -152,10 +165,13 @@ def shape_index_arrays(topology: Topology, vertices: np.ndarray,
         tets, nbr, nface, btets = tets[order], nbr[order], nface[order], rank[btets]
         nbr = np.where(nbr >= 0, rank[np.maximum(nbr, 0)], -1)
         del rank
-    links = np.where(nbr >= 0, nbr.astype(np.int32) * 4 + nface, -1).astype(np.int32)
+    cells = np.empty((m, 8), np.uint32)
+    cells[:, :4] = tets
+    cells[:, 4:] = np.where(nbr >= 0, nbr.astype(np.int32) * 4 + nface, -1).astype(
+        np.int32).view(np.uint32)
+    del nbr, nface
     out = dict(
-        tets=tets.astype(np.uint32).ravel(),
-        nbr=links.ravel(),
+        cells=cells.ravel(),
         boundary=pack_links(btets, topology.boundary_local_faces).astype(np.uint32),
         faces=topology.boundary_faces.astype(np.uint32).ravel(),
         face_adj=topology.boundary_adjacency.astype(np.int32).ravel(),
@@ -166,9 +182,8 @@ def shape_index_arrays(topology: Topology, vertices: np.ndarray,
 
 
 #: The Dr.Jit and numpy types of the walk's index buffers (:class:`MeshBuffers`).
-INDEX_TYPES = {"tets": (mi.UInt32, np.uint32), "nbr": (mi.Int32, np.int32),
-               "boundary": (mi.UInt32, np.uint32), "faces": (mi.UInt32, np.uint32),
-               "face_adj": (mi.Int32, np.int32)}
+INDEX_TYPES = {"cells": (mi.UInt32, np.uint32), "boundary": (mi.UInt32, np.uint32),
+               "faces": (mi.UInt32, np.uint32), "face_adj": (mi.Int32, np.int32)}
 
 
 def drjit_index_arrays(arrays: dict[str, np.ndarray]) -> dict[str, mi.UInt32 | mi.Int32]:
@@ -181,8 +196,10 @@ def drjit_index_arrays(arrays: dict[str, np.ndarray]) -> dict[str, mi.UInt32 | m
 class MeshBuffers:
     """Flat Dr.Jit buffers of the geometry of a scene's tet meshes.
 
-    tets : UInt32 (4 m)          global vertex index of each tet's corners
-    nbr : Int32 (4 m)            link to the face across each local face, -1 on the boundary
+    cells : UInt32 (8 m)         per tet its four corners (global vertex indices) and the
+                                 link to the face across each local face (Int32 bits, -1
+                                 on the boundary): one 32-byte record (:meth:`corners`,
+                                 :meth:`link`)
     boundary : UInt32 (b)        link of each boundary face (tet behind it, local face)
     faces : UInt32 (3 b)         boundary face vertices (outward)
     face_adj : Int32 (3 b)       boundary face across the edge opposite each corner
@@ -190,16 +207,28 @@ class MeshBuffers:
     record : Float (w n)         (a walk's, :meth:`with_record`) per vertex its position
                                  and the optical model's values, in one packet
     """
-    DRJIT_STRUCT = {"tets": mi.UInt32, "nbr": mi.Int32, "boundary": mi.UInt32,
-                    "faces": mi.UInt32, "face_adj": mi.Int32, "positions": mi.Float,
-                    "record": mi.Float}
+    DRJIT_STRUCT = {"cells": mi.UInt32, "boundary": mi.UInt32, "faces": mi.UInt32,
+                    "face_adj": mi.Int32, "positions": mi.Float, "record": mi.Float}
 
-    def __init__(self, tets: mi.UInt32 | None = None, nbr: mi.Int32 | None = None,
-                 boundary: mi.UInt32 | None = None, faces: mi.UInt32 | None = None,
-                 face_adj: mi.Int32 | None = None, positions: mi.Float | None = None,
-                 record: mi.Float | None = None) -> None:
-        self.tets, self.nbr, self.boundary, self.faces = tets, nbr, boundary, faces
+    def __init__(self, cells: mi.UInt32 | None = None, boundary: mi.UInt32 | None = None,
+                 faces: mi.UInt32 | None = None, face_adj: mi.Int32 | None = None,
+                 positions: mi.Float | None = None, record: mi.Float | None = None) -> None:
+        self.cells, self.boundary, self.faces = cells, boundary, faces
         self.face_adj, self.positions, self.record = face_adj, positions, record
+
+    @property
+    def n_tets(self) -> int:
+        return dr.width(self.cells) // 8
+
+    def corners(self, tet: mi.UInt32, active: bool | mi.Bool = True) -> mi.Array4u:
+        """The four corners of ``tet`` (one 16-byte read)."""
+        return dr.gather(mi.Array4u, self.cells, 2 * tet, active)
+
+    def link(self, tet: mi.UInt32, f: mi.UInt32, active: bool | mi.Bool = True) -> mi.Int32:
+        """The link across local face ``f`` of ``tet`` (in the same cache line as
+        its corners)."""
+        return dr.reinterpret_array(mi.Int32, dr.gather(mi.UInt32, self.cells, 8 * tet + 4 + f,
+                                                        active))
 
     def position(self, i: mi.UInt32, active: bool | mi.Bool = True,
                  reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> mi.Point3f:
@@ -235,7 +264,7 @@ class MeshBuffers:
         # (one packet scatter: one kernel)
         dr.scatter(record, _packet_type()(*leaves), idx)
         dr.eval(record)
-        return MeshBuffers(self.tets, self.nbr, self.boundary, self.faces, self.face_adj,
+        return MeshBuffers(self.cells, self.boundary, self.faces, self.face_adj,
                            self.positions, record)
 
 
@@ -267,15 +296,17 @@ def index_buffers(shapes: list[mi.Mesh]) -> tuple[dict[str, mi.UInt32 | mi.Int32
     face_offsets = []
     for s in shapes:
         b = {k: np.asarray(v) for k, v in s.tet_buffers.items()}
-        idx["tets"].append(b["tets"].astype(np.int64) + vo)
-        idx["nbr"].append(offset_links(b["nbr"], to))
+        cells = np.empty((len(b["cells"]) // 8, 8), np.uint32)
+        cells[:, :4] = tets_of(b["cells"]).astype(np.int64) + vo
+        cells[:, 4:] = offset_links(links_of(b["cells"]), to).astype(np.int32).view(np.uint32)
+        idx["cells"].append(cells.ravel())
         idx["boundary"].append(offset_links(b["boundary"], to))
         idx["faces"].append(b["faces"].astype(np.int64) + vo)
         idx["face_adj"].append(np.where(b["face_adj"] >= 0,
                                         b["face_adj"].astype(np.int64) + fo, -1))
         face_offsets.append(fo)
         vo += s.vertex_count()
-        to += len(b["tets"]) // 4
+        to += len(cells)
         fo += s.face_count()
     if vo >= 2 ** 32 or 4 * to >= 2 ** 31:
         raise ValueError("tet meshes too large for 32-bit indices")

@@ -232,7 +232,7 @@ def tet_face(buf: MeshBuffers, tet: mi.UInt32, f: mi.UInt32,
     ``f`` (the apex is the vertex opposite the face, local vertex ``f``;
     ``a, b, c`` the face in the outward order of
     :data:`~mi_tetvr.mesh.topology.FACES`), read from the tet's record."""
-    rec = dr.gather(mi.Array4u, buf.tets, tet, active)
+    rec = buf.corners(tet, active)
     r = (rec.x, rec.y, rec.z, rec.w)
     local = (_pick(f, tuple(mi.UInt32(x) for x in _FACE_LOCAL[j])) for j in range(3))
     return (_pick(f, r), *(_pick(lj, r) for lj in local))
@@ -348,7 +348,7 @@ def walk_step(buf: MeshBuffers, tet: mi.UInt32, f_in: mi.UInt32, fr: RayFrame,
         carry = entry_carry(buf, tet, f_in, fr, active, gather)
     (ca, cb, cc), (xa, xb, xc), (Ea, Eb, Ec) = carry
     ia, ib, ic = ca.i, cb.i, cc.i
-    rec = dr.gather(mi.Array4u, buf.tets, tet, active)
+    rec = buf.corners(tet, active)
     # The apex: the one index of the tet's record not on the entry face.
     ik = rec.x ^ rec.y ^ rec.z ^ rec.w ^ ia ^ ib ^ ic
     ck = corner(ik, buf.position(ik, active), fr)
@@ -386,7 +386,7 @@ def walk_step(buf: MeshBuffers, tet: mi.UInt32, f_in: mi.UInt32, fr: RayFrame,
     iz = dr.select(opp_c, ic, dr.select(opp_a, ia, ib))
     lz = dr.select(iz == rec.x, 0, dr.select(iz == rec.y, 1, dr.select(iz == rec.z, 2, 3)))
     lz = mi.UInt32(lz)
-    link = dr.gather(mi.Int32, buf.nbr, tet * 4 + lz, active)
+    link = buf.link(tet, lz, active)
     return Step(t_out, w, link, lz, (ia, ib, ic), tuple(c.i for c in exit_c), ik,
                 (opp_a, opp_b, opp_c), (exit_c, exit_x, exit_e))
 
@@ -399,7 +399,7 @@ def inside_face(buf: MeshBuffers, tet: mi.UInt32, fr: RayFrame,
     (projected clockwise in the ray frame: an outward normal against ``d``).
     Where round-off puts ``o`` just outside and the line misses the tet, the
     face closest to being crossed."""
-    rec = dr.gather(mi.Array4u, buf.tets, tet, active)
+    rec = buf.corners(tet, active)
     ids = (rec.x, rec.y, rec.z, rec.w)
     p = [project(buf.position(i, active), fr.o, fr.u, fr.v) for i in ids]
     best = mi.UInt32(0)

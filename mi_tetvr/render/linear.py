@@ -37,7 +37,8 @@ class TetFrame:
 
     def __init__(self, buf: MeshBuffers | Shaded.Params, tet: mi.UInt32,
                  active: bool | mi.Bool = True, reduce: dr.ReduceMode | None = None) -> None:
-        self.ids = [dr.gather(mi.UInt32, buf.tets, tet * 4 + k, active) for k in range(4)]
+        rec = buf.corners(tet, active)
+        self.ids = [rec.x, rec.y, rec.z, rec.w]
         self.X = [buf.position(i, active) if reduce is None else buf.position(i, active, reduce)
                   for i in self.ids]
         e = [self.X[k] - self.X[0] for k in (1, 2, 3)]
@@ -73,7 +74,7 @@ def vertex_gradients(buf: MeshBuffers, scalar: mi.Float) -> mi.Float:
     averaged by volume; flat and folded tets are left out. Differentiable
     w.r.t. the scalar and the positions."""
     n = dr.width(scalar)
-    frame = TetFrame(buf, dr.arange(mi.UInt32, dr.width(buf.tets) // 4))
+    frame = TetFrame(buf, dr.arange(mi.UInt32, buf.n_tets))
     g = frame.gradient([dr.gather(mi.Float, scalar, i) for i in frame.ids])
     vol = dr.abs(frame.det)
     ok = (vol > 0.0) & dr.all(dr.isfinite(g))

@@ -664,15 +664,18 @@ class Shaded(PostClassified):
 
     class Params:
         DRJIT_STRUCT = {"scalar": mi.Float, "tf_color": mi.Float, "tf_opacity": mi.Float,
-                        "positions": mi.Float, "tets": mi.UInt32}
+                        "positions": mi.Float, "cells": mi.UInt32}
 
         def __init__(self, scalar=None, tf_color=None, tf_opacity=None, positions=None,
-                     tets=None):
+                     cells=None):
             self.scalar, self.tf_color, self.tf_opacity = scalar, tf_color, tf_opacity
-            self.positions, self.tets = positions, tets
+            self.positions, self.cells = positions, cells
 
         def position(self, i, active=True):
             return dr.gather(mi.Point3f, self.positions, i, active, mode=dr.ReduceMode.Direct)
+
+        def corners(self, tet, active=True):
+            return dr.gather(mi.Array4u, self.cells, 2 * tet, active)
 
     per_tet = True
     #: ``(ambient, diffuse, specular, specular_power)``, set from the shape.
@@ -682,7 +685,7 @@ class Shaded(PostClassified):
         s = self.the_shape(shapes)
         self.lighting = s.lighting
         return self.Params(s.attribute_buffer("vertex_scalar"), s.tf_color, s.tf_opacity,
-                           s.vertex_positions_buffer(), s.tet_buffers["tets"])
+                           s.vertex_positions_buffer(), s.tet_buffers["cells"])
 
     def gather(self, params: Any, i: mi.UInt32, active: bool | mi.Bool = True,
                reduce: dr.ReduceMode = dr.ReduceMode.Auto) -> ScalarPoint:

@@ -80,10 +80,10 @@ class VertexGradients:
     def __call__(self, shape):
         scalar = shape.attribute_buffer("vertex_scalar")
         positions = shape.vertex_positions_buffer()
-        buf = MeshBuffers(tets=shape.tet_buffers["tets"], positions=positions)
+        buf = MeshBuffers(cells=shape.tet_buffers["cells"], positions=positions)
         if dr.grad_enabled(scalar) or dr.grad_enabled(positions):
             return vertex_gradients(buf, scalar)
-        inputs = (positions, scalar, buf.tets)
+        inputs = (positions, scalar, buf.cells)
         if len(self._inputs) != 3 or any(a.index != b.index
                                          for a, b in zip(self._inputs, inputs)):
             self.kept = vertex_gradients(buf, scalar)

@@ -35,8 +35,8 @@ import drjit as dr
 import mitsuba as mi
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.topology import FACES, build_topology
-from mi_tetvr.render.buffers import (MeshBuffers, far_links, morton_order, shape_index_arrays,
-                                     unpack_link)
+from mi_tetvr.render.buffers import (MeshBuffers, far_links, links_of, morton_order,
+                                     shape_index_arrays, tets_of, unpack_link)
 from mi_tetvr.render.geometry import (BOUNDARY_WALK_STEPS, RayFrame, crossing, edge_function,
                                       face_entry, face_weights, project, ray_frame, walk_step)
 from mi_tetvr.render.segment import clip_segment
@@ -55,9 +55,9 @@ def mesh_buffers(vertices, tets):
     tets = np.asarray(tets)[morton_order(np.asarray(vertices)[tets].mean(1))]
     topo = build_topology(vertices, tets, warn=False)
     idx = shape_index_arrays(topo, vertices)
-    np.testing.assert_array_equal(idx["tets"].reshape(-1, 4), topo.tets)
+    np.testing.assert_array_equal(tets_of(idx["cells"]), topo.tets)
     typed = {k: (mi.Int32 if idx[k].dtype == np.int32 else mi.UInt32)(idx[k])
-             for k in ("tets", "nbr", "boundary", "faces", "face_adj")}
+             for k in ("cells", "boundary", "faces", "face_adj")}
     positions = mi.Float(np.asarray(vertices, np.float32).ravel())
     return MeshBuffers(**typed, positions=positions), topo
 
@@ -907,15 +907,15 @@ def test_index_arrays_in_morton_order():
     grid_topo = build_topology(V, T, warn=False)
     assert far_links(grid_topo.neighbors) < 0.2
     keep = shape_index_arrays(grid_topo, V)
-    np.testing.assert_array_equal(keep["tets"].reshape(-1, 4), grid_topo.tets)
+    np.testing.assert_array_equal(tets_of(keep["cells"]), grid_topo.tets)
     rng = np.random.default_rng(5)
     T = T[rng.permutation(len(T))]
     topo = build_topology(V, T, warn=False)
     assert far_links(topo.neighbors) > 0.9
     idx = shape_index_arrays(topo, V)
-    tets = idx["tets"].reshape(-1, 4).astype(np.int64)
+    tets = tets_of(idx["cells"]).astype(np.int64)
     assert sorted(map(tuple, np.sort(tets, 1))) == sorted(map(tuple, np.sort(topo.tets, 1)))
-    link = idx["nbr"].astype(np.int64).reshape(-1, 4)
+    link = links_of(idx["cells"]).astype(np.int64)
     t, f = np.nonzero(link >= 0)
     t2, f2 = link[t, f] // 4, link[t, f] % 4
     np.testing.assert_array_equal(link[t2, f2], 4 * t + f)

@@ -17,6 +17,7 @@ from scipy import stats
 
 import mi_tetvr
 from mi_tetvr.mesh.generate import grid_mesh
+from mi_tetvr.render.buffers import tets_of
 from mi_tetvr.render.cursor import Entry
 from mi_tetvr.render.transport import flight, solve_depth
 
@@ -173,7 +174,7 @@ def test_transmittance_from_outside_and_from_inside_a_tet(linear_walk, cube):
     ref = optical_depth(o + d * t0[:, None], d, t1 - t0)
     assert np.abs(np.array(fl.tau) - ref).max() < 1e-5 * max(1.0, ref.max())
     # From inside a tet (its tets in the walk's order), to the cube's side.
-    tets = np.asarray(ps.ts.buf.tets).reshape(-1, 4)
+    tets = tets_of(np.asarray(ps.ts.buf.cells))
     k = rng.integers(0, len(tets), n)
     w = rng.dirichlet(np.ones(4), n)
     p = np.einsum("nk,nkj->nj", w, V[tets[k]])
