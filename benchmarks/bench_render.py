@@ -82,7 +82,7 @@ from mi_tetvr.mesh.topology import build_topology  # noqa: E402
 from mi_tetvr.render.buffers import MeshBuffers, TetGroup, shape_index_arrays  # noqa: E402
 from mi_tetvr.render.cursor import WalkSettings  # noqa: E402
 from mi_tetvr.render.walk import trace  # noqa: E402
-from plain_walk import plain_trace  # noqa: E402
+from plain_walk import PlainBuffers, plain_trace  # noqa: E402
 
 #: n_sub of the reference image (error ~1/n^4: below float precision).
 REFERENCE_N_SUB = 32
@@ -151,6 +151,7 @@ def main(a):
                             integrator.retrace_epsilon * diag)
     ts = integrator.tet_group(scene)
     dr.eval(ts.buf, ts.params)
+    plain = PlainBuffers(ts)
 
     def run_render():
         img = mi.render(scene, spp=1)
@@ -165,7 +166,8 @@ def main(a):
     def run_plain(integral, n):
         def run():
             ts.model.n_sub = n
-            C, T, steps = plain_trace(scene, ts, rays, 0.0, settings.max_steps, integral)
+            C, T, steps = plain_trace(scene, ts, rays, 0.0, settings.max_steps, integral,
+                                      plain)
             dr.eval(C, T, steps)
             ts.model.n_sub = n_sub
             return C, T, steps

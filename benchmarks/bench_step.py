@@ -59,7 +59,7 @@ import mi_tetvr  # noqa: E402,F401
 from mi_tetvr.render import cursor  # noqa: E402
 from mi_tetvr.render.cursor import WalkSettings  # noqa: E402
 from mi_tetvr.render.walk import trace  # noqa: E402
-from plain_walk import plain_trace  # noqa: E402
+from plain_walk import PlainBuffers, plain_trace  # noqa: E402
 
 #: What the loops' instructions are counted as (LLVM IR).
 KINDS = {"gather": r"@llvm\.masked\.gather|@gather_\d+x",
@@ -172,6 +172,7 @@ def main(a):
                             integrator.retrace_epsilon * float(dr.norm(scene.bbox().extents())))
     ts = integrator.tet_group(scene)
     dr.eval(ts.buf, ts.params)
+    plain = PlainBuffers(ts)
     steps = [0]
 
     def run_tetvr():
@@ -181,7 +182,7 @@ def main(a):
         return C
 
     def run_plain():
-        C, T, n = plain_trace(scene, ts, rays, 0.0, settings.max_steps, "model")
+        C, T, n = plain_trace(scene, ts, rays, 0.0, settings.max_steps, "model", plain)
         dr.eval(C, T, n)
         return C
 
@@ -202,8 +203,9 @@ def main(a):
     print(f"{'':<24}" + "".join(f"{c:>13}" for c in cols))
     forward = loop_bodies(kernel_ir(run_tetvr))
     # (a mesh that is not convex is traced again after each exit: the trace
-    # loop around the walks, timed on this grid by pretending it is not convex)
-    convex_scene = cursor.convex_scene
+    # loop around the walks, counted on this grid by pretending it is not
+    # convex; checkouts before the convex walk have only that loop)
+    convex_scene = getattr(cursor, "convex_scene", None)
     cursor.convex_scene = lambda scene: False
     try:
         general = loop_bodies(kernel_ir(run_tetvr))

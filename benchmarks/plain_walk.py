@@ -42,20 +42,23 @@ def _local(f, j):
         f == 1, int(FACES[1][j]), dr.select(f == 2, int(FACES[2][j]), int(FACES[3][j])))))
 
 
-def _vertex(buf, tet, j, active):
-    """Corner ``j`` of ``tet`` (a 32-byte cell of corners and links per tet,
-    or, in checkouts before it, a record of four corners)."""
-    if getattr(buf, "cells", None) is not None:
-        return dr.gather(mi.UInt32, buf.cells, tet * 8 + j, active)
-    return dr.gather(mi.UInt32, buf.tets, tet * 4 + j, active)
+class PlainBuffers:
+    """The plain walk's own tet arrays, as a first implementation keeps them:
+    ``tets`` (4 m corners) and ``nbr`` (4 m links), read with one gather per
+    corner; the same whatever layout the renderer's own buffers have (a
+    32-byte cell of corners and links per tet, or, in checkouts before it,
+    these two arrays), so that the baseline stays the same across checkouts."""
 
-
-def _link(buf, tet, f, active):
-    """The link across local face ``f`` of ``tet`` (see :func:`_vertex`)."""
-    if getattr(buf, "cells", None) is not None:
-        return dr.reinterpret_array(mi.Int32, dr.gather(mi.UInt32, buf.cells, tet * 8 + 4 + f,
-                                                        active))
-    return dr.gather(mi.Int32, buf.nbr, tet * 4 + f, active)
+    def __init__(self, ts):
+        import numpy as np
+        buf = ts.buf
+        if getattr(buf, "cells", None) is not None:
+            c = np.asarray(buf.cells).reshape(-1, 8)
+            self.tets = mi.UInt32(np.ascontiguousarray(c[:, :4]).ravel())
+            self.nbr = mi.Int32(np.ascontiguousarray(c[:, 4:]).view(np.int32).ravel())
+        else:
+            self.tets, self.nbr = buf.tets, buf.nbr
+        dr.eval(self.tets, self.nbr)
 
 
 def _exit_point_weights(X, Pa, Pb, Pc, n):
@@ -97,11 +100,14 @@ def alg1_segment(length, c0, c1, s0, s1, n_sub: int):
 
 
 @dr.syntax
-def plain_trace(scene, ts, ray, t_min: float, max_steps: int, integral: str = "model"):
+def plain_trace(scene, ts, ray, t_min: float, max_steps: int, integral: str = "model",
+                plain: PlainBuffers | None = None):
     """Emission, transmittance and tets crossed along ``ray`` (normalized
     directions) through the convex tet mesh of ``scene`` (``ts`` its
-    :class:`~mi_tetvr.render.buffers.TetGroup`)."""
+    :class:`~mi_tetvr.render.buffers.TetGroup`; ``plain`` its
+    :class:`PlainBuffers`, made once)."""
     buf, model, params = ts.buf, ts.model, ts.params
+    plain = plain if plain is not None else PlainBuffers(ts)
     o = mi.Point3f(ray.o)
     d = mi.Vector3f(ray.d)
     si = scene.ray_intersect_preliminary(mi.Ray3f(o, d))
@@ -110,7 +116,8 @@ def plain_trace(scene, ts, ray, t_min: float, max_steps: int, integral: str = "m
     tet, f_in, outward = face_entry(buf, ts.boundary_face(si), RayFrame(o, d, u, v), active)
     # Attributes where the ray enters: weights of the hit point in the face.
     t = mi.Float(dr.select(active, si.t, 0.0))
-    ids = [_vertex(buf, tet, _local(f_in, j), active) for j in range(3)]
+    ids = [dr.gather(mi.UInt32, plain.tets, tet * 4 + _local(f_in, j), active)
+           for j in range(3)]
     Pe = [buf.position(i, active) for i in ids]
     we = _exit_point_weights(o + t * d, *Pe, dr.cross(Pe[1] - Pe[0], Pe[2] - Pe[0]))
     a = weighted_sum(we, [model.gather(params, i, active) for i in ids])
@@ -118,7 +125,7 @@ def plain_trace(scene, ts, ray, t_min: float, max_steps: int, integral: str = "m
     T = mi.Float(1.0)
     steps = mi.UInt32(0)
     while dr.hint(active, label="plain_walk"):
-        vid = [_vertex(buf, tet, j, active) for j in range(4)]
+        vid = [dr.gather(mi.UInt32, plain.tets, tet * 4 + j, active) for j in range(4)]
         P = [buf.position(i, active) for i in vid]
         t_out = mi.Float(dr.inf)
         f_out = mi.UInt32(0)
@@ -151,7 +158,7 @@ def plain_trace(scene, ts, ray, t_min: float, max_steps: int, integral: str = "m
         t = t_out
         a = tree_select(active, a_out, a)
         steps += 1
-        link = _link(buf, tet, f_out, active)
+        link = dr.gather(mi.Int32, plain.nbr, tet * 4 + f_out, active)
         tet, f_in = unpack_link(link)
         active &= found & (link >= 0) & (T > t_min) & (steps < max_steps)
     return L, T, steps
