@@ -42,14 +42,13 @@ tangent over as the next entry's.
 """
 from __future__ import annotations
 
-import importlib
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 import drjit as dr
 import mitsuba as mi
 
-from mi_tetvr.render.buffers import TetGroup
+from mi_tetvr.render.buffers import TetGroup, _packet_type
 from mi_tetvr.render.cursor import Piece, Span, WalkSettings
 from mi_tetvr.render.geometry import RayFrame, crossing_vjp, face_crossing, face_weights
 from mi_tetvr.render.optical import OpticalModel
@@ -294,12 +293,6 @@ class VertexSums:
                 y += x * dr.gather(mi.Float, self.sums, idx * self.width + j)
             dr.backward_from(y, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         self.sums = None
-
-
-def _packet_type() -> type:
-    """The variant's ``ArrayXf``: a packet of floats per lane (a scatter of one
-    reads and writes them together)."""
-    return importlib.import_module(mi.Float.__module__).ArrayXf
 
 
 def _flat(tree: Any) -> Any:

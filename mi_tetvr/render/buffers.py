@@ -15,6 +15,7 @@ line of the tets (:func:`tets_of`, :func:`links_of` read them in numpy).
 """
 from __future__ import annotations
 
+import functools
 import importlib
 from typing import TYPE_CHECKING, Any
 
@@ -23,6 +24,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_tetvr.mesh.topology import Topology, chunk_slices
+from mi_tetvr.render.pytree import from_scalar_leaves, scalar_leaves
 from mi_tetvr.render.surfaces import split_shapes
 
 if TYPE_CHECKING:
@@ -268,10 +270,15 @@ class MeshBuffers:
                            self.positions, record)
 
 
+@functools.cache
+def _packet_type_of(module: str) -> type:
+    return importlib.import_module(module).ArrayXf
+
+
 def _packet_type() -> type:
     """The variant's ``ArrayXf``: a packet of floats per lane (a gather or
     scatter of one reads or writes them together)."""
-    return importlib.import_module(mi.Float.__module__).ArrayXf
+    return _packet_type_of(mi.Float.__module__)
 
 
 def scene_tetmeshes(scene: mi.Scene) -> list[mi.Mesh]:
@@ -353,7 +360,6 @@ class TetGroup:
         (:meth:`MeshBuffers.with_record`), which :meth:`values` reads."""
         if self.model.per_ray_values or self.buf.record is not None:
             return self
-        from mi_tetvr.render.pytree import scalar_leaves
         n = dr.width(self.buf.positions) // 3
         values = scalar_leaves(self.model.gather(self.params, dr.arange(mi.UInt32, n)))
         return TetGroup(self.shapes, self.face_offsets, self.buf.with_record(values),
@@ -365,7 +371,6 @@ class TetGroup:
         position), else the model's gather."""
         if self.buf.record is None:
             return self.model.gather(self.params, i, active)
-        from mi_tetvr.render.pytree import from_scalar_leaves
         p = self.buf.packet(i, active)
         return from_scalar_leaves(dr.zeros(self.model.Attributes), [p[3 + j] for j in range(
             len(p) - 3)])
