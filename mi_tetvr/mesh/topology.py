@@ -701,31 +701,17 @@ def _edge_adjacency(tris):
 CONVEX_RTOL = 1e-6
 
 
-def _connected(adjacency) -> bool:
-    """Whether the faces of a closed surface (``adjacency``: the face across
-    each edge, all ``>= 0``) form one connected surface: labels spread to
-    the smallest of each face's neighbours, shortcut by pointer jumping."""
-    lab = np.arange(len(adjacency))
-    while True:
-        low = np.minimum(lab, lab[adjacency].min(axis=1))
-        if np.array_equal(low, lab):
-            return bool((lab == lab[0]).all())
-        np.minimum.at(lab, lab, low)
-        while True:
-            nxt = lab[lab]
-            if np.array_equal(nxt, lab):
-                break
-            lab = nxt
-
-
 def convex_boundary(vertices, faces, adjacency) -> bool:
     """Whether the boundary surface ``faces`` ((b, 3), wound outwards) of a
-    tet mesh bounds a convex body: one closed, connected, manifold surface
-    (every edge in two faces) none of whose edges bends inwards (across each
-    edge, the other face's third vertex lies on or below the face's plane,
-    to :data:`CONVEX_RTOL`). A closed connected surface that is convex at
-    every edge bounds a convex body (Tietze's theorem), so a line crosses it
-    at most twice: a ray that leaves the mesh does not come back.
+    tet mesh bounds a convex body: a closed surface (every edge in two
+    faces) none of whose edges bends inwards (across each edge, the other
+    face's third vertex lies on or below the face's plane, to
+    :data:`CONVEX_RTOL`), and one piece. A closed connected surface that is
+    convex at every edge bounds a convex body (Tietze's theorem), so a line
+    crosses it at most twice: a ray that leaves the mesh does not come back.
+    Each piece of such a surface is a sphere (Euler characteristic 2), and
+    two convex pieces meet at one vertex at most, so the surface is one
+    piece exactly where ``vertices - edges + faces`` is 2.
 
     Parameters
     ----------
@@ -742,7 +728,7 @@ def convex_boundary(vertices, faces, adjacency) -> bool:
     edges = np.sort(np.concatenate([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]]), 1)
     _, counts = np.unique(edges[:, 0] * (int(faces.max()) + 1) + edges[:, 1],
                           return_counts=True)
-    if (counts != 2).any() or not _connected(adjacency):
+    if (counts != 2).any():
         return False
     V = np.asarray(vertices, np.float64)
     A, B, C = V[faces[:, 0]], V[faces[:, 1]], V[faces[:, 2]]
@@ -751,12 +737,12 @@ def convex_boundary(vertices, faces, adjacency) -> bool:
     total = faces.sum(1)
     for j in range(3):
         across = adjacency[:, j]
-        # (manifold: the face across shares the edge opposite corner j)
+        # (closed: the face across shares the edge opposite corner j)
         W = V[total[across] - (total - faces[:, j])]
         side = np.einsum("ij,ij->i", n, W - A)
         if (side > CONVEX_RTOL * n_len * np.linalg.norm(W - A, axis=1)).any():
             return False
-    return True
+    return len(np.unique(faces)) - len(counts) + len(faces) == 2
 
 
 #: Meshes of at least this many tets show the topology's progress (a few seconds).

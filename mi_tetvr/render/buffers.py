@@ -169,8 +169,12 @@ def shape_index_arrays(topology: Topology, vertices: np.ndarray,
         del rank
     cells = np.empty((m, 8), np.uint32)
     cells[:, :4] = tets
-    cells[:, 4:] = np.where(nbr >= 0, nbr.astype(np.int32) * 4 + nface, -1).astype(
-        np.int32).view(np.uint32)
+    # (the links written into the cells a chunk at a time: no (m, 4) temporaries)
+    links = cells[:, 4:].view(np.int32)
+    for s in chunk_slices(m):
+        np.multiply(nbr[s], 4, out=links[s], casting="unsafe")
+        links[s] += nface[s]
+        links[s][nbr[s] < 0] = -1
     del nbr, nface
     out = dict(
         cells=cells.ravel(),

@@ -231,8 +231,9 @@ class EmissionAbsorption(OpticalModel):
             zero = mi.Float(0.0)
             return (zero, zero, mi.Float(1.0), zero, length * (g_P * p0 + g_Q * q0),
                     length * (g_P * p1 + g_Q * q1))
-        P, Q, T, g_L, g_s0, g_s1 = dr.if_stmt((), ~self.empty(a0, a1), full, empty,
-                                              label="segment_adjoint")
+        is_empty = self.empty(a0, a1)
+        P, Q, T, g_L, g_s0, g_s1 = full() if is_empty is None else dr.if_stmt(
+            (), ~is_empty, full, empty, label="segment_adjoint")
         C = a0.c * P + a1.c * Q
         half = g_tau(C) * 0.5
         return (C, T, g_L + half * (a0.s + a1.s),
