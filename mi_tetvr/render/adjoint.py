@@ -129,26 +129,28 @@ def vertex_grad_type(model: OpticalModel) -> type:
     return _VERTEX_GRAD_TYPES[A]
 
 
-def start(deriv: Derivative, ts_ad: TetGroup, entry_ids: Sequence[mi.UInt32], fr: RayFrame,
+def start(deriv: Derivative, ts_ad: TetGroup, carry: tuple, fr: RayFrame,
           active: mi.Bool) -> tuple:
     """The derivative modes' loop state besides the ray's adjoint, at the
-    walk's entry face: ``(e, pend)``.
+    walk's entry face (``carry``, as the walk carries it): ``(e, pend, w)``.
 
     ``e`` is the gradient (backward) or tangent (forward) of the current
     entry crossing, ``(t, attributes)``; ``pend`` the pending gradients of
-    the entry face's corners (backward mode), in the walk's corner order.
+    the entry face's corners (backward mode), in the walk's corner order;
+    ``w`` the crossing's weights (each step's exit weights, kept for the
+    next step, which would compute them again from the same edge functions).
     """
     model = ts_ad.model
     e = (mi.Float(0.0), dr.zeros(model.Attributes))
     if not deriv.backward:
-        e = tangent(deriv, ts_ad, entry_ids, fr, active)
+        e = tangent(deriv, ts_ad, tuple(c.i for c in carry[0]), fr, active)
     G = vertex_grad_type(model)
     pend = tuple(dr.zeros(G) for _ in range(3))
     if model.cuts:
         # Pieces of a tet: the exit crossing's gradient so far and where
         # along the tet's segment the current piece starts.
         return e, (mi.Float(0.0), dr.zeros(model.Attributes)), mi.Float(0.0), pend
-    return e, pend
+    return e, pend, face_weights(*carry[2])
 
 
 def moves_vertices(ts_ad: TetGroup) -> bool:
@@ -204,20 +206,20 @@ def inversion(deriv: Derivative, adj: Adjoint, L: mi.Color3f, T: mi.Float, C_seg
 
 
 def crossing_grads(deriv: Derivative, ts_ad: TetGroup, carry: tuple, g: tuple[mi.Float, Any],
-                   fr: RayFrame) -> list[Any]:
+                   fr: RayFrame, w: tuple | None = None) -> list[Any]:
     """Gradient of ``g . (t, attributes)`` of the ray's crossing of the face
-    the walk carries (``carry``: corners, their attributes, edge functions)
-    w.r.t. each corner's position and attributes
-    (:func:`~mi_tetvr.render.geometry.crossing_vjp`). A corner's projection
-    is ``((P - o) . u, (P - o) . v)`` and its depth ``(P - o) . d``, so
-    ``dP = dp.x u + dp.y v + dz d``."""
+    the walk carries (``carry``: corners, their attributes, edge functions;
+    ``w``: the crossing's weights, where known) w.r.t. each corner's
+    position and attributes (:func:`~mi_tetvr.render.geometry.crossing_vjp`).
+    A corner's projection is ``((P - o) . u, (P - o) . v)`` and its depth
+    ``(P - o) . d``, so ``dP = dp.x u + dp.y v + dz d``."""
     G = vertex_grad_type(ts_ad.model)
     corners, values, edges = carry
     if not deriv.geometric(ts_ad):
-        w = face_weights(*edges)
+        w = face_weights(*edges) if w is None else w
         return [G(mi.Vector3f(0.0), tree_map(lambda x: w[j] * x, g[1])) for j in range(3)]
     return [G(dp.x * fr.u + dp.y * fr.v + dz * fr.d, da)
-            for dp, dz, da in crossing_vjp(corners, edges, values, g[0], g[1])]
+            for dp, dz, da in crossing_vjp(corners, edges, values, g[0], g[1], w)]
 
 
 def scatter(ts_ad: TetGroup, i: mi.UInt32, g: Any, active: mi.Bool,
@@ -385,11 +387,12 @@ def segment(deriv: Derivative, walker: EmissionDerivative, p: Piece, acc: Radian
     cuts = model.cuts
     carry, st, tet = p.cur.carry, p.st, p.cur.tet
     pending = acc.pending
+    w = None
     if cuts:
         e, e_x, F, pend = pending
         F_end = dr.select(p.stay, F + (1.0 - F) * p.f, 1.0)
     else:
-        e, pend = pending
+        e, pend, w = pending
     extra = (tet,) if model.per_tet else ()
     adj = acc.adj
 
@@ -429,13 +432,13 @@ def segment(deriv: Derivative, walker: EmissionDerivative, p: Piece, acc: Radian
         if cuts:
             return C_seg, T_seg, adj, (tree_select(p.stay, e, x_t), e_x,
                                        dr.select(p.stay, F_end, 0.0), pend)
-        return C_seg, T_seg, adj, (x_t, pend)
+        return C_seg, T_seg, adj, (x_t, pend, st.w)
     advance = ~p.stay if cuts else True
     if dr.hint(cuts, mode="scalar"):
         e = tree_add(e, tree_add(_scaled(g_entry, 1.0 - F), _scaled(g_exit, 1.0 - F_end)))
         e_x = tree_add(e_x, tree_add(_scaled(g_entry, F), _scaled(g_exit, F_end)))
         g_entry = None
-    vg = crossing_grads(deriv, ts_ad, carry, e if cuts else tree_add(e, g_entry), fr)
+    vg = crossing_grads(deriv, ts_ad, carry, e if cuts else tree_add(e, g_entry), fr, w)
     if deriv.camera:
         adj = camera_grads(adj, carry, vg, fr, active & advance)
     G = vertex_grad_type(model)
@@ -448,7 +451,7 @@ def segment(deriv: Derivative, walker: EmissionDerivative, p: Piece, acc: Radian
     walker.sums.add(drop, drop_g, active & advance)
     new_pend = tuple(tree_select(replaced[j], dr.zeros(G), pend[j]) for j in range(3))
     if dr.hint(not cuts, mode="scalar"):
-        return C_seg, T_seg, adj, (g_exit, new_pend)
+        return C_seg, T_seg, adj, (g_exit, new_pend, st.w)
     # Staying in the tet: nothing moves on yet.
     new_pend = tuple(tree_select(advance, new_pend[j], old) for j, old in
                      enumerate(pending[3]))
@@ -469,12 +472,13 @@ def finish(deriv: Derivative, walker: EmissionDerivative, acc: Radiance, carry: 
     tet's exit face, which takes the exit crossing's gradient so far where
     ``inside``."""
     ts_ad, adj = walker.ts_ad, acc.adj
+    w = None
     if ts_ad.model.cuts:
         e, e_x, _, pend = acc.pending
     else:
-        e, pend = acc.pending
+        e, pend, w = acc.pending
     camera = deriv.camera
-    vg = crossing_grads(deriv, ts_ad, carry, e, fr)
+    vg = crossing_grads(deriv, ts_ad, carry, e, fr, w)
     if camera:
         adj = camera_grads(adj, carry, vg, fr, walked)
     for j in range(3):

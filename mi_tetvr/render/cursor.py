@@ -332,12 +332,13 @@ def traverse_convex(scene: mi.Scene, client: Client, fr: RayFrame, acc: Any, spa
     active = mi.Bool(active)
     si = scene.ray_intersect_preliminary(mi.Ray3f(fr.at(start), fr.d), active=active)
     hit = active & si.is_valid()
-    tet, f, outward = face_entry(buf, mi.UInt32(si.prim_index), fr, hit)
+    tet, f, outward = face_entry(buf, client.ts.boundary_face(si), fr, hit)
     behind = hit & outward
+    # (a point a bounding box's diagonal beyond the box's sphere is outside the mesh)
     box = scene.bbox()
-    far = dr.norm(fr.at(start) - box.center()) + dr.norm(box.extents()) + 1.0
+    far = dr.norm(fr.at(start) - box.center()) + dr.norm(box.extents())
     si = scene.ray_intersect_preliminary(mi.Ray3f(fr.at(start - far), fr.d), active=behind)
-    tet_b, f_b, _ = face_entry(buf, mi.UInt32(si.prim_index), fr, behind)
+    tet_b, f_b, _ = face_entry(buf, client.ts.boundary_face(si), fr, behind)
     # (a line through the mesh is found from behind; where round-off says
     # otherwise, the ray is not walked rather than walked from a face it leaves by)
     hit &= ~behind | si.is_valid()
@@ -548,4 +549,3 @@ def traverse_merged(scenes: list, client: MergedClient, fr: RayFrame, acc: Any, 
             pending |= inside[k] | need[k] | (t_next[k] < t_max)
         active &= pending & (t < t_max) & more & (steps < settings.max_steps)
     return acc, steps
-

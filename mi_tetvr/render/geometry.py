@@ -161,7 +161,8 @@ def crossing_at(c: Sequence[Corner],
 
 
 def crossing_vjp(c: Sequence[Corner], edges: Sequence[mi.Float], values: Sequence[Any],
-                 g_t: mi.Float, g_a: Any) -> list[tuple[mi.Point2f, mi.Float, Any]]:
+                 g_t: mi.Float, g_a: Any,
+                 w: Sequence[mi.Float] | None = None) -> list[tuple[mi.Point2f, mi.Float, Any]]:
     """Reverse-mode derivative of a crossing (:func:`crossing_at`) and of
     the values interpolated there: given the gradient ``(g_t, g_a)`` of the
     ray parameter and of ``sum_j w_j values[j]``, the gradients of each
@@ -175,9 +176,11 @@ def crossing_vjp(c: Sequence[Corner], edges: Sequence[mi.Float], values: Sequenc
     or degenerate (``S = 0``, equal weights) it is the derivative of the
     unclamped weights, resp. zero.
 
+    ``w``: the weights, where known (:func:`face_weights` of ``edges``).
+
     Returns ``[(dp_j, dz_j, dvalue_j) for j in 0, 1, 2]``.
     """
-    w = face_weights(*edges)
+    w = face_weights(*edges) if w is None else w
     S = edges[0] + edges[1] + edges[2]
     ok = dr.abs(S) > 0
     inv = dr.select(ok, dr.rcp(dr.select(ok, S, 1.0)), 0.0)

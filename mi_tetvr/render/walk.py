@@ -103,8 +103,7 @@ class EmissionDerivative(Emission):
         self.sums = adjoint.VertexSums(ts_ad, settings) if deriv.backward else None
 
     def begin(self, acc: Radiance, cur: Cursor, fr: RayFrame, active: mi.Bool) -> Radiance:
-        entry_ids = tuple(c.i for c in cur.carry[0])
-        pending = adjoint.start(self.deriv, self.ts_ad, entry_ids, fr, active)
+        pending = adjoint.start(self.deriv, self.ts_ad, cur.carry, fr, active)
         return Radiance(acc.L, acc.T, acc.adj, pending)
 
     def piece(self, acc: Radiance, p: Piece, span: Span, fr: RayFrame,
