@@ -152,13 +152,6 @@ class OpticalModel:
         function)."""
         return None
 
-    def empty(self, a0: Any, a1: Any) -> mi.Bool | None:
-        """Where a segment from attributes ``a0`` to ``a1`` is empty: its
-        emission is exactly 0 and its transmittance 1, so the walk skips its
-        integral (a branch of the kernel that packets of rays in empty space
-        do not enter); None for a model that never says so."""
-        return None
-
     def linear(self, params: Any, a0: Any, a1: Any,
                tet: mi.UInt32) -> tuple[mi.Color3f, mi.Color3f, mi.Float, mi.Float]:
         """``(c0, c1, s0, s1)``: color and extinction at the ends of a piece
@@ -209,10 +202,6 @@ class EmissionAbsorption(OpticalModel):
         tau = length * (a0.s + a1.s) * 0.5
         return C, T, tau
 
-    def empty(self, a0: Any, a1: Any) -> mi.Bool:
-        # (zero extinction at both ends, and so all along: C = 0, T = 1 exactly)
-        return (a0.s == 0.0) & (a1.s == 0.0)
-
     def segment_adjoint(self, params: Any, length: mi.Float, a0: Any, a1: Any,
                         g_C: mi.Color3f, g_tau: Any) -> tuple:
         # The integral's weights of the two colors and its transmittance, and
@@ -231,9 +220,9 @@ class EmissionAbsorption(OpticalModel):
             zero = mi.Float(0.0)
             return (zero, zero, mi.Float(1.0), zero, length * (g_P * p0 + g_Q * q0),
                     length * (g_P * p1 + g_Q * q1))
-        is_empty = self.empty(a0, a1)
-        P, Q, T, g_L, g_s0, g_s1 = full() if is_empty is None else dr.if_stmt(
-            (), ~is_empty, full, empty, label="segment_adjoint")
+        # (zero extinction at both ends, and so all along: C = 0, T = 1 exactly)
+        P, Q, T, g_L, g_s0, g_s1 = dr.if_stmt((), (a0.s != 0.0) | (a1.s != 0.0), full, empty,
+                                              label="segment_adjoint")
         C = a0.c * P + a1.c * Q
         half = g_tau(C) * 0.5
         return (C, T, g_L + half * (a0.s + a1.s),

@@ -141,18 +141,46 @@ def segment_integral(length: mi.Float, c0: mi.Color3f, c1: mi.Color3f, s0: mi.Fl
     -------
     (Color3f, Float)
         Emission seen from the entry side and the segment's transmittance.
+
+    Where nothing is differentiated (a primal walk), a segment of zero
+    extinction at both ends (empty space: exactly ``C = 0``, ``T = 1``) is a
+    branch of the kernel that a packet of such segments takes without an
+    exponential. (Differentiated, the scheme has a derivative w.r.t. the
+    extinction there, which the adjoint's own branch gives in closed form:
+    ``segment_adjoint``.)
     """
+    def medium():
+        P, Q, T, _ = _emission_weights(length, s0, s1, n_sub)
+        return P, Q, T
+    if dr.grad_enabled(length, c0, c1, s0, s1):
+        P, Q, T = medium()
+    else:
+        P, Q, T = dr.if_stmt((), (s0 != 0.0) | (s1 != 0.0), medium,
+                             lambda: (mi.Float(0.0), mi.Float(0.0), mi.Float(1.0)),
+                             label="segment_integral")
+    return c0 * P + c1 * Q, T
+
+
+def _emission_weights(length: mi.Float, s0: mi.Float, s1: mi.Float,
+                      n_sub: int) -> tuple[mi.Float, mi.Float, mi.Float, tuple]:
+    """``(P, Q, T, sub-intervals)`` of the scheme of :func:`segment_integral`
+    (``C = c0 P + c1 Q``); the sub-intervals are ``(sigma, x, A)`` (each
+    one's extinction at its midpoint, optical depth and transmittance), and
+    the pairs' ``(x, A)`` where ``n_sub`` is even."""
     dt = length * (1.0 / n_sub)
-    x = [dt * dr.lerp(s0, s1, (i + 0.5) / n_sub) for i in range(n_sub)]
+    sigma = [dr.lerp(s0, s1, (i + 0.5) / n_sub) for i in range(n_sub)]
+    x = [dt * si for si in sigma]
     A = [dr.exp(-xi) for xi in x]
     P, Q, T = _moments(x, A)
+    pairs = None
     if n_sub % 2 == 0:
         # The same segment in n_sub / 2 sub-intervals: midpoint depths add.
-        Pc, Qc, _ = _moments([x[i] + x[i + 1] for i in range(0, n_sub, 2)],
-                             [A[i] * A[i + 1] for i in range(0, n_sub, 2)])
+        pairs = ([x[i] + x[i + 1] for i in range(0, n_sub, 2)],
+                 [A[i] * A[i + 1] for i in range(0, n_sub, 2)])
+        Pc, Qc, _ = _moments(*pairs)
         P = (4.0 * P - Pc) * (1.0 / 3.0)
         Q = (4.0 * Q - Qc) * (1.0 / 3.0)
-    return c0 * P + c1 * Q, T
+    return P, Q, T, (sigma, x, A, pairs)
 
 
 def emission_weights_vjp(length: mi.Float, s0: mi.Float, s1: mi.Float,
@@ -172,22 +200,12 @@ def emission_weights_vjp(length: mi.Float, s0: mi.Float, s1: mi.Float,
     n = n_sub
     dt = length * (1.0 / n)
     m = [(i + 0.5) / n for i in range(n)]
-    sigma = [dr.lerp(s0, s1, mi_) for mi_ in m]
-    x = [dt * si for si in sigma]
-    A = [dr.exp(-xi) for xi in x]
-    P, Q, T = _moments(x, A)
-    pairs = n % 2 == 0
-    if pairs:
-        xc = [x[i] + x[i + 1] for i in range(0, n, 2)]
-        Ac = [A[i] * A[i + 1] for i in range(0, n, 2)]
-        Pc, Qc, _ = _moments(xc, Ac)
-        P = (4.0 * P - Pc) * (1.0 / 3.0)
-        Q = (4.0 * Q - Qc) * (1.0 / 3.0)
+    P, Q, T, (sigma, x, A, pairs) = _emission_weights(length, s0, s1, n)
 
     def vjp(g_P: mi.Float, g_Q: mi.Float) -> tuple[mi.Float, mi.Float, mi.Float]:
         dM = _mean_derivatives(x, A)
-        if pairs:
-            dMc = _mean_derivatives(xc, Ac)
+        if pairs is not None:
+            dMc = _mean_derivatives(*pairs)
             dM = [(4.0 * dM[k] - dMc[k // 2]) * (1.0 / 3.0) for k in range(n)]
         g_M, g_T = g_Q - g_P, g_Q * T
         g_x = [g_M * d + g_T for d in dM]

@@ -66,21 +66,10 @@ class Emission:
             L, stop = self.model.visit(self.params, acc.L, length, a0, a1, p.cur.tet)
             T = dr.select(stop, 0.0, acc.T)
         else:
-            C_seg, T_seg = self.segment(length, a0, a1, p.cur.tet)
+            C_seg, T_seg, _ = self.model.segment(self.params, length, a0, a1,
+                                                 *((p.cur.tet,) if self.model.per_tet else ()))
             L, T = acc.L + acc.T * C_seg, acc.T * T_seg
         return Radiance(L, T), T > self.t_min
-
-    def segment(self, length: mi.Float, a0: Any, a1: Any,
-                tet: mi.UInt32) -> tuple[mi.Color3f, mi.Float]:
-        """``(C, T)`` of a segment; where the model says a segment is empty,
-        its integral is a branch that packets of empty segments skip."""
-        model, extra = self.model, ((tet,) if self.model.per_tet else ())
-        empty = model.empty(a0, a1)
-        if empty is None:
-            return model.segment(self.params, length, a0, a1, *extra)[:2]
-        return dr.if_stmt(
-            (), ~empty, lambda: model.segment(self.params, length, a0, a1, *extra)[:2],
-            lambda: (mi.Color3f(0.0), mi.Float(1.0)), label="segment")
 
     def end(self, acc: Radiance, cur: Cursor, stay: mi.Bool, walked: mi.Bool,
             fr: RayFrame) -> Radiance:

@@ -127,21 +127,25 @@ def test_zero_opacity():
 
 
 def test_empty_space_skips_the_integral_and_keeps_the_gradients(monkeypatch):
-    """A mesh empty (zero opacity) on one side: the walk's branch past empty
+    """A mesh empty (zero opacity) on one side: the branch past empty
     segments renders the very image of the integral it skips, and the
-    adjoint's closed form there (the scheme's derivatives at zero extinction)
-    gives Dr.Jit's AD of the segment integral for colors, opacities and
-    positions, within float rounding."""
-    from mi_tetvr.render.optical import EmissionAbsorption
+    gradients there (the scheme's derivatives at zero extinction, in the
+    adjoint's closed form) are Dr.Jit's AD of the integral without the
+    branch, for colors, opacities and positions, within float rounding."""
+    from mi_tetvr.render import optical, segment
     rng = np.random.default_rng(31)
     V, T, C, S = jittered(rng)
     S = np.where(V[:, 0] < 0.1, 0.0, S)
     o, d = rays_at(rng, 128)
+
+    def whole(length, c0, c1, s0, s1, n_sub):
+        P, Q, T_seg, _ = segment._emission_weights(length, s0, s1, n_sub)
+        return c0 * P + c1 * Q, T_seg
     images, grads = [], []
     for skip in (True, False):
         if not skip:
-            monkeypatch.setattr(EmissionAbsorption, "empty", lambda self, a0, a1: None)
-            monkeypatch.setattr(EmissionAbsorption, "segment_adjoint",
+            monkeypatch.setattr(optical, "segment_integral", whole)
+            monkeypatch.setattr(optical.EmissionAbsorption, "segment_adjoint",
                                 lambda self, *a: None)
         problem = Problem((V, T, C, S), o, d, np.random.default_rng(2))
         images.append(render_rays(problem.scene, o, d)[0])

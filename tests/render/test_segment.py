@@ -283,3 +283,19 @@ def test_clip_segment_vjp_against_ad():
                                    atol=1e-5 * np.abs(ad).max())
     clipped = (t0 < tb) | (t1 > te)
     assert 0.2 < clipped.mean() < 0.8
+
+
+@pytest.mark.parametrize("n_sub", [1, 4])
+def test_segment_integral_skips_empty_segments(n_sub):
+    """The branch an empty segment takes where nothing is differentiated:
+    exactly no emission and full transmittance, and every other segment
+    the scheme's value bit for bit (the closed-form derivative's forward
+    pass, which has no branch)."""
+    length = mi.Float([1.7, 0.3, 2.0, 0.0, 1.0])
+    s0, s1 = mi.Float([0.0, 0.0, 1.5, 0.0, 0.0]), mi.Float([0.0, 2.0, 0.7, 0.0, 1e-30])
+    c0, c1 = mi.Color3f(0.2, 0.5, 0.9), mi.Color3f(0.9, 0.1, 0.4)
+    C, T = segment_integral(length, c0, c1, s0, s1, n_sub)
+    C_ref, T_ref, _ = segment_integral_vjp(length, c0, c1, s0, s1, n_sub)
+    np.testing.assert_array_equal(np.array(C), np.array(C_ref))
+    np.testing.assert_array_equal(np.array(T), np.array(T_ref))
+    assert np.all(np.array(C)[:, [0, 3]] == 0.0) and np.all(np.array(T)[[0, 3]] == 1.0)
