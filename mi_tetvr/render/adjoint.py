@@ -20,13 +20,17 @@ is a difference of two accumulated values, so its absolute error is a few
 float ulps of ``L_pix``; it multiplies ``dtau_k``, so the relative error of a
 gradient stays at float precision.
 
-``dC_k`` and ``dtau_k`` are obtained by differentiating the optical model's
-segment integral (:meth:`~mi_tetvr.render.optical.OpticalModel.segment`)
-with Dr.Jit's AD *locally* inside the loop body, the face crossings in
-closed form (:func:`~mi_tetvr.render.geometry.crossing_vjp`); the gathers'
-reverse-mode derivative scatter-adds straight into the parameters'
-gradients. Memory is therefore O(rays), independent of the number of tets
-crossed.
+In backward mode ``dC_k`` and ``dtau_k`` are the optical model's
+closed form where it has one
+(:meth:`~mi_tetvr.render.optical.OpticalModel.segment_adjoint`, with the
+clip's, :func:`~mi_tetvr.render.segment.clip_segment_vjp`), else (and in
+forward mode) Dr.Jit's AD of its segment integral
+(:meth:`~mi_tetvr.render.optical.OpticalModel.segment`) taken *locally*
+inside the loop body; the face crossings are differentiated in closed form
+(:func:`~mi_tetvr.render.geometry.crossing_vjp`). Each vertex's gradient goes
+to per-vertex sums (:class:`VertexSums`), passed to the parameters after the
+walk. Memory is therefore O(rays + vertices), independent of the number of
+tets crossed.
 
 Each segment is a function of the ``(t, attributes)`` of its entry and exit
 crossings. A crossing is shared by two consecutive segments, so its gradient
@@ -36,8 +40,8 @@ attributes: :func:`mi_tetvr.render.geometry.walk_step`), so the crossing's
 derivative is taken from them without reading the vertices again
 (:func:`crossing_grads`), and reverse mode keeps each corner's pending
 gradient beside it: when a step replaces a corner by the tet's apex, the
-vertex left behind is complete and scatter-added (one vertex per step), the
-three last ones after the loop. Forward mode carries the exit crossing's
+vertex left behind is complete and added to the sums (one vertex per step),
+the three last ones after the loop. Forward mode carries the exit crossing's
 tangent over as the next entry's.
 """
 from __future__ import annotations
