@@ -220,9 +220,12 @@ def add_code_options(p):
 
 
 def check_code(p, a):
-    """Refuse a ``--code`` that is not a checkout of mi_tetvr, in one line."""
+    """Refuse a ``--code`` that is not a checkout of mi_tetvr, or no
+    ``--rounds``, in one line."""
     if getattr(a, "code", None) and not (Path(a.code) / "mi_tetvr").is_dir():
         p.error(f"--code {a.code}: not a checkout of mi_tetvr (no mi_tetvr/ in it)")
+    if getattr(a, "rounds", 1) < 1:
+        p.error(f"--rounds {a.rounds}: give at least 1")
 
 
 def alternate(script, argv, code, rounds):

@@ -257,9 +257,9 @@ class MeshBuffers:
         floats: the walk reads a vertex it crosses in one packet (instead of
         a gather per float, from as many buffers). Built once per walk (an
         ``8 n`` floats kernel for colors and opacities; what a walk reads per
-        step: ``bench_step.py``), attached to the AD graph where AD is on
-        (the derivative passes walk detached buffers; Dr.Jit's AD of the
-        primal pass, through recorded loops, reaches the parameters)."""
+        step: ``bench_step.py``). Built from parameters that AD tracks, the
+        record is tracked too, so that Dr.Jit's AD of a walk reaches them;
+        the adjoint's passes build it from detached ones."""
         n = dr.width(self.positions) // 3
         idx = dr.arange(mi.UInt32, n)
         leaves = [dr.gather(mi.Float, self.positions, 3 * idx + j) for j in range(3)]

@@ -152,7 +152,8 @@ class Probes:
         (:func:`~mi_tetvr.render.layers.composite`)."""
         if not self.surfaces:
             raise ValueError(f"tetproj: mode {self.mode!r} shows no surface (slice and iso do)")
-        ts = self.tet_group(scene)
+        # (laid out for the walk once: each layer walks it again)
+        ts = self.tet_group(scene).walked()
         ray, t_clip, active = clipped(self.clip, ray, active)
         eps = self.retrace_epsilon * float(dr.norm(scene.bbox().extents()))
 
@@ -447,7 +448,7 @@ class VolumeProgram:
             else:
                 # (before the walks' forward mode consumes the input tangents)
                 dL += dr.forward_to(total, flags=dr.ADFlag.ClearEdges | dr.ADFlag.AllowNoGrad)
-        detached = [g.detached() for g in media_ad]
+        detached = [g.detached().walked() for g in media_ad]
         deriv = Derivative(mode, media_ad)
         for layer, W, R_k in zip(layered.layers, fronts, R):
             seg = mi.Ray3f(ray)
