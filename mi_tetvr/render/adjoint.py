@@ -56,7 +56,7 @@ from mi_tetvr.render.buffers import TetGroup, _packet_type
 from mi_tetvr.render.cursor import Piece, Span, WalkSettings
 from mi_tetvr.render.geometry import RayFrame, crossing_vjp, face_crossing, face_weights
 from mi_tetvr.render.optical import OpticalModel
-from mi_tetvr.render.pytree import (tree_add, tree_copy, tree_dot, tree_leaves, tree_lerp,
+from mi_tetvr.render.pytree import (scalar_leaves, tree_add, tree_copy, tree_dot, tree_lerp,
                                      tree_map, tree_select)
 from mi_tetvr.render.segment import clip_segment, clip_segment_vjp
 
@@ -267,9 +267,8 @@ class VertexSums:
         if not self.summed:
             return
         self.n = dr.width(ts_ad.buf.positions) // 3
-        self.k = len(tree_leaves(_flat(dr.zeros(model.Attributes)))) + (3 if self.geometric
-                                                                        else 0)
-        self.width = 1 << max(self.k - 1, 0).bit_length()
+        k = len(scalar_leaves(dr.zeros(model.Attributes))) + (3 if self.geometric else 0)
+        self.width = 1 << max(k - 1, 0).bit_length()
         self.sums = dr.zeros(mi.Float, self.width * self.n)
         self.mode = settings.sums_mode(4 * self.width * self.n)
 
@@ -279,7 +278,7 @@ class VertexSums:
         if not self.summed:
             scatter(self.ts_ad, i, g, active, self.atomics)
             return
-        leaves = tree_leaves(_flat(g.a)) + (tree_leaves(_flat(g.p)) if self.geometric else [])
+        leaves = scalar_leaves(g.a) + (scalar_leaves(g.p) if self.geometric else [])
         leaves += [mi.Float(0.0)] * (self.width - len(leaves))
         packet = leaves[0] if self.width == 1 else _packet_type()(*leaves)
         dr.scatter_add(self.sums, packet, i, active, mode=self.mode)
@@ -291,20 +290,14 @@ class VertexSums:
         ts_ad, n = self.ts_ad, self.n
         with dr.resume_grad():
             idx = dr.arange(mi.UInt32, n)
-            a = tree_leaves(_flat(ts_ad.model.gather(ts_ad.params, idx)))
+            a = scalar_leaves(ts_ad.model.gather(ts_ad.params, idx))
             if self.geometric:
-                a += tree_leaves(_flat(ts_ad.buf.position(idx)))
+                a += scalar_leaves(ts_ad.buf.position(idx))
             y = mi.Float(0.0)
             for j, x in enumerate(a):
                 y += x * dr.gather(mi.Float, self.sums, idx * self.width + j)
             dr.backward_from(y, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         self.sums = None
-
-
-def _flat(tree: Any) -> Any:
-    """A structure with its vector leaves (``Color3f``, ``Point3f``) as their
-    components, for :func:`~mi_tetvr.render.pytree.tree_leaves`."""
-    return tree_map(lambda x: [x[j] for j in range(len(x))] if dr.depth_v(x) > 1 else x, tree)
 
 
 def ray_leaves(deriv: Derivative, fr: RayFrame) -> tuple[mi.Point3f, mi.Vector3f]:

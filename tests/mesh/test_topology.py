@@ -10,10 +10,10 @@ import pytest
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.io import read_tetmesh, write_tetmesh
 from mi_tetvr.mesh.tetmesh import TetMesh
-from mi_tetvr.mesh.topology import (EDGES, FACES, MeshError, bbox_diagonal, build_topology,
-                                    convex_boundary, edge_lengths, face_keys, flip_tets,
-                                    mean_edge_length, orient_tets, quality, signed_volumes,
-                                    validate_arrays)
+from mi_tetvr.mesh.topology import (CONVEX_RTOL, EDGES, FACES, MeshError, bbox_diagonal,
+                                    build_topology, convex_boundary, edge_lengths, face_keys,
+                                    flip_tets, mean_edge_length, orient_tets, quality,
+                                    signed_volumes, validate_arrays)
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -526,14 +526,13 @@ def _convexity_cases():
 @pytest.mark.parametrize("case", list(_convexity_cases()), ids=lambda c: c[0])
 def test_convex_boundary_against_the_convex_hull(case):
     """A boundary is convex exactly where the mesh fills its convex hull
-    (scipy's Qhull: equal volumes), whatever its tets inside."""
+    (scipy's Qhull: equal volumes, to float32 rounding of the positions, as
+    :data:`CONVEX_RTOL`), whatever its tets inside."""
     ConvexHull = pytest.importorskip("scipy.spatial").ConvexHull
-    name, v, t = case
+    _, v, t = case
     topo = build_topology(v, t, warn=False)
     hull = ConvexHull(v[np.unique(topo.tets)]).volume
-    fills = np.isclose(signed_volumes(v, topo.tets).sum(), hull, rtol=1e-9, atol=0)
-    if name == "rotated":
-        fills = True                # (equal up to float32 rounding of the positions)
+    fills = np.isclose(signed_volumes(v, topo.tets).sum(), hull, rtol=CONVEX_RTOL, atol=0)
     assert convex_boundary(v, topo.boundary_faces, topo.boundary_adjacency) == fills
 
 
