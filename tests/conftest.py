@@ -10,18 +10,10 @@ import gc
 
 import pytest
 
-from tests.helpers import DATA, SCENES, VARIANT, use_variant
-
-
-def pytest_addoption(parser):
-    parser.addoption("--run-slow", action="store_true",
-                     help="also run the tests marked slow (each compiles for many minutes)")
+from tests.helpers import SCENES, VARIANT, shared_data, use_variant
 
 
 def pytest_configure(config):
-    config.addinivalue_line(
-        "markers", "slow: compiles for many minutes (Dr.Jit's debug mode); "
-                   "run with --run-slow")
     try:
         use_variant(VARIANT)
     except RuntimeError as e:
@@ -31,24 +23,13 @@ def pytest_configure(config):
     make_scenes(SCENES)
 
 
-def pytest_collection_modifyitems(config, items):
-    if config.getoption("--run-slow"):
-        return
-    skip = pytest.mark.skip(reason="compiles for many minutes: run with --run-slow")
-    for item in items:
-        if "slow" in item.keywords:
-            item.add_marker(skip)
-
-
 def pytest_report_header(config):
     return f"mi_tetvr: Mitsuba variant {VARIANT} (MI_TETVR_VARIANT)"
 
 
 @pytest.fixture
 def data_dir():
-    if not DATA.is_dir():
-        pytest.skip("../shared/data is absent")
-    return DATA
+    return shared_data()
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -16,11 +16,28 @@ import numpy as np
 #: The repository root and the shared data sets next to it.
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
+#: A shared data set that is absent fails the test that needs it instead of skipping it
+#: (``MI_TETVR_REQUIRE_DATA=1``, which ``.ci/run`` sets: CI has the data, and a lost copy
+#: must not pass unseen).
+REQUIRE_DATA = os.environ.get("MI_TETVR_REQUIRE_DATA", "") not in ("", "0")
 #: The bundled scenes as ``mi-tetvr make-scenes`` writes them in the checkout.
 SCENES = ROOT / "scenes"
 
 #: The Mitsuba variant of the test suite (``MI_TETVR_VARIANT``, default ``llvm_ad_rgb``).
 VARIANT = os.environ.get("MI_TETVR_VARIANT", "") or "llvm_ad_rgb"
+
+
+def shared_data(*parts):
+    """The path ``../shared/data/PARTS`` (a file or a folder). A test that needs it is
+    skipped where it is absent, and fails under :data:`REQUIRE_DATA`."""
+    import pytest
+    path = DATA.joinpath(*parts)
+    if not path.exists():
+        if REQUIRE_DATA:
+            pytest.fail(f"{path} is absent, and MI_TETVR_REQUIRE_DATA is set (CI runs with the "
+                        f"shared data)")
+        pytest.skip(f"{path} is absent")
+    return path
 
 
 def use_variant(name=VARIANT):

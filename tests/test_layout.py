@@ -33,11 +33,19 @@ def _module_name(path):
     return ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
 
 
-def _imported_names(path, module):
+def _imported_names(path, module, typing=True):
     """Every module ``path`` imports (also inside functions), relative imports
-    resolved; ``from a import b`` names ``a.b`` (b a module or a name in ``a``)."""
+    resolved; ``from a import b`` names ``a.b`` (b a module or a name in ``a``).
+    ``typing=False``: not those under ``if TYPE_CHECKING:`` (never run)."""
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
-    for node in ast.walk(ast.parse(path.read_text())):
+    tree = ast.parse(path.read_text())
+    hints = set() if typing else {
+        id(n) for node in ast.walk(tree) if isinstance(node, ast.If)
+        and isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING"
+        for n in ast.walk(node)}
+    for node in ast.walk(tree):
+        if id(node) in hints:
+            continue
         if isinstance(node, ast.Import):
             yield from (a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -72,6 +80,81 @@ def test_no_module_imports_a_layer_above_its_own():
     mesh, render, grid, recon, apps, cli, plugins."""
     bad = _layer_violations(_package_files())
     assert not bad, bad
+
+
+def _import_cycles(files):
+    """The cycles of the modules' imports (also those inside functions, which run when
+    called; not those for type hints only), each as its sorted module names: the strongly
+    connected components of the import graph with more than one module."""
+    modules = {_module_name(p): p for p in files}
+    graph = {}
+    for module, path in modules.items():
+        targets = set()
+        for name in _imported_names(path, module, typing=False):
+            while name and name not in modules:       # a name in a module: the module
+                name = name.rpartition(".")[0]
+            if name and name != module:
+                targets.add(name)
+        graph[module] = targets
+    # Tarjan's strongly connected components, iteratively
+    index, low, stack, on_stack, cycles, count = {}, {}, [], set(), [], 0
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = count
+        count += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            v, edges = work[-1]
+            w = next(edges, None)
+            if w is not None:
+                if w not in index:
+                    index[w] = low[w] = count
+                    count += 1
+                    stack.append(w)
+                    on_stack.add(w)
+                    work.append((w, iter(sorted(graph[w]))))
+                elif w in on_stack:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                component = []
+                while True:
+                    w = stack.pop()
+                    on_stack.discard(w)
+                    component.append(w)
+                    if w == v:
+                        break
+                if len(component) > 1:
+                    cycles.append(sorted(component))
+    return cycles
+
+
+def test_no_import_cycle():
+    """No two modules of the package import each other, directly or round a loop, counting
+    the imports made inside functions (those hide a cycle from Python until they run)."""
+    assert _import_cycles(_package_files()) == []
+
+
+def test_the_cycle_check_sees_a_cycle_through_a_function(tmp_path, monkeypatch):
+    """The check itself: a loop closed by an import inside a function is reported, one
+    closed only by a type hint's import is not."""
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    (tmp_path / "mi_tetvr" / "recon").mkdir(parents=True)
+    a, b, c = (tmp_path / "mi_tetvr" / "recon" / f"{n}.py" for n in "abc")
+    a.write_text("from mi_tetvr.recon.b import f\n")
+    b.write_text("def f():\n    from mi_tetvr.recon import c\n")
+    c.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                 "    from mi_tetvr.recon.a import x\n")
+    assert _import_cycles([a, b, c]) == []
+    c.write_text("def g():\n    from mi_tetvr.recon.a import x\n")
+    assert _import_cycles([a, b, c]) == [["mi_tetvr.recon.a", "mi_tetvr.recon.b",
+                                           "mi_tetvr.recon.c"]]
 
 
 @pytest.mark.parametrize("source, module, expected", [

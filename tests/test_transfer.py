@@ -9,15 +9,14 @@ import pytest
 from mi_tetvr.transfer import (TransferFunction, read_difftetvr_xml, read_json,
                                read_transfer_function, write_json)
 from mi_tetvr.color import srgb_to_linear
-from tests.helpers import DATA
+from tests.helpers import DATA, shared_data
 
 TF_DIR = DATA / "transfer-functions" / "difftetvr"
 DIFFTETVR_XMLS = ["Grey.xml", "Tooth1.xml", "Tooth3Gauss.xml", "Tooth3Linear.xml"]
 
 
 def _need_data():
-    if not TF_DIR.is_dir():
-        pytest.skip(f"shared data not available at {TF_DIR}")
+    shared_data("transfer-functions", "difftetvr")
 
 
 def _simple_tf():

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_tetvr.apps.lit import lit_scene
+
 
 #: ``render MESH``'s image size (pixels) and horizontal field of view (degrees).
 MESH_RES = (512, 512)
@@ -63,8 +65,7 @@ def mesh_scene(settings, mesh, framing):
     s = settings
     s.validate("mesh")
     if s.lights is not None:
-        from mi_tetvr.apps.lit import lit_scene
-        return lit_scene(s, mesh, framing)
+        return lit_scene(s, mesh, framing, framed_scene(s, framing), shape_props(s, framing))
     props = shape_props(s, framing)
     if "transfer_function" in props:
         name = props.pop("scalar_attribute")

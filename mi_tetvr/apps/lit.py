@@ -84,18 +84,17 @@ def surface_meshes(mesh, scalar, tf, value_range, surface, iso=None, plane=None)
     return out
 
 
-def lit_scene(settings, mesh, framing):
+def lit_scene(settings, mesh, framing, scene, props):
     """The scene of ``render MESH --lights XML`` (see the module docstring):
-    the framing's camera, the lights' scene, and the volume or its surfaces."""
+    the framing's camera (``scene``: :func:`~mi_tetvr.apps.framing.framed_scene`'s
+    dict, completed here), the lights' scene, and the volume or its surfaces
+    (``props``: :func:`~mi_tetvr.apps.framing.shape_props`'s)."""
     import mi_tetvr
-    from mi_tetvr.apps.framing import framed_scene, shape_props
     from mi_tetvr.render.surfaces import lights_scene
     from mi_tetvr.transfer import read_transfer_function
     s = settings
-    scene = framed_scene(s, framing)
     scene["sensor"]["sampler"] = {"type": "independent", "sample_count": s.spp or LIT_SPP}
     scene.update(lights_scene(s.lights))
-    props = shape_props(s, framing)
     value_range = (props["value_min"], props["value_max"])
     surface = s.surface
     if surface is not None:

@@ -593,7 +593,7 @@ class ClientState:
     version: int = 0
     level: int = 0
     accumulated: np.ndarray = None
-    moved: float = 0.0                 # time.perf_counter() of the last change
+    moved: float = 0.0                 # the viewer's clock at the last change
     latency: dict = dataclasses.field(default_factory=dict)
 
 
@@ -616,11 +616,14 @@ class Viewer:
         Where the *save* button writes images and cameras.
     server : bool
         False: no web server (benchmarks drive :meth:`add_client` themselves).
+    now : callable
+        The clock (seconds) render times and a fit's share are kept by (tests pass a
+        simulated one).
     """
 
     def __init__(self, shown, port=8080, host="127.0.0.1", resolution=512, spp=1,
-                 save_dir="views", server=True):
-        self.shown = shown
+                 save_dir="views", server=True, now=time.perf_counter):
+        self.shown, self.now = shown, now
         self.resolution, self.spp = int(resolution), int(spp)
         self.background = shown.background
         self.save_dir = Path(save_dir)
@@ -690,7 +693,7 @@ class Viewer:
             c.position, c.wxyz = np.asarray(position, float), np.asarray(wxyz, float)
             c.fov, c.aspect = float(fov), float(aspect)
             c.version += 1
-            c.level, c.accumulated, c.moved = 0, None, time.perf_counter()
+            c.level, c.accumulated, c.moved = 0, None, self.now()
             c.latency = {}
         self._wake.set()
 
@@ -699,7 +702,7 @@ class Viewer:
         with self._lock:
             for c in self.clients.values():
                 c.version += 1
-                c.level, c.accumulated, c.moved = 0, None, time.perf_counter()
+                c.level, c.accumulated, c.moved = 0, None, self.now()
                 c.latency = {}
         self._wake.set()
 
@@ -764,7 +767,7 @@ class Viewer:
         side = max(32, round(self.resolution * LEVELS[min(level, len(LEVELS) - 1)]))
         if budget is not None and budget <= self._cost.get(side, 0.0):
             return False                       # (what this size took last time)
-        t0 = time.perf_counter()
+        t0 = self.now()
         camera = browser_camera(*pose, side)
         try:
             image = self.shown.render(camera, spp=1, seed=max(level - len(LEVELS) + 1, 0))
@@ -774,7 +777,7 @@ class Viewer:
                 c.level = len(LEVELS) - 1 + self.spp
             self._status()
             return True
-        dt = time.perf_counter() - t0
+        dt = self.now() - t0
         self._cost[side] = dt
         self.render_seconds += dt
         self.rendered += 1
@@ -789,7 +792,7 @@ class Viewer:
             c.level = level + 1
             final = c.level >= len(LEVELS) - 1 + self.spp
             shown = c.accumulated
-            now = time.perf_counter()
+            now = self.now()
             c.latency.setdefault("first", now - c.moved)
             if final:
                 c.latency["refined"] = now - c.moved
@@ -800,8 +803,8 @@ class Viewer:
 
     def run(self, seconds=None):
         """Serve in this thread until Ctrl-C (or :meth:`stop`, or ``seconds``)."""
-        end = None if seconds is None else time.perf_counter() + seconds
-        while not self._stop.is_set() and (end is None or time.perf_counter() < end):
+        end = None if seconds is None else self.now() + seconds
+        while not self._stop.is_set() and (end is None or self.now() < end):
             if not self.update():
                 self._wake.wait(0.05)
                 self._wake.clear()
@@ -1008,8 +1011,8 @@ class FitViewer(Viewer):
 
     def __init__(self, trainer, share=FIT_SHARE, **kwargs):
         self.share = float(share)
-        self.began = time.perf_counter()
         super().__init__(FitShown(trainer), **kwargs)
+        self.began = self.now()
         self.curve = {"step": [], "loss": [], "psnr": []}
         self._plotted = 0.0
         if self.server is not None:
@@ -1038,7 +1041,7 @@ class FitViewer(Viewer):
         self.curve["step"].append(step)
         self.curve["loss"].append(float(loss))
         self.curve["psnr"].append(float(psnr))
-        now = time.perf_counter()
+        now = self.now()
         if self.server is not None and now - self._plotted > 1.0:
             self._plotted = now
             self._plot.data = (np.asarray(self.curve["step"], np.float64),
@@ -1047,7 +1050,7 @@ class FitViewer(Viewer):
                                       f"training PSNR {psnr:.2f} dB")
         budget = self.share * (now - self.began) - self.render_seconds
         while self.update(budget=budget):
-            budget = self.share * (time.perf_counter() - self.began) - self.render_seconds
+            budget = self.share * (self.now() - self.began) - self.render_seconds
             if budget <= 0.0:
                 break
 

@@ -82,7 +82,8 @@ def run(a):
         lights_scene(cfg.lights)
     if a.workers is not None or a.address is not None:
         return run_blocks(a, cfg)
-    from mi_tetvr.recon.pipeline import fitted_file, run as run_fit
+    from mi_tetvr.recon.outputs import fitted_file
+    from mi_tetvr.recon.pipeline import run as run_fit
     data = load_data(a.data, cfg.downscale, a.holdout)
     print(f"{a.data}: {len(data.train)} training and {len(data.test)} test views "
           f"({data.train[0].camera.width}x{data.train[0].camera.height})")

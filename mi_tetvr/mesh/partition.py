@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_tetvr.mesh.meshfile import read_one_file, tets_from_cells
 from mi_tetvr.mesh.topology import MeshError
 
 #: Point and cell arrays of a piece that hold the whole mesh's indices.
@@ -280,9 +281,8 @@ def read_piece(part: Partition, k, *, ghosts=False):
     """``(vertices, tets, point_data, cell_data, global_point_ids)`` of block
     ``k``'s piece: its own arrays, the partition's taken out; ``ghosts``:
     also ``(global cell ids, owned)`` of its tets."""
-    from mi_tetvr.mesh.io import read_mesh_file, tets_from_cells
     path = part.piece_path(k)
-    m = read_mesh_file(path)
+    m = read_one_file(path)
     tets = tets_from_cells(m, path)
     pd = {k_: np.asarray(v) for k_, v in m.point_data.items()}
     cd = {k_: np.concatenate([np.asarray(b) for b in v]) for k_, v in m.cell_data.items()}

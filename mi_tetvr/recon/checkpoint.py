@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_tetvr.recon.config import FitConfig
+from mi_tetvr.recon.config import RENAMED, FitConfig
 from mi_tetvr.recon.trainer import RunState, Trainer
 
-__all__ = ["save_checkpoint", "load_checkpoint"]
+__all__ = ["save_checkpoint", "load_checkpoint", "check_resume", "RESUMABLE"]
 
 
 def save_checkpoint(trainer: Trainer, path):
@@ -81,3 +81,26 @@ def load_checkpoint(path, dataset, config: FitConfig) -> Trainer:
     if trainer.appearance_index:
         trainer.appearance_opt.load_state_dict(ckpt)
     return trainer
+
+
+#: Settings a resumed run may change: its time, its length, how often it logs and saves
+#: (a stage's steps and position rate are in its checkpointed settings).
+RESUMABLE = ("time_budget", "iterations", "lr_position", "checkpoint_every", "log_every",
+             "passes")
+
+
+def check_resume(config: FitConfig, ckpt_path):
+    """The settings of the run checkpointed at ``ckpt_path`` (a dict, current names); raise
+    ``ValueError`` naming those in which ``config`` differs (other than :data:`RESUMABLE`
+    ones and those left to the run): resuming would mix the saved state with other
+    settings."""
+    saved = {RENAMED.get(k, k): v
+             for k, v in json.loads(str(np.load(ckpt_path)["config"])).items()}
+    diff = config.differences(saved, ignore=RESUMABLE)
+    if diff:
+        said = "; ".join(f"{k}: {json.dumps(a)} there, {json.dumps(b)} now"
+                         for k, (a, b) in diff.items())
+        raise ValueError(f"{ckpt_path.parent} holds a run with other settings ({said}); "
+                         f"use the same settings to resume it, --restart to start it over, "
+                         f"or another --out")
+    return saved

@@ -179,16 +179,17 @@ class FitConfig:
         "growing radii) or contracted (a grid in mip-NeRF 360's contracted space)",
         choices=("shells", "contracted"))
     grid_resolution: int | None = setting(
-        None, "grid cells along the box's largest axis (init grid, tetwild); default: chosen "
-        "for the time budget, else 32")
+        None, "grid cells along the box's largest axis (init grid, tetwild); default: planned "
+        "from the data and the time budget, else 32")
     bounds: list | None = setting(
         None, "the box to reconstruct in, x0,y0,z0,x1,y1,z1; default: the visual hull of the "
         "alpha masks, else the data set's", metavar="X0,Y0,Z0,X1,Y1,Z1", parse=_bounds)
     iterations: int = setting(
         1500, "optimizer steps (with a time budget only the stages' shares count)")
     time_budget: float | None = setting(
-        None, "minutes for the whole command, outputs included: the steps (and the mesh size, "
-        "unless set) fill it; a resumed run gets it again", metavar="MIN")
+        None, "minutes for the whole command, outputs included: the steps fill it (the mesh size, "
+        "unless set, is planned from the data and the budget, the same on any machine); a "
+        "resumed run gets it again", metavar="MIN")
     views_per_step: int = setting(2, "training views rendered per optimizer step")
     lr_color: float = setting(0.02, "color step")
     lr_opacity: float = setting(0.05, "opacity step: optical depth per cell")

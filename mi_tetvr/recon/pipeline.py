@@ -21,52 +21,21 @@ from pathlib import Path
 import numpy as np
 
 from mi_tetvr.extras import needs
-from mi_tetvr.recon.checkpoint import load_checkpoint, save_checkpoint
-from mi_tetvr.recon.config import RENAMED, FitConfig
-from mi_tetvr.recon.metrics import display_rgb, psnr
-from mi_tetvr.recon.plots import plot_history, save_comparison
+from mi_tetvr.recon.checkpoint import check_resume, load_checkpoint, save_checkpoint
+from mi_tetvr.recon.config import FitConfig
+from mi_tetvr.recon.metrics import psnr
+from mi_tetvr.recon.outputs import output_seconds, write_outputs
+from mi_tetvr.recon.plan import (BUDGET_STEPS, DEFAULT_RESOLUTION, budget_stages, data_bounds,
+                                 nominal_step_seconds, planned_resolution)
 from mi_tetvr.recon.strategy import (MIN_STAGE_EPOCHS, StageRefinement, affordable,
                                      unbounded_stages)
-from mi_tetvr.recon.trainer import TRAINING_VIEWS, RunState, Trainer
+from mi_tetvr.recon.trainer import RunState, Trainer
 
 __all__ = ["run", "next_stage", "for_capture", "capture_kind", "with_sparse_points",
-           "write_outputs", "write_fitted", "fitted_file",
-           "evaluate_mesh",
-           "evaluate_fit", "initial_mesh", "data_bounds", "scalar_from_colors", "calibrate",
-           "resolution_for_budget", "budget_stages", "DEFAULT_RESOLUTION", "check_resume",
-           "RESUMABLE",
-           "BUDGET_STEPS", "COARSE_SHARE", "PIXELS_PER_VERTEX", "SH_DEGREE_UNBOUNDED",
-           "resolution_limits", "data_warnings"]
+           "evaluate_mesh", "evaluate_fit", "initial_mesh", "scalar_from_colors",
+           "data_warnings", "SH_DEGREE_UNBOUNDED"]
 
 
-#: Grid resolution without a time budget.
-DEFAULT_RESOLUTION = 32
-#: Steps a time-budgeted run plans for when it picks its mesh size: enough
-#: for every training view to be seen many times and the learning rates to
-#: decay; a faster machine gets a finer mesh, not more steps. (Measured on the
-#: engine CT with a 2-minute budget: planning 1,000 steps of 4 views picked a
-#: 12-cell grid, 23.6 dB; of 2 views a 54-cell grid, 32.5 dB.)
-BUDGET_STEPS = 500
-#: A time-budgeted run without a set resolution trains a grid of half the
-#: chosen resolution for this share of its steps, then the chosen grid starting
-#: from the coarse one's field (:func:`budget_stages`). (Measured on C60 with a
-#: 10-minute budget: ...)
-COARSE_SHARE = 0.25
-#: The two grid resolutions whose step times are measured, and the range the
-#: chosen resolution is kept in (the upper end also at most the image width
-#: over 1.5: finer cells than pixels see nothing more).
-CALIBRATION = (12, 20)
-RESOLUTION_RANGE = (12, 96)
-#: Training pixels per grid vertex at least. A vertex carries 4 unknowns
-#: (RGB, opacity) and a pixel gives 3 values (4 with a mask), so 2 pixels per
-#: vertex keep the measurements at 1.5-2x the unknowns: the fit is determined
-#: by the data. A grid with more unknowns than the views pin down matches the
-#: training views and not the others (C60, 48
-#: views of 128x128 and a 629k-vertex grid: 41.4 dB on training views, 39.1 dB
-#: held out, below a pre-shaded grid of that size). Measured with 10-minute
-#: budgets: 2 gives C60 42.53 dB (384k vertices), 4 gave 42.71 dB (192k) but
-#: cost the engine 2.2 dB and setup.sh's one-minute job 3.2 dB.
-PIXELS_PER_VERTEX = 2
 #: The spherical harmonics' degree of an unbounded scene's colors (``sh_degree``
 #: left open): none. Measured with 5-minute fits at equal time, degree 2 against one color
 #: per vertex, held-out sRGB PSNR, two runs each: the path-traced room at 1/2 -0.35 and
@@ -216,93 +185,6 @@ def unbounded_mesh(config: FitConfig, dataset):
     return vertices, tets, {"color": np.clip(color, 0.0, 1.0)}
 
 
-def data_bounds(config: FitConfig, dataset):
-    """The (2, 3) box to reconstruct in: the config's, else the visual hull of
-    the training alpha masks (when the images have alpha), else the data set's."""
-    if config.bounds is not None:
-        return np.asarray(config.bounds, np.float64).reshape(2, 3)
-    from mi_tetvr.recon.hull import visual_hull_bounds
-    views = dataset.train
-    if views and any(float(v.image[..., 3].min()) < 0.5 for v in views):
-        return visual_hull_bounds(views)
-    return np.asarray(dataset.bounds(), np.float64)
-
-
-def resolution_for_budget(seconds, measured, steps=BUDGET_STEPS, limits=RESOLUTION_RANGE):
-    """The grid resolution whose ``steps`` steps take ``seconds``.
-
-    Parameters
-    ----------
-    seconds : float
-        Time for the optimization.
-    measured : ((r0, t0), (r1, t1))
-        Seconds per step ``t`` measured at two resolutions ``r``; the step
-        time is modelled as ``t0 (r / r0) ** p`` with ``p`` from the two
-        (kept in [0.5, 3]: rays cross ``~r`` tets, vertex updates cost ``~r^3``).
-    limits : (int, int)
-        The range of the result.
-
-    Returns
-    -------
-    int
-    """
-    (r0, t0), (r1, t1) = measured
-    p = float(np.clip(np.log(max(t1, 1e-9) / max(t0, 1e-9)) / np.log(r1 / r0), 0.5, 3.0))
-    r = r1 * (seconds / (steps * t1)) ** (1.0 / p)
-    return int(np.clip(round(r), limits[0], limits[1]))
-
-
-def calibrate(config: FitConfig, dataset, seconds, log=print, now=time.perf_counter):
-    """Pick the grid resolution for ``seconds`` of optimization: time a few
-    steps on two coarse grids over the data's region and extrapolate
-    (:func:`resolution_for_budget`). Returns the resolution."""
-    measured = []
-    for r in CALIBRATION:
-        vertices, tets, values = initial_mesh(dataclasses.replace(config, grid_resolution=r),
-                                              dataset)
-        trainer = Trainer(dataset, vertices, tets, config.for_stage(0), values,
-                          state=RunState(rng=np.random.default_rng(config.seed + 1)))
-        for _ in range(2):              # compiles the kernels
-            trainer.step()
-        t0 = now()
-        for _ in range(3):
-            trainer.step()
-        measured.append((r, (now() - t0) / 3))
-    r = resolution_for_budget(seconds, measured, limits=resolution_limits(config, dataset))
-    log("step time " + ", ".join(f"{t:.3f} s at grid {q}" for q, t in measured)
-        + f": grid {r} for {seconds / 60:.1f} min of steps")
-    return r
-
-
-def resolution_limits(config: FitConfig, dataset):
-    """The range of grid resolutions a time budget may choose from:
-    :data:`RESOLUTION_RANGE`, at most the training images' width over 1.5
-    (finer cells than pixels see nothing more) and at most
-    :data:`PIXELS_PER_VERTEX` training pixels per vertex."""
-    from mi_tetvr.mesh.initial import grid_shape
-    width = max(max(v.camera.width, v.camera.height) for v in dataset.train)
-    pixels = sum(v.camera.width * v.camera.height for v in dataset.train)
-    bounds = data_bounds(config, dataset)
-    top = min(RESOLUTION_RANGE[1], int(width / 1.5))
-    while top > RESOLUTION_RANGE[0] and \
-            np.prod(np.add(grid_shape(bounds, top), 1)) * PIXELS_PER_VERTEX > pixels:
-        top -= 1
-    return RESOLUTION_RANGE[0], max(RESOLUTION_RANGE[0], top)
-
-
-def budget_stages(config: FitConfig, resolution):
-    """The stages of a time-budgeted run on a grid of ``resolution``: a grid of
-    half that resolution for :data:`COARSE_SHARE` of the time, then the full
-    one (one stage when the half would be below the smallest calibrated grid).
-    The iterations are time weights."""
-    coarse = resolution // 2
-    if coarse < CALIBRATION[0]:
-        return [{"iterations": config.iterations, "grid": resolution}]
-    first = max(1, round(COARSE_SHARE * config.iterations))
-    return [{"iterations": first, "grid": coarse},
-            {"iterations": max(1, config.iterations - first), "grid": resolution}]
-
-
 def data_warnings(config: FitConfig, dataset):
     """What looks wrong about fitting ``dataset`` with ``config``: photos of a
     scene in its surroundings (no transparent pixel, or cameras inside the
@@ -323,58 +205,6 @@ def data_warnings(config: FitConfig, dataset):
                    f"{', ...' if len(inside) > 3 else ''}): the scene looks unbounded; "
                    f"--background learn models what lies outside the box")
     return out
-
-
-#: Frames of a capture's fly-through (``flythrough.mp4``, :func:`write_flythrough`): 2.5 s.
-FLYTHROUGH_FRAMES = 60
-
-#: Samples per pixel of the fly-through's frames (1: the pixel centres, as the fit sees the
-#: photos without jitter; a frame then costs what a training render costs).
-FLYTHROUGH_SPP = 1
-
-
-def output_seconds(trainer: Trainer, now=time.perf_counter):
-    """Estimated time of :func:`write_outputs`: one test render timed, times
-    the views, and for a capture one fly-through frame timed, times the
-    frames, with a margin for the files and plots."""
-    views = trainer.dataset.test or trainer.dataset.train[:1]
-    t0 = now()
-    trainer.render_view(views[0])
-    render = now() - t0
-    # the held-out photos (16 samples per pixel when jittered) and the training PSNR's (one)
-    seconds = 0.5 + 1.5 * (len(views) + TRAINING_VIEWS / (16 if trainer.jitter else 1)) * render
-    path = flythrough_cameras(trainer)
-    if path:
-        # one frame timed (a small launch costs more per sample than the test render's)
-        t0 = now()
-        trainer.render_camera(path[len(path) // 2], FLYTHROUGH_SPP)
-        seconds += 1.5 * len(path) * (now() - t0) + 1.0
-    return seconds
-
-
-def flythrough_cameras(trainer: Trainer):
-    """The cameras of a capture's fly-through: along its photos' cameras in the order of their
-    names (as taken), :data:`FLYTHROUGH_FRAMES` of them; ``[]`` for what is not a capture of a
-    scene in its surroundings (views around an object, X-ray projections)."""
-    from mi_tetvr.camera import camera_path
-    views = sorted(trainer.dataset.train + trainer.dataset.test, key=lambda v: v.name)
-    if trainer.config.scene != "unbounded" or len(views) < 2:
-        return []
-    return camera_path([v.camera for v in views], FLYTHROUGH_FRAMES)
-
-
-def write_flythrough(trainer: Trainer, path):
-    """``path`` (MP4): the fitted scene seen along the capture's camera path
-    (:func:`flythrough_cameras`); returns the number of frames (0: not a capture)."""
-    from mi_tetvr.video import write_video
-    cameras = flythrough_cameras(trainer)
-    if not cameras:
-        return 0
-    pictures = [np.round(255 * display_rgb(trainer.render_camera(c, FLYTHROUGH_SPP),
-                                           trainer.background)).astype(np.uint8)
-                for c in cameras]
-    write_video(path, pictures)
-    return len(pictures)
 
 
 class _Clock:
@@ -400,39 +230,17 @@ class _Clock:
         return (now - self.stage_begin) / max(self.stage_end - self.stage_begin, 1e-9)
 
 
-#: Settings a resumed run may change: its time, its length, how often it logs and saves
-#: (a stage's steps and position rate are in its checkpointed settings).
-RESUMABLE = ("time_budget", "iterations", "lr_position", "checkpoint_every", "log_every",
-             "passes")
-
-
-def check_resume(config: FitConfig, ckpt_path):
-    """The settings of the run checkpointed at ``ckpt_path`` (a dict, current names); raise
-    ``ValueError`` naming those in which ``config`` differs (other than :data:`RESUMABLE`
-    ones and those left to the run): resuming would mix the saved state with other
-    settings."""
-    saved = {RENAMED.get(k, k): v
-             for k, v in json.loads(str(np.load(ckpt_path)["config"])).items()}
-    diff = config.differences(saved, ignore=RESUMABLE)
-    if diff:
-        said = "; ".join(f"{k}: {json.dumps(a)} there, {json.dumps(b)} now"
-                         for k, (a, b) in diff.items())
-        raise ValueError(f"{ckpt_path.parent} holds a run with other settings ({said}); "
-                         f"use the same settings to resume it, --restart to start it over, "
-                         f"or another --out")
-    return saved
-
-
 def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=print,
         now=time.perf_counter, viewer=None):
     """Fit, checkpointing to ``out_dir``; returns the final metrics dict.
 
     Runs ``config``'s stages in order (one stage unless ``config.stages``);
     between stages the mesh may be refined and pruned (:func:`next_stage`).
-    With ``config.time_budget`` the whole call (calibration, steps, outputs)
-    takes that long (a resumed run gets the budget again, for more steps):
-    the grid resolution, unless set, is chosen for the machine's speed
-    (:func:`calibrate`), a coarse grid trains first (:func:`budget_stages`),
+    With ``config.time_budget`` the whole call (steps, outputs) takes that long
+    (a resumed run gets the budget again, for more steps): the grid resolution,
+    unless set, is planned from the data and the budget (:func:`planned_resolution`,
+    no clock read: the same mesh on any machine), a coarse grid trains first
+    (:func:`budget_stages`),
     the steps fill the time left after the outputs, and the learning rates
     decay over each stage's share of it.
     A run interrupted (Ctrl-C) still writes the mesh and metrics
@@ -496,7 +304,7 @@ def prepare(dataset, out: Path, config: FitConfig, resume=True, budget=None, pro
         if config.stages is None and config.init == "unbounded":
             config = config.updated(stages=unbounded_stages(config, dataset))
     if config.bounds is None and config.init in ("grid", "tetwild"):
-        # the region once (a visual hull is carved from every view): calibration,
+        # the region once (a visual hull is carved from every view): the plan,
         # limits, warnings, the mesh and each grid stage read it, config.json keeps it
         config = dataclasses.replace(config, bounds=data_bounds(config, dataset).tolist())
     if saved is None:
@@ -523,7 +331,11 @@ def first_trainer(dataset, config: FitConfig, budget=None, progress=True, log=pr
     if config.grid_resolution is None and config.init in ("grid", "tetwild"):
         resolution = DEFAULT_RESOLUTION
         if budget is not None:
-            resolution = calibrate(config, dataset, 0.85 * budget, log, now)
+            resolution = planned_resolution(config, dataset, 0.85 * budget)
+            log(f"plan: grid {resolution}, {BUDGET_STEPS} steps of "
+                f"{nominal_step_seconds(config, dataset, resolution):.3f} s on the reference "
+                f"machine in {0.85 * budget / 60:.1f} min (the budget ends the run: a faster "
+                f"machine takes more steps)")
         config = dataclasses.replace(config, grid_resolution=resolution)
         if budget is not None and config.init == "grid" and config.stages is None:
             config = config.updated(stages=budget_stages(config, resolution))
@@ -720,87 +532,6 @@ def next_stage(trainer: Trainer, config: FitConfig, log=print, strategy=None, do
         new.opt.set_moments({k: (t, adopt(k, m), adopt(k, v))
                              for k, (t, m, v) in moments.items()})
     return new
-
-
-def fitted_file(config: FitConfig) -> str:
-    """The file a fit with ``config`` writes what it fitted to, named after it:
-    ``mesh.vtu`` (colors and opacities), ``attenuation.vtu`` (``model`` absorption),
-    ``scalar.vtu`` (``optimize`` scalar) or ``transfer_function.json`` (``optimize`` tf)."""
-    if config.optimize == "tf":
-        return "transfer_function.json"
-    if config.optimize == "scalar":
-        return "scalar.vtu"
-    return "attenuation.vtu" if config.model == "absorption" else "mesh.vtu"
-
-
-def write_fitted(trainer: Trainer, out: Path):
-    """Write what was fitted to :func:`fitted_file`: a mesh with the field's point
-    data (``color`` and ``opacity``, ``attenuation`` or ``scalar``) or, for a transfer
-    function, project JSON (the texels as control points; over the scalar range that
-    ``config.json`` records as ``value_range``) and its plot ``transfer_function.png``."""
-    from mi_tetvr.mesh.io import write_tetmesh
-    from mi_tetvr.mesh.tetmesh import TetMesh
-    from mi_tetvr.recon.fields import TransferFunctionField
-    from mi_tetvr.transfer import write_json
-    vertices, tets, values = trainer.arrays()
-    field = trainer.field
-    path = out / fitted_file(trainer.config)
-    if isinstance(field, TransferFunctionField):
-        from mi_tetvr.recon.plots import plot_transfer_functions
-        tf = field.transfer_function(values)
-        write_json(tf, path)
-        plot_transfer_functions(out / "transfer_function.png", {"fitted": tf}, field.value_range)
-        return
-    if "sh" in field.point_arrays:
-        # the mean color beside the spherical harmonics: what viewers without them show
-        write_tetmesh(path, TetMesh(vertices, tets, field.mean_color(values["sh"]),
-                                    values["opacity"], point_data={"sh": values["sh"]}))
-    elif "color" in field.point_arrays:
-        write_tetmesh(path, TetMesh(vertices, tets, values["color"], values["opacity"]))
-    else:
-        write_tetmesh(path, TetMesh(vertices, tets, point_data={
-            k: values[k] for k in field.point_arrays}), color=None, opacity=None)
-
-
-def write_outputs(trainer: Trainer, out: Path):
-    """Write what was fitted (:func:`write_fitted`),
-    ``test/*.png`` (render | target; X-ray transmittance in grey),
-    ``progress.png``, for a capture of a scene in its surroundings ``flythrough.mp4`` (the
-    scene along the photos' camera path, :func:`write_flythrough`) and, with a learned
-    background, ``background.exr`` (its
-    latitude-longitude texels, linear RGB: Mitsuba's ``envmap`` with the
-    identity ``to_world`` renders it) to ``out``; returns the metrics (which
-    :func:`run` writes to ``metrics.json`` with its timings)."""
-    vertices, tets, _ = trainer.arrays()
-    write_fitted(trainer, out)
-    if trainer.learned_background:
-        import mitsuba as mi
-        texels = trainer.environment()[:, 1:-1]      # without the envmap's wrap-around columns
-        mi.Bitmap(np.ascontiguousarray(texels)).write(str(out / "background.exr"))
-    views = trainer.dataset.test or trainer.dataset.train[:1]
-    metrics = trainer.evaluate(views)
-    metrics.update(training_psnr=trainer.training_psnr(),
-                   step=trainer.state.step, seconds=trainer.state.elapsed,
-                   vertices=len(vertices), tets=len(tets), inverted_tets=trainer.inverted_tets(),
-                   shortened_position_steps=trainer.state.shortened,
-                   split="test" if trainer.dataset.test else "train (no test views)",
-                   protocol={"test_views": trainer.dataset.protocol or "given",
-                             "metrics": "PSNR and SSIM of sRGB images in [0, 1]"
-                             + ("" if trainer.field.signal == "rgba" else
-                                " (here: transmittance)"),
-                             "appearance": "none" if not trainer.appearance_index else
-                             "a color transform per training photo; held-out photos "
-                             "scored without one (the identity)"})
-    renders = out / "test"
-    renders.mkdir(exist_ok=True)
-    # an absorbing volume over white shows its transmittance
-    shown = [1.0] * 3 if trainer.field.signal == "transmittance" else trainer.background
-    for v in views:
-        save_comparison(renders / f"{Path(v.name).stem}.png", trainer.render_view(v), v.image,
-                        shown)
-    plot_history(trainer.state.history, out / "progress.png", metrics["mean"]["psnr"])
-    write_flythrough(trainer, out / "flythrough.mp4")
-    return metrics
 
 
 def evaluate_mesh(mesh_path, dataset, background=None, n_sub=4, split="test", repair=False,

@@ -127,7 +127,7 @@ class StageRefinement(Strategy):
     def regrid(self, trainer, grid, log):
         """The field sampled onto a finer grid over the same box (no moments)."""
         from mi_tetvr.mesh.initial import grid_init, grid_sample
-        from mi_tetvr.recon.pipeline import data_bounds
+        from mi_tetvr.recon.plan import data_bounds
         _, _, values = trainer.arrays()
         bounds = data_bounds(self.config, trainer.dataset)
         current = self.stages[trainer.state.stage]["grid"] or self.config.grid_resolution

@@ -846,7 +846,7 @@ class _AttenuationFit:
     coarse grid and its adaptive refinement), the solve on each, the outputs."""
 
     def __init__(self, dataset, out, config, progress, log, now):
-        from mi_tetvr.recon.pipeline import data_bounds
+        from mi_tetvr.recon.plan import data_bounds
         self.t_start = now()
         self.dataset, self.out, self.log, self.now = dataset, out, log, now
         self.progress = progress
@@ -915,7 +915,7 @@ class _AttenuationFit:
     def resumed(self):
         """The checkpointed attenuation to go on from (None: none); its mesh is kept."""
         from mi_tetvr.recon.checkpoint import load_checkpoint
-        from mi_tetvr.recon.pipeline import check_resume
+        from mi_tetvr.recon.checkpoint import check_resume
         if not self.ckpt.is_file():
             return None
         # the default basis is the saved fit's (linear before there was a choice)
@@ -1171,7 +1171,7 @@ class _AttenuationFit:
     def finish(self, v, t, topology, x):
         """The outputs every fit writes, the checkpoint, and the metrics (returned)."""
         from mi_tetvr.recon.checkpoint import save_checkpoint
-        from mi_tetvr.recon.pipeline import write_outputs
+        from mi_tetvr.recon.outputs import write_outputs
         from mi_tetvr.recon.trainer import RunState, Trainer
         config, out, history = self.config, self.out, self.history
         optimization = self.now() - self.train_begin

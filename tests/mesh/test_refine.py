@@ -5,6 +5,8 @@ import warnings
 import numpy as np
 import pytest
 
+from tests.helpers import shared_data
+
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.tetmesh import TetMesh
 from mi_tetvr.mesh.topology import EDGES, MeshError, build_topology, signed_volumes
@@ -368,9 +370,7 @@ def test_tetwild_mesh(tetwild_mesh, case):
 @pytest.mark.parametrize("path", ["spx/spx.vtk", "a-grid/a_grid.vtk", "post/post.vtk"])
 def test_real_meshes(data_dir, path):
     from mi_tetvr.mesh.io import read_tetmesh
-    f = data_dir / "tets" / path
-    if not f.exists():
-        pytest.skip(f"{f} is absent")
+    f = shared_data("tets", path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         mesh = read_tetmesh(f)

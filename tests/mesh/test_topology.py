@@ -1,21 +1,20 @@
 """Topology, validation and file I/O of tet meshes (numpy only)."""
-import dataclasses
 import warnings
-from pathlib import Path
 
 import meshio
 import numpy as np
 import pytest
 
+from tests.helpers import shared_data
+
 from mi_tetvr.mesh.generate import grid_mesh
 from mi_tetvr.mesh.io import read_tetmesh, write_tetmesh
 from mi_tetvr.mesh.tetmesh import TetMesh
-from mi_tetvr.mesh.topology import (CONVEX_RTOL, EDGES, FACES, MeshError, bbox_diagonal,
-                                    build_topology, convex_boundary, edge_lengths, face_keys,
-                                    flip_tets, mean_edge_length, orient_tets, quality,
-                                    signed_volumes, validate_arrays)
+from mi_tetvr.mesh.topology import (CONVEX_RTOL, EDGES, FACES, FLAT_TOLERANCE, MeshError,
+                                    bbox_diagonal, build_topology, convex_boundary,
+                                    edge_lengths, face_keys, flip_tets, mean_edge_length,
+                                    orient_tets, quality, signed_volumes, validate_arrays)
 
-ROOT = Path(__file__).resolve().parents[2]
 
 
 def reverse_some(t, fraction, seed):
@@ -357,32 +356,6 @@ def test_mesh_package_imports_without_variant():
 
 
 # -- the linear-time topology against the implementation it replaced ---------------------
-def _same_topology(got, ref, v):
-    """Every array equal, but the volumes: a determinant summed in another
-    order, equal to its rounding error (8 eps times the longest edge cubed)."""
-    for f in dataclasses.fields(ref):
-        a, b = getattr(got, f.name), getattr(ref, f.name)
-        if f.name == "volumes":
-            assert a.dtype == b.dtype and a.shape == b.shape
-            scale = edge_lengths(v, ref.tets).max(1) ** 3
-            assert np.all(np.abs(a - b) <= 8 * np.finfo(float).eps * scale)
-        elif isinstance(b, np.ndarray):
-            assert a.dtype == b.dtype and a.shape == b.shape, f.name
-            np.testing.assert_array_equal(a, b, err_msg=f.name)
-        else:
-            assert a == b, f.name
-
-
-def _outcome(build, v, t):
-    """The topology, or the error's message (the same input must give both)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        try:
-            return build(v, t)
-        except MeshError as e:
-            return str(e)
-
-
 def _test_meshes():
     """Meshes with boundaries and holes, shuffled, inverted, flat, folded,
     non-manifold and duplicate tets."""
@@ -410,46 +383,176 @@ def _test_meshes():
             "duplicate": (v, np.r_[t, t[[7, 9]][:, [1, 0, 2, 3]]]), "non-manifold": shared}
 
 
+def _det_volumes(v, t):
+    """Signed volumes in float64, written out here (not the package's)."""
+    a, b, c, d = (np.asarray(v, np.float64)[t[:, k]] for k in range(4))
+    return np.einsum("ij,ij->i", b - a, np.cross(c - a, d - a)) / 6.0
+
+
+def _faces_by_vertices(t):
+    """``{sorted vertex triple: [(tet, local face), ...]}`` by a plain search."""
+    owners = {}
+    for i, tet in enumerate(np.asarray(t).tolist()):
+        for f in range(4):
+            owners.setdefault(tuple(sorted(tet[:f] + tet[f + 1:])), []).append((i, f))
+    return owners
+
+
+def _winding(tri):
+    """+1 or -1: the cyclic order of a triangle's three vertex numbers."""
+    a, b, c = tri
+    return 1 if (a < b < c or b < c < a or c < a < b) else -1
+
+
+def _check_topology(topo, v, t):
+    """The topology against the properties it must have, each found here by brute force:
+    the input's tets (same order) positively oriented but the flat ones, their volumes;
+    each face's neighbour by searching every face with the same three vertices; the
+    boundary as the faces of one tet, wound outwards; the boundary edges' neighbours;
+    shared faces wound oppositely on their two sides (flat tets oriented to agree)."""
+    t = np.asarray(t)
+    m = len(t)
+    assert topo.tets.shape == (m, 4)
+    np.testing.assert_array_equal(np.sort(topo.tets, 1), np.sort(t, 1))
+    vol = _det_volumes(v, topo.tets)
+    longest = np.max([np.linalg.norm(v[topo.tets[:, i]] - v[topo.tets[:, j]], axis=1)
+                      for i in range(4) for j in range(i + 1, 4)], axis=0)
+    np.testing.assert_array_equal(topo.flat, ~(np.abs(vol) > FLAT_TOLERANCE * longest ** 3))
+    assert np.all(vol[~topo.flat] > 0)
+    np.testing.assert_allclose(topo.volumes, np.abs(vol), rtol=1e-12, atol=1e-15)
+    flipped = _det_volumes(v, t) < 0
+    assert topo.n_flipped == int(np.count_nonzero(flipped & ~topo.flat))
+    owners = _faces_by_vertices(topo.tets)
+    assert all(len(o) <= 2 for o in owners.values())
+    tets = topo.tets.tolist()
+    boundary = []
+    for i in range(m):
+        for f in range(4):
+            key = tuple(sorted(tets[i][:f] + tets[i][f + 1:]))
+            other = [o for o in owners[key] if o != (i, f)]
+            if other:
+                (j, g), = other
+                assert (topo.neighbors[i, f], topo.neighbor_faces[i, f]) == (j, g), (i, f)
+                mine = [tets[i][k] for k in FACES[f]]
+                theirs = [tets[j][k] for k in FACES[g]]
+                assert _winding(mine) == -_winding(theirs), (i, f, j, g)
+            else:
+                assert (topo.neighbors[i, f], topo.neighbor_faces[i, f]) == (-1, -1), (i, f)
+                boundary.append((i, f))
+    got = sorted(zip(topo.boundary_tets.tolist(), topo.boundary_local_faces.tolist()))
+    assert got == sorted(boundary)
+    for k, (i, f) in enumerate(zip(topo.boundary_tets, topo.boundary_local_faces)):
+        tri = topo.boundary_faces[k]
+        assert sorted(tri.tolist()) == sorted(tets[i][:f] + tets[i][f + 1:])
+        if not topo.flat[i]:            # wound counter-clockwise seen from outside
+            a, b, c = v[tri]
+            assert np.dot(np.cross(b - a, c - a), v[tets[i][f]] - a) < 0, k
+    # a boundary face's neighbour across the edge opposite each corner: a boundary face
+    # with that edge, -1 where none has it
+    by_edge = {}
+    for k, tri in enumerate(topo.boundary_faces.tolist()):
+        for c in range(3):
+            by_edge.setdefault(tuple(sorted(tri[:c] + tri[c + 1:])), []).append(k)
+    for k, tri in enumerate(topo.boundary_faces.tolist()):
+        for c in range(3):
+            others = [q for q in by_edge[tuple(sorted(tri[:c] + tri[c + 1:]))] if q != k]
+            a = topo.boundary_adjacency[k, c]
+            assert (a in others) if others else a == -1, (k, c)
+
+
+def _error_of(v, t):
+    """build_topology's error message for a mesh it refuses (asserted to refuse it)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(MeshError) as e:
+            build_topology(v, t)
+    return str(e.value)
+
+
+def _listed(message, after):
+    """The numbers a message lists after ``after`` (up to the next ';' or ')')."""
+    part = message.split(after, 1)[1]
+    part = part.split(")")[0].split(";")[0]
+    return sorted(int(x) for x in part.replace(",", " ").split() if x.isdigit())
+
+
 @pytest.mark.parametrize("hashed", [False, True])
-def test_topology_matches_the_reference_implementation(monkeypatch, hashed):
-    """build_topology (one sort of 64-bit face keys) gives exactly what the
-    earlier implementation (np.unique over face rows, kept in
-    tests/mesh/topology_reference.py) gives: every array and every error
-    message; ``hashed``: with the face keys hashed as for meshes whose
-    vertex numbers are too far apart to pack."""
+def test_topology_has_its_properties(monkeypatch, hashed):
+    """build_topology on meshes with boundaries, holes, shuffled, inverted and flat tets
+    has the properties a brute-force search finds (:func:`_check_topology`), and refuses
+    the meshes it must with the tets a plain search finds: a face of three tets, two tets
+    of the same vertices, a fold (shared faces wound the same way after orienting every
+    tet). ``hashed``: with the face keys hashed as for meshes whose vertex numbers are too
+    far apart to pack."""
     from mi_tetvr.mesh import topology as topo
-    from tests.mesh import topology_reference as reference
     if hashed:
         monkeypatch.setattr(topo, "KEY_BITS", 0)
-    seen_errors = 0
-    for name, (v, t) in _test_meshes().items():
-        ref = _outcome(reference.build_topology, v, t)
-        got = _outcome(topo.build_topology, v, t)
-        if isinstance(ref, str):
-            seen_errors += 1
-            assert got == ref, name
-        else:
-            _same_topology(got, ref, v)
-    assert seen_errors == 4         # moved vertex, folded, duplicate, non-manifold
+    meshes = _test_meshes()
+    for name in ("grid", "shuffled", "inverted", "holes", "flat tet"):
+        v, t = meshes[name]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            _check_topology(topo.build_topology(v, t), v, t)
+    # the grid's boundary is one closed sphere: each edge in two faces, V - E + F = 2
+    v, t = meshes["grid"]
+    faces = topo.build_topology(v, t).boundary_faces
+    edges = np.sort(faces[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), 1)
+    _, per_edge = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(per_edge == 2)
+    assert len(np.unique(faces)) - len(per_edge) + len(faces) == 2
+    # a face shared by more than two tets: those tets
+    v, t = meshes["non-manifold"]
+    shared = [o for o in _faces_by_vertices(t).values() if len(o) > 2]
+    message = _error_of(v, t)
+    assert f"{len(shared)} face(s) shared by more than two tets" in message
+    assert _listed(message, "tets involved:") == sorted(i for o in shared for i, _ in o)
+    # duplicate tets: every tet whose four vertices another has too
+    v, t = meshes["duplicate"]
+    rows = [tuple(sorted(r)) for r in t.tolist()]
+    twins = sorted(i for i, r in enumerate(rows) if rows.count(r) > 1)
+    assert _listed(_error_of(v, t), "(same four vertices):") == twins
+    # folds: the interior faces wound the same way on both sides of tets oriented by the
+    # sign of their volume
+    for name in ("moved vertex", "folded"):
+        v, t = meshes[name]
+        oriented = np.where((_det_volumes(v, t) < 0)[:, None], t[:, [1, 0, 2, 3]], t)
+        bad, tets_of_bad = 0, set()
+        for pair in _faces_by_vertices(oriented).values():
+            if len(pair) == 2:
+                (i, f), (j, g) = pair
+                if _winding([oriented[i][k] for k in FACES[f]]) == \
+                        _winding([oriented[j][k] for k in FACES[g]]):
+                    bad += 1
+                    tets_of_bad |= {i, j}
+        message = _error_of(v, t)
+        assert bad > 0 and message.startswith(f"{bad} interior face(s) are not shared"), name
+        listed = _listed(message, "(tets ")
+        assert listed and set(listed) <= tets_of_bad, name
 
 
 def test_topology_with_vertex_numbers_past_2_21():
     """Meshes of more than 2**21 vertices: face keys packed exactly when the
     numbers of a face's vertices lie close (an offset mesh), hashed when they
-    do not (spread at random over 2**22): both as the reference has them."""
+    do not (spread at random over 2**22): both have the topology's properties,
+    on the mesh renumbered."""
     from mi_tetvr.mesh import topology as topo
-    from tests.mesh import topology_reference as reference
     v, t = _test_meshes()["holes"]
     n = 1 << 22
     rng = np.random.default_rng(5)
+    small = topo.build_topology(v, t)
     for label, idx in (("offset", np.arange(len(v)) + n - len(v)),
                        ("spread", rng.choice(n, len(v), replace=False))):
         big = np.zeros((n, 3))
         big[idx] = v
         keys, pairs = topo._tet_face_keys(idx[t], n)
         assert (pairs is None) == (label == "offset"), label
-        _same_topology(topo.build_topology(big, idx[t]), reference.build_topology(big, idx[t]),
-                       big)
+        got = topo.build_topology(big, idx[t])
+        # the same topology as the small mesh's, renumbered (checked against the search)
+        np.testing.assert_array_equal(got.tets, idx[small.tets])
+        np.testing.assert_array_equal(got.neighbors, small.neighbors)
+        np.testing.assert_array_equal(got.neighbor_faces, small.neighbor_faces)
+        np.testing.assert_array_equal(got.boundary_faces, idx[small.boundary_faces])
+    _check_topology(small, v, t)
 
 
 def test_topology_survives_colliding_face_hashes(monkeypatch):
@@ -457,12 +560,10 @@ def test_topology_survives_colliding_face_hashes(monkeypatch):
     over: two boundary faces given one key (confirmed by their vertex pairs),
     and keys modulo 7 (groups of many)."""
     from mi_tetvr.mesh import topology as topo
-    from tests.mesh import topology_reference as reference
     monkeypatch.setattr(topo, "KEY_BITS", 0)
     real = topo._tet_face_keys
     v, t = _test_meshes()["holes"]
-    ref = reference.build_topology(v, t)
-    boundary = np.flatnonzero(ref.neighbors.ravel() < 0)
+    boundary = np.flatnonzero(topo.build_topology(v, t).neighbors.ravel() < 0)
 
     def two_collide(tets, n):
         keys, pairs = real(tets, n)
@@ -472,28 +573,23 @@ def test_topology_survives_colliding_face_hashes(monkeypatch):
 
     for fake in (two_collide, lambda tets, n: (real(tets, n)[0] % 7, real(tets, n)[1])):
         monkeypatch.setattr(topo, "_tet_face_keys", fake)
-        _same_topology(topo.build_topology(v, t), ref, v)
+        _check_topology(topo.build_topology(v, t), v, t)
 
 
 @pytest.mark.parametrize("path", ["spx/spx.vtk", "bluntfin/bluntfin_tets.vtu", "post/post.vtk",
                                   "a-grid/a_grid.vtk", "sfepy/cube_cylinder.mesh",
                                   "sfepy/wheelset.vtk"])
-def test_topology_matches_the_reference_on_real_meshes(path):
-    """The same on the real meshes of ../shared/data/tets (skipped when absent)."""
-    from mi_tetvr.mesh import topology as topo
-    from tests.mesh import topology_reference as reference
-    full = ROOT.parent / "shared" / "data" / "tets" / path
-    if not full.exists():
-        pytest.skip(f"{full} not present")
+def test_topology_has_its_properties_on_real_meshes(path):
+    """The same on the real meshes of ../shared/data/tets (all of them valid; the Blunt
+    Fin's 77 flat tets oriented to agree with their neighbours)."""
+    full = shared_data("tets", path)
     m = meshio.read(full)
     t = np.concatenate([c.data for c in m.cells if c.type == "tetra"])
     v = np.asarray(m.points, np.float64)
-    ref = _outcome(reference.build_topology, v, t)
-    got = _outcome(topo.build_topology, v, t)
-    if isinstance(ref, str):
-        assert got == ref
-    else:
-        _same_topology(got, ref, v)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        topo = build_topology(v, t)
+    _check_topology(topo, v, t)
 
 
 def _convexity_cases():

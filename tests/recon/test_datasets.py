@@ -11,6 +11,7 @@ from mi_tetvr.camera import Camera
 from mi_tetvr.recon.images import (exif_focal_px, image_size, read_image, upright_copy,
                                    write_image)
 from mi_tetvr.color import srgb_to_linear
+from tests.helpers import shared_data
 from tests.test_camera import (KNOWN_POSE, assert_rays_hit, check_known_pose, gl_look_at,
                                      mitsuba_ray_dirs)
 
@@ -269,10 +270,8 @@ def _qvec_to_rotmat(q):
         [2 * x * z - 2 * w * y, 2 * y * z + 2 * w * x, 1 - 2 * x * x - 2 * y * y]])
 
 
-def test_colmap_maupertuis(data_dir):
-    root = data_dir / "colmap-maupertuis"
-    if not root.is_dir():
-        pytest.skip("colmap-maupertuis is absent")
+def test_colmap_maupertuis():
+    root = shared_data("colmap-maupertuis")
     import pycolmap
     ds = D.load_colmap(root, downscale=4)
     views = {v.name: v for v in ds.views}
@@ -340,10 +339,8 @@ def test_colmap_pinhole_synthetic(tmp_path):
 # NeRF synthetic Lego
 # ---------------------------------------------------------------------------------------------
 
-def test_nerf_lego(data_dir):
-    root = data_dir / "nerf-lego"
-    if not root.is_dir():
-        pytest.skip("nerf-lego is absent")
+def test_nerf_lego():
+    root = shared_data("nerf-lego")
     ds = D.load_nerf(root, downscale=8)
     assert len(ds.train) + len(ds.test) == 80
     assert len(ds.test) == 10 and ds.test[1].name == "r_8"

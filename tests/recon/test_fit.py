@@ -9,9 +9,10 @@ import pytest
 import mitsuba as mi
 
 from mi_tetvr.recon.config import FitConfig, coarse_to_fine
-from mi_tetvr.recon.pipeline import (PIXELS_PER_VERTEX, budget_stages, evaluate_mesh,
-                                     initial_mesh, next_stage, resolution_for_budget,
-                                     resolution_limits, run)
+from mi_tetvr.recon.pipeline import evaluate_mesh, initial_mesh, next_stage, run
+from mi_tetvr.recon.plan import (BUDGET_STEPS, KIND_COST, PIXELS_PER_VERTEX, STEP_COST,
+                                 budget_stages, nominal_step_seconds, planned_resolution,
+                                 resolution_limits)
 from mi_tetvr.recon.trainer import Trainer
 
 from tests.recon.conftest import CFG
@@ -215,7 +216,7 @@ def test_time_budget_is_used_and_honoured(data, tmp_path):
     (their measured render time), and the steps take the rest; running it again resumes
     and takes the budget again. (How long real runs take against their budget is
     benchmarks/bench_training.py's to measure.)"""
-    from mi_tetvr.recon.pipeline import output_seconds
+    from mi_tetvr.recon.outputs import output_seconds
     budget, tick = 20.0, 0.05
     clock = TickClock(tick)
     metrics = run(data, tmp_path, CFG.updated(time_budget=budget / 60), progress=False,
@@ -248,15 +249,34 @@ def trainer_of(data):
     return Trainer(data, V, T, CFG.for_stage(0), values)
 
 
-def test_resolution_for_budget_closed_form():
-    """Step times that grow like r^p: the resolution whose steps fill the time."""
-    for p in (1.0, 2.0):
-        measured = ((10, 0.1), (20, 0.1 * 2 ** p))
-        # 1000 steps of 0.1 (r / 10)^p seconds fill 400 s at r = 10 * 4^(1/p)
-        assert resolution_for_budget(400.0, measured, steps=1000, limits=(4, 200)) == \
-            round(10 * 4 ** (1 / p))
-    assert resolution_for_budget(1e6, ((10, 0.1), (20, 0.2)), limits=(4, 64)) == 64
-    assert resolution_for_budget(1e-3, ((10, 0.1), (20, 0.2)), limits=(4, 64)) == 4
+def test_planned_grid_from_the_data_and_the_budget():
+    """A budget's grid is planned from the photos, the box and the budget alone (no clock:
+    the same mesh on a busy machine): the finest within the limits whose BUDGET_STEPS steps
+    fit at the reference machine's cost per step, written out in closed form here."""
+    import dataclasses
+    from types import SimpleNamespace as NS
+    data = NS(train=[NS(camera=NS(width=200, height=100))] * 70)
+    box = dataclasses.replace(CFG, bounds=[[0, 0, 0], [2, 1, 1]])
+    fixed, per_ray, per_ray_cell, per_tet = STEP_COST
+    rays = 2 * 200 * 100            # views_per_step photos, one ray per pixel
+    assert nominal_step_seconds(box, data, 40) == pytest.approx(
+        fixed + rays * (per_ray + per_ray_cell * 40) + per_tet * 6 * 40 * 20 * 20)
+    lo, hi = resolution_limits(box, data)
+    assert lo < hi
+    chosen = []
+    for seconds in (20.0, 60.0, 200.0, 600.0):
+        r = planned_resolution(box, data, seconds)
+        assert lo <= r <= hi
+        assert r == lo or BUDGET_STEPS * nominal_step_seconds(box, data, r) <= seconds
+        assert r == hi or BUDGET_STEPS * nominal_step_seconds(box, data, r + 1) > seconds
+        chosen.append(r)
+    assert chosen == sorted(chosen) and len(set(chosen)) > 2, chosen
+    assert planned_resolution(box, data, 1e-3) == lo and planned_resolution(box, data, 1e9) == hi
+    # a path-traced step costs KIND_COST times as much: a coarser grid in the same time
+    lit = dataclasses.replace(box, model="scattering", lights="lights.xml")
+    assert nominal_step_seconds(lit, data, 40) == pytest.approx(
+        KIND_COST["scattering"] * nominal_step_seconds(box, data, 40))
+    assert planned_resolution(lit, data, 200.0) < planned_resolution(box, data, 200.0)
 
 
 @pytest.mark.parametrize("init", ["tetwild", "delaunay"])

@@ -21,15 +21,15 @@ from scipy.spatial.transform import Rotation
 from mi_tetvr.recon import sfm
 from mi_tetvr.camera import Camera, random_cameras
 from mi_tetvr.recon.datasets import View, load_colmap, load_dataset
-from tests.helpers import DATA
+from tests.helpers import DATA, shared_data
 
 MAUPERTUIS = DATA / "colmap-maupertuis"
 REF_FOCAL = 1847.53            # sparse/cameras.txt: SIMPLE_PINHOLE 1919 1079 1847.53 959.5 539.5
 
 
 def _need_maupertuis():
-    if not (MAUPERTUIS / "images").is_dir() or not (MAUPERTUIS / "sparse").is_dir():
-        pytest.skip("../shared/data/colmap-maupertuis is absent")
+    shared_data("colmap-maupertuis", "images")
+    shared_data("colmap-maupertuis", "sparse")
 
 
 def _noise_folder(path, n=3, seed=0):

@@ -12,11 +12,10 @@ from mi_tetvr.recon.config import FitConfig
 from mi_tetvr.recon.datasets import Dataset, View, load_colmap
 from mi_tetvr.recon.pipeline import for_capture, initial_mesh, run
 from mi_tetvr.recon.trainer import Trainer, vertex_cell_sizes
-from tests.helpers import ROOT
+from tests.helpers import shared_data
 
 from tests.recon.conftest import CFG
 
-MAUPERTUIS = ROOT.parent / "shared" / "data" / "colmap-maupertuis"
 QUIET = dict(progress=False, log=lambda *a: None)
 
 
@@ -124,13 +123,12 @@ def test_multiscale_opacity_is_per_cell(data):
     np.testing.assert_allclose(moved[stepped] * cell[stepped], cfg.lr_opacity, rtol=5e-3)
 
 
-@pytest.mark.skipif(not MAUPERTUIS.is_dir(), reason="../shared/data absent")
 def test_unbounded_fit_of_real_photos(tmp_path):
     """colmap-maupertuis (4 aerial photos, a COLMAP model): the default fit
     meshes the sparse points and far shells around every camera, prunes and
     splits between stages, learns, and says how it was scored."""
     from scipy.spatial import Delaunay
-    photos = load_colmap(MAUPERTUIS, downscale=16)
+    photos = load_colmap(shared_data("colmap-maupertuis"), downscale=16)
     cfg = FitConfig(iterations=16, n_sub=2, log_every=4, checkpoint_every=100)
     V0, T0, _ = initial_mesh(for_capture(cfg, photos), photos)
     assert Delaunay(V0).find_simplex([v.camera.center for v in photos.views]).min() >= 0
@@ -158,7 +156,7 @@ def test_unbounded_fit_of_real_photos(tmp_path):
     # fitted scene seen from the first and the last camera (H.264 at crf 18: within 2 %)
     import imageio_ffmpeg
     from mi_tetvr.recon.metrics import display_rgb
-    from mi_tetvr.recon.pipeline import FLYTHROUGH_FRAMES, FLYTHROUGH_SPP
+    from mi_tetvr.recon.outputs import FLYTHROUGH_FRAMES, FLYTHROUGH_SPP
     reader = imageio_ffmpeg.read_frames(str(tmp_path / "flythrough.mp4"))
     meta = next(reader)
     video = [np.frombuffer(f, np.uint8).reshape(meta["size"][1], meta["size"][0], 3)

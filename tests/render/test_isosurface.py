@@ -111,10 +111,8 @@ def test_isosurface_against_vtk_on_real_meshes(path, name):
     """The same on the SPX and Blunt Fin meshes of ../shared/data/tets
     (skipped when absent), at the median of the scalar."""
     import warnings
-    from tests.helpers import ROOT
-    full = ROOT.parent / "shared" / "data" / "tets" / path
-    if not full.exists():
-        pytest.skip(f"{full} not present")
+    from tests.helpers import shared_data
+    full = shared_data("tets", path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         mesh = mi_tetvr.read_tetmesh(full, color=None, opacity=None)
