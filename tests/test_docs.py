@@ -67,6 +67,66 @@ def test_readme_is_a_first_screen():
         assert (ROOT / page).is_file(), page
 
 
+RECORD = ROOT / "benchmarks" / "README.md"
+#: A number as the pages write it (bold or not), and a range of two.
+_NUM = r"\**(\d+(?:\.\d+)?)\**"
+_RANGE = _NUM + "–" + _NUM
+#: The headline quantities the pages quote, each as a pattern that finds its value in any
+#: page's wording (its groups: the numbers).
+QUANTITIES = {
+    "the walk against a plain Dr.Jit walk, 1.57M tets":
+        _RANGE + r"×\** (?:the|a) plain Dr\.Jit walk",
+    "a render and dr.backward against a render": _RANGE + r"×\** a (?:primal )?render\b",
+    "the default fit, 10 min: engine CT / C60 / head MR / Lego":
+        r"engine CT / C60 / head MR / Lego[^|\n]*\| " + " / ".join([_NUM] * 4) + " dB",
+    "monstree without poses, 10 min": r"`monstree`, 23 photos[^|\n]*\|[^|\n]*?" + _NUM + " dB",
+    "against VTK's volume mapper": r"VTK's volume mapper \| " + _RANGE + r"× faster",
+    "100.7M tets on 4 Ray workers, a frame":
+        r"100\.7M tets on 4 Ray workers[^|\n]*\|[^|\n]*?" + _RANGE + r" s a frame",
+    "adjoint memory at 103 tets a ray": r"(\d+) MB, (?:as|the same) at 4 tets",
+}
+
+
+def at_a_glance(record_text):
+    """The record's headline table (between its ``at-a-glance`` markers)."""
+    return record_text.split("<!-- at-a-glance: start -->")[1].split(
+        "<!-- at-a-glance: end -->")[0]
+
+
+def quoted_otherwise(source, pages):
+    """``[(page, quantity, quoted, source's)]``: each quote in ``pages`` (``{name: text}``)
+    of a :data:`QUANTITIES` value that is not ``source``'s (the headline table's text) as
+    written or rounded to the quote's decimals."""
+    out = []
+    for name, pattern in QUANTITIES.items():
+        truth = re.search(pattern, source)
+        assert truth, f"the headline table does not state {name!r}"
+        for page, text in pages.items():
+            for m in re.finditer(pattern, text):
+                for quoted, value in zip(m.groups(), truth.groups()):
+                    decimals = len(quoted.partition(".")[2])
+                    if abs(float(quoted) - float(value)) > 0.5 * 10.0 ** -decimals + 1e-9:
+                        out.append((page, name, m.group(0), truth.group(0)))
+    return out
+
+
+def test_each_headline_figure_is_quoted_as_the_record_has_it():
+    """The benchmark record's *At a glance* table is the one source of the headline figures
+    (the documentation's *Benchmarks* page includes it). The README and every page quote
+    each of them as it states it, or rounded; the record's own history (older runs) is not
+    a quote."""
+    source = at_a_glance(RECORD.read_text())
+    pages = {"README.md": README.read_text()}
+    pages.update({str(p.relative_to(ROOT)): p.read_text() for p in DOCS.rglob("*.md")})
+    assert not quoted_otherwise(source, pages)
+    # the check itself: a figure quoted with another value is found, a rounded one is not
+    found = quoted_otherwise(source, {"x": "it costs 1.9–3.4× a render", "y": "70 MB, as at "
+                                      "4 tets", "z": "| 1.9–2.4 s a frame", "w": "1.92–3.2× a "
+                                      "primal render"})
+    assert [(page, name) for page, name, _, _ in found] == [
+        ("x", "a render and dr.backward against a render")]
+
+
 def test_readme_python_runs_as_written_from_elsewhere(tmp_path):
     """The README's Python blocks, in order, in an empty directory outside the checkout,
     then its ``mi-tetvr render`` of the XML file they wrote: the dict scene, the XML file

@@ -34,9 +34,9 @@ def mesh_path(path: Path) -> Path:
         return path
     if not (path / "config.json").is_file():
         raise CommandError(f"{path} is a folder but not a fit's output (no config.json)")
-    from mi_tetvr.recon.config import FitConfig
     from mi_tetvr.recon.outputs import fitted_file
-    name = fitted_file(FitConfig.from_file(path / "config.json"))
+    from mi_tetvr.recon.plan import fit_settings
+    name = fitted_file(fit_settings(path))
     if not name.endswith(".vtu"):
         raise CommandError(f"{path} fitted a transfer function, not a volume: export the "
                            f"mesh it classifies")

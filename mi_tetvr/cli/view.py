@@ -46,9 +46,9 @@ def add_arguments(p):
 def fit_dataset(fit_dir, data=None):
     """``(config, data set)`` of a fit's folder: its settings, and its data set
     (``data``, else the one its ``data.json`` records) at the fit's downscale."""
-    from mi_tetvr.recon.config import FitConfig
+    from mi_tetvr.recon.plan import fit_settings
     fit_dir = Path(fit_dir)
-    config = FitConfig.from_file(fit_dir / "config.json")
+    config = fit_settings(fit_dir)
     holdout = 8
     if data is None:
         record = fit_dir / "data.json"

@@ -25,8 +25,9 @@ from mi_tetvr.recon.checkpoint import check_resume, load_checkpoint, save_checkp
 from mi_tetvr.recon.config import FitConfig
 from mi_tetvr.recon.metrics import psnr
 from mi_tetvr.recon.outputs import output_seconds, write_outputs
-from mi_tetvr.recon.plan import (BUDGET_STEPS, DEFAULT_RESOLUTION, budget_stages, data_bounds,
-                                 nominal_step_seconds, planned_resolution)
+from mi_tetvr.recon.plan import (BUDGET_STEPS, DEFAULT_RESOLUTION, FitPlan, budget_stages,
+                                 data_bounds, fit_settings, nominal_step_seconds,
+                                 planned_resolution, write_settings)
 from mi_tetvr.recon.strategy import (MIN_STAGE_EPOCHS, StageRefinement, affordable,
                                      unbounded_stages)
 from mi_tetvr.recon.trainer import RunState, Trainer
@@ -261,8 +262,14 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
         # X-ray projections: the linear problem, solved as such
         from mi_tetvr.recon.tomography import fit_attenuation
         return fit_attenuation(dataset, out, config, resume, progress, log, now)
+    asked = config
     config, dataset, trainer = prepare(dataset, out, config, resume, budget, progress, log, now)
-    (out / "config.json").write_text(json.dumps(config.nested(), indent=2))
+    planned = budget is not None and asked.grid_resolution is None and \
+        config.grid_resolution is not None
+    write_settings(out, asked, config, budget_seconds=budget,
+                   planned_steps=BUDGET_STEPS if planned else None,
+                   step_seconds=nominal_step_seconds(config, dataset, config.grid_resolution)
+                   if planned else None)
     loop = _Loop(trainer, config, ckpt_path, progress, log, now)
     if budget is not None:
         loop.clock = _Clock(t_start + budget, [max(st["iterations"], 1) for st in loop.stages],
@@ -310,8 +317,12 @@ def prepare(dataset, out: Path, config: FitConfig, resume=True, budget=None, pro
     if saved is None:
         config, trainer = first_trainer(dataset, config, budget, progress, log, now)
         return config, dataset, trainer
-    if config.grid_resolution is None and config.stages is None:
-        # the mesh sizes and stages the run chose when it began
+    plan = FitPlan.read(out)
+    if plan is not None:
+        # what the run decided when it began (the mesh sizes and stages among them)
+        config = plan.applied(config)
+    elif config.grid_resolution is None and config.stages is None:
+        # a fit written before plans were kept apart: its checkpoint's settings
         config = dataclasses.replace(config, grid_resolution=saved["grid_resolution"],
                                      stages=saved["stages"])
     trainer = load_checkpoint(ckpt_path, dataset, config)
@@ -575,7 +586,7 @@ def evaluate_fit(fit_dir, data, split="test", downscale=None, holdout=8):
         raise FileNotFoundError(f"{fit_dir} is not a fit's output folder (it has no "
                                 f"checkpoint.npz and config.json); give a fit's --out folder "
                                 f"or a mesh file")
-    config = FitConfig.from_file(saved)
+    config = fit_settings(fit_dir)
     dataset = load_dataset(data, downscale=downscale or config.downscale, holdout=holdout)
     trainer = load_checkpoint(ckpt, dataset, config)
     views = dataset.test if split == "test" and dataset.test else dataset.train

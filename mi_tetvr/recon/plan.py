@@ -3,16 +3,25 @@
 (:func:`resolution_limits`) and, for a time budget, the grid and its stages
 (:func:`planned_resolution`, :func:`budget_stages`). Nothing here reads a clock:
 the same data and budget give the same plan on a busy machine and an idle one.
+
+A fit's folder keeps what the user asked for (``config.json``) apart from what the run
+decided (:class:`FitPlan`, ``plan.json``); :func:`fit_settings` reads both back.
 """
 from __future__ import annotations
 
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
 import numpy as np
 
-from mi_tetvr.recon.config import FitConfig
+from mi_tetvr.recon.config import FitConfig, _same
 
-__all__ = ["data_bounds", "resolution_limits", "nominal_step_seconds", "planned_resolution",
-           "budget_stages", "DEFAULT_RESOLUTION", "BUDGET_STEPS", "STEP_COST", "KIND_COST",
-           "COARSE_SHARE", "RESOLUTION_RANGE", "PIXELS_PER_VERTEX"]
+__all__ = ["FitPlan", "fit_settings", "write_settings", "data_bounds", "resolution_limits",
+           "nominal_step_seconds", "planned_resolution", "budget_stages", "DEFAULT_RESOLUTION",
+           "BUDGET_STEPS", "STEP_COST", "KIND_COST", "COARSE_SHARE", "RESOLUTION_RANGE",
+           "PIXELS_PER_VERTEX"]
 
 
 #: Grid resolution without a time budget.
@@ -117,3 +126,60 @@ def budget_stages(config: FitConfig, resolution):
     first = max(1, round(COARSE_SHARE * config.iterations))
     return [{"iterations": first, "grid": coarse},
             {"iterations": max(1, config.iterations - first), "grid": resolution}]
+
+
+@dataclass
+class FitPlan:
+    """What a run decided for its data where the config left a setting open (``settings``:
+    the box, the grid and its stages, the scene's kind and what follows from it, a solver's
+    basis, ...), and for a time budget what it planned: the budget in seconds, the steps
+    planned and their nominal seconds on the reference machine (:data:`STEP_COST`). A
+    fit's folder holds it as ``plan.json`` beside ``config.json`` (what was asked); a
+    resumed run reads it back rather than deciding again."""
+    settings: dict = field(default_factory=dict)
+    budget_seconds: float | None = None
+    planned_steps: int | None = None
+    step_seconds: float | None = None
+
+    FILE = "plan.json"
+
+    @classmethod
+    def between(cls, asked: FitConfig, run: FitConfig, **budget):
+        """The plan that turns ``asked`` into ``run``: the settings that differ."""
+        a, r = asked.to_dict(), run.to_dict()
+        return cls({k: v for k, v in r.items() if not _same(a[k], v)}, **budget)
+
+    def applied(self, config: FitConfig) -> FitConfig:
+        """``config`` (what was asked) with the plan's settings."""
+        return dataclasses.replace(config, **self.settings)
+
+    def write(self, folder):
+        Path(folder, self.FILE).write_text(json.dumps(dataclasses.asdict(self), indent=2))
+
+    @classmethod
+    def read(cls, folder):
+        """The plan in ``folder``, or None (fits written before plans were kept apart)."""
+        path = Path(folder, cls.FILE)
+        if not path.is_file():
+            return None
+        data = json.loads(path.read_text())
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in names})
+
+
+def write_settings(folder, asked: FitConfig, run: FitConfig, **budget):
+    """A fit's ``config.json`` (what was ``asked``, by part) and ``plan.json`` (what the
+    ``run`` decided, :meth:`FitPlan.between`); every kind of fit writes them so."""
+    folder = Path(folder)
+    (folder / "config.json").write_text(json.dumps(asked.nested(run.kind), indent=2))
+    plan = FitPlan.between(asked, run, **budget)
+    plan.write(folder)
+    return plan
+
+
+def fit_settings(folder) -> FitConfig:
+    """The settings a fit in ``folder`` ran with: its ``config.json`` with its
+    ``plan.json`` applied (a folder without a plan: its ``config.json`` holds both)."""
+    config = FitConfig.from_file(Path(folder) / "config.json")
+    plan = FitPlan.read(folder)
+    return plan.applied(config) if plan is not None else config

@@ -848,6 +848,7 @@ class _AttenuationFit:
     def __init__(self, dataset, out, config, progress, log, now):
         from mi_tetvr.recon.plan import data_bounds
         self.t_start = now()
+        self.asked = config                 # (config.json; what the run decides: plan.json)
         self.dataset, self.out, self.log, self.now = dataset, out, log, now
         self.progress = progress
         out.mkdir(parents=True, exist_ok=True)
@@ -1172,10 +1173,11 @@ class _AttenuationFit:
         """The outputs every fit writes, the checkpoint, and the metrics (returned)."""
         from mi_tetvr.recon.checkpoint import save_checkpoint
         from mi_tetvr.recon.outputs import write_outputs
+        from mi_tetvr.recon.plan import write_settings
         from mi_tetvr.recon.trainer import RunState, Trainer
         config, out, history = self.config, self.out, self.history
         optimization = self.now() - self.train_begin
-        (out / "config.json").write_text(json.dumps(config.nested(), indent=2))
+        write_settings(out, self.asked, config, budget_seconds=self.budget)
         state = RunState(rng=np.random.default_rng(config.seed), step=len(history["step"]),
                          elapsed=optimization, history=history)
         trainer = Trainer(self.dataset, v, t, config.for_stage(0), {"attenuation": x},

@@ -430,19 +430,24 @@ def traverse_merged(scenes: list, client: MergedClient, fr: RayFrame, acc: Any, 
     a_at = [dr.zeros(type(c[1][0])) for c in carry]
     # The piece starts where the ray crossed mesh k's boundary (its carried face).
     from_bnd = [mi.Bool(False) for _ in range(K)]
+    # Outside mesh k, its cursor already at the tet the ray enters next (a face the ray
+    # leaves by was found from outside: the ray grazed the mesh, round-off put the face
+    # first; its entry crossing lies ahead, at ``t_next``).
+    waiting = [mi.Bool(False) for _ in range(K)]
     t = mi.Float(span.begin)
     steps = mi.UInt32(0)
     inf = mi.Float(dr.inf)
     while dr.hint(active, label=client.label):
         inside, tet, f_in, carry = list(inside), list(tet), list(f_in), list(carry)
         need, t_trace, t_next, f_next = list(need), list(t_trace), list(t_next), list(f_next)
-        kept, a_at, from_bnd = list(kept), list(a_at), list(from_bnd)
+        kept, a_at, from_bnd, waiting = list(kept), list(a_at), list(from_bnd), list(waiting)
         # Each mesh the ray is outside of: its next boundary face, where needed;
         # a face the ray leaves by: it is inside, walk back to where it is now.
         for k in range(K):
             m = members[k]
             c_k, tet_k, f_k, in_k = carry[k], tet[k], f_in[k], inside[k]
             kept_k, tn_k, fn_k, need_k = kept[k], t_next[k], f_next[k], need[k] & active
+            wait_k = waiting[k]
             if need_k:
                 # (a branch: most iterations trace nothing)
                 si = scenes[k].ray_intersect_preliminary(mi.Ray3f(fr.at(t_trace[k]), fr.d),
@@ -453,12 +458,16 @@ def traverse_merged(scenes: list, client: MergedClient, fr: RayFrame, acc: Any, 
                 c_k = tree_select(here, entry_carry(m.ts.buf, tt, ff, fr, here, m.gather), c_k)
                 tet_k = dr.select(here, tt, tet_k)
                 f_k = dr.select(here, ff, f_k)
-                in_k = in_k | here
+                # (walked back, the ray left the mesh before t: it enters ahead, not here)
+                te_k, _ = crossing_at(c_k[0], c_k[2])
+                wait_k = here & (te_k > t)
+                in_k = in_k | (here & ~wait_k)
                 kept_k = kept_k & ~here
-                tn_k = dr.select(hit & ~out, t_trace[k] + si.t, inf)
+                tn_k = dr.select(hit & ~out, t_trace[k] + si.t, dr.select(wait_k, te_k, inf))
                 fn_k = mi.UInt32(si.prim_index)
             carry[k], tet[k], f_in[k], inside[k] = c_k, tet_k, f_k, in_k
             kept[k], t_next[k], f_next[k], need[k] = kept_k, tn_k, fn_k, mi.Bool(False)
+            waiting[k] = wait_k
         # Every cursor's next event: its tet's exit or a knot inside, or
         # (outside its mesh) its next boundary face.
         sts, ends, nows, knots, evs = [], [], [], [], []
@@ -533,11 +542,14 @@ def traverse_merged(scenes: list, client: MergedClient, fr: RayFrame, acc: Any, 
             # Outside: enter the mesh through its next boundary face.
             entering = go[k] & ~inside[k] & ~left
             c_k, tet_k, f_k = carry[k], tet[k], f_in[k]
-            if entering:
-                tt, ff, _ = face_entry(m.ts.buf, f_next[k], fr, entering)
-                c_k = entry_carry(m.ts.buf, tt, ff, fr, entering, m.gather)
+            # (a waiting cursor is at its tet already)
+            fresh = entering & ~waiting[k]
+            if fresh:
+                tt, ff, _ = face_entry(m.ts.buf, f_next[k], fr, fresh)
+                c_k = entry_carry(m.ts.buf, tt, ff, fr, fresh, m.gather)
                 tet_k, f_k = tt, ff
             carry[k], tet[k], f_in[k] = c_k, tet_k, f_k
+            waiting[k] = waiting[k] & ~entering
             inside[k] = inside[k] | entering
             kept[k] = kept[k] & ~entering
             from_bnd[k] = from_bnd[k] | entering

@@ -13,6 +13,7 @@ from mi_tetvr.recon.pipeline import evaluate_mesh, initial_mesh, next_stage, run
 from mi_tetvr.recon.plan import (BUDGET_STEPS, KIND_COST, PIXELS_PER_VERTEX, STEP_COST,
                                  budget_stages, nominal_step_seconds, planned_resolution,
                                  resolution_limits)
+from mi_tetvr.mesh.initial import grid_shape
 from mi_tetvr.recon.trainer import Trainer
 
 from tests.recon.conftest import CFG
@@ -247,6 +248,43 @@ def trainer_of(data):
     from mi_tetvr.recon.trainer import Trainer
     V, T, values = initial_mesh(CFG, data)
     return Trainer(data, V, T, CFG.for_stage(0), values)
+
+
+def test_the_plan_is_kept_apart_and_read_back(data, tmp_path):
+    """config.json holds what was asked, plan.json what the run decided for the data and
+    the budget (the box, the planned grid, the scene's kind, the steps planned and their
+    nominal cost); the settings a fit ran with are both (fit_settings). A resumed run reads
+    the plan back, and a folder written before plans were kept apart (config.json holding
+    both, no plan.json) still resumes."""
+    import dataclasses
+    import shutil
+    from mi_tetvr.recon.plan import FitPlan, fit_settings
+    asked = dataclasses.replace(CFG, grid_resolution=None, time_budget=4.0 / 60)
+    new = tmp_path / "new"
+    first = run(data, new, asked, progress=False, log=lambda *a: None, now=TickClock(0.05))
+    written = FitConfig.from_file(new / "config.json")
+    assert written == asked
+    plan = FitPlan.read(new)
+    ran = fit_settings(new)
+    grid = ran.grid_resolution
+    assert set(plan.settings) >= {"bounds", "grid_resolution", "scene", "init", "loss"}
+    assert grid == planned_resolution(ran, data, 0.85 * 4.0)
+    assert plan.budget_seconds == 4.0 and plan.planned_steps == BUDGET_STEPS
+    assert plan.step_seconds == pytest.approx(nominal_step_seconds(ran, data, grid))
+    assert ran == plan.applied(asked) and ran.scene == "object" and ran.init == "grid"
+    assert len(np.load(new / "checkpoint.npz")["tets"]) == 6 * np.prod(
+        grid_shape(ran.bounds, grid))
+    # resumed: the same plan, more steps
+    old = tmp_path / "old"
+    shutil.copytree(new, old)
+    again = run(data, new, asked, progress=False, log=lambda *a: None, now=TickClock(0.05))
+    assert again["step"] > first["step"] and FitPlan.read(new) == plan
+    # as an earlier version left its folder: the decided settings in config.json
+    (old / "plan.json").unlink()
+    (old / "config.json").write_text(json.dumps(ran.nested(), indent=2))
+    assert fit_settings(old) == ran
+    before = run(data, old, asked, progress=False, log=lambda *a: None, now=TickClock(0.05))
+    assert before["step"] == again["step"] and fit_settings(old) == ran
 
 
 def test_planned_grid_from_the_data_and_the_budget():

@@ -134,8 +134,14 @@ def test_unbounded_fit_of_real_photos(tmp_path):
     assert Delaunay(V0).find_simplex([v.camera.center for v in photos.views]).min() >= 0
     logs = []
     metrics = run(photos, tmp_path, cfg, progress=False, log=logs.append)
-    saved = FitConfig.from_file(tmp_path / "config.json")
-    assert saved.init == "unbounded" and saved.background == "learn"
+    # asked: left to the run (config.json); decided for the photos (plan.json)
+    from mi_tetvr.recon.plan import FitPlan, fit_settings
+    asked = FitConfig.from_file(tmp_path / "config.json")
+    assert asked.init == "auto" and asked.background is None and asked.stages is None
+    plan = FitPlan.read(tmp_path)
+    assert plan.settings["init"] == "unbounded" and plan.settings["background"] == "learn"
+    saved = fit_settings(tmp_path)
+    assert saved.init == "unbounded" and saved.background == "learn" and saved.stages
     assert any(s.startswith("pruned") for s in logs) and any(s.startswith("split") for s in logs)
     assert metrics["tets"] > len(T0)
     psnr = json.loads(str(np.load(tmp_path / "checkpoint.npz")["history"]))["psnr"]
@@ -145,7 +151,7 @@ def test_unbounded_fit_of_real_photos(tmp_path):
     from mi_tetvr.recon.checkpoint import load_checkpoint
     ck = np.load(tmp_path / "checkpoint.npz")
     back = load_checkpoint(tmp_path / "checkpoint.npz", photos, for_capture(
-        cfg.updated(stages=FitConfig.from_file(tmp_path / "config.json").stages),
+        cfg.updated(stages=fit_settings(tmp_path).stages),
         photos))
     np.testing.assert_allclose(back.appearance(), ck["appearance"], atol=1e-7)
     assert np.abs(ck["appearance:m"]).max() > 0
