@@ -263,7 +263,7 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
         from mi_tetvr.recon.tomography import fit_attenuation
         return fit_attenuation(dataset, out, config, resume, progress, log, now)
     asked = config
-    config, dataset, trainer = prepare(dataset, out, config, resume, budget, progress, log, now)
+    config, dataset, trainer = prepare(dataset, out, config, resume, budget, progress, log)
     planned = budget is not None and asked.grid_resolution is None and \
         config.grid_resolution is not None
     write_settings(out, asked, config, budget_seconds=budget,
@@ -297,7 +297,7 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
 
 
 def prepare(dataset, out: Path, config: FitConfig, resume=True, budget=None, progress=True,
-            log=print, now=time.perf_counter):
+            log=print):
     """What a fit starts from: the config with what it leaves open decided for the data
     (:func:`for_capture`, the stages, the box, the grid for the time ``budget`` in
     seconds), the data set (with sparse points where the mesh is made of them) and the
@@ -315,7 +315,7 @@ def prepare(dataset, out: Path, config: FitConfig, resume=True, budget=None, pro
         # limits, warnings, the mesh and each grid stage read it, config.json keeps it
         config = dataclasses.replace(config, bounds=data_bounds(config, dataset).tolist())
     if saved is None:
-        config, trainer = first_trainer(dataset, config, budget, progress, log, now)
+        config, trainer = first_trainer(dataset, config, budget, progress, log)
         return config, dataset, trainer
     plan = FitPlan.read(out)
     if plan is not None:
@@ -331,10 +331,10 @@ def prepare(dataset, out: Path, config: FitConfig, resume=True, budget=None, pro
     return config, dataset, trainer
 
 
-def first_trainer(dataset, config: FitConfig, budget=None, progress=True, log=print,
-                  now=time.perf_counter):
+def first_trainer(dataset, config: FitConfig, budget=None, progress=True, log=print):
     """The trainer of a new run's first stage on its starting mesh (:func:`initial_mesh`,
-    a grid sized for the time ``budget`` in seconds when it is not set), and the config
+    a grid planned for the time ``budget`` in seconds when it is not set: no clock is
+    read), and the config
     with the sizes and ranges it chose. Returns ``(config, trainer)``."""
     from mi_tetvr.mesh.topology import build_topology, format_summary, geometry_summary
     for text in data_warnings(config, dataset):
