@@ -23,7 +23,7 @@ from mi_tetvr.extras import needs
 
 
 __all__ = ["FitConfig", "coarse_to_fine", "INITS", "RENAMED", "PARTS", "KINDS", "setting",
-           "parse_background"]
+           "same_setting", "parse_background"]
 
 #: Settings renamed since: old name -> name (old config files still read, with a warning).
 RENAMED = {"resolution": "grid_resolution"}
@@ -462,7 +462,7 @@ class FitConfig:
         for name, value in self.to_dict().items():
             if name in ignore or value is None or name not in saved:
                 continue
-            if not _same(value, saved[name]):
+            if not same_setting(value, saved[name]):
                 out[name] = (saved[name], value)
         return out
 
@@ -608,12 +608,12 @@ class FitConfig:
                                    lr_position=st["lr_position"])
 
 
-def _same(a, b) -> bool:
+def same_setting(a, b) -> bool:
     """Settings equal, numbers up to rounding (lists element by element)."""
     if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
-        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+        return len(a) == len(b) and all(same_setting(x, y) for x, y in zip(a, b))
     if isinstance(a, dict) and isinstance(b, dict):
-        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+        return a.keys() == b.keys() and all(same_setting(a[k], b[k]) for k in a)
     if isinstance(a, (int, float)) and isinstance(b, (int, float)) and \
             not isinstance(a, bool) and not isinstance(b, bool):
         return abs(a - b) <= 1e-9 * max(abs(a), abs(b), 1.0)

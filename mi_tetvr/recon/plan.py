@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_tetvr.recon.config import FitConfig, _same
+from mi_tetvr.recon.config import FitConfig, same_setting
 
 __all__ = ["FitPlan", "fit_settings", "write_settings", "data_bounds", "resolution_limits",
            "nominal_step_seconds", "planned_resolution", "budget_stages", "DEFAULT_RESOLUTION",
@@ -147,7 +147,7 @@ class FitPlan:
     def between(cls, asked: FitConfig, run: FitConfig, **budget):
         """The plan that turns ``asked`` into ``run``: the settings that differ."""
         a, r = asked.to_dict(), run.to_dict()
-        return cls({k: v for k, v in r.items() if not _same(a[k], v)}, **budget)
+        return cls({k: v for k, v in r.items() if not same_setting(a[k], v)}, **budget)
 
     def applied(self, config: FitConfig) -> FitConfig:
         """``config`` (what was asked) with the plan's settings."""
