@@ -263,13 +263,19 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
         from mi_tetvr.recon.tomography import fit_attenuation
         return fit_attenuation(dataset, out, config, resume, progress, log, now)
     asked = config
+    # (a resumed run keeps what its plan said of the budget it began with)
+    earlier = FitPlan.read(out) if resume and ckpt_path.exists() else None
     config, dataset, trainer = prepare(dataset, out, config, resume, budget, progress, log)
-    planned = budget is not None and asked.grid_resolution is None and \
-        config.grid_resolution is not None
-    write_settings(out, asked, config, budget_seconds=budget,
-                   planned_steps=BUDGET_STEPS if planned else None,
-                   step_seconds=nominal_step_seconds(config, dataset, config.grid_resolution)
-                   if planned else None)
+    if earlier is not None:
+        said = dict(budget_seconds=earlier.budget_seconds, planned_steps=earlier.planned_steps,
+                    step_seconds=earlier.step_seconds)
+    elif budget is not None and asked.grid_resolution is None and \
+            config.grid_resolution is not None and not (resume and ckpt_path.exists()):
+        said = dict(budget_seconds=budget, planned_steps=BUDGET_STEPS,
+                    step_seconds=nominal_step_seconds(config, dataset, config.grid_resolution))
+    else:
+        said = dict(budget_seconds=budget)
+    write_settings(out, asked, config, **said)
     loop = _Loop(trainer, config, ckpt_path, progress, log, now)
     if budget is not None:
         loop.clock = _Clock(t_start + budget, [max(st["iterations"], 1) for st in loop.stages],

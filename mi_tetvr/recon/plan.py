@@ -151,6 +151,9 @@ class FitPlan:
 
     def applied(self, config: FitConfig) -> FitConfig:
         """``config`` (what was asked) with the plan's settings."""
+        unknown = sorted(set(self.settings) - {f.name for f in dataclasses.fields(config)})
+        if unknown:
+            raise ValueError(f"a fit's plan with settings a fit does not have: {unknown}")
         return dataclasses.replace(config, **self.settings)
 
     def write(self, folder):
@@ -162,8 +165,13 @@ class FitPlan:
         path = Path(folder, cls.FILE)
         if not path.is_file():
             return None
-        data = json.loads(path.read_text())
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{path}: not a fit's plan (not JSON: {e})") from None
         names = {f.name for f in dataclasses.fields(cls)}
+        if not isinstance(data, dict) or not isinstance(data.get("settings", {}), dict):
+            raise ValueError(f"{path}: not a fit's plan (a mapping with 'settings' expected)")
         return cls(**{k: v for k, v in data.items() if k in names})
 
 

@@ -285,6 +285,12 @@ def test_the_plan_is_kept_apart_and_read_back(data, tmp_path):
     assert fit_settings(old) == ran
     before = run(data, old, asked, progress=False, log=lambda *a: None, now=TickClock(0.05))
     assert before["step"] == again["step"] and fit_settings(old) == ran
+    # both resumed folders hold a plan again; a damaged plan is said to be one
+    assert FitPlan.read(old).budget_seconds == FitPlan.read(new).budget_seconds == 4.0
+    for text in ("not json", "[1, 2]", '{"settings": {"no_such_setting": 1}}'):
+        (old / "plan.json").write_text(text)
+        with pytest.raises(ValueError, match="plan"):
+            fit_settings(old)
 
 
 def test_planned_grid_from_the_data_and_the_budget():
