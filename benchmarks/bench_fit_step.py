@@ -212,8 +212,8 @@ def main():
     pixels = sum(v.camera.width * v.camera.height for v in data.train) / len(data.train)
     info = header("fit step breakdown")
     print(f"fit {a.fit}: {n_tets:,} tets, {len(data.train)} training photos of "
-          f"{pixels:,.0f} pixels on average, {trainer.config.views_per_step} per step, "
-          f"spp {trainer.config.spp}")
+          f"{pixels:,.0f} pixels on average, {trainer.config.trainer.views_per_step} per step, "
+          f"spp {trainer.config.trainer.spp}")
 
     crossed = tets_per_ray(trainer, data.train[0])
     print(f"tets crossed per ray (the first training photo, with early termination): "

@@ -77,10 +77,10 @@ def main(a):
         t0 = time.perf_counter()
         m = run(data, tmp / f"run{i}", cfg, resume=False, progress=False, log=lambda *x: None)
         dt = time.perf_counter() - t0
-        print(f"{name:32s} {cfg.lr_position:7.2f} {m['mean']['psnr']:9.2f} "
+        print(f"{name:32s} {cfg.trainer.lr_position:7.2f} {m['mean']['psnr']:9.2f} "
               f"{m['inverted_tets']:9d} {m['shortened_position_steps']:10d} "
               f"{dt:9.1f}", flush=True)
-        rows.append(dict(run=name, lr_position=cfg.lr_position, test_psnr=m["mean"]["psnr"],
+        rows.append(dict(run=name, lr_position=cfg.trainer.lr_position, test_psnr=m["mean"]["psnr"],
                          inverted=m["inverted_tets"], shortened=m["shortened_position_steps"],
                          time_s=dt))
     print(f"({m['vertices']:,} vertices, {m['tets']:,} tets; {a.steps} steps of 4 views at "

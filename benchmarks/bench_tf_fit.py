@@ -111,7 +111,7 @@ def main(a):
     lo, hi = values.min(), values.max()
     share = np.histogram(values, a.texels, (lo, hi))[0] / len(values)
     rows, tfs = [], {"true": truth_tf}
-    weights = [float(x) for x in a.smoothing.split(",") if x] or [FitConfig().tf_smoothing]
+    weights = [float(x) for x in a.smoothing.split(",") if x] or [FitConfig().field.tf_smoothing]
     for start, lam in ((s, w) for w in weights for s in a.starts.split(",")):
         cfg = FitConfig(init=str(mesh_path), optimize="tf", scalar=scalar,
                         tf_resolution=a.texels, tf_init=start, iterations=a.steps,

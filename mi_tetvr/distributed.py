@@ -657,8 +657,10 @@ def fit_blocks(pm: PartitionedMesh, data, out, config, progress=True):
     cfg = config
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    pm.optimizer({"vertex_color": cfg.lr_color, "vertex_opacity": cfg.lr_opacity})
-    scene = mi.load_dict({"type": "scene", "integrator": {"type": "tetvr", "n_sub": cfg.n_sub}})
+    pm.optimizer({"vertex_color": cfg.trainer.lr_color,
+                  "vertex_opacity": cfg.trainer.lr_opacity})
+    scene = mi.load_dict({"type": "scene",
+                          "integrator": {"type": "tetvr", "n_sub": cfg.trainer.n_sub}})
     sensors = {}
 
     def sensor(view):
@@ -666,23 +668,23 @@ def fit_blocks(pm: PartitionedMesh, data, out, config, progress=True):
         if id(view) not in sensors:
             sensors[id(view)] = mi.load_dict(view.camera.sensor_dict())
         return sensors[id(view)]
-    rng = np.random.default_rng(cfg.seed)
+    rng = np.random.default_rng(cfg.trainer.seed)
     t0 = time.time()
-    deadline = t0 + 60 * cfg.time_budget if cfg.time_budget else None
+    deadline = t0 + 60 * cfg.trainer.time_budget if cfg.trainer.time_budget else None
     steps, losses = 0, []
-    for step in progress_bar(range(cfg.iterations), desc="fit", unit="step",
+    for step in progress_bar(range(cfg.trainer.iterations), desc="fit", unit="step",
                              disable=not progress):
         if deadline is not None and time.time() > deadline:
             break
-        picks = rng.choice(len(data.train), min(cfg.views_per_step, len(data.train)),
+        picks = rng.choice(len(data.train), min(cfg.trainer.views_per_step, len(data.train)),
                            replace=False)
         total, loss = None, 0.0
         for i in picks:
             view = data.train[i]
             img = np.array(pm.render(scene, sensor(view), seed=step))
             r = img - view.image
-            loss += float(np.abs(r).mean() if cfg.loss == "l1" else np.square(r).mean())
-            g = (np.sign(r) if cfg.loss == "l1" else 2 * r) / r.size
+            loss += float(np.abs(r).mean() if cfg.trainer.loss == "l1" else np.square(r).mean())
+            g = (np.sign(r) if cfg.trainer.loss == "l1" else 2 * r) / r.size
             grads = pm.backward(scene, g.astype(np.float32), sensor(view), seed=step)
             total = grads if total is None else {n: total[n] + grads[n] for n in grads}
         pm.step(total)

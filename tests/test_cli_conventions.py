@@ -5,7 +5,6 @@ own, written from what each command does, not read from the parser); the fit's o
 are FitConfig's fields; bad input ends in one ``mi-tetvr: ...`` line that names the problem
 and the way past it, never a traceback.
 """
-import dataclasses
 import json
 
 import numpy as np
@@ -102,7 +101,7 @@ def test_version_and_opacity_scale_default(capsys):
     assert e.value.code == 0 and capsys.readouterr().out.startswith("mi-tetvr ")
     # one default of the same quantity everywhere
     defaults = {parse(c).opacity_scale for c in ("make-dataset", "viewpoint")}
-    assert defaults == {FitConfig().opacity_scale} == {cli.OPACITY_SCALE}
+    assert defaults == {FitConfig().field.opacity_scale} == {cli.OPACITY_SCALE}
 
 
 def _sample(f):
@@ -126,11 +125,11 @@ def _sample(f):
     return "name", ["name"]
 
 
-@pytest.mark.parametrize("field", [f.name for f in dataclasses.fields(FitConfig)])
+@pytest.mark.parametrize("field", [f.name for _, f in FitConfig.settings()])
 def test_every_fit_setting_is_an_option(field):
     """Each FitConfig field has its option, parsed to the field's type, with the help
     written in the field (and its default)."""
-    f = next(f for f in dataclasses.fields(FitConfig) if f.name == field)
+    f = next(f for _, f in FitConfig.settings() if f.name == field)
     fit = next(a for a in cli.build_parser()._actions if a.dest == "cmd").choices["fit"]
     action = next(a for a in fit._actions if a.dest == f"cfg_{field}")
     assert f.metadata["help"].split(";")[0] in action.help.replace("%%", "%")
@@ -148,7 +147,7 @@ def test_every_fit_setting_is_an_option(field):
     if field == "lights":            # the known lighting of a scattering medium
         extra = ["--model", "scattering"]
     a = parse("fit", *argv, *extra)
-    assert cli.fit_config(a).to_dict()[field] == value
+    assert cli.fit_config(a).flat()[field] == value
 
 
 def test_config_file_print_config_and_overrides(tmp_path, capsys):
@@ -197,7 +196,7 @@ def test_config_file_print_config_and_overrides(tmp_path, capsys):
     msg = fails(["fit", "d", "-o", "o", "--model", "absorption", "--tv", "heldout",
                  "--validation", "0"])
     assert msg.startswith("mi-tetvr:") and "needs validation >= 1" in msg, msg
-    assert FitConfig.from_dict(FitConfig(model="absorption", tv="heldout").nested()).tv == \
+    assert FitConfig.from_dict(FitConfig(model="absorption", tv="heldout").nested()).solver.tv == \
         "heldout"
     # the adaptive mesh's share of the grid's unknowns: more than the coarse grid's eighth,
     # at most all; an earlier config's switch (true) reads as all of them
@@ -210,11 +209,12 @@ def test_config_file_print_config_and_overrides(tmp_path, capsys):
         msg = fails(["fit", "d", "-o", "o", "--model", "absorption", "--adapt", share])
         assert msg.startswith("mi-tetvr: adapt must be a share of the grid's unknowns in "
                               "(0.125, 1]") and share in msg, msg
-    assert [FitConfig.from_dict({"solver": {"adapt": v}}).adapt_share
+    assert [FitConfig.from_dict({"solver": {"adapt": v}}).solver.adapt_share
             for v in (None, False, True, 0.5)] == [None, None, 1.0, 0.5]
     # the trilinear basis is the linear solvers' field (on a grid or a graded grid), not an
     # image fit's
-    assert FitConfig(model="absorption", basis="trilinear", adapt=0.5).adapt_share == 0.5
+    cfg = FitConfig(model="absorption", basis="trilinear", adapt=0.5)
+    assert cfg.solver.adapt_share == 0.5
     msg = fails(["fit", "d", "-o", "o", "--basis", "trilinear"])
     assert msg.startswith("mi-tetvr: basis trilinear is the field of model absorption"), msg
 
@@ -225,7 +225,7 @@ def test_config_parts_per_kind_of_fit():
     function), and reads back as the same config."""
     from mi_tetvr.recon.config import KINDS, PARTS
     names = [n for _, (_, part) in PARTS.items() for n in part]
-    assert sorted(names) == sorted(f.name for f in dataclasses.fields(FitConfig))
+    assert sorted(names) == sorted(f.name for _, f in FitConfig.settings())
     configs = {"color": FitConfig(), "scattering": FitConfig(model="scattering", lights="l.xml"),
                "absorption": FitConfig(model="absorption"),
                "tf": FitConfig(optimize="tf", init="m.vtu"),
@@ -452,3 +452,25 @@ def test_one_module_per_command_and_main_alone_exits():
                     next(f.name for f in ast.walk(tree) if isinstance(f, ast.FunctionDef)
                          and f.lineno <= node.lineno <= f.end_lineno))
     assert exits == {"__init__.py": {"main"}}
+
+
+def test_settings_are_typed_parts():
+    """A fit's settings are one dataclass per part: set by name or by part, read by part
+    (a setting asked of the whole config says where it is), each part checking its own;
+    the same config from its parts, its flat settings (a checkpoint's) and its file."""
+    from mi_tetvr.recon.config import MeshSettings, TrainerSettings
+    cfg = FitConfig(lr_color=0.3, model="absorption", solver="sart", passes=4)
+    assert isinstance(cfg.trainer, TrainerSettings) and cfg.trainer.lr_color == 0.3
+    assert cfg.solver.solver == "sart" and cfg.linear_solver == "sart" and cfg.kind == "absorption"
+    with pytest.raises(AttributeError, match=r"part 'trainer': config\.trainer\.lr_color"):
+        cfg.lr_color
+    assert FitConfig(trainer=cfg.trainer, field=cfg.field, solver=cfg.solver) == cfg
+    assert FitConfig(**cfg.flat()) == cfg == FitConfig.from_dict(cfg.flat())
+    assert cfg.replaced(passes=None).solver.passes is None and cfg.solver.passes == 4
+    with pytest.raises(TypeError, match="part 'mesh' is a MeshSettings"):
+        FitConfig(mesh=TrainerSettings())
+    assert MeshSettings(grid_resolution=8) == FitConfig(grid_resolution=8).mesh
+    with pytest.raises(ValueError, match="decay must be in"):
+        TrainerSettings(decay=0.0).validate()
+    with pytest.raises(ValueError, match="grid_resolution must be >= 1"):
+        cfg.updated(grid_resolution=0)

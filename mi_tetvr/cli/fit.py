@@ -67,24 +67,24 @@ def run(a):
     if a.viewer and cfg.linear_solver:
         raise ValueError(f"--viewer shows the steps of an Adam fit; --model absorption "
                          f"solves with {cfg.linear_solver} (add --solver adam to watch it)")
-    if cfg.init not in INITS and not Path(cfg.init).is_file():
-        raise FileNotFoundError(f"--init {cfg.init}: no such mesh file (or one of "
+    if cfg.mesh.init not in INITS and not Path(cfg.mesh.init).is_file():
+        raise FileNotFoundError(f"--init {cfg.mesh.init}: no such mesh file (or one of "
                                 f"{', '.join(INITS)})")
-    if cfg.model == "scattering" and (a.workers is not None or a.address is not None):
+    if cfg.field.model == "scattering" and (a.workers is not None or a.address is not None):
         raise ValueError("--workers fits colors and opacities over blocks; --model scattering "
                          "runs in one process")
-    if cfg.lights is not None and not Path(cfg.lights).is_file():
-        raise FileNotFoundError(f"--lights {cfg.lights}: no such Mitsuba scene file")
+    if cfg.data.lights is not None and not Path(cfg.data.lights).is_file():
+        raise FileNotFoundError(f"--lights {cfg.data.lights}: no such Mitsuba scene file")
     set_variant(a.variant)
-    if cfg.lights is not None:
+    if cfg.data.lights is not None:
         # (read before the data and the mesh: a wrong file is one line, at once)
         from mi_tetvr.render.surfaces import lights_scene
-        lights_scene(cfg.lights)
+        lights_scene(cfg.data.lights)
     if a.workers is not None or a.address is not None:
         return run_blocks(a, cfg)
     from mi_tetvr.recon.outputs import fitted_file
     from mi_tetvr.recon.pipeline import run as run_fit
-    data = load_data(a.data, cfg.downscale, a.holdout)
+    data = load_data(a.data, cfg.data.downscale, a.holdout)
     print(f"{a.data}: {len(data.train)} training and {len(data.test)} test views "
           f"({data.train[0].camera.width}x{data.train[0].camera.height})")
     Path(a.out).mkdir(parents=True, exist_ok=True)
@@ -105,7 +105,7 @@ def run(a):
         raise CommandError("interrupted; progress saved (run the same command to resume)") \
             from None
     m = metrics["mean"]
-    what = "transmittance" if cfg.model == "absorption" else "sRGB"
+    what = "transmittance" if cfg.field.model == "absorption" else "sRGB"
     print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} ({what}) over "
           f"{len(metrics['views'])} view(s) [{metrics['split']}]; {metrics['tets']:,} tets, "
           f"{metrics['step']:,} steps, {metrics['wall_seconds']:.0f} s -> "
@@ -117,14 +117,14 @@ def run_blocks(a, cfg):
     opacities fitted on Ray workers (:func:`mi_tetvr.distributed.fit_blocks`)."""
     from mi_tetvr.distributed import PartitionedMesh, fit_blocks
     from mi_tetvr.mesh.partition import blocks_path
-    init = Path(cfg.init)
+    init = Path(cfg.mesh.init)
     if init.suffix.lower() != ".pvtu" or not blocks_path(init).is_file():
         raise ValueError("fit --workers fits a partitioned mesh: --init MESH.pvtu (written "
                          "by `mi-tetvr partition MESH -o MESH.pvtu --blocks N`)")
-    if cfg.stages or cfg.lr_position or cfg.model != "emission" or a.viewer:
+    if cfg.strategy.stages or cfg.trainer.lr_position or cfg.field.model != "emission" or a.viewer:
         raise ValueError("fit --workers fits colors and opacities in one stage: no --stages, "
                          "--lr-position, --model absorption or --viewer")
-    data = load_data(a.data, cfg.downscale, a.holdout)
+    data = load_data(a.data, cfg.data.downscale, a.holdout)
     print(f"{a.data}: {len(data.train)} training and {len(data.test)} test views "
           f"({data.train[0].camera.width}x{data.train[0].camera.height})")
     with PartitionedMesh(init, a.workers, address=a.address) as pm:

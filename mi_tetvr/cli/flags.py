@@ -131,13 +131,13 @@ def config_flags(parser):
     fields: ``--name-with-dashes`` (or the field's ``flag``), its type, choices and help
     with the default; booleans have ``--no-...``; every option's default is ``None`` (the
     config file's or the field's value stands). Returns {dest: field name}."""
-    from mi_tetvr.recon.config import PART_OF, PARTS, FitConfig
+    from mi_tetvr.recon.config import PARTS, FitConfig
     groups = {part: parser.add_argument_group(f"fit settings: {part}, {about} (--config's "
                                               f"'{part}')")
               for part, (about, _) in PARTS.items()}
     dests = {}
-    for f in dataclasses.fields(FitConfig):
-        group = groups[PART_OF[f.name]]
+    for part, f in FitConfig.settings():
+        group = groups[part]
         meta = f.metadata
         default = "chosen by the run" if f.default is None else json.dumps(f.default)
         help = meta["help"] if "default" in meta["help"] else \

@@ -57,7 +57,7 @@ def fit_dataset(fit_dir, data=None):
                              f"was written): give it with --data DATA")
         saved = json.loads(record.read_text())
         data, holdout = saved["data"], saved.get("holdout", 8)
-    return config, load_data(data, config.downscale, holdout)
+    return config, load_data(data, config.data.downscale, holdout)
 
 
 def view_shown(a):

@@ -12,7 +12,6 @@ stopped.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
@@ -36,7 +35,7 @@ def save_checkpoint(trainer: Trainer, path):
              stage=state.stage, stage_start=state.stage_start, elapsed=state.elapsed,
              shortened=state.shortened, history=json.dumps(state.history),
              downscale=state.downscale or 0,
-             config=json.dumps(dataclasses.asdict(trainer.config)),
+             config=json.dumps(trainer.config.flat()),
              rng=json.dumps(state.rng.bit_generator.state), **trainer.opt.state_dict(),
              split_scores=trainer.split_scores(),
              **({} if trainer.environment() is None else {"environment": trainer.environment()}),
@@ -64,7 +63,7 @@ def load_checkpoint(path, dataset, config: FitConfig) -> Trainer:
         random generator, elapsed time) and Adam moments.
     """
     ckpt = np.load(path)
-    rng = np.random.default_rng(config.seed)
+    rng = np.random.default_rng(config.trainer.seed)
     rng.bit_generator.state = json.loads(str(ckpt["rng"]))
     state = RunState(rng=rng, step=int(ckpt["step"]), stage=int(ckpt["stage"]),
                      stage_start=int(ckpt["stage_start"]), elapsed=float(ckpt["elapsed"]),

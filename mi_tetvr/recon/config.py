@@ -14,66 +14,28 @@ matches RGBA; with a background color it matches RGB composited over it
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 from dataclasses import dataclass
+from typing import ClassVar
 from pathlib import Path
 
 from mi_tetvr.extras import needs
 
 
-__all__ = ["FitConfig", "coarse_to_fine", "INITS", "RENAMED", "PARTS", "KINDS", "setting",
-           "same_setting", "parse_background"]
+__all__ = ["FitConfig", "DataSettings", "MeshSettings", "FieldSettings", "StrategySettings",
+           "TrainerSettings", "SolverSettings", "coarse_to_fine", "INITS", "RENAMED", "PARTS",
+           "KINDS", "setting", "same_setting", "parse_background"]
 
 #: Settings renamed since: old name -> name (old config files still read, with a warning).
 RENAMED = {"resolution": "grid_resolution"}
 
-#: The fit's parts and the settings of each, in the order a config file lists them: the
-#: ``--config`` file's sections, :meth:`FitConfig.nested`, the groups of ``fit --help``.
-PARTS = {
-    "data": ("what the images are and how they are read",
-             ("scene", "downscale", "jitter", "xray_flux", "lights")),
-    "mesh": ("the starting mesh",
-             ("init", "grid_resolution", "bounds", "outer", "scalar", "repair",
-              "cell_to_point")),
-    "field": ("what is fitted and how it starts",
-              ("model", "optimize", "init_color", "init_opacity", "sh_degree", "background",
-               "appearance", "appearance_prior", "value_range", "transfer_function",
-               "opacity_scale", "tf_resolution", "tf_init", "tf_smoothing", "smoothing",
-               "scalar_init")),
-    "strategy": ("what changes the mesh between stages",
-                 ("stages", "target_tets", "select", "retriangulate")),
-    "trainer": ("the loop, the optimizer and the clock",
-                ("iterations", "time_budget", "views_per_step", "lr_color", "lr_opacity",
-                 "lr_position", "lr_appearance", "lr_scalar", "decay", "loss", "loss_space",
-                 "regularizer", "regularizer_beta", "distortion", "freeze_boundary", "safeguard",
-                 "n_sub", "spp", "seed", "checkpoint_every", "log_every")),
-    "solver": ("X-ray projections' linear solvers (model absorption)",
-               ("solver", "passes", "relaxation", "tv", "adapt", "basis", "validation")),
-}
+
 #: The kinds of fit (:attr:`FitConfig.kind`): colors and opacities (``color``), a lit
 #: medium (``scattering``), an X-ray attenuation (``absorption``), a transfer function
 #: (``tf``) or the scalar under one (``scalar``).
 KINDS = ("color", "scattering", "absorption", "tf", "scalar")
-#: The settings that apply to some kinds only (the others apply to all).
-ONLY = {
-    "lights": ("scattering",), "xray_flux": ("absorption",), "outer": ("color",),
-    "scalar": ("tf", "scalar"), "sh_degree": ("color",), "distortion": ("color",),
-    "background": ("color", "tf", "scalar"), "appearance": ("color", "tf", "scalar"),
-    "appearance_prior": ("color", "tf", "scalar"), "lr_appearance": ("color", "tf", "scalar"),
-    "value_range": ("tf", "scalar"), "tf_resolution": ("tf", "scalar"),
-    "transfer_function": ("scalar",), "opacity_scale": ("scalar",), "lr_scalar": ("scalar",),
-    "scalar_init": ("scalar",), "tf_init": ("tf",), "tf_smoothing": ("tf",),
-    "smoothing": ("absorption", "scalar"), "init_color": ("color", "scattering", "tf"),
-    "lr_color": ("color", "scattering", "tf"),
-    "init_opacity": ("color", "scattering", "absorption", "tf"),
-    "lr_opacity": ("color", "scattering", "absorption", "tf"),
-    "loss_space": ("color", "scattering", "tf", "scalar"),
-    **{name: ("absorption",) for name in PARTS["solver"][1]},
-}
-#: Each setting's part.
-PART_OF = {name: part for part, (_, names) in PARTS.items() for name in names}
-
 #: The starting meshes made from the data (any other ``init`` is a mesh file).
 INITS = ("auto", "grid", "tetwild", "delaunay", "unbounded")
 #: The settings of a stage (``FitConfig.stages``).
@@ -155,53 +117,113 @@ def setting(default, help, choices=None, flag=None, metavar=None, parse=None):
     return dataclasses.field(default=default, metadata=meta)
 
 
+class _Part:
+    """A part of a fit's settings: a dataclass of :func:`setting` fields, each with its
+    help (``ABOUT``: what the part is; :meth:`validate`: its own settings' checks)."""
+    ABOUT: ClassVar[str] = ""
+    #: Settings that are at least 1 (when set), and those that are at least 0.
+    POSITIVE: ClassVar[tuple] = ()
+    NON_NEGATIVE: ClassVar[tuple] = ()
+
+    def validate(self):
+        """Raise ``ValueError`` on a setting of this part out of its choices or range."""
+        for f in dataclasses.fields(self):
+            choices = f.metadata.get("choices")
+            value = getattr(self, f.name)
+            if choices and value is not None and value not in choices:
+                raise ValueError(f"{f.name} must be {', '.join(map(str, choices))}; "
+                                 f"got {value!r}")
+        for name in self.POSITIVE:
+            if getattr(self, name) is not None and int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1")
+        for name in self.NON_NEGATIVE:
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0")
+
+
 @dataclass
-class FitConfig:
-    """Settings of a reconstruction (all have working defaults). Each field's
-    help is in its metadata (``dataclasses.fields(FitConfig)``); ``mi-tetvr fit
-    --help`` lists them all."""
+class DataSettings(_Part):
+    """The fit's settings of part ``data``: what the images are and how they are read."""
+    ABOUT: ClassVar[str] = 'what the images are and how they are read'
+
     scene: str = setting(
         "auto", "what the images show: object (views of an object with alpha masks: a grid over "
         "its visual hull), unbounded (photos of a scene in its surroundings: its sparse points "
         "and far cells tetrahedralized, a learned background, a color transform per photo, L1 "
         "loss, cells added where the error is); auto: object when some training pixel is "
         "transparent", choices=("auto", "object", "unbounded"))
+    downscale: int = setting(1, "shrink the images by this factor")
+    jitter: bool | None = setting(
+        None, "random sub-pixel ray positions (off: pixel centers, for targets rendered through "
+        "pixel centers); default: off for data sets made by make-dataset, else on")
+    xray_flux: float | None = setting(
+        None, "model absorption: photons per pixel of the unattenuated beam: rays weighted by "
+        "their counts (Poisson noise); default: what the data set records (none: unweighted)")
+    lights: str | None = setting(
+        None, "model scattering: a Mitsuba scene file (.xml) of the known lighting, the same "
+        "for every view: its emitters, and any surfaces around the volume (a floor, walls)",
+        metavar="XML")
+
+    POSITIVE: ClassVar[tuple] = ("downscale",)
+
+    def validate(self):
+        super().validate()
+        if self.xray_flux is not None and not self.xray_flux > 0:
+            raise ValueError(f"xray_flux must be > 0 photons per pixel, got {self.xray_flux!r}")
+
+
+@dataclass
+class MeshSettings(_Part):
+    """The fit's settings of part ``mesh``: the starting mesh."""
+    ABOUT: ClassVar[str] = 'the starting mesh'
+
     init: str = setting(
         "auto", "the starting mesh: auto (grid for objects, unbounded for scenes), grid, "
         "tetwild, delaunay, unbounded, or a mesh file (the scalar mesh with optimize tf or "
         "scalar)", metavar="INIT|MESH")
-    repair: bool = setting(
-        False, "init mesh file: drop folded, flat and duplicate tets (reported)")
-    cell_to_point: bool = setting(
-        False, "init mesh file: average per-cell arrays onto the vertices")
-    outer: str = setting(
-        "shells", "unbounded init beyond the scene points: shells (spheres with geometrically "
-        "growing radii) or contracted (a grid in mip-NeRF 360's contracted space)",
-        choices=("shells", "contracted"))
     grid_resolution: int | None = setting(
         None, "grid cells along the box's largest axis (init grid, tetwild); default: planned "
         "from the data and the time budget, else 32")
     bounds: list | None = setting(
         None, "the box to reconstruct in, x0,y0,z0,x1,y1,z1; default: the visual hull of the "
         "alpha masks, else the data set's", metavar="X0,Y0,Z0,X1,Y1,Z1", parse=_bounds)
-    iterations: int = setting(
-        1500, "optimizer steps (with a time budget only the stages' shares count)")
-    time_budget: float | None = setting(
-        None, "minutes for the whole command, outputs included: the steps fill it (the mesh size, "
-        "unless set, is planned from the data and the budget, the same on any machine); a "
-        "resumed run gets it again", metavar="MIN")
-    views_per_step: int = setting(2, "training views rendered per optimizer step")
-    lr_color: float = setting(0.02, "color step")
-    lr_opacity: float = setting(0.05, "opacity step: optical depth per cell")
-    lr_position: float = setting(0.0, "position step in cell sizes; 0: positions fixed")
-    decay: float = setting(0.1, "learning rates fall exponentially to decay * lr over each "
-                                "stage")
-    loss: str | None = setting(
-        None, "image loss; default: l2, l1 for unbounded scenes (robust to the pixels that "
-        "change between photos)", choices=("l1", "l2"))
-    loss_space: str = setting(
-        "srgb", "compare linear RGB, or the sRGB pictures the metrics score (alpha stays "
-        "linear)", choices=("linear", "srgb"))
+    outer: str = setting(
+        "shells", "unbounded init beyond the scene points: shells (spheres with geometrically "
+        "growing radii) or contracted (a grid in mip-NeRF 360's contracted space)",
+        choices=("shells", "contracted"))
+    scalar: str | None = setting(None, "the init mesh's scalar point array (default: the only "
+                                       "one)")
+    repair: bool = setting(
+        False, "init mesh file: drop folded, flat and duplicate tets (reported)")
+    cell_to_point: bool = setting(
+        False, "init mesh file: average per-cell arrays onto the vertices")
+
+    POSITIVE: ClassVar[tuple] = ("grid_resolution",)
+
+
+@dataclass
+class FieldSettings(_Part):
+    """The fit's settings of part ``field``: what is fitted and how it starts."""
+    ABOUT: ClassVar[str] = 'what is fitted and how it starts'
+
+    model: str = setting(
+        "emission", "emission: colors and opacities from images; absorption: an X-ray "
+        "attenuation (point data 'attenuation') from transmittance images; scattering: "
+        "extinction and albedo (point data 'opacity', 'albedo') of a participating medium "
+        "from photos under known lighting (--lights), rendered by tetpath",
+        choices=("emission", "absorption", "scattering"))
+    optimize: str = setting(
+        "volume", "what is fitted: volume (per-vertex colors and opacities), tf (the transfer "
+        "function over the init mesh's scalar), scalar (the scalar under a known transfer "
+        "function)", choices=("volume", "tf", "scalar"))
+    init_color: float = setting(0.5, "starting color (linear, every channel)")
+    init_opacity: float = setting(0.05, "starting opacity: optical depth per cell")
+    sh_degree: int | None = setting(
+        None, "view-dependent colors: spherical harmonics up to this degree (1 to 3) per "
+        "vertex, degree 0 in the first stage and one more in each stage after, all of them in "
+        "the last (as 3D Gaussian Splatting); 0: one color per vertex; default: 0 (degree 2 "
+        "lost 0.35-0.84 dB held out on the project's photo captures at equal time; "
+        "benchmarks/README.md)", metavar="DEGREE")
     background: list | str | None = setting(
         None, "none: fit RGBA; learn: an environment map fitted with the volume (what lies "
         "beyond the mesh); white, black or r,g,b (linear): composite over it; default: none, "
@@ -212,38 +234,72 @@ class FitConfig:
         "photo, identity on held-out photos; default: on for unbounded scenes")
     appearance_prior: float = setting(0.01, "weight of the transforms' squared distance from "
                                             "the identity")
-    lr_appearance: float = setting(0.005, "the color transforms' step (their mean is kept at "
-                                          "the identity: the held-out photos' transform)")
-    sh_degree: int | None = setting(
-        None, "view-dependent colors: spherical harmonics up to this degree (1 to 3) per "
-        "vertex, degree 0 in the first stage and one more in each stage after, all of them in "
-        "the last (as 3D Gaussian Splatting); 0: one color per vertex; default: 0 (degree 2 "
-        "lost 0.35-0.84 dB held out on the project's photo captures at equal time; "
-        "benchmarks/README.md)", metavar="DEGREE")
-    init_color: float = setting(0.5, "starting color (linear, every channel)")
-    init_opacity: float = setting(0.05, "starting opacity: optical depth per cell")
-    regularizer: float = setting(10.0, "weight lambda of the tet-quality term (DiffTetVR "
-                                       "Eq. 21) when positions move")
-    regularizer_beta: float = setting(100.0, "beta of the tet-quality term (DiffTetVR Eq. 21)")
-    distortion: float = setting(
-        0.0, "weight of the rays' distortion: how far apart, in disparity, the weights of each "
-        "ray lie (the squared-distance form of mip-NeRF 360's distortion loss), on one training "
-        "view per step at half its size; 0: none")
-    freeze_boundary: bool = setting(True, "keep boundary vertices fixed when positions move")
-    safeguard: bool = setting(True, "shorten position steps that would invert a tet")
-    retriangulate: bool | None = setting(
-        None, "after a stage that moved the vertices, tetrahedralize them anew (Delaunay of "
-        "where they are), the values following their vertices; default: for meshes born "
-        "Delaunay (init unbounded or delaunay)")
-    n_sub: int = setting(4, "sub-intervals per tet segment while fitting")
-    spp: int = setting(1, "rays per pixel in each training render")
-    jitter: bool | None = setting(
-        None, "random sub-pixel ray positions (off: pixel centers, for targets rendered through "
-        "pixel centers); default: off for data sets made by make-dataset, else on")
-    downscale: int = setting(1, "shrink the images by this factor")
-    seed: int = setting(0, "random seed (views picked, initial mesh)")
-    checkpoint_every: int = setting(100, "steps between checkpoints")
-    log_every: int = setting(10, "steps between log lines (a file, not a terminal)")
+    value_range: list | None = setting(
+        None, "lo,hi: the scalar range the transfer function spans (default: the init mesh's "
+        "scalar range)", metavar="LO,HI", parse=_numbers(2))
+    transfer_function: str | None = setting(
+        None, "the known transfer function (optimize scalar), .json or DiffTetVR .xml",
+        flag="--tf", metavar="TF")
+    opacity_scale: float = setting(
+        1.0, "the transfer function's opacity per mesh radius times this (as make-dataset "
+        "renders a mesh)")
+    tf_resolution: int = setting(64, "texels of a fitted or known transfer function")
+    tf_init: str = setting("flat", "start of a fitted transfer function: flat (init_color, "
+                                   "init_opacity) or random", choices=("flat", "random"))
+    tf_smoothing: float = setting(
+        0.01, "weight of DiffDVR's smoothing prior (Eq. 12) on a fitted transfer function; "
+        "their 0.4 went with an L1 loss (Blunt Fin, random start, 300 steps: 37.3 dB at 0.4, "
+        "48.8 at 0.01; benchmarks/bench_tf_fit.py)")
+    smoothing: float = setting(
+        0.0, "weight of the mean squared difference across edges of a fitted attenuation "
+        "(optical depth per cell) or scalar (over its range): DiffDVR's 3D prior")
+    scalar_init: str = setting(
+        "colors", "optimize scalar: start from a color fit the scalars are matched to (colors) "
+        "or from the init mesh's scalar (mesh)", choices=("colors", "mesh"))
+
+    NON_NEGATIVE: ClassVar[tuple] = ("init_opacity", "appearance_prior")
+
+    def validate(self):
+        super().validate()
+        if self.background is not None and self.background != "learn" and \
+                (isinstance(self.background, str) or len(self.background) != 3):
+            raise ValueError(f"background must be None, 'learn' or three linear RGB values, "
+                             f"got {self.background!r}")
+        if self.sh_degree is not None and not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"sh_degree must be 0 (one color per vertex) to 3, got "
+                             f"{self.sh_degree}")
+        if int(self.tf_resolution) < 2:
+            raise ValueError("tf_resolution must be >= 2")
+        if self.value_range is not None and not (len(self.value_range) == 2 and
+                                                 self.value_range[0] < self.value_range[1]):
+            raise ValueError(f"value_range must be [lo, hi] with lo < hi, got {self.value_range}")
+        if self.model == "absorption" and (self.optimize != "volume" or self.background):
+            raise ValueError("model absorption fits an attenuation from transmittance images: "
+                             "no optimize tf/scalar, no background")
+        if self.model == "scattering" and (self.optimize != "volume" or self.background
+                                           or self.appearance):
+            raise ValueError("model scattering fits extinction and albedo from photos under "
+                             "known lighting: no optimize tf/scalar, no background (the lights' "
+                             "scene holds what lies around), no appearance")
+        if self.optimize == "scalar" and self.transfer_function is None:
+            raise ValueError("optimize scalar needs the transfer function (--tf)")
+        if self.sh_degree and (self.model != "emission" or self.optimize != "volume"):
+            raise ValueError("sh_degree gives an emission-absorption volume view-dependent "
+                             "colors: not with model absorption/scattering or optimize tf/scalar")
+
+    @property
+    def kind(self) -> str:
+        """The kind of fit (one of :data:`KINDS`), by ``model`` and ``optimize``."""
+        if self.model in ("absorption", "scattering"):
+            return self.model
+        return "color" if self.optimize == "volume" else self.optimize
+
+
+@dataclass
+class StrategySettings(_Part):
+    """The fit's settings of part ``strategy``: what changes the mesh between stages."""
+    ABOUT: ClassVar[str] = 'what changes the mesh between stages'
+
     stages: list | None = setting(
         None, "coarse-to-fine stages as JSON, run one after the other, each {\"iterations\": N, "
         "\"lr_position\": x (0: colors and opacities only), \"split\": fraction of vertices "
@@ -260,20 +316,72 @@ class FitConfig:
         "colors and opacities over the stage's steps), color, opacity (of one of them), error "
         "(the photos' per-pixel error projected into the vertices their rays cross, weighted by "
         "their contribution)", choices=("gradient", "color", "opacity", "error"))
-    optimize: str = setting(
-        "volume", "what is fitted: volume (per-vertex colors and opacities), tf (the transfer "
-        "function over the init mesh's scalar), scalar (the scalar under a known transfer "
-        "function)", choices=("volume", "tf", "scalar"))
-    model: str = setting(
-        "emission", "emission: colors and opacities from images; absorption: an X-ray "
-        "attenuation (point data 'attenuation') from transmittance images; scattering: "
-        "extinction and albedo (point data 'opacity', 'albedo') of a participating medium "
-        "from photos under known lighting (--lights), rendered by tetpath",
-        choices=("emission", "absorption", "scattering"))
-    lights: str | None = setting(
-        None, "model scattering: a Mitsuba scene file (.xml) of the known lighting, the same "
-        "for every view: its emitters, and any surfaces around the volume (a floor, walls)",
-        metavar="XML")
+    retriangulate: bool | None = setting(
+        None, "after a stage that moved the vertices, tetrahedralize them anew (Delaunay of "
+        "where they are), the values following their vertices; default: for meshes born "
+        "Delaunay (init unbounded or delaunay)")
+
+
+@dataclass
+class TrainerSettings(_Part):
+    """The fit's settings of part ``trainer``: the loop, the optimizer and the clock."""
+    ABOUT: ClassVar[str] = 'the loop, the optimizer and the clock'
+
+    iterations: int = setting(
+        1500, "optimizer steps (with a time budget only the stages' shares count)")
+    time_budget: float | None = setting(
+        None, "minutes for the whole command, outputs included: the steps fill it (the mesh size, "
+        "unless set, is planned from the data and the budget, the same on any machine); a "
+        "resumed run gets it again", metavar="MIN")
+    views_per_step: int = setting(2, "training views rendered per optimizer step")
+    lr_color: float = setting(0.02, "color step")
+    lr_opacity: float = setting(0.05, "opacity step: optical depth per cell")
+    lr_position: float = setting(0.0, "position step in cell sizes; 0: positions fixed")
+    lr_appearance: float = setting(0.005, "the color transforms' step (their mean is kept at "
+                                          "the identity: the held-out photos' transform)")
+    lr_scalar: float = setting(0.01, "scalar step, in scalar ranges")
+    decay: float = setting(0.1, "learning rates fall exponentially to decay * lr over each "
+                                "stage")
+    loss: str | None = setting(
+        None, "image loss; default: l2, l1 for unbounded scenes (robust to the pixels that "
+        "change between photos)", choices=("l1", "l2"))
+    loss_space: str = setting(
+        "srgb", "compare linear RGB, or the sRGB pictures the metrics score (alpha stays "
+        "linear)", choices=("linear", "srgb"))
+    regularizer: float = setting(10.0, "weight lambda of the tet-quality term (DiffTetVR "
+                                       "Eq. 21) when positions move")
+    regularizer_beta: float = setting(100.0, "beta of the tet-quality term (DiffTetVR Eq. 21)")
+    distortion: float = setting(
+        0.0, "weight of the rays' distortion: how far apart, in disparity, the weights of each "
+        "ray lie (the squared-distance form of mip-NeRF 360's distortion loss), on one training "
+        "view per step at half its size; 0: none")
+    freeze_boundary: bool = setting(True, "keep boundary vertices fixed when positions move")
+    safeguard: bool = setting(True, "shorten position steps that would invert a tet")
+    n_sub: int = setting(4, "sub-intervals per tet segment while fitting")
+    spp: int = setting(1, "rays per pixel in each training render")
+    seed: int = setting(0, "random seed (views picked, initial mesh)")
+    checkpoint_every: int = setting(100, "steps between checkpoints")
+    log_every: int = setting(10, "steps between log lines (a file, not a terminal)")
+
+    POSITIVE: ClassVar[tuple] = ("iterations", "views_per_step", "n_sub", "spp",
+                                 "checkpoint_every", "log_every")
+    NON_NEGATIVE: ClassVar[tuple] = ("lr_color", "lr_opacity", "lr_position", "regularizer",
+                                     "lr_appearance", "distortion")
+
+    def validate(self):
+        super().validate()
+        if self.time_budget is not None and not self.time_budget > 0:
+            raise ValueError("time_budget must be > 0 minutes")
+        if not 0 < self.decay <= 1:
+            raise ValueError("decay must be in (0, 1]")
+
+
+@dataclass
+class SolverSettings(_Part):
+    """The fit's settings of part ``solver``: X-ray projections' linear solvers (model
+    absorption)."""
+    ABOUT: ClassVar[str] = "X-ray projections' linear solvers (model absorption)"
+
     solver: str | None = setting(
         None, "pwls (penalized weighted least squares: Poisson-count weights and the tets' "
         "total variation, its weight chosen on held-out views; ordered subsets with "
@@ -316,34 +424,116 @@ class FitConfig:
         "is held out to choose the passes (stopping once they stop improving its projections) "
         "or pwls's penalty weight, then all views are solved with them; 0: the fixed passes "
         "(sart: and the noise rule)")
-    xray_flux: float | None = setting(
-        None, "model absorption: photons per pixel of the unattenuated beam: rays weighted by "
-        "their counts (Poisson noise); default: what the data set records (none: unweighted)")
-    scalar: str | None = setting(None, "the init mesh's scalar point array (default: the only "
-                                       "one)")
-    value_range: list | None = setting(
-        None, "lo,hi: the scalar range the transfer function spans (default: the init mesh's "
-        "scalar range)", metavar="LO,HI", parse=_numbers(2))
-    transfer_function: str | None = setting(
-        None, "the known transfer function (optimize scalar), .json or DiffTetVR .xml",
-        flag="--tf", metavar="TF")
-    opacity_scale: float = setting(
-        1.0, "the transfer function's opacity per mesh radius times this (as make-dataset "
-        "renders a mesh)")
-    tf_resolution: int = setting(64, "texels of a fitted or known transfer function")
-    tf_init: str = setting("flat", "start of a fitted transfer function: flat (init_color, "
-                                   "init_opacity) or random", choices=("flat", "random"))
-    tf_smoothing: float = setting(
-        0.01, "weight of DiffDVR's smoothing prior (Eq. 12) on a fitted transfer function; "
-        "their 0.4 went with an L1 loss (Blunt Fin, random start, 300 steps: 37.3 dB at 0.4, "
-        "48.8 at 0.01; benchmarks/bench_tf_fit.py)")
-    lr_scalar: float = setting(0.01, "scalar step, in scalar ranges")
-    smoothing: float = setting(
-        0.0, "weight of the mean squared difference across edges of a fitted attenuation "
-        "(optical depth per cell) or scalar (over its range): DiffDVR's 3D prior")
-    scalar_init: str = setting(
-        "colors", "optimize scalar: start from a color fit the scalars are matched to (colors) "
-        "or from the init mesh's scalar (mesh)", choices=("colors", "mesh"))
+
+    POSITIVE: ClassVar[tuple] = ("passes",)
+
+    def validate(self):
+        super().validate()
+        if not 0 < self.relaxation <= 2:
+            raise ValueError("relaxation must be in (0, 2]")
+        if self.tv == "heldout" and self.validation < 1:
+            raise ValueError("tv heldout chooses the weight on held-out views: it needs "
+                             "validation >= 1")
+        if (self.tv not in (None, "heldout") and not (isinstance(self.tv, (int, float)) and
+                                                     self.tv >= 0)) or self.validation < 0:
+            raise ValueError(f"tv must be a number >= 0 or heldout (got {self.tv!r}) and "
+                             f"validation >= 0")
+        # true: the earlier switch, every unknown of the grid (config files written before)
+        if self.adapt is not None and not isinstance(self.adapt, bool) and \
+                not (isinstance(self.adapt, (int, float)) and 0.125 < self.adapt <= 1):
+            raise ValueError(f"adapt must be a share of the grid's unknowns in (0.125, 1] "
+                             f"(the coarse grid has an eighth of them), got {self.adapt!r}")
+
+    @property
+    def adapt_share(self) -> float | None:
+        """The adaptive mesh's share of the grid's unknowns, or ``None`` (the grid);
+        ``true`` (earlier config files' switch) is all of them."""
+        if self.adapt is None or self.adapt is False:
+            return None
+        return 1.0 if self.adapt is True else float(self.adapt)
+
+
+#: The fit's parts, in the order a config file lists them: the ``--config`` file's
+#: sections, :meth:`FitConfig.nested`, the groups of ``fit --help``.
+PART_TYPES = {"data": DataSettings, "mesh": MeshSettings, "field": FieldSettings,
+              "strategy": StrategySettings, "trainer": TrainerSettings, "solver": SolverSettings}
+#: Each part's description and settings, by part.
+PARTS = {part: (cls.ABOUT, tuple(f.name for f in dataclasses.fields(cls)))
+         for part, cls in PART_TYPES.items()}
+#: The settings that apply to some kinds only (the others apply to all).
+ONLY = {
+    "lights": ("scattering",), "xray_flux": ("absorption",), "outer": ("color",),
+    "scalar": ("tf", "scalar"), "sh_degree": ("color",), "distortion": ("color",),
+    "background": ("color", "tf", "scalar"), "appearance": ("color", "tf", "scalar"),
+    "appearance_prior": ("color", "tf", "scalar"), "lr_appearance": ("color", "tf", "scalar"),
+    "value_range": ("tf", "scalar"), "tf_resolution": ("tf", "scalar"),
+    "transfer_function": ("scalar",), "opacity_scale": ("scalar",), "lr_scalar": ("scalar",),
+    "scalar_init": ("scalar",), "tf_init": ("tf",), "tf_smoothing": ("tf",),
+    "smoothing": ("absorption", "scalar"), "init_color": ("color", "scattering", "tf"),
+    "lr_color": ("color", "scattering", "tf"),
+    "init_opacity": ("color", "scattering", "absorption", "tf"),
+    "lr_opacity": ("color", "scattering", "absorption", "tf"),
+    "loss_space": ("color", "scattering", "tf", "scalar"),
+    **{name: ("absorption",) for name in PARTS["solver"][1]},
+}
+#: Each setting's part.
+PART_OF = {name: part for part, (_, names) in PARTS.items() for name in names}
+
+
+@dataclass(init=False)
+class FitConfig:
+    """Settings of a reconstruction, by part (all have working defaults): what the data
+    is (``data``), the starting mesh (``mesh``), what is fitted (``field``), what changes
+    the mesh between stages (``strategy``), the loop (``trainer``) and an X-ray fit's
+    linear solver (``solver``), each its own dataclass whose fields hold their help
+    (``mi-tetvr fit --help`` lists them, by part). What a run decides for its data is
+    its plan (:class:`mi_tetvr.recon.plan.FitPlan`), written beside it.
+
+    ``FitConfig(lr_color=0.1, init="grid")`` sets settings by name (their names are
+    unique across the parts; ``solver="sart"`` is the setting, ``solver=SolverSettings(...)``
+    the part); ``FitConfig(trainer=TrainerSettings(...))`` gives a part whole."""
+    data: DataSettings
+    mesh: MeshSettings
+    field: FieldSettings
+    strategy: StrategySettings
+    trainer: TrainerSettings
+    solver: SolverSettings
+
+    def __init__(self, data=None, mesh=None, field=None, strategy=None, trainer=None,
+                 solver=None, **settings):
+        if isinstance(solver, str):
+            # (the part ``solver`` has a setting of its name: a name is the setting)
+            settings["solver"], solver = solver, None
+        given = dict(data=data, mesh=mesh, field=field, strategy=strategy, trainer=trainer,
+                     solver=solver)
+        settings = {RENAMED.get(k, k): v for k, v in settings.items()}
+        unknown = sorted(set(settings) - set(PART_OF))
+        if unknown:
+            raise TypeError(f"unknown fit settings {unknown}; the parts and their settings: "
+                            f"mi-tetvr fit DATA --print-config")
+        for part, cls in PART_TYPES.items():
+            value = given[part]
+            if value is None:
+                value = cls()
+            elif isinstance(value, dict):
+                value = cls(**value)
+            elif not isinstance(value, cls):
+                raise TypeError(f"the fit's part '{part}' is a {cls.__name__}, got "
+                                f"{type(value).__name__}")
+            own = {n: v for n, v in settings.items() if PART_OF[n] == part}
+            object.__setattr__(self, part, dataclasses.replace(value, **own) if own else value)
+
+    def __getattr__(self, name):
+        # only for names not found: a setting asked of the whole config says its part
+        if name in PART_OF:
+            raise AttributeError(f"'{name}' is a setting of the fit's part "
+                                 f"'{PART_OF[name]}': config.{PART_OF[name]}.{name}")
+        raise AttributeError(f"'FitConfig' object has no attribute '{name}'")
+
+    @staticmethod
+    def settings():
+        """Every setting as ``(part, dataclasses.Field)``, part by part."""
+        return [(part, f) for part, cls in PART_TYPES.items() for f in dataclasses.fields(cls)]
 
     @classmethod
     def from_file(cls, path):
@@ -374,8 +564,9 @@ class FitConfig:
     @classmethod
     def from_dict(cls, data: dict, source: str = "the config"):
         """The config of ``data``: ``{part: {name: value}}`` (:meth:`nested`) or a flat
-        ``{name: value}``, or both mixed; a setting under the wrong part, or an unknown
-        one, is an error that says where it belongs or what it may have meant."""
+        ``{name: value}`` (:meth:`flat`, older files), or both mixed; a setting under the
+        wrong part, or an unknown one, is an error that says where it belongs or what it
+        may have meant."""
         import difflib
         import warnings
         flat = {}
@@ -407,59 +598,62 @@ class FitConfig:
     @property
     def kind(self) -> str:
         """The kind of fit (one of :data:`KINDS`), by ``model`` and ``optimize``."""
-        if self.model in ("absorption", "scattering"):
-            return self.model
-        return "color" if self.optimize == "volume" else self.optimize
+        return self.field.kind
+
+    def flat(self) -> dict:
+        """``{name: value}`` of every setting, part after part (what a checkpoint keeps)."""
+        return {name: value for part in PART_TYPES
+                for name, value in dataclasses.asdict(getattr(self, part)).items()}
 
     def nested(self, kind: str | None = None) -> dict:
         """``{part: {name: value}}`` of the settings that apply to ``kind`` (default:
         this config's): what ``--print-config`` prints and a fit's ``config.json`` holds,
         a file ``--config`` reads."""
         kind = kind or self.kind
-        values = self.to_dict()
+        values = self.flat()
         return {part: {n: values[n] for n in names if kind in ONLY.get(n, KINDS)}
                 for part, (_, names) in PARTS.items()
                 if any(kind in ONLY.get(n, KINDS) for n in names)}
 
     @property
-    def adapt_share(self) -> float | None:
-        """The adaptive mesh's share of the grid's unknowns, or ``None`` (the grid);
-        ``true`` (earlier config files' switch) is all of them."""
-        if self.adapt is None or self.adapt is False:
-            return None
-        return 1.0 if self.adapt is True else float(self.adapt)
-
-    @property
     def linear_solver(self):
         """The linear solver of an absorption fit (``pwls``, ``sart``, ``sirt``,
         ``lsqr``; ``pwls`` unless ``solver`` says), or ``None`` (an Adam fit)."""
-        if self.model != "absorption" or self.solver == "adam":
+        if self.field.model != "absorption" or self.solver.solver == "adam":
             return None
-        return self.solver or "pwls"
+        return self.solver.solver or "pwls"
+
+    def replaced(self, **settings):
+        """A copy with the given settings (by name) set, ``None`` included, not
+        validated: what a run decides for its data."""
+        unknown = sorted(set(settings) - set(PART_OF))
+        if unknown:
+            raise TypeError(f"unknown fit settings {unknown}")
+        out = copy.copy(self)
+        for part in PART_TYPES:
+            own = {n: v for n, v in settings.items() if PART_OF[n] == part}
+            if own:
+                object.__setattr__(out, part, dataclasses.replace(getattr(self, part), **own))
+        return out
 
     def updated(self, **kw):
-        """A validated copy with the given settings changed (``None`` values
+        """A validated copy with the given settings (by name) changed (``None`` values
         leave a setting as it is); unknown names are an error."""
         kw = {RENAMED.get(k, k): v for k, v in kw.items()}
-        names = {f.name for f in dataclasses.fields(self)}
-        bad = sorted(set(kw) - names)
+        bad = sorted(set(kw) - set(PART_OF))
         if bad:
-            raise ValueError(f"unknown fit settings {bad}; known: {sorted(names)}")
-        cfg = dataclasses.replace(self, **{k: v for k, v in kw.items() if v is not None})
+            raise ValueError(f"unknown fit settings {bad}; known: {sorted(PART_OF)}")
+        cfg = self.replaced(**{k: v for k, v in kw.items() if v is not None})
         cfg.validate()
         return cfg
 
-    def to_dict(self):
-        """The settings as a JSON-ready dict (what ``config.json`` holds)."""
-        return dataclasses.asdict(self)
-
     def differences(self, saved: dict, ignore=()):
-        """The settings that differ from ``saved`` (a :meth:`to_dict` of another config,
+        """The settings that differ from ``saved`` (a :meth:`flat` of another config,
         e.g. a checkpoint's), as ``{name: (saved value, this value)}``; settings that
         are ``None`` here (chosen by the run) and those in ``ignore`` are not compared."""
         saved = {RENAMED.get(k, k): v for k, v in saved.items()}
         out = {}
-        for name, value in self.to_dict().items():
+        for name, value in self.flat().items():
             if name in ignore or value is None or name not in saved:
                 continue
             if not same_setting(value, saved[name]):
@@ -467,102 +661,46 @@ class FitConfig:
         return out
 
     def validate(self):
-        """Raise ``ValueError`` on a setting out of range, settings that do not go
-        together, or a bad stage."""
-        self._validate_ranges()
-        self._validate_models()
+        """Raise ``ValueError`` on a setting out of range (each part checks its own),
+        settings of different parts that do not go together, or a bad stage."""
+        for part in PART_TYPES:
+            getattr(self, part).validate()
+        self._validate_parts()
         self._validate_stages()
 
-    def _validate_ranges(self):
-        """Choices and ranges of single settings."""
-        for f in dataclasses.fields(self):
-            choices = f.metadata.get("choices")
-            value = getattr(self, f.name)
-            if choices and value is not None and value not in choices:
-                raise ValueError(f"{f.name} must be {', '.join(map(str, choices))}; "
-                                 f"got {value!r}")
-        for name in ("iterations", "views_per_step", "grid_resolution", "n_sub", "spp",
-                     "downscale", "checkpoint_every", "log_every", "passes"):
-            if getattr(self, name) is not None and int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be >= 1")
-        if self.time_budget is not None and not self.time_budget > 0:
-            raise ValueError("time_budget must be > 0 minutes")
-        for name in ("lr_color", "lr_opacity", "lr_position", "init_opacity", "regularizer",
-                     "lr_appearance", "appearance_prior", "distortion"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0")
-        if not 0 < self.relaxation <= 2:
-            raise ValueError("relaxation must be in (0, 2]")
-        if self.tv == "heldout" and self.validation < 1:
-            raise ValueError("tv heldout chooses the weight on held-out views: it needs "
-                             "validation >= 1")
-        if (self.tv not in (None, "heldout") and not (isinstance(self.tv, (int, float)) and
-                                                     self.tv >= 0)) or self.validation < 0 or \
-                (self.xray_flux is not None and not self.xray_flux > 0):
-            raise ValueError(f"tv must be a number >= 0 or heldout (got {self.tv!r}), "
-                             f"validation >= 0 and xray_flux > 0")
-        # true: the earlier switch, every unknown of the grid (config files written before)
-        if self.adapt is not None and not isinstance(self.adapt, bool) and \
-                not (isinstance(self.adapt, (int, float)) and 0.125 < self.adapt <= 1):
-            raise ValueError(f"adapt must be a share of the grid's unknowns in (0.125, 1] "
-                             f"(the coarse grid has an eighth of them), got {self.adapt!r}")
-        if not 0 < self.decay <= 1:
-            raise ValueError("decay must be in (0, 1]")
-        if self.background is not None and self.background != "learn" and \
-                (isinstance(self.background, str) or len(self.background) != 3):
-            raise ValueError(f"background must be None, 'learn' or three linear RGB values, "
-                             f"got {self.background!r}")
-        if self.sh_degree is not None and not 0 <= self.sh_degree <= 3:
-            raise ValueError(f"sh_degree must be 0 (one color per vertex) to 3, got "
-                             f"{self.sh_degree}")
-        if int(self.tf_resolution) < 2:
-            raise ValueError("tf_resolution must be >= 2")
-        if self.value_range is not None and not (len(self.value_range) == 2 and
-                                                 self.value_range[0] < self.value_range[1]):
-            raise ValueError(f"value_range must be [lo, hi] with lo < hi, got {self.value_range}")
-
-    def _validate_models(self):
-        """Settings that belong to one model, solver or kind of fit."""
-        if self.basis == "trilinear" and self.linear_solver is None:
-            raise ValueError(f"basis {self.basis} is the field of model absorption's linear "
+    def _validate_parts(self):
+        """Settings of one part that belong to a model, solver or kind set in another."""
+        field, solver = self.field, self.solver
+        if solver.basis == "trilinear" and self.linear_solver is None:
+            raise ValueError(f"basis {solver.basis} is the field of model absorption's linear "
                              f"solvers")
-        if self.tv is not None and self.linear_solver not in (None, "pwls"):
+        if solver.tv is not None and self.linear_solver not in (None, "pwls"):
             raise ValueError(f"tv is the penalty weight of solver pwls; solver "
                              f"{self.linear_solver} has none")
-        if self.solver not in (None, "adam") and self.model != "absorption":
-            raise ValueError(f"solver {self.solver} solves model absorption (X-ray "
+        if solver.solver not in (None, "adam") and field.model != "absorption":
+            raise ValueError(f"solver {solver.solver} solves model absorption (X-ray "
                              f"projections); fits of images use solver adam")
-        if self.model == "absorption" and (self.optimize != "volume" or self.background):
-            raise ValueError("model absorption fits an attenuation from transmittance images: "
-                             "no optimize tf/scalar, no background")
-        if (self.model == "scattering") != (self.lights is not None):
+        if (field.model == "scattering") != (self.data.lights is not None):
             raise ValueError("model scattering learns a medium lit by known lights: give both "
                              "--model scattering and --lights XML (the scene of the lights)")
-        if self.model == "scattering" and (self.optimize != "volume" or self.background
-                                           or self.appearance):
-            raise ValueError("model scattering fits extinction and albedo from photos under "
-                             "known lighting: no optimize tf/scalar, no background (the lights' "
-                             "scene holds what lies around), no appearance")
-        if self.optimize != "volume" and self.init in INITS:
-            raise ValueError(f"optimize {self.optimize} needs the scalar mesh as init (a file)")
-        if self.optimize == "scalar" and self.transfer_function is None:
-            raise ValueError("optimize scalar needs the transfer function (--tf)")
-        if self.select == "error" and self.kind not in ("color", "scattering"):
+        if field.optimize != "volume" and self.mesh.init in INITS:
+            raise ValueError(f"optimize {field.optimize} needs the scalar mesh as init (a "
+                             f"file)")
+        if self.strategy.select == "error" and self.kind not in ("color", "scattering"):
             raise ValueError("select error ranks vertices by the photos' error through their "
                              "colors: model emission or scattering, optimize volume")
-        if self.distortion and self.kind != "color":
+        if self.trainer.distortion and self.kind != "color":
             raise ValueError("distortion concentrates the rays' weights of a fit of colors and "
                              "opacities: model emission, optimize volume")
-        if self.sh_degree and (self.model != "emission" or self.optimize != "volume"):
-            raise ValueError("sh_degree gives an emission-absorption volume view-dependent "
-                             "colors: not with model absorption/scattering or optimize tf/scalar")
 
     def _validate_stages(self):
         """The stages' settings (see ``stages``)."""
-        for i, st in enumerate(self.stage_list()):
+        stages = self.stage_list()
+        sh_degree = self.field.sh_degree
+        for i, st in enumerate(stages):
             if i and st["grid"] is not None and any(
                     p["split"] or p["prune"] is not None or p["lr_position"]
-                    for p in self.stage_list()[:i]):
+                    for p in stages[:i]):
                 raise ValueError("a stage with 'grid' must follow stages that keep the grid "
                                  "(no split, prune or lr_position)")
             bad = sorted(set(st) - set(STAGE_KEYS))
@@ -570,20 +708,22 @@ class FitConfig:
                 raise ValueError(f"unknown stage settings {bad}: use {', '.join(STAGE_KEYS)}")
             if int(st.get("downscale", 1)) != st.get("downscale", 1) or st.get("downscale", 1) < 1:
                 raise ValueError(f"bad stage {st}: 'downscale' is an integer >= 1")
-            if st.get("grid") is not None and (self.init not in ("grid", "auto")
+            if st.get("grid") is not None and (self.mesh.init not in ("grid", "auto")
                                                or int(st["grid"]) < 1):
                 raise ValueError(f"bad stage {st}: 'grid' needs init 'grid' and a resolution >= 1")
             if int(st.get("iterations", 0)) < 0 or not 0 <= st.get("split", 0) <= 1:
                 raise ValueError(f"bad stage {st}: iterations >= 0, split in [0, 1]")
-            if st["sh_degree"] is not None and not (
-                    self.sh_degree and 0 <= st["sh_degree"] <= self.sh_degree):
+            if st["sh_degree"] is not None and \
+                    not (sh_degree and 0 <= st["sh_degree"] <= sh_degree):
                 raise ValueError(f"bad stage {st}: 'sh_degree' is 0 to the fit's sh_degree "
-                                 f"({self.sh_degree or 0}: view-dependent colors off)")
+                                 f"({sh_degree or 0}: view-dependent colors off)")
 
     def stage_list(self):
         """The stages as dicts with all keys (see ``stages``); ``sh_degree`` None:
         one color per vertex."""
-        raw = self.stages or [{"iterations": self.iterations, "lr_position": self.lr_position}]
+        trainer = self.trainer
+        raw = self.strategy.stages or [{"iterations": trainer.iterations,
+                                        "lr_position": trainer.lr_position}]
         return [{"iterations": int(st.get("iterations", 0)),
                  "lr_position": float(st.get("lr_position", 0.0)),
                  "split": float(st.get("split", 0.0)),
@@ -597,15 +737,15 @@ class FitConfig:
         """The default degree of stage ``i`` of ``stages``: none without
         ``sh_degree``, else degree 0 first and one more per stage, the last stage
         all of ``sh_degree``."""
-        if not self.sh_degree:
+        sh_degree = self.field.sh_degree
+        if not sh_degree:
             return None
-        return self.sh_degree if i + 1 == stages else min(i, self.sh_degree)
+        return sh_degree if i + 1 == stages else min(i, sh_degree)
 
     def for_stage(self, i):
         """The settings one stage trains with (its iterations and position rate)."""
         st = self.stage_list()[i]
-        return dataclasses.replace(self, iterations=max(st["iterations"], 1),
-                                   lr_position=st["lr_position"])
+        return self.replaced(iterations=max(st["iterations"], 1), lr_position=st["lr_position"])
 
 
 def same_setting(a, b) -> bool:

@@ -28,6 +28,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_tetvr.recon.config import FieldSettings, TrainerSettings
+
 __all__ = ["Field", "VolumeField", "ViewDependentField", "ScatteringField", "AttenuationField",
            "TransferFunctionField", "ScalarField", "make_field", "MESH_ID", "key"]
 
@@ -45,13 +47,16 @@ class Field:
 
     Parameters
     ----------
-    config : FitConfig
+    settings : FieldSettings
+        The fit's settings of part ``field`` (what is fitted and how it starts).
     h : float
         The mesh's mean edge length (the unit of opacity settings).
     values : dict of numpy arrays
         Arrays the field needs besides its unknowns (a scalar field's values).
     tets : (m, 4) int, optional
         The mesh (its edges carry the smoothing priors).
+    trainer : TrainerSettings, optional
+        The steps of the field's values (``lr_*``) and the seed of a random start.
     """
     #: ``{value name: (parameter key, channels)}`` of per-vertex unknowns.
     point_arrays: dict = {}
@@ -61,8 +66,10 @@ class Field:
     #: The per-vertex array that is an extinction (what pruning reads), if any.
     extinction = None
 
-    def __init__(self, config, h, values=None, tets=None):
-        self.config, self.h = config, float(h)
+    def __init__(self, settings: FieldSettings, h, values=None, tets=None,
+                 trainer: TrainerSettings | None = None):
+        self.settings, self.h = settings, float(h)
+        self.trainer = trainer or TrainerSettings()
         self.fixed = dict(values or {})
         self.tets = tets
 
@@ -144,16 +151,16 @@ class VolumeField(Field):
     rgb = "color"
 
     def initial(self, n):
-        return {self.rgb: np.full((n, 3), self.config.init_color),
-                "opacity": np.full(n, self.config.init_opacity / self.h)}
+        return {self.rgb: np.full((n, 3), self.settings.init_color),
+                "opacity": np.full(n, self.settings.init_opacity / self.h)}
 
     def shape(self, vertices, tets, values):
         import mi_tetvr
         return mi_tetvr.tetmesh_dict(vertices, tets, values["color"], values["opacity"])
 
     def rates(self):
-        return {self.point_arrays[self.rgb][0]: self.config.lr_color,
-                key("vertex_opacity"): self.config.lr_opacity / self.h}
+        return {self.point_arrays[self.rgb][0]: self.trainer.lr_color,
+                key("vertex_opacity"): self.trainer.lr_opacity / self.h}
 
     def project(self, opt):
         rgb = self.point_arrays[self.rgb][0]
@@ -187,9 +194,9 @@ class ViewDependentField(VolumeField):
     #: The higher degrees' step over the degree-0 one (3DGS: ``feature_lr / 20``).
     REST_RATE = 1.0 / 20.0
 
-    def __init__(self, config, h, values=None, tets=None, degree=0):
+    def __init__(self, settings, h, values=None, tets=None, trainer=None, degree=0):
         from mi_tetvr.render.optical import sh_basis
-        super().__init__(config, h, values, tets)
+        super().__init__(settings, h, values, tets, trainer)
         self.fixed.pop("color", None)         # (the coefficients hold it)
         if not 0 <= int(degree) <= 3:
             raise ValueError(f"spherical harmonics have degree 0 to 3, got {degree}")
@@ -219,8 +226,8 @@ class ViewDependentField(VolumeField):
         return out
 
     def initial(self, n):
-        return {"sh": self.color_to_sh(np.full((n, 3), self.config.init_color)),
-                "opacity": np.full(n, self.config.init_opacity / self.h)}
+        return {"sh": self.color_to_sh(np.full((n, 3), self.settings.init_color)),
+                "opacity": np.full(n, self.settings.init_opacity / self.h)}
 
     def adopt(self, values):
         values = dict(values)
@@ -249,8 +256,8 @@ class ViewDependentField(VolumeField):
         return mi_tetvr.tetmesh_dict(vertices, tets, opacity=values["opacity"], sh=sh)
 
     def rates(self):
-        return {key("vertex_sh"): self.config.lr_color / self.Y0,
-                key("vertex_opacity"): self.config.lr_opacity / self.h}
+        return {key("vertex_sh"): self.trainer.lr_color / self.Y0,
+                key("vertex_opacity"): self.trainer.lr_opacity / self.h}
 
     def step_scales(self):
         if self.K == 1:
@@ -292,7 +299,7 @@ class AttenuationField(Field):
     extinction = "attenuation"
 
     def initial(self, n):
-        return {"attenuation": np.full(n, self.config.init_opacity / self.h)}
+        return {"attenuation": np.full(n, self.settings.init_opacity / self.h)}
 
     def shape(self, vertices, tets, values):
         import mi_tetvr
@@ -300,14 +307,14 @@ class AttenuationField(Field):
                                      model="absorption")
 
     def rates(self):
-        return {key("vertex_opacity"): self.config.lr_opacity / self.h}
+        return {key("vertex_opacity"): self.trainer.lr_opacity / self.h}
 
     def project(self, opt):
         opt[key("vertex_opacity")] = dr.maximum(opt[key("vertex_opacity")], 0.0)
 
     def prior(self, opt):
         # on optical depths per cell: the projections leave some patterns unseen
-        return self.edge_smoothing(opt[key("vertex_opacity")], self.config.smoothing, self.h)
+        return self.edge_smoothing(opt[key("vertex_opacity")], self.settings.smoothing, self.h)
 
     def score_weights(self, criterion):
         return {key("vertex_opacity"): 1.0 / self.h}
@@ -317,10 +324,10 @@ class _Classified(Field):
     """A scalar field post-classified by a transfer function of ``R`` texels
     over ``value_range``."""
 
-    def __init__(self, config, h, values=None, tets=None):
-        super().__init__(config, h, values, tets)
-        if config.value_range is not None:
-            self.value_range = tuple(float(v) for v in config.value_range)
+    def __init__(self, settings, h, values=None, tets=None, trainer=None):
+        super().__init__(settings, h, values, tets, trainer)
+        if settings.value_range is not None:
+            self.value_range = tuple(float(v) for v in settings.value_range)
         elif "scalar" not in self.fixed:
             raise ValueError("a post-classified fit needs the mesh's scalar field or its "
                              "value_range (--value-range lo,hi)")
@@ -351,32 +358,33 @@ class TransferFunctionField(_Classified):
     """The ``R`` texels of a transfer function (linear RGB, extinction per
     unit length) over a fixed scalar field, with DiffDVR's smoothing prior
     (Eq. 12: the mean squared difference of neighbouring texels over the four
-    channels, weighted by ``config.tf_smoothing``; the opacity channel in
+    channels, weighted by ``tf_smoothing``; the opacity channel in
     optical depth per cell so that it weighs like a color)."""
     K_COLOR, K_OPACITY = key("tf_color"), key("tf_opacity")
 
     def initial(self, n):
-        r = int(self.config.tf_resolution)
-        opacity = self.config.init_opacity / self.h
-        if self.config.tf_init == "random":
-            rng = np.random.default_rng(self.config.seed)
+        r = int(self.settings.tf_resolution)
+        opacity = self.settings.init_opacity / self.h
+        if self.settings.tf_init == "random":
+            rng = np.random.default_rng(self.trainer.seed)
             return {"tf_color": rng.uniform(0, 1, (r, 3)),
                     "tf_opacity": rng.uniform(0, 2 * opacity, r)}
-        return {"tf_color": np.full((r, 3), self.config.init_color),
+        return {"tf_color": np.full((r, 3), self.settings.init_color),
                 "tf_opacity": np.full(r, opacity)}
 
     def rates(self):
-        return {self.K_COLOR: self.config.lr_color, self.K_OPACITY: self.config.lr_opacity / self.h}
+        return {self.K_COLOR: self.trainer.lr_color,
+                self.K_OPACITY: self.trainer.lr_opacity / self.h}
 
     def project(self, opt):
         opt[self.K_COLOR] = dr.clip(opt[self.K_COLOR], 0.0, 1.0)
         opt[self.K_OPACITY] = dr.maximum(opt[self.K_OPACITY], 0.0)
 
     def prior(self, opt):
-        lam = self.config.tf_smoothing
+        lam = self.settings.tf_smoothing
         if lam <= 0:
             return None
-        r = int(self.config.tf_resolution)
+        r = int(self.settings.tf_resolution)
         i = dr.arange(mi.UInt32, r - 1)
         total = mi.Float(0.0)
         for c in range(3):
@@ -396,29 +404,29 @@ class TransferFunctionField(_Classified):
 
 
 class ScalarField(_Classified):
-    """The per-vertex scalar under a known transfer function (``config
-    .transfer_function``, resampled to ``config.tf_resolution`` texels, its
-    opacity per mesh radius times ``config.opacity_scale`` as ``mi-tetvr
+    """The per-vertex scalar under a known transfer function (``transfer_function``,
+    resampled to ``tf_resolution`` texels, its opacity per mesh radius times
+    ``opacity_scale`` as ``mi-tetvr
     make-dataset`` renders it); kept in ``value_range``."""
     point_arrays = {"scalar": (key("vertex_scalar"), 1)}
 
-    def __init__(self, config, h, values=None, tets=None, radius=1.0):
+    def __init__(self, settings, h, values=None, tets=None, trainer=None, radius=1.0):
         from mi_tetvr.transfer import read_transfer_function
-        if config.transfer_function is None:
+        if settings.transfer_function is None:
             raise ValueError("a scalar fit needs the transfer function (transfer_function)")
         values = dict(values or {})
         if "tf_color" not in values:
-            tf = read_transfer_function(config.transfer_function)
-            color, opacity = tf.texels(config.tf_resolution)
-            values.update(tf_color=color, tf_opacity=opacity * config.opacity_scale / radius)
-        super().__init__(config, h, values, tets)
+            tf = read_transfer_function(settings.transfer_function)
+            color, opacity = tf.texels(settings.tf_resolution)
+            values.update(tf_color=color, tf_opacity=opacity * settings.opacity_scale / radius)
+        super().__init__(settings, h, values, tets, trainer)
 
     def initial(self, n):
         return {"scalar": np.full(n, 0.5 * sum(self.value_range))}
 
     def rates(self):
         lo, hi = self.value_range
-        return {key("vertex_scalar"): self.config.lr_scalar * (hi - lo)}
+        return {key("vertex_scalar"): self.trainer.lr_scalar * (hi - lo)}
 
     def project(self, opt):
         lo, hi = self.value_range
@@ -426,26 +434,28 @@ class ScalarField(_Classified):
 
     def prior(self, opt):
         lo, hi = self.value_range
-        return self.edge_smoothing(opt[key("vertex_scalar")], self.config.smoothing,
+        return self.edge_smoothing(opt[key("vertex_scalar")], self.settings.smoothing,
                                    1.0 / (hi - lo))
 
 
 FIELDS = {"volume": VolumeField, "tf": TransferFunctionField}
 
 
-def make_field(config, h, values=None, tets=None, radius=1.0, sh_degree=None) -> Field:
-    """The :class:`Field` a config fits: ``config.optimize`` (volume | tf |
-    scalar), with ``config.model == "absorption"`` an attenuation, on the
-    mesh ``tets`` (its edges carry the smoothing priors). ``radius`` is the
-    mesh's (half its box diagonal): the unit of a known transfer function's
-    opacity. ``sh_degree``: a volume's colors are spherical harmonics of this
-    degree (the stage's, :meth:`FitConfig.stage_list`; None: plain colors)."""
-    if sh_degree is not None and config.model == "emission" and config.optimize == "volume":
-        return ViewDependentField(config, h, values, tets, sh_degree)
-    if config.model == "absorption":
-        return AttenuationField(config, h, values, tets)
-    if config.model == "scattering":
-        return ScatteringField(config, h, values, tets)
-    if config.optimize == "scalar":
-        return ScalarField(config, h, values, tets, radius)
-    return FIELDS[config.optimize](config, h, values, tets)
+def make_field(settings: FieldSettings, h, values=None, tets=None, trainer=None, radius=1.0,
+               sh_degree=None) -> Field:
+    """The :class:`Field` of the fit's ``field`` settings: ``optimize`` (volume | tf |
+    scalar), with ``model`` absorption an attenuation, scattering a lit medium, on the
+    mesh ``tets`` (its edges carry the smoothing priors); ``trainer``: the trainer's
+    settings (the values' steps). ``radius`` is the mesh's (half its box diagonal): the
+    unit of a known transfer function's opacity. ``sh_degree``: a volume's colors are
+    spherical harmonics of this degree (the stage's, :meth:`FitConfig.stage_list`; None:
+    plain colors)."""
+    if sh_degree is not None and settings.kind == "color":
+        return ViewDependentField(settings, h, values, tets, trainer, sh_degree)
+    if settings.model == "absorption":
+        return AttenuationField(settings, h, values, tets, trainer)
+    if settings.model == "scattering":
+        return ScatteringField(settings, h, values, tets, trainer)
+    if settings.optimize == "scalar":
+        return ScalarField(settings, h, values, tets, trainer, radius)
+    return FIELDS[settings.optimize](settings, h, values, tets, trainer)

@@ -53,7 +53,7 @@ def flythrough_cameras(trainer: Trainer):
     scene in its surroundings (views around an object, X-ray projections)."""
     from mi_tetvr.camera import camera_path
     views = sorted(trainer.dataset.train + trainer.dataset.test, key=lambda v: v.name)
-    if trainer.config.scene != "unbounded" or len(views) < 2:
+    if trainer.config.data.scene != "unbounded" or len(views) < 2:
         return []
     return camera_path([v.camera for v in views], FLYTHROUGH_FRAMES)
 
@@ -76,11 +76,11 @@ def fitted_file(config: FitConfig) -> str:
     """The file a fit with ``config`` writes what it fitted to, named after it:
     ``mesh.vtu`` (colors and opacities), ``attenuation.vtu`` (``model`` absorption),
     ``scalar.vtu`` (``optimize`` scalar) or ``transfer_function.json`` (``optimize`` tf)."""
-    if config.optimize == "tf":
+    if config.field.optimize == "tf":
         return "transfer_function.json"
-    if config.optimize == "scalar":
+    if config.field.optimize == "scalar":
         return "scalar.vtu"
-    return "attenuation.vtu" if config.model == "absorption" else "mesh.vtu"
+    return "attenuation.vtu" if config.field.model == "absorption" else "mesh.vtu"
 
 
 def write_fitted(trainer: Trainer, out: Path):

@@ -59,22 +59,22 @@ def for_capture(config: FitConfig, dataset):
     an unbounded scene starts from its sparse points and far shells
     (``init="unbounded"``), learns its background and a color transform per
     photo, with an L1 loss; an object a grid, L2, no transform."""
-    kind = config.scene
+    kind = config.data.scene
     if kind == "auto":
-        kind = "object" if (config.model != "emission" or config.optimize != "volume"
-                            or config.init not in ("auto", "unbounded")) \
+        kind = "object" if (config.field.model != "emission" or config.field.optimize != "volume"
+                            or config.mesh.init not in ("auto", "unbounded")) \
             else capture_kind(dataset)
     unbounded = kind == "unbounded"
     changes = {"scene": kind}
-    if config.init == "auto":
+    if config.mesh.init == "auto":
         changes["init"] = "unbounded" if unbounded else "grid"
-    if config.loss is None:
+    if config.trainer.loss is None:
         changes["loss"] = "l1" if unbounded else "l2"
-    if config.appearance is None:
+    if config.field.appearance is None:
         changes["appearance"] = unbounded
-    if unbounded and config.background is None:
+    if unbounded and config.field.background is None:
         changes["background"] = "learn"
-    if config.sh_degree is None and config.model == "emission" and config.optimize == "volume":
+    if config.field.sh_degree is None and config.kind == "color":
         changes["sh_degree"] = SH_DEGREE_UNBOUNDED if unbounded else 0
     return config.updated(**changes)
 
@@ -127,35 +127,36 @@ def _full_resolution(dataset):
 
 def initial_mesh(config: FitConfig, dataset):
     """Vertices (n, 3), tets (m, 4) and starting values (a dict, or None for
-    the field's defaults) of the starting mesh, over ``config.bounds`` or the
+    the field's defaults) of the starting mesh, over ``config.mesh.bounds`` or the
     region the data shows (:func:`data_bounds`), or read from the file
-    ``config.init`` (with its scalar field, ``config.scalar``, when a
+    ``config.mesh.init`` (with its scalar field, ``config.mesh.scalar``, when a
     transfer function or a scalar is fitted)."""
     from mi_tetvr.mesh import initial as initmesh
     from mi_tetvr.mesh.io import choose_scalar, read_tetmesh
-    if config.init == "auto":
+    if config.mesh.init == "auto":
         config = for_capture(config, dataset)
-    init = config.init
+    init = config.mesh.init
     if init == "unbounded":
         return unbounded_mesh(config, dataset)
     if init not in ("grid", "tetwild", "delaunay"):
-        if config.optimize == "volume":
-            mesh = read_tetmesh(init, repair=config.repair, cell_to_point=config.cell_to_point)
+        if config.field.optimize == "volume":
+            mesh = read_tetmesh(init, repair=config.mesh.repair,
+                                cell_to_point=config.mesh.cell_to_point)
             return mesh.vertices, mesh.tets, None
-        mesh = read_tetmesh(init, color=None, opacity=None, repair=config.repair,
-                            cell_to_point=config.cell_to_point)
-        if config.optimize == "scalar" and config.scalar_init == "colors" and \
-                config.value_range is not None:
+        mesh = read_tetmesh(init, color=None, opacity=None, repair=config.mesh.repair,
+                            cell_to_point=config.mesh.cell_to_point)
+        if config.field.optimize == "scalar" and config.field.scalar_init == "colors" and \
+                config.field.value_range is not None:
             return mesh.vertices, mesh.tets, None     # the scalar comes from the colors
-        name = choose_scalar(mesh.point_data, config.scalar, init, mesh.cell_data)
+        name = choose_scalar(mesh.point_data, config.mesh.scalar, init, mesh.cell_data)
         return mesh.vertices, mesh.tets, {"scalar": np.asarray(mesh.point_data[name],
                                                                np.float64).reshape(-1)}
     if init == "delaunay":
         if dataset.points is None:
             raise ValueError("init 'delaunay' needs sparse points (a COLMAP data set)")
         return (*initmesh.delaunay_init(dataset.points), None)
-    bounds = data_bounds(config, dataset)
-    resolution = config.stage_list()[0]["grid"] or config.grid_resolution or DEFAULT_RESOLUTION
+    bounds = data_bounds(config.mesh, dataset)
+    resolution = config.stage_list()[0]["grid"] or config.mesh.grid_resolution or DEFAULT_RESOLUTION
     if init == "grid":
         return (*initmesh.grid_init(bounds, resolution), None)
     edge = float(np.max(bounds[1] - bounds[0])) / resolution
@@ -176,8 +177,8 @@ def unbounded_mesh(config: FitConfig, dataset):
         raise ValueError("init 'unbounded' needs sparse points (a COLMAP model, or photos "
                          "with poses to triangulate them from)")
     centers = np.array([v.camera.center for v in dataset.views])
-    vertices, tets, is_shell = unbounded_init(dataset.points, centers, seed=config.seed,
-                                              outer=config.outer)
+    vertices, tets, is_shell = unbounded_init(dataset.points, centers, seed=config.trainer.seed,
+                                              outer=config.mesh.outer)
     mean = np.mean([v.image[..., :3].reshape(-1, 3).mean(0) for v in dataset.train], 0)
     color = np.tile(mean, (len(vertices), 1))
     if dataset.point_colors is not None:
@@ -190,15 +191,15 @@ def data_warnings(config: FitConfig, dataset):
     """What looks wrong about fitting ``dataset`` with ``config``: photos of a
     scene in its surroundings (no transparent pixel, or cameras inside the
     region fitted) with nothing that models what lies outside the box."""
-    if config.background == "learn" or config.model == "scattering":
+    if config.field.background == "learn" or config.field.model == "scattering":
         return []       # (a lit medium: the lights' scene holds the surroundings)
     out = []
-    if config.background is None and all(float(v.image[..., 3].min()) >= 0.999
+    if config.field.background is None and all(float(v.image[..., 3].min()) >= 0.999
                                           for v in dataset.train):
         out.append("every training pixel is opaque, yet the fit matches alpha (background "
                    "none): the volume must explain the surroundings too; for photos of a "
                    "scene in its surroundings try --background learn")
-    lo, hi = data_bounds(config, dataset)
+    lo, hi = data_bounds(config.mesh, dataset)
     inside = [v.name for v in dataset.train
               if np.all((v.camera.center >= lo) & (v.camera.center <= hi))]
     if inside:
@@ -235,9 +236,9 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
         now=time.perf_counter, viewer=None):
     """Fit, checkpointing to ``out_dir``; returns the final metrics dict.
 
-    Runs ``config``'s stages in order (one stage unless ``config.stages``);
+    Runs ``config``'s stages in order (one stage unless ``config.strategy.stages``);
     between stages the mesh may be refined and pruned (:func:`next_stage`).
-    With ``config.time_budget`` the whole call (steps, outputs) takes that long
+    With ``config.trainer.time_budget`` the whole call (steps, outputs) takes that long
     (a resumed run gets the budget again, for more steps): the grid resolution,
     unless set, is planned from the data and the budget (:func:`planned_resolution`,
     no clock read: the same mesh on any machine), a coarse grid trains first
@@ -257,7 +258,7 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.npz"
-    budget = None if config.time_budget is None else 60.0 * config.time_budget
+    budget = None if config.trainer.time_budget is None else 60.0 * config.trainer.time_budget
     if config.linear_solver:
         # X-ray projections: the linear problem, solved as such
         from mi_tetvr.recon.tomography import fit_attenuation
@@ -269,10 +270,10 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     if earlier is not None:
         said = dict(budget_seconds=earlier.budget_seconds, planned_steps=earlier.planned_steps,
                     step_seconds=earlier.step_seconds)
-    elif budget is not None and asked.grid_resolution is None and \
-            config.grid_resolution is not None and not (resume and ckpt_path.exists()):
+    elif budget is not None and asked.mesh.grid_resolution is None and \
+            config.mesh.grid_resolution is not None and not (resume and ckpt_path.exists()):
         said = dict(budget_seconds=budget, planned_steps=BUDGET_STEPS,
-                    step_seconds=nominal_step_seconds(config, dataset, config.grid_resolution))
+                    step_seconds=nominal_step_seconds(config, dataset, config.mesh.grid_resolution))
     else:
         said = dict(budget_seconds=budget)
     write_settings(out, asked, config, **said)
@@ -312,14 +313,14 @@ def prepare(dataset, out: Path, config: FitConfig, resume=True, budget=None, pro
     ckpt_path = out / "checkpoint.npz"
     config = for_capture(config, dataset)
     saved = check_resume(config, ckpt_path) if resume and ckpt_path.exists() else None
-    if config.init in ("unbounded", "delaunay"):
+    if config.mesh.init in ("unbounded", "delaunay"):
         dataset = with_sparse_points(dataset, out, progress, log)
-        if config.stages is None and config.init == "unbounded":
+        if config.strategy.stages is None and config.mesh.init == "unbounded":
             config = config.updated(stages=unbounded_stages(config, dataset))
-    if config.bounds is None and config.init in ("grid", "tetwild"):
+    if config.mesh.bounds is None and config.mesh.init in ("grid", "tetwild"):
         # the region once (a visual hull is carved from every view): the plan,
         # limits, warnings, the mesh and each grid stage read it, config.json keeps it
-        config = dataclasses.replace(config, bounds=data_bounds(config, dataset).tolist())
+        config = config.replaced(bounds=data_bounds(config.mesh, dataset).tolist())
     if saved is None:
         config, trainer = first_trainer(dataset, config, budget, progress, log)
         return config, dataset, trainer
@@ -327,9 +328,9 @@ def prepare(dataset, out: Path, config: FitConfig, resume=True, budget=None, pro
     if plan is not None:
         # what the run decided when it began (the mesh sizes and stages among them)
         config = plan.applied(config)
-    elif config.grid_resolution is None and config.stages is None:
+    elif config.mesh.grid_resolution is None and config.strategy.stages is None:
         # a fit written before plans were kept apart: its checkpoint's settings
-        config = dataclasses.replace(config, grid_resolution=saved["grid_resolution"],
+        config = config.replaced(grid_resolution=saved["grid_resolution"],
                                      stages=saved["stages"])
     trainer = load_checkpoint(ckpt_path, dataset, config)
     log(f"resumed from {ckpt_path} at step {trainer.state.step} "
@@ -345,7 +346,7 @@ def first_trainer(dataset, config: FitConfig, budget=None, progress=True, log=pr
     from mi_tetvr.mesh.topology import build_topology, format_summary, geometry_summary
     for text in data_warnings(config, dataset):
         log(f"warning: {text}")
-    if config.grid_resolution is None and config.init in ("grid", "tetwild"):
+    if config.mesh.grid_resolution is None and config.mesh.init in ("grid", "tetwild"):
         resolution = DEFAULT_RESOLUTION
         if budget is not None:
             resolution = planned_resolution(config, dataset, 0.85 * budget)
@@ -353,18 +354,18 @@ def first_trainer(dataset, config: FitConfig, budget=None, progress=True, log=pr
                 f"{nominal_step_seconds(config, dataset, resolution):.3f} s on the reference "
                 f"machine in {0.85 * budget / 60:.1f} min (the budget ends the run: a faster "
                 f"machine takes more steps)")
-        config = dataclasses.replace(config, grid_resolution=resolution)
-        if budget is not None and config.init == "grid" and config.stages is None:
+        config = config.replaced(grid_resolution=resolution)
+        if budget is not None and config.mesh.init == "grid" and config.strategy.stages is None:
             config = config.updated(stages=budget_stages(config, resolution))
-            log("stages: " + " -> ".join(f"grid {st['grid']}" for st in config.stages))
+            log("stages: " + " -> ".join(f"grid {st['grid']}" for st in config.strategy.stages))
     vertices, tets, values = initial_mesh(config, dataset)
-    if values is not None and "scalar" in values and config.value_range is None:
+    if values is not None and "scalar" in values and config.field.value_range is None:
         # recorded in config.json: the range the transfer function spans
         s = values["scalar"]
-        config = dataclasses.replace(config, value_range=[float(s.min()), float(s.max())])
+        config = config.replaced(value_range=[float(s.min()), float(s.max())])
     topology = build_topology(vertices, tets)      # once: the summary and the trainer's
     log(format_summary(geometry_summary(vertices, topology)))
-    if config.optimize == "scalar" and config.scalar_init == "colors":
+    if config.field.optimize == "scalar" and config.field.scalar_init == "colors":
         values = {"scalar": scalar_from_colors(config, dataset, vertices, tets, progress, log)}
     return config, Trainer(dataset, vertices, tets, config.for_stage(0), values,
                            topology=topology)
@@ -384,7 +385,7 @@ class _Loop:
         self.steps_begin, self.train_begin = trainer.state.step, now()
         self.seconds = trainer.state.elapsed
         # sRGB MSE of the last steps (the PSNR the bar shows)
-        self.recent_mse = collections.deque(maxlen=config.log_every)
+        self.recent_mse = collections.deque(maxlen=config.trainer.log_every)
 
     def run(self):
         self.bar = self._bar()
@@ -436,7 +437,7 @@ class _Loop:
         share = clock.weights[i + 1] / max(sum(clock.weights[i + 1:]), 1e-9)
         seconds = max(left * share - self.between, 0.0)
         steps = MIN_STAGE_EPOCHS * len(trainer.dataset.train) / min(
-            self.config.views_per_step, len(trainer.dataset.train))
+            self.config.trainer.views_per_step, len(trainer.dataset.train))
         max_tets, held = affordable(len(trainer.tets), step_seconds, seconds, steps,
                                     trainer.downscale, self.stages[i + 1]["downscale"])
         if held:
@@ -475,11 +476,11 @@ class _Loop:
         h["psnr"].append(psnr(mse))
         self.recent_mse.append(mse)
         self.bar.update(dt if self.clock else 1)
-        if state.step % config.log_every == 0 or state.step == 1:
+        if state.step % config.trainer.log_every == 0 or state.step == 1:
             self.bar.set_postfix(step=state.step, loss=f"{loss:.3g}",
                                  psnr=f"{psnr(float(np.mean(self.recent_mse))):.2f}",
                                  tets=f"{len(trainer.tets):,}")
-        if state.step % config.checkpoint_every == 0:
+        if state.step % config.trainer.checkpoint_every == 0:
             save_checkpoint(trainer, self.ckpt_path)
         if self.live is not None:
             self.live.after_step(trainer, loss, h["psnr"][-1], self.stage_text())
@@ -507,26 +508,26 @@ class _Loop:
 def scalar_from_colors(config: FitConfig, dataset, vertices, tets, progress=True, log=print):
     """The start of a scalar fit under a known transfer function (DiffDVR's
     remedy for its non-convexity, :mod:`mi_tetvr.recon.density`): per-vertex
-    colors and opacities fitted on the mesh for ``config.iterations`` steps,
+    colors and opacities fitted on the mesh for ``config.trainer.iterations`` steps,
     then the scalar whose classified color matches them. Returns (n,) float."""
     from mi_tetvr.progress import progress_bar as tqdm
 
     from mi_tetvr.recon.density import match_scalars
     from mi_tetvr.recon.fields import ScalarField
     colors = Trainer(dataset, vertices, tets,
-                     dataclasses.replace(config, optimize="volume", stages=None),
-                     state=RunState(rng=np.random.default_rng(config.seed + 2)))
-    for _ in tqdm(range(config.iterations), desc="colors first", disable=not progress):
+                     config.replaced(optimize="volume", stages=None),
+                     state=RunState(rng=np.random.default_rng(config.trainer.seed + 2)))
+    for _ in tqdm(range(config.trainer.iterations), desc="colors first", disable=not progress):
         colors.step()
     _, oriented, values = colors.arrays()
-    lo, hi = config.value_range
+    lo, hi = config.field.value_range
     # the known transfer function in world units, as the scalar fit will use it
-    field = ScalarField(config, colors.h, radius=colors.radius)
+    field = ScalarField(config.field, colors.h, radius=colors.radius)
     scalar = match_scalars(values["color"], values["opacity"],
                            field.transfer_function(field.fixed), (lo, hi), oriented, colors.h)
     psnr_colors = colors.evaluate(dataset.test or dataset.train[:1])["mean"]["psnr"]
-    log(f"colors first: {config.iterations} steps (held-out PSNR {psnr_colors:.2f} dB), then "
-        f"the scalars their colors match")
+    log(f"colors first: {config.trainer.iterations} steps (held-out PSNR {psnr_colors:.2f} "
+        f"dB), then the scalars their colors match")
     return scalar
 
 
@@ -593,7 +594,7 @@ def evaluate_fit(fit_dir, data, split="test", downscale=None, holdout=8):
                                 f"checkpoint.npz and config.json); give a fit's --out folder "
                                 f"or a mesh file")
     config = fit_settings(fit_dir)
-    dataset = load_dataset(data, downscale=downscale or config.downscale, holdout=holdout)
+    dataset = load_dataset(data, downscale=downscale or config.data.downscale, holdout=holdout)
     trainer = load_checkpoint(ckpt, dataset, config)
     views = dataset.test if split == "test" and dataset.test else dataset.train
     scored = "transmittance" if trainer.field.signal == "transmittance" else "sRGB"

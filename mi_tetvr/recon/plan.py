@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_tetvr.recon.config import FitConfig, same_setting
+from mi_tetvr.recon.config import PART_OF, FitConfig, MeshSettings, same_setting
 
 __all__ = ["FitPlan", "fit_settings", "write_settings", "data_bounds", "resolution_limits",
            "nominal_step_seconds", "planned_resolution", "budget_stages", "DEFAULT_RESOLUTION",
@@ -62,11 +62,12 @@ RESOLUTION_RANGE = (12, 96)
 PIXELS_PER_VERTEX = 2
 
 
-def data_bounds(config: FitConfig, dataset):
-    """The (2, 3) box to reconstruct in: the config's, else the visual hull of
-    the training alpha masks (when the images have alpha), else the data set's."""
-    if config.bounds is not None:
-        return np.asarray(config.bounds, np.float64).reshape(2, 3)
+def data_bounds(mesh: MeshSettings, dataset):
+    """The (2, 3) box to reconstruct in: the ``mesh`` settings' ``bounds``, else the
+    visual hull of the training alpha masks (when the images have alpha), else the data
+    set's."""
+    if mesh.bounds is not None:
+        return np.asarray(mesh.bounds, np.float64).reshape(2, 3)
     from mi_tetvr.recon.hull import visual_hull_bounds
     views = dataset.train
     if views and any(float(v.image[..., 3].min()) < 0.5 for v in views):
@@ -82,8 +83,8 @@ def nominal_step_seconds(config: FitConfig, dataset, resolution):
     same on a busy machine and an idle one."""
     from mi_tetvr.mesh.initial import grid_shape
     pixels = np.mean([v.camera.width * v.camera.height for v in dataset.train])
-    rays = min(config.views_per_step, len(dataset.train)) * pixels * config.spp
-    tets = 6 * np.prod(grid_shape(data_bounds(config, dataset), resolution))
+    rays = min(config.trainer.views_per_step, len(dataset.train)) * pixels * config.trainer.spp
+    tets = 6 * np.prod(grid_shape(data_bounds(config.mesh, dataset), resolution))
     fixed, per_ray, per_ray_cell, per_tet = STEP_COST
     seconds = fixed + rays * (per_ray + per_ray_cell * resolution) + per_tet * tets
     return float(seconds * KIND_COST.get(config.kind, 1.0))
@@ -107,7 +108,7 @@ def resolution_limits(config: FitConfig, dataset):
     from mi_tetvr.mesh.initial import grid_shape
     width = max(max(v.camera.width, v.camera.height) for v in dataset.train)
     pixels = sum(v.camera.width * v.camera.height for v in dataset.train)
-    bounds = data_bounds(config, dataset)
+    bounds = data_bounds(config.mesh, dataset)
     top = min(RESOLUTION_RANGE[1], int(width / 1.5))
     while top > RESOLUTION_RANGE[0] and \
             np.prod(np.add(grid_shape(bounds, top), 1)) * PIXELS_PER_VERTEX > pixels:
@@ -122,10 +123,10 @@ def budget_stages(config: FitConfig, resolution):
     The iterations are time weights."""
     coarse = resolution // 2
     if coarse < RESOLUTION_RANGE[0]:
-        return [{"iterations": config.iterations, "grid": resolution}]
-    first = max(1, round(COARSE_SHARE * config.iterations))
+        return [{"iterations": config.trainer.iterations, "grid": resolution}]
+    first = max(1, round(COARSE_SHARE * config.trainer.iterations))
     return [{"iterations": first, "grid": coarse},
-            {"iterations": max(1, config.iterations - first), "grid": resolution}]
+            {"iterations": max(1, config.trainer.iterations - first), "grid": resolution}]
 
 
 @dataclass
@@ -146,15 +147,15 @@ class FitPlan:
     @classmethod
     def between(cls, asked: FitConfig, run: FitConfig, **budget):
         """The plan that turns ``asked`` into ``run``: the settings that differ."""
-        a, r = asked.to_dict(), run.to_dict()
+        a, r = asked.flat(), run.flat()
         return cls({k: v for k, v in r.items() if not same_setting(a[k], v)}, **budget)
 
     def applied(self, config: FitConfig) -> FitConfig:
         """``config`` (what was asked) with the plan's settings."""
-        unknown = sorted(set(self.settings) - {f.name for f in dataclasses.fields(config)})
+        unknown = sorted(set(self.settings) - set(PART_OF))
         if unknown:
             raise ValueError(f"a fit's plan with settings a fit does not have: {unknown}")
-        return dataclasses.replace(config, **self.settings)
+        return config.replaced(**self.settings)
 
     def write(self, folder):
         Path(folder, self.FILE).write_text(json.dumps(dataclasses.asdict(self), indent=2))

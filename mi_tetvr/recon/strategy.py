@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mi_tetvr.recon.config import FitConfig
+
 __all__ = ["Strategy", "StageRefinement", "VertexState", "retriangulates", "unbounded_stages",
            "UNBOUNDED_PRUNE", "UNBOUNDED_SPLIT", "UNBOUNDED_SPLITS",
            "UNBOUNDED_DOWNSCALE", "COARSE_PIXELS", "affordable", "MIN_STAGE_EPOCHS",
@@ -97,9 +99,14 @@ class Strategy:
 class StageRefinement(Strategy):
     """The stages' own refinement (see the module docstring), by their settings."""
 
-    def __init__(self, config, max_tets=None):
-        self.config = config
-        self.stages = config.stage_list()
+    def __init__(self, config: FitConfig, max_tets=None):
+        #: The strategy's settings (``target_tets``, ``retriangulate``), and the stages.
+        self.settings, self.stages = config.strategy, config.stage_list()
+        #: The starting mesh's settings (its box and grid: what a grid stage refines).
+        self.mesh = config.mesh
+        #: Whether a stage that moved the vertices is followed by their Delaunay
+        #: tetrahedralization, and its seed.
+        self.retriangulates, self.seed = retriangulates(config), config.trainer.seed
         #: The most tets the next stage can afford (:func:`affordable`; None: no limit).
         self.max_tets = max_tets
 
@@ -109,7 +116,7 @@ class StageRefinement(Strategy):
             return self.regrid(trainer, self.stages[done + 1]["grid"], log)
         stage = self.stages[done]
         state, values, moments = self.collect(trainer, stage)
-        if stage["lr_position"] > 0 and retriangulates(self.config):
+        if stage["lr_position"] > 0 and self.retriangulates:
             state = self.retriangulate(state, done + 1, log)
         if stage["prune"] is not None:
             state = self.prune(state, trainer.field.extinction, float(stage["prune"]), log)
@@ -129,8 +136,8 @@ class StageRefinement(Strategy):
         from mi_tetvr.mesh.initial import grid_init, grid_sample
         from mi_tetvr.recon.plan import data_bounds
         _, _, values = trainer.arrays()
-        bounds = data_bounds(self.config, trainer.dataset)
-        current = self.stages[trainer.state.stage]["grid"] or self.config.grid_resolution
+        bounds = data_bounds(self.mesh, trainer.dataset)
+        current = self.stages[trainer.state.stage]["grid"] or self.mesh.grid_resolution
         vertices, tets = grid_init(bounds, grid)
         values.update({k: grid_sample(bounds, current, values[k], vertices)
                        for k in trainer.field.point_arrays})
@@ -145,7 +152,7 @@ class StageRefinement(Strategy):
         data = {k: values[k] for k in trainer.field.point_arrays}
         for k, (_, m, v) in moments.items():
             data[f"{k}:m"], data[f"{k}:v"] = m, v
-        target = self.config.target_tets
+        target = self.settings.target_tets
         split = stage["split"] > 0 and (target is None or len(tets) < target)
         # scored on this stage's mesh; the vertices kept carry their scores
         scores = trainer.split_scores() if split else None
@@ -155,7 +162,7 @@ class StageRefinement(Strategy):
         """The moved vertices tetrahedralized anew (Delaunay)."""
         from mi_tetvr.mesh.initial import retriangulate
         vertices, tets, data, parent = retriangulate(state.vertices, state.data,
-                                                     seed=self.config.seed + stage)
+                                                     seed=self.seed + stage)
         log(f"tetrahedralized the moved vertices anew (Delaunay): {len(state.tets):,} -> "
             f"{len(tets):,} tets")
         return state.keep(vertices, tets, data, parent)
@@ -195,10 +202,10 @@ class StageRefinement(Strategy):
 
 def retriangulates(config) -> bool:
     """Whether a stage that moved the vertices is followed by their Delaunay
-    tetrahedralization (``config.retriangulate``; by default for meshes born Delaunay)."""
-    if config.retriangulate is not None:
-        return bool(config.retriangulate)
-    return config.init in ("unbounded", "delaunay")
+    tetrahedralization (``retriangulate``; by default for meshes born Delaunay)."""
+    if config.strategy.retriangulate is not None:
+        return bool(config.strategy.retriangulate)
+    return config.mesh.init in ("unbounded", "delaunay")
 
 
 def unbounded_stages(config, dataset):
@@ -208,12 +215,13 @@ def unbounded_stages(config, dataset):
     :data:`UNBOUNDED_SPLITS` followed by pruning and a split of the vertices with the largest
     gradients (cells where the error is), the others but the last by pruning."""
     stages = len(UNBOUNDED_DOWNSCALE)
-    n = max(int(config.iterations) // stages, 1)
+    total = int(config.trainer.iterations)
+    n = max(total // stages, 1)
     side = min(min(v.camera.width, v.camera.height) for v in dataset.train)
     top = max(1, side // COARSE_PIXELS)
     out = []
     for i, k in enumerate(UNBOUNDED_DOWNSCALE):
-        st = {"iterations": n if i + 1 < stages else max(int(config.iterations) - n * i, 1)}
+        st = {"iterations": n if i + 1 < stages else max(total - n * i, 1)}
         if min(k, top) > 1:
             st["downscale"] = int(min(k, top))
         if i + 1 < stages:

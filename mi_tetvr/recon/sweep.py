@@ -85,7 +85,7 @@ def run_trial(config):
     from mi_tetvr.recon.pipeline import run as run_fit
     combo = config["settings"]
     cfg = FitConfig().updated(**{**config["base"], **combo})
-    data = load_dataset(config["data"], downscale=cfg.downscale or 1,
+    data = load_dataset(config["data"], downscale=cfg.data.downscale or 1,
                         holdout=config["holdout"])
     out = Path(config["out"]) / "trials" / trial_name(combo)
     out.mkdir(parents=True, exist_ok=True)
@@ -108,7 +108,7 @@ def sweep(data, sweep_file, out, workers=1, address=None, holdout=8, variant="ll
     from mi_tetvr.recon.datasets import load_dataset
     base, grid = read_sweep(sweep_file)
     # the data set read here first: what is wrong with it is said before any trial
-    load_dataset(data, downscale=FitConfig().updated(**base).downscale or 1, holdout=holdout)
+    load_dataset(data, downscale=FitConfig().updated(**base).data.downscale or 1, holdout=holdout)
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     started = connect(workers, address)

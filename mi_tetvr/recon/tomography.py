@@ -785,21 +785,21 @@ def _pwls_stage(projector, b, weights, gradient, x0, config, passes, tune, tune_
                 solve, log, near=None, reference=None):
     """One mesh's :class:`PenalizedLS` solve for :func:`fit_attenuation`:
     with ``tune``, the penalty weight searched on every
-    ``config.validation``-th view held out, then all views from the
+    ``config.solver.validation``-th view held out, then all views from the
     tuning's solution (the search starts about ``near``, an earlier mesh's
-    weight, when given); else ``config.tv`` (default :data:`LAMBDA_DEFAULT`)
+    weight, when given); else ``config.solver.tv`` (default :data:`LAMBDA_DEFAULT`)
     for ``passes``. Returns ``(x, record)``: the weight (``tv``), how it was
     chosen, and the tuning's trials. ``reference``: :class:`PenalizedLS`'s."""
     if not tune:
         pls = PenalizedLS(projector, b, weights, gradient, reference=reference)
         start = pls.start(x0=x0, callback=solve["callback"])
-        given = isinstance(config.tv, (int, float))
-        lam = config.tv if given else LAMBDA_DEFAULT
+        given = isinstance(config.solver.tv, (int, float))
+        lam = config.solver.tv if given else LAMBDA_DEFAULT
         log(f"penalty weight {lam:g} ({'given' if given else 'the default rule'})")
         return pls.solve(lam, passes, start, **solve), \
             {"tv": lam, "chosen": "given" if given else "the default rule"}
     from mi_tetvr.grid.slices import validation_split
-    fit_views, val_views = validation_split(len(projector.cameras), config.validation)
+    fit_views, val_views = validation_split(len(projector.cameras), config.solver.validation)
     pls = PenalizedLS(projector, b, weights, gradient, views=fit_views, reference=reference)
     start = pls.start(x0=x0, callback=solve["callback"])
     best, trials = pls.tune(val_views, passes, start, deadline=tune_deadline,
@@ -823,16 +823,16 @@ def _pwls_stage(projector, b, weights, gradient, x0, config, passes, tune, tune_
 def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=print,
                     now=time.perf_counter):
     """``mi-tetvr fit --model absorption`` with a linear solver
-    (``config.solver`` ``sart``, ``sirt`` or ``lsqr``): an attenuation on a
+    (``config.solver.solver`` ``sart``, ``sirt`` or ``lsqr``): an attenuation on a
     tet grid from X-ray projections, written as every fit writes its results
     (``attenuation.vtu``, ``metrics.json``, ``test/*.png``, ``progress.png``,
     ``checkpoint.npz``, ``config.json``). Returns the metrics.
 
     The grid's cells are the detector's pixels (:func:`detector_cell`) unless
-    ``config.grid_resolution`` says otherwise; with ``config.stages`` of
+    ``config.mesh.grid_resolution`` says otherwise; with ``config.strategy.stages`` of
     ``{"grid": r}`` entries each grid is solved in turn, starting from the
-    previous one's field (coarse to fine). ``config.xray_flux`` or the data
-    set's weights the rays by their counts. ``config.time_budget`` (minutes)
+    previous one's field (coarse to fine). ``config.data.xray_flux`` or the data
+    set's weights the rays by their counts. ``config.trainer.time_budget`` (minutes)
     bounds the passes.
     """
     fit = _AttenuationFit(dataset, Path(out_dir), config, progress, log, now)
@@ -853,20 +853,21 @@ class _AttenuationFit:
         self.progress = progress
         out.mkdir(parents=True, exist_ok=True)
         # the scanned box the data set records (a volume's), else the region the views show
-        bounds = np.asarray(dataset.bbox, np.float64) if config.bounds is None and \
-            dataset.bbox is not None else data_bounds(config, dataset)
+        bounds = np.asarray(dataset.bbox, np.float64) if config.mesh.bounds is None and \
+            dataset.bbox is not None else data_bounds(config.mesh, dataset)
         cell = detector_cell(dataset, bounds)
-        self.budget = None if config.time_budget is None else 60.0 * config.time_budget
+        minutes = config.trainer.time_budget
+        self.budget = None if minutes is None else 60.0 * minutes
         self.solver = config.linear_solver
-        self.passes = config.passes or DEFAULT_PASSES[self.solver]
-        flux = config.xray_flux if config.xray_flux is not None else dataset.xray_flux
+        self.passes = config.solver.passes or DEFAULT_PASSES[self.solver]
+        flux = config.data.xray_flux if config.data.xray_flux is not None else dataset.xray_flux
         # the box a hair larger than the data's: rays along its faces run inside
         self.box = np.stack([bounds[0] - 1e-3 * cell, bounds[1] + 1e-3 * cell])
-        self.resolution = config.grid_resolution or aligned_resolution(bounds, cell)
-        self.config = dataclasses.replace(config, bounds=np.asarray(bounds).tolist(),
+        self.resolution = config.mesh.grid_resolution or aligned_resolution(bounds, cell)
+        self.config = config.replaced(bounds=np.asarray(bounds).tolist(),
                                           grid_resolution=self.resolution, xray_flux=flux)
         # coarse to fine: each stage's grid (one without: the fit's), the fit's last
-        grids = [int(st.get("grid") or self.resolution) for st in (config.stages or [])]
+        grids = [int(st.get("grid") or self.resolution) for st in (config.strategy.stages or [])]
         self.grids = [g for g in grids if g != self.resolution] + [self.resolution]
         self.ckpt = out / "checkpoint.npz"
         self.b = depths(dataset.train, flux)
@@ -875,18 +876,18 @@ class _AttenuationFit:
         self.history = {"step": [], "time": [], "loss": [], "psnr": []}
         self.one_row = all(c.height == 1 and c.is_orthographic for c in self.cameras)
         # held-out tuning (on the last grid) of the passes, and of pwls's penalty weight
-        self.tuning = config.validation > 0 and len(self.cameras) >= 6 and (
-            (self.solver == "pwls" and config.tv == "heldout") or
-            (self.solver in ("sart", "sirt") and config.passes is None))
-        if self.solver == "pwls" and config.tv == "heldout" and not self.tuning:
+        self.tuning = config.solver.validation > 0 and len(self.cameras) >= 6 and (
+            (self.solver == "pwls" and config.solver.tv == "heldout") or
+            (self.solver in ("sart", "sirt") and config.solver.passes is None))
+        if self.solver == "pwls" and config.solver.tv == "heldout" and not self.tuning:
             log(f"{len(self.cameras)} views are too few to hold some out: the penalty's "
                 f"weight by the default rule")
         self.max_passes = MAX_PASSES[self.solver] if self.tuning and self.solver != "pwls" \
             else self.passes
         self.saved = self.tuned = self.weight = self.reference = None
         self.octree = None                           # the graded grid (--adapt, trilinear)
-        self.vertex_basis, self.basis_given = None, config.basis
-        self.set_basis(config.basis or self.default_basis())
+        self.vertex_basis, self.basis_given = None, config.solver.basis
+        self.set_basis(config.solver.basis or self.default_basis())
 
     def default_basis(self):
         """Trilinear where the grid's walk has at most :data:`TRILINEAR_TETS` tets (an
@@ -901,11 +902,11 @@ class _AttenuationFit:
 
     def set_basis(self, basis):
         """The field between the unknowns, in the config the fit saves."""
-        self.config = dataclasses.replace(self.config, basis=basis)
+        self.config = self.config.replaced(basis=basis)
 
     @property
     def trilinear(self):
-        return self.config.basis == "trilinear"
+        return self.config.solver.basis == "trilinear"
 
     def deadline(self, share):
         """A function that says when ``share`` of the time budget is spent (None: no budget)."""
@@ -921,10 +922,10 @@ class _AttenuationFit:
             return None
         # the default basis is the saved fit's (linear before there was a choice)
         given = self.basis_given
-        settings = check_resume(dataclasses.replace(self.config, basis=given), self.ckpt)
-        if given is None and (settings.get("basis") or "linear") != self.config.basis:
+        settings = check_resume(self.config.replaced(basis=given), self.ckpt)
+        if given is None and (settings.get("basis") or "linear") != self.config.solver.basis:
             self.set_basis(settings.get("basis") or "linear")
-            self.log(f"basis {self.config.basis}: the resumed fit's")
+            self.log(f"basis {self.config.solver.basis}: the resumed fit's")
         saved = load_checkpoint(self.ckpt, self.dataset, self.config)
         self.saved = saved.arrays()[:2]
         self.grids = self.grids[-1:]
@@ -936,11 +937,12 @@ class _AttenuationFit:
         """Whether the fit's meshes are graded (``--adapt`` with the penalized
         solver on a detector of more than one row): a coarse grid split where it
         has detail, or a resumed such mesh."""
-        return self.config.adapt_share is not None and self.solver == "pwls" and not self.one_row
+        return (self.config.solver.adapt_share is not None and self.solver == "pwls"
+                and not self.one_row)
 
     def plan(self, x0):
         """The meshes solved in turn, as ``(kind, grid resolution)``."""
-        if self.config.adapt_share is not None and not self.graded:
+        if self.config.solver.adapt_share is not None and not self.graded:
             self.log("adapt: " + ("a one-row detector's slab has no cells to coarsen"
                                   if self.one_row else f"solver {self.solver} solves on the grid"))
         if x0 is not None and not self.trilinear:
@@ -984,7 +986,8 @@ class _AttenuationFit:
             return self.graded_grid(kind, g, prev)
         if kind == "adaptive":
             grid_vertices = int(np.prod(np.asarray(grid_shape(self.box, g)) + 1))
-            v, t, x, split = adaptive_mesh(*prev, int(self.config.adapt_share * grid_vertices))
+            share = self.config.solver.adapt_share
+            v, t, x, split = adaptive_mesh(*prev, int(share * grid_vertices))
             self.log(f"adaptive mesh: split about {split:,} of the coarse grid's "
                      f"{len(prev[0]):,} vertices, where its field changes most: {len(v):,} "
                      f"vertices ({len(v) / grid_vertices:.0%} of the grid's {grid_vertices:,})")
@@ -999,7 +1002,7 @@ class _AttenuationFit:
         """The trilinear field's graded grid (:class:`~mi_tetvr.recon.octree.GradedGrid`,
         :attr:`octree`) over the cells of ``grid_init(box, g)``, two per coarse cell: none
         split (``coarse``), or split where ``prev``'s field changes most, within
-        ``config.adapt`` of the grid's unknowns. Returns the fine grid's vertices and
+        ``config.solver.adapt`` of the grid's unknowns. Returns the fine grid's vertices and
         tets (its penalty's) and the field to start from: none after the coarse grid
         (whose field only chooses the cells split: the graded grid starts from zero, as
         the grid does), a resumed fit's on its vertices."""
@@ -1017,7 +1020,7 @@ class _AttenuationFit:
         u = sample_field(*prev[:3], v) if resumed else prev[2]
         grid = int(np.prod(fine + 1))                  # the grid's unknowns
         self.octree = GradedGrid.refined(self.box[0], cell, coarse, u,
-                                         int(self.config.adapt_share * grid))
+                                         int(self.config.solver.adapt_share * grid))
         split = self.octree.split
         self.log(f"adaptive grid: split {int(split.sum()):,} of the {split.size:,} coarse "
                  f"cells, where the field changes most: {self.octree.n:,} unknowns "
@@ -1141,18 +1144,18 @@ class _AttenuationFit:
         if tune:
             return self.tuned_sart(x, subset, solve), lam
         return sart(projector, b, passes, weights, subset_size=subset, x0=x,
-                    relaxation=config.relaxation, **solve), lam
+                    relaxation=config.solver.relaxation, **solve), lam
 
     def tuned_sart(self, x, subset, solve):
         """SART/SIRT: the passes chosen on held-out views, then all views solved as long
         (or, out of time before that, the held-out run's best)."""
         from mi_tetvr.grid.slices import validation_split
         projector, b, weights, config = self.projector, self.b, self.weights, self.config
-        fit_views, val_views = validation_split(len(self.cameras), config.validation)
+        fit_views, val_views = validation_split(len(self.cameras), config.solver.validation)
         held = HeldOut(projector, b, val_views, patience=3)
         kept = sart(projector, b, self.max_passes, weights,
                     subset_size=len(fit_views) if self.solver == "sirt" else 1, x0=x,
-                    relaxation=config.relaxation, views=fit_views, held_out=held,
+                    relaxation=config.solver.relaxation, views=fit_views, held_out=held,
                     deadline=self.deadline(0.6), callback=self.record)
         self.log(f"held out {len(val_views)} of {len(self.cameras)} views: {held.best[1]} "
                  f"passes, MSE {held.best[0]:.3g}; all views as long")
@@ -1161,7 +1164,7 @@ class _AttenuationFit:
                                   "errors": held.errors}]}
         done = len(self.history["step"])
         x = sart(projector, b, held.best[1], weights, subset_size=subset, x0=x,
-                 relaxation=config.relaxation, stop_at_noise=False, **solve)
+                 relaxation=config.solver.relaxation, stop_at_noise=False, **solve)
         if len(self.history["step"]) - done < held.best[1]:
             # out of time before all views were solved as long: the held-out run's best
             self.log("time ran out in the final solve: keeping the tuning's best attenuation")
@@ -1178,7 +1181,7 @@ class _AttenuationFit:
         config, out, history = self.config, self.out, self.history
         optimization = self.now() - self.train_begin
         write_settings(out, self.asked, config, budget_seconds=self.budget)
-        state = RunState(rng=np.random.default_rng(config.seed), step=len(history["step"]),
+        state = RunState(rng=np.random.default_rng(config.trainer.seed), step=len(history["step"]),
                          elapsed=optimization, history=history)
         trainer = Trainer(self.dataset, v, t, config.for_stage(0), {"attenuation": x},
                           state=state, topology=topology)
@@ -1187,7 +1190,7 @@ class _AttenuationFit:
         result["unknowns"] = self.projector.n
         result["solver"] = {"method": self.solver, "passes": len(history["step"]),
                             "weights": "Poisson counts" if self.weights is not None else "none",
-                            "basis": self.config.basis,
+                            "basis": self.config.solver.basis,
                             "tuning": self.tuned, **({"penalty": self.weight} if self.weight
                                                      else {})}
         result["optimization_seconds"] = optimization

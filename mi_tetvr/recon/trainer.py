@@ -104,15 +104,15 @@ class Trainer:
     values : dict of numpy arrays, optional
         Starting values by the field's names (e.g. ``color`` (n, 3) and
         ``opacity`` (n,)) and the arrays it needs (a scalar field); missing
-        ones start from the field's defaults (``config.init_color``,
-        ``config.init_opacity`` per cell).
+        ones start from the field's defaults (``config.field.init_color``,
+        ``config.field.init_opacity`` per cell).
     state : RunState, optional
-        The run so far (default: a new run seeded with ``config.seed``).
+        The run so far (default: a new run seeded with ``config.trainer.seed``).
     environment : (h, w, 3) float, optional
-        The learned background's texels (``config.background == "learn"``;
+        The learned background's texels (``config.field.background == "learn"``;
         default: the training images' mean color everywhere).
     appearance : (len(dataset.train), 12) float, optional
-        The training photos' color transforms (``config.appearance``; default:
+        The training photos' color transforms (``config.field.appearance``; default:
         the identity): per photo the row-major 3x3 matrix minus the identity
         and the offset (:meth:`apply_appearance`).
     topology : mi_tetvr.mesh.Topology, optional
@@ -148,7 +148,7 @@ class Trainer:
 
         self.config = config
         self.dataset = dataset
-        self.state = state or RunState(rng=np.random.default_rng(config.seed))
+        self.state = state or RunState(rng=np.random.default_rng(config.trainer.seed))
         stage = config.stage_list()
         stage = stage[min(self.state.stage, len(stage) - 1)]
         #: The photos this stage trains on: the data set's, area-averaged by the stage's
@@ -163,8 +163,8 @@ class Trainer:
         self.h = mean_edge_length(vertices, self.tets)
         #: Half the mesh's box diagonal (the unit of a known transfer function's opacity).
         self.radius = bounding_radius(vertices)
-        self.field = make_field(config, self.h, values, self.tets, self.radius,
-                                stage["sh_degree"])
+        self.field = make_field(config.field, self.h, values, self.tets, config.trainer,
+                                self.radius, stage["sh_degree"])
         # (the values given, converted to the field's layout, over its starting ones)
         values = {**self._initial(vertices), **self.field.adopt(values or {})}
         self.scene = mi.load_dict(self._scene_dict(vertices, values, topology))
@@ -172,7 +172,8 @@ class Trainer:
         if environment is not None:
             self.params[K_ENVIRONMENT] = mi.TensorXf(np.asarray(environment, np.float32))
             self.params.update()
-        self.jitter = config.jitter if config.jitter is not None else not pixel_center_data(dataset)
+        jitter = config.data.jitter
+        self.jitter = jitter if jitter is not None else not pixel_center_data(dataset)
         self._sensors, self._coarse = {}, {}
         for v in self.train + dataset.test:
             self.sensor(v)
@@ -182,13 +183,13 @@ class Trainer:
         self._appearance(appearance)
         #: Per vertex, the absolute image-loss gradients of the training steps so far in this
         #: stage (:meth:`split_scores`), kept on the device.
-        self._score_weights = self.field.score_weights(config.select)
+        self._score_weights = self.field.score_weights(config.strategy.select)
         self._scores = dr.zeros(mi.Float, len(vertices))
         self.regularizer = None
-        if config.regularizer > 0 and config.lr_position > 0:
+        if config.trainer.regularizer > 0 and config.trainer.lr_position > 0:
             from mi_tetvr.recon.regularizer import QualityRegularizer
-            self.regularizer = QualityRegularizer(self.tets, beta=config.regularizer_beta,
-                                                  weight=config.regularizer)
+            self.regularizer = QualityRegularizer(self.tets, beta=config.trainer.regularizer_beta,
+                                                  weight=config.trainer.regularizer)
 
     def _initial(self, vertices):
         """The field's starting values; on a multiscale mesh (:data:`MULTISCALE`) the
@@ -201,7 +202,7 @@ class Trainer:
             lo, hi = np.percentile(cell, [5, 95])
             if hi > MULTISCALE * lo:
                 self.cell = cell
-                initial[self.field.extinction] = np.full(n, self.config.init_opacity) / cell
+                initial[self.field.extinction] = np.full(n, self.config.field.init_opacity) / cell
         return initial
 
     def _scene_dict(self, vertices, values, topology):
@@ -218,13 +219,14 @@ class Trainer:
             # a medium lit by the known lights: paths through it and the lights' scene
             from mi_tetvr.render.surfaces import lights_scene
             scene = {"type": "scene", "integrator": {"type": "tetpath"}, MESH_ID: shape,
-                     **lights_scene(config.lights)}
+                     **lights_scene(config.data.lights)}
         else:
-            scene = {"type": "scene", "integrator": {"type": "tetvr", "n_sub": config.n_sub},
+            scene = {"type": "scene",
+                     "integrator": {"type": "tetvr", "n_sub": config.trainer.n_sub},
                      MESH_ID: shape}
         #: Whether the background is learned: then the renders already hold
         #: it (``C + T * env``) and only their RGB is compared.
-        self.learned_background = config.background == "learn"
+        self.learned_background = config.field.background == "learn"
         if self.learned_background:
             mean = np.mean([v.image[..., :3].reshape(-1, 3).mean(0) for v in self.train], 0)
             w, h = ENVIRONMENT_SIZE
@@ -237,10 +239,10 @@ class Trainer:
         learned background, with the per-value step scales (:meth:`step`)."""
         config = self.config
         rates = self.field.rates()
-        if config.lr_position > 0:
-            rates[K_POSITION] = config.lr_position * self.h
+        if config.trainer.lr_position > 0:
+            rates[K_POSITION] = config.trainer.lr_position * self.h
         if self.learned_background:
-            rates[K_ENVIRONMENT] = config.lr_color
+            rates[K_ENVIRONMENT] = config.trainer.lr_color
         self.opt = VertexAdam(self.params, rates, n, shared=self.field.shared + (K_ENVIRONMENT,))
         self.params.update(self.opt)
         #: Per-vertex parameters whose Adam step is scaled value by value: the
@@ -256,7 +258,7 @@ class Trainer:
         """The training photos' color transforms and their optimizer (``config
         .appearance``; ``appearance``: their values, default the identity)."""
         self.appearance_index = {}
-        if not self.config.appearance:
+        if not self.config.field.appearance:
             return
         train = self.dataset.train
         # a training photo's transform, whether it is seen at the stage's scale or whole
@@ -266,7 +268,7 @@ class Trainer:
         start = mi.Float(np.asarray(init, np.float32).reshape(len(train), 12).ravel())
         #: The transforms' optimizer (its state is checkpointed as the volume's).
         self.appearance_opt = VertexAdam({"appearance": start},
-                                         {"appearance": self.config.lr_appearance},
+                                         {"appearance": self.config.trainer.lr_appearance},
                                          len(train), shared=("appearance",))
 
     # -- one step ---------------------------------------------------------------
@@ -276,7 +278,7 @@ class Trainer:
         s = self._sensors.get(id(view))
         if s is None:
             s = self._sensors[id(view)] = mi.load_dict(view.camera.sensor_dict(
-                spp=self.config.spp, sampler="independent" if self.jitter else "stratified",
+                spp=self.config.trainer.spp, sampler="independent" if self.jitter else "stratified",
                 jitter=None if self.jitter else False))
         return s
 
@@ -286,14 +288,14 @@ class Trainer:
         # seed_grad left to mi.render: tetvr's derivative pass then reuses
         # this render's rays and per-ray values (mi_tetvr.render.replay).
         return mi.render(self.scene, params, sensor=self.sensor(view),
-                         spp=spp or self.config.spp, seed=seed)
+                         spp=spp or self.config.trainer.spp, seed=seed)
 
     @property
     def background(self):
         """The constant background the images are composited over for the
         loss and the metrics: the config's, ``None`` (black) when fitting
         RGBA or when the background is learned (the renders hold it)."""
-        return None if self.learned_background else self.config.background
+        return None if self.learned_background else self.config.field.background
 
     def _compared(self, image):
         """What the loss compares of an (h, w, 4) image: RGBA, or RGB over the
@@ -306,10 +308,10 @@ class Trainer:
         if self.field.signal == "rgb":
             # (a lit medium: the render holds everything the photo shows)
             rgb = image[..., :3]
-            return rgb if self.config.loss_space == "linear" else linear_to_srgb(
+            return rgb if self.config.trainer.loss_space == "linear" else linear_to_srgb(
                 dr.clip(rgb, 0.0, 1.0))
-        bg, rgb_only = self.background, self.config.background is not None
-        if self.config.loss_space == "linear":
+        bg, rgb_only = self.background, self.config.field.background is not None
+        if self.config.trainer.loss_space == "linear":
             return composite(image, bg) if rgb_only else image
         rgb = linear_to_srgb(composite(image, bg))
         if rgb_only:
@@ -346,7 +348,7 @@ class Trainer:
         :meth:`_compared`)."""
         image = self.apply_appearance(image, view)
         diff = self._compared(image) - self._compared(self.targets[id(view)])
-        if self.config.loss == "l1":
+        if self.config.trainer.loss == "l1":
             return dr.mean(dr.abs(diff), axis=None)
         return dr.mean(dr.square(diff), axis=None)
 
@@ -364,21 +366,22 @@ class Trainer:
             return dr.mean(dr.square(a - b), axis=None)
 
     def step(self, progress=None):
-        """One optimizer step over ``config.views_per_step`` random training views.
+        """One optimizer step over ``config.trainer.views_per_step`` random training views.
 
         ``progress`` is the fraction of the stage done, in [0, 1], which sets
         the learning-rate decay (default: steps taken over
-        ``config.iterations``; a time-budgeted run passes its time fraction).
+        ``config.trainer.iterations``; a time-budgeted run passes its time fraction).
         Returns the mean image loss and the mean MSE of the views' sRGB
         pictures (:meth:`metric_mse`).
         """
         cfg, state = self.config, self.state
         train = self.train
-        pick = state.rng.choice(len(train), min(cfg.views_per_step, len(train)), replace=False)
+        pick = state.rng.choice(len(train), min(cfg.trainer.views_per_step, len(train)),
+                                replace=False)
         total, metric = 0.0, 0.0
         for j, i in enumerate(pick):
             view = train[i]
-            seed = (state.step * 131 + j * 7919 + cfg.seed * 104729) % (2 ** 31)
+            seed = (state.step * 131 + j * 7919 + cfg.trainer.seed * 104729) % (2 ** 31)
             image = self.render(view, self.params, seed=2 * seed)
             loss = self.loss(image, view) / len(pick)
             mse = self.metric_mse(image, view)
@@ -386,7 +389,7 @@ class Trainer:
             total += float(loss.array[0])
             metric += float(mse.array[0]) / len(pick)
         self._accumulate_scores()
-        if cfg.distortion > 0:
+        if cfg.trainer.distortion > 0:
             self.distortion(train[pick[0]], 2 * seed + 1)
         if self.regularizer is not None:
             dr.backward(self.regularizer(self.opt[K_POSITION]))
@@ -396,17 +399,17 @@ class Trainer:
         old = np.array(self.opt[K_POSITION]).reshape(-1, 3) if K_POSITION in self.opt else None
         # The learning rates fall exponentially to ``decay`` times their base over the stage.
         if progress is None:
-            progress = (state.step - state.stage_start) / max(cfg.iterations, 1)
-        lr_scale = cfg.decay ** min(max(progress, 0.0), 1.0)
+            progress = (state.step - state.stage_start) / max(cfg.trainer.iterations, 1)
+        lr_scale = cfg.trainer.decay ** min(max(progress, 0.0), 1.0)
         before = {k: dr.detach(self.opt[k]) for k in self._step_scales}
         self.opt.step(lr_scale=lr_scale)
         for k, scale in self._step_scales.items():
             # (e.g. Adam's step in units of each vertex's own cell)
             self.opt[k] = before[k] + (self.opt[k] - before[k]) * scale
         if self.appearance_index:
-            if cfg.appearance_prior > 0:
+            if cfg.field.appearance_prior > 0:
                 a = self.appearance_opt["appearance"]
-                dr.backward(cfg.appearance_prior * dr.mean(dr.square(a)))
+                dr.backward(cfg.field.appearance_prior * dr.mean(dr.square(a)))
             self.appearance_opt.step(lr_scale=lr_scale)
             # the mean transform is the identity (what held-out photos get): the
             # volume keeps the photos' mean exposure and white balance
@@ -423,7 +426,7 @@ class Trainer:
 
     def distortion(self, view, seed=0):
         """The rays' distortion of a training view at half its size, times
-        ``config.distortion``, backpropagated (the opacities' gradients); returns its value.
+        ``config.trainer.distortion``, backpropagated (the opacities' gradients); returns its value.
 
         Per ray, with ``w(t)`` the weights of its color (``T(t) sigma(t)``) and ``s(t)``
         the disparity ``near / z`` (at most 1, :meth:`disparity`), the distortion is
@@ -446,7 +449,7 @@ class Trainer:
         try:
             image = self.render(coarse, self.params, seed=seed)
             w, s1, s2 = image[..., 3], image[..., 0], image[..., 1]
-            loss = self.config.distortion * dr.mean(w * s2 - dr.square(s1), axis=None)
+            loss = self.config.trainer.distortion * dr.mean(w * s2 - dr.square(s1), axis=None)
             dr.backward(loss)
         finally:
             self.params.update(self.opt)
@@ -482,9 +485,9 @@ class Trainer:
         if self.multiscale:
             # Adam's step in units of each vertex's own cell (multiscale meshes)
             delta *= (self.cell / self.h)[:, None]
-        if self.config.freeze_boundary:
+        if self.config.trainer.freeze_boundary:
             delta[self.boundary] = 0.0
-        if self.config.safeguard:
+        if self.config.trainer.safeguard:
             delta, n_short = safe_step(old, self.tets, delta)
             self.state.shortened += int(n_short)
         self.opt[K_POSITION] = mi.Float((old + delta).astype(np.float32).ravel())
@@ -524,14 +527,14 @@ class Trainer:
         dr.schedule(self._scores)
 
     def split_scores(self):
-        """Per-vertex refinement scores. With ``config.select`` ``error`` the photos' error
+        """Per-vertex refinement scores. With ``config.strategy.select`` ``error`` the photos' error
         where each vertex contributes (:meth:`error_scores`); else the absolute image-loss
         gradients of the field's per-vertex unknowns (:meth:`Field.score_weights
-        <mi_tetvr.recon.fields.Field.score_weights>` of ``config.select``: for colors and
+        <mi_tetvr.recon.fields.Field.score_weights>` of ``config.strategy.select``: for colors and
         opacities ``color``, ``opacity`` in optical depth per cell, or both, ``gradient``)
         summed over the training steps of this stage, as AbsGS accumulates them: every
         photo's gradients as the fit saw them, at no extra render. Returns (n,) float."""
-        if self.config.select == "error":
+        if self.config.strategy.select == "error":
             return self.error_scores()[0]
         return np.array(self._scores, np.float64)
 

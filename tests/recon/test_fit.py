@@ -35,9 +35,9 @@ def test_fit_improves_and_writes_outputs(data, tmp_path):
         assert (tmp_path / name).is_file(), name
     assert len(list((tmp_path / "test").glob("*.png"))) == len(data.test)
     saved = json.loads((tmp_path / "metrics.json").read_text())
-    assert saved["step"] == CFG.iterations and saved["inverted_tets"] == 0
+    assert saved["step"] == CFG.trainer.iterations and saved["inverted_tets"] == 0
     # Scoring the written mesh again gives the same numbers (world units kept).
-    again = evaluate_mesh(tmp_path / "mesh.vtu", data, n_sub=CFG.n_sub)["mean"]["psnr"]
+    again = evaluate_mesh(tmp_path / "mesh.vtu", data, n_sub=CFG.trainer.n_sub)["mean"]["psnr"]
     # make-dataset data are point samples at pixel centers: detected, no jitter.
     assert not Trainer(data, V, T, FitConfig()).jitter
     assert again == pytest.approx(saved["mean"]["psnr"], abs=0.05)
@@ -70,13 +70,13 @@ def test_interrupt_then_resume_continues_exactly(data, tmp_path, monkeypatch):
     run(data, part, CFG, progress=False, log=lambda *a: None)  # resumes at step 10
     c1, s1, n1 = params_of(full)
     c2, s2, n2 = params_of(part)
-    assert n1 == n2 == CFG.iterations
+    assert n1 == n2 == CFG.trainer.iterations
     # Same views, seeds and Adam moments: the same parameters (up to the
     # order of atomic gradient sums).
     np.testing.assert_allclose(c2, c1, atol=1e-4)
     np.testing.assert_allclose(s2, s1, rtol=1e-3, atol=1e-3 * s1.max())
     hist = json.loads(str(np.load(part / "checkpoint.npz")["history"]))
-    assert hist["step"] == list(range(1, CFG.iterations + 1))
+    assert hist["step"] == list(range(1, CFG.trainer.iterations + 1))
 
 
 def test_joint_positions_never_invert(data, tmp_path):
@@ -232,7 +232,7 @@ def test_time_budget_is_used_and_honoured(data, tmp_path):
     assert budget - reserve - 4 * tick <= metrics["wall_seconds"]
     assert metrics["optimization_seconds"] >= budget - reserve - 8 * tick, metrics
     steps = metrics["step"]
-    assert steps > CFG.iterations and (tmp_path / "mesh.vtu").is_file()
+    assert steps > CFG.trainer.iterations and (tmp_path / "mesh.vtu").is_file()
     again = run(data, tmp_path, CFG.updated(time_budget=6.0 / 60), progress=False,
                 log=lambda *a: None, now=TickClock(tick))
     assert 6.0 - reserve - 4 * tick <= again["wall_seconds"] <= 6.0, again
@@ -266,14 +266,14 @@ def test_the_plan_is_kept_apart_and_read_back(data, tmp_path):
     assert written == asked
     plan = FitPlan.read(new)
     ran = fit_settings(new)
-    grid = ran.grid_resolution
+    grid = ran.mesh.grid_resolution
     assert set(plan.settings) >= {"bounds", "grid_resolution", "scene", "init", "loss"}
     assert grid == planned_resolution(ran, data, 0.85 * 4.0)
     assert plan.budget_seconds == 4.0 and plan.planned_steps == BUDGET_STEPS
     assert plan.step_seconds == pytest.approx(nominal_step_seconds(ran, data, grid))
-    assert ran == plan.applied(asked) and ran.scene == "object" and ran.init == "grid"
+    assert ran == plan.applied(asked) and ran.data.scene == "object" and ran.mesh.init == "grid"
     assert len(np.load(new / "checkpoint.npz")["tets"]) == 6 * np.prod(
-        grid_shape(ran.bounds, grid))
+        grid_shape(ran.mesh.bounds, grid))
     # resumed: the same plan, more steps
     old = tmp_path / "old"
     shutil.copytree(new, old)
@@ -348,7 +348,8 @@ def test_config_errors(tmp_path):
     p.write_text(json.dumps({"resolution": 8, "lr_color": 0.1}))
     with pytest.warns(UserWarning, match="'resolution' is now 'grid_resolution'"):
         cfg = FitConfig.from_file(p)
-    assert cfg.grid_resolution == 8 and cfg.lr_color == 0.1 and cfg.loss is None
+    assert cfg.mesh.grid_resolution == 8 and cfg.trainer.lr_color == 0.1
+    assert cfg.trainer.loss is None
     with pytest.raises(ValueError, match="unknown stage settings"):
         FitConfig().updated(stages=[{"iterations": 5, "lr": 1}])
     st = FitConfig().updated(stages=coarse_to_fine(rounds=2, steps=10, split=0.05)).stage_list()

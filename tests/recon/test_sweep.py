@@ -29,7 +29,7 @@ def test_sweep_table_is_each_trials_fit(tiny_data_path, tmp_path):
                                   / "config.json")
         metrics = json.loads((out / "trials" / r["dir"].split("/trials/")[1]
                               / "metrics.json").read_text())
-        assert cfg.lr_color == float(r["lr_color"]) and cfg.iterations == 12
+        assert cfg.trainer.lr_color == float(r["lr_color"]) and cfg.trainer.iterations == 12
         assert metrics["mean"]["psnr"] == pytest.approx(float(r["psnr"]), abs=1e-9)
         assert int(r["steps"]) == metrics["step"] == 12
     assert "held-out PSNR" in (out / "sweep.md").read_text()

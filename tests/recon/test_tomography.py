@@ -164,7 +164,7 @@ def test_attenuation_fit_recovers_the_volume(tmp_path):
     fitted = sample_field(mesh.vertices, mesh.tets, mesh.opacity, pts)
     from mi_tetvr.mesh.topology import mean_edge_length
     coarse = grid_init(np.stack([lo - m, hi + m]), 4)
-    start = cfg.init_opacity / mean_edge_length(*coarse)     # the fit's flat start
+    start = cfg.field.init_opacity / mean_edge_length(*coarse)     # the fit's flat start
     err, err0 = np.sqrt(np.mean((fitted - truth) ** 2)), np.sqrt(np.mean((start - truth) ** 2))
     assert err < 0.35 * err0, (err, err0)
     assert metrics["mean"]["psnr"] > 35.0, metrics["mean"]

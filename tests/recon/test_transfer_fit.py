@@ -77,7 +77,7 @@ def test_smoothing_prior_is_eq_12():
     cfg = FitConfig(init="mesh.vtu", optimize="tf", tf_resolution=R, tf_smoothing=0.3,
                     tf_init="random")
     h = 0.25
-    field = TransferFunctionField(cfg, h, {"scalar": np.linspace(0, 1, 5)})
+    field = TransferFunctionField(cfg.field, h, {"scalar": np.linspace(0, 1, 5)})
     v = field.initial(5)
     opt = {TransferFunctionField.K_COLOR: mi.Float(v["tf_color"].ravel()),
            TransferFunctionField.K_OPACITY: mi.Float(v["tf_opacity"])}
@@ -103,7 +103,7 @@ def test_transfer_function_fit_recovers_held_out_images(scalar_data, tmp_path):
     s = values["scalar"]
     from mi_tetvr.recon.plan import fit_settings
     saved = fit_settings(tmp_path)       # the range the run took from the mesh (plan.json)
-    assert saved.value_range == pytest.approx([s.min(), s.max()])
+    assert saved.field.value_range == pytest.approx([s.min(), s.max()])
     assert (tmp_path / "transfer_function.png").is_file()
     assert not (tmp_path / "mesh.vtu").exists()
 
@@ -157,8 +157,8 @@ def test_scalar_fit_with_smoothing_from_the_command_line(scalar_data, tmp_path):
           info["transfer_function"], "--opacity-scale", "1.5", f"--value-range={lo},{hi}",
           "--iterations", "6", "--smoothing", "0.5", "--out", str(tmp_path)])
     saved = FitConfig.from_file(tmp_path / "config.json")
-    assert saved.value_range == pytest.approx([lo, hi]) and saved.scalar_init == "colors"
-    assert saved.smoothing == 0.5
+    assert saved.field.value_range == pytest.approx([lo, hi])
+    assert saved.field.scalar_init == "colors" and saved.field.smoothing == 0.5
     fitted = mi_tetvr.read_tetmesh(tmp_path / "scalar.vtu", color=None, opacity=None)
     s = fitted.point_data["scalar"]
     assert np.all((s >= lo - 1e-6) & (s <= hi + 1e-6)) and np.ptp(s) > 0

@@ -34,17 +34,18 @@ def opaque(data, sky=(0.2, 0.5, 0.8), gains=None):
 
 def test_for_capture_decides_by_alpha_and_keeps_what_is_set(data):
     obj = for_capture(CFG, data)
-    assert (obj.scene, obj.init, obj.loss, obj.appearance, obj.background) == \
-        ("object", "grid", "l2", False, None)
-    scene = for_capture(CFG, opaque(data))
-    assert (scene.scene, scene.init, scene.loss, scene.appearance, scene.background) == \
+    def decided(c):
+        return (c.data.scene, c.mesh.init, c.trainer.loss, c.field.appearance,
+                c.field.background)
+    assert decided(obj) == ("object", "grid", "l2", False, None)
+    assert decided(for_capture(CFG, opaque(data))) == \
         ("unbounded", "unbounded", "l1", True, "learn")
     mine = for_capture(CFG.updated(loss="l2", appearance=False, background=[1, 1, 1],
                                    init="grid"), opaque(data))
-    assert (mine.loss, mine.appearance, mine.background, mine.init) == \
+    assert (mine.trainer.loss, mine.field.appearance, mine.field.background, mine.mesh.init) == \
         ("l2", False, [1, 1, 1], "grid")
     # X-ray and transfer-function fits are never unbounded scenes
-    assert for_capture(CFG.updated(model="absorption"), opaque(data)).scene == "object"
+    assert for_capture(CFG.updated(model="absorption"), opaque(data)).data.scene == "object"
     with pytest.raises(ValueError, match="scene"):
         CFG.updated(scene="outdoor")
 
@@ -86,7 +87,7 @@ def test_appearance_recovers_exposures(data):
     fixed = cfg.updated(lr_color=0.0, lr_opacity=0.0, lr_appearance=0.01, decay=0.2,
                         appearance_prior=0.0, views_per_step=len(views), iterations=150)
     trainer = Trainer(photos, V, T, fixed)
-    for _ in range(fixed.iterations):
+    for _ in range(fixed.trainer.iterations):
         trainer.step()
     # The volume's colors are nearly grey, so a gain is any mix of its row's
     # entries and the offset: what must match is the transformed render.
@@ -114,13 +115,13 @@ def test_multiscale_opacity_is_per_cell(data):
     np.testing.assert_allclose(trainer.cell, cell)
     k = "volume.vertex_opacity"
     before = np.array(trainer.opt[k])
-    np.testing.assert_allclose(before * cell, cfg.init_opacity, rtol=1e-5)
+    np.testing.assert_allclose(before * cell, cfg.field.init_opacity, rtol=1e-5)
     trainer.step(progress=0.0)
     moved = np.abs(np.array(trainer.opt[k]) - before)
     stepped = (moved > 0) & (np.array(trainer.opt[k]) > 0)     # not clipped at zero
     assert stepped.sum() > 20
     # (Adam's epsilon shortens the steps of the tiniest gradients by < 0.3 %)
-    np.testing.assert_allclose(moved[stepped] * cell[stepped], cfg.lr_opacity, rtol=5e-3)
+    np.testing.assert_allclose(moved[stepped] * cell[stepped], cfg.trainer.lr_opacity, rtol=5e-3)
 
 
 def test_unbounded_fit_of_real_photos(tmp_path):
@@ -137,11 +138,13 @@ def test_unbounded_fit_of_real_photos(tmp_path):
     # asked: left to the run (config.json); decided for the photos (plan.json)
     from mi_tetvr.recon.plan import FitPlan, fit_settings
     asked = FitConfig.from_file(tmp_path / "config.json")
-    assert asked.init == "auto" and asked.background is None and asked.stages is None
+    assert asked.mesh.init == "auto" and asked.field.background is None
+    assert asked.strategy.stages is None
     plan = FitPlan.read(tmp_path)
     assert plan.settings["init"] == "unbounded" and plan.settings["background"] == "learn"
     saved = fit_settings(tmp_path)
-    assert saved.init == "unbounded" and saved.background == "learn" and saved.stages
+    assert saved.mesh.init == "unbounded" and saved.field.background == "learn"
+    assert saved.strategy.stages
     assert any(s.startswith("pruned") for s in logs) and any(s.startswith("split") for s in logs)
     assert metrics["tets"] > len(T0)
     psnr = json.loads(str(np.load(tmp_path / "checkpoint.npz")["history"]))["psnr"]
@@ -151,7 +154,7 @@ def test_unbounded_fit_of_real_photos(tmp_path):
     from mi_tetvr.recon.checkpoint import load_checkpoint
     ck = np.load(tmp_path / "checkpoint.npz")
     back = load_checkpoint(tmp_path / "checkpoint.npz", photos, for_capture(
-        cfg.updated(stages=fit_settings(tmp_path).stages),
+        cfg.updated(stages=fit_settings(tmp_path).strategy.stages),
         photos))
     np.testing.assert_allclose(back.appearance(), ck["appearance"], atol=1e-7)
     assert np.abs(ck["appearance:m"]).max() > 0
@@ -192,7 +195,7 @@ def test_split_scores_are_the_steps_gradients_and_coarse_photos_train_first(data
     step = trainer.opt.step
 
     def recording(**kw):
-        for k, w in trainer.field.score_weights(cfg.select).items():
+        for k, w in trainer.field.score_weights(cfg.strategy.select).items():
             seen[:] += w * np.abs(np.array(dr.grad(trainer.opt[k]))).reshape(n, -1).sum(1)
         return step(**kw)
 

@@ -41,8 +41,8 @@ def test_degree_schedule_and_settings(data):
         with pytest.raises(ValueError, match=said):
             FitConfig().updated(**bad)
     # left open: one color per vertex for views of an object (the tiny data set)
-    assert for_capture(FitConfig(), data).sh_degree == 0
-    assert for_capture(FitConfig(sh_degree=2), data).sh_degree == 2
+    assert for_capture(FitConfig(), data).field.sh_degree == 0
+    assert for_capture(FitConfig(sh_degree=2), data).field.sh_degree == 2
 
 
 def test_degree_zero_steps_as_a_color_and_a_degree_rise_keeps_the_image(data):
@@ -110,9 +110,10 @@ def test_view_dependent_fit_beats_one_color_and_resumes(shiny, tmp_path, monkeyp
     # held out: the direction dependence is learned, not averaged (3.7 dB measured)
     assert sh["mean"]["psnr"] > plain["mean"]["psnr"] + 2.0, (sh["mean"], plain["mean"])
     # the mesh holds the coefficients (and their mean color) and scores the same
-    again = evaluate_mesh(tmp_path / "sh" / "mesh.vtu", shiny, n_sub=CFG.n_sub)["mean"]["psnr"]
+    again = evaluate_mesh(tmp_path / "sh" / "mesh.vtu", shiny,
+                          n_sub=CFG.trainer.n_sub)["mean"]["psnr"]
     assert again == pytest.approx(sh["mean"]["psnr"], abs=0.05)
-    assert FitConfig.from_file(tmp_path / "sh" / "config.json").sh_degree == 1
+    assert FitConfig.from_file(tmp_path / "sh" / "config.json").field.sh_degree == 1
 
     # interrupted in the degree-1 stage and resumed: the same coefficients
     interrupt_at(monkeypatch, 41)
