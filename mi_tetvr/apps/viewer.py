@@ -542,9 +542,7 @@ class FitShown(Shown):
     def set_trainer(self, trainer):
         """Show ``trainer`` (a fit's next stage)."""
         self.trainer, self.scene, self.dataset = trainer, trainer.scene, trainer.dataset
-        bg = trainer.background
-        if trainer.field.signal == "transmittance":
-            bg = (1.0, 1.0, 1.0)          # an absorbing volume over white shows its transmittance
+        bg = trainer.field.shown(trainer.background)
         self.background = tuple(np.zeros(3) if bg is None or isinstance(bg, str) else bg)
 
     def compare(self, view):

@@ -105,7 +105,8 @@ def run(a):
         raise CommandError("interrupted; progress saved (run the same command to resume)") \
             from None
     m = metrics["mean"]
-    what = "transmittance" if cfg.field.model == "absorption" else "sRGB"
+    from mi_tetvr.recon.fields import field_type
+    what = field_type(cfg.field).scored
     print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} ({what}) over "
           f"{len(metrics['views'])} view(s) [{metrics['split']}]; {metrics['tets']:,} tets, "
           f"{metrics['step']:,} steps, {metrics['wall_seconds']:.0f} s -> "

@@ -28,7 +28,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_tetvr.color import linear_to_srgb
 from mi_tetvr.recon.config import FieldSettings, TrainerSettings
+from mi_tetvr.recon.metrics import (composite, display_rgb, image_metrics, tomography_scores,
+                                    transmittance_metrics)
 
 __all__ = ["Field", "VolumeField", "ViewDependentField", "ScatteringField", "AttenuationField",
            "TransferFunctionField", "ScalarField", "make_field", "MESH_ID", "key"]
@@ -60,9 +63,12 @@ class Field:
     """
     #: ``{value name: (parameter key, channels)}`` of per-vertex unknowns.
     point_arrays: dict = {}
-    #: What a render is compared with: ``rgba`` (premultiplied color and alpha)
-    #: or ``transmittance`` (one minus alpha).
-    signal = "rgba"
+    #: What the images record and the metrics score: ``sRGB`` pictures, or the
+    #: ``transmittance`` of X-ray projections.
+    scored = "sRGB"
+    #: The file a fit writes what it fitted to
+    #: (:func:`~mi_tetvr.recon.outputs.write_fitted`).
+    fitted_file = "mesh.vtu"
     #: The per-vertex array that is an extinction (what pruning reads), if any.
     extinction = None
 
@@ -76,6 +82,39 @@ class Field:
     def initial(self, n):
         """Starting values for ``n`` vertices (dict of numpy arrays)."""
         raise NotImplementedError
+
+    # -- what the field's images are, and how they are compared -------------------
+    def scene(self, shape, lights=None) -> dict:
+        """The scene that renders the field's mesh ``shape`` (its ``tetmesh`` entry):
+        ``tetvr`` with the trainer's sub-intervals."""
+        return {"type": "scene", "integrator": {"type": "tetvr", "n_sub": self.trainer.n_sub},
+                MESH_ID: shape}
+
+    def compared(self, image, background, rgb_only):
+        """What the loss compares of an (h, w, 4) premultiplied RGBA image: RGBA, or
+        (``rgb_only``) RGB over ``background`` (``None``: black, or the learned one the
+        render holds); in ``srgb`` space (``loss_space``) the RGB sRGB-encoded."""
+        if self.trainer.loss_space == "linear":
+            return composite(image, background) if rgb_only else image
+        rgb = linear_to_srgb(composite(image, background))
+        if rgb_only:
+            return rgb
+        return dr.concat([rgb, image[..., 3:4]], axis=-1)
+
+    def metric_mse(self, image, target, background):
+        """MSE of the pictures the metrics score (:func:`display_rgb`), no gradient."""
+        a, b = display_rgb(image, background), display_rgb(target, background)
+        return dr.mean(dr.square(a - b), axis=None)
+
+    def metrics(self, renders, targets, background) -> tuple[list, dict]:
+        """The metrics of numpy (h, w, 4) ``renders`` against their ``targets``: per
+        image (PSNR, SSIM, MSE of the sRGB pictures over ``background``), and what the
+        mean over them adds (none here)."""
+        return [image_metrics(r, t, background) for r, t in zip(renders, targets)], {}
+
+    def shown(self, background):
+        """The background the pictures of renders are shown over (``test/*.png``)."""
+        return background
 
     def shape(self, vertices, tets, values):
         """The ``tetmesh`` entry of the scene for these values."""
@@ -282,8 +321,19 @@ class ScatteringField(VolumeField):
     and photos are compared by their RGB (the renders hold the lights'
     surroundings)."""
     point_arrays = {"albedo": (key("vertex_albedo"), 3), "opacity": (key("vertex_opacity"), 1)}
-    signal = "rgb"
     rgb = "albedo"
+
+    def scene(self, shape, lights=None):
+        # a medium lit by the known lights: paths through it and the lights' scene
+        from mi_tetvr.render.surfaces import lights_scene
+        return {"type": "scene", "integrator": {"type": "tetpath"}, MESH_ID: shape,
+                **lights_scene(lights)}
+
+    def compared(self, image, background, rgb_only):
+        # (the render holds everything the photo shows: its RGB is compared)
+        rgb = image[..., :3]
+        return rgb if self.trainer.loss_space == "linear" else linear_to_srgb(
+            dr.clip(rgb, 0.0, 1.0))
 
     def shape(self, vertices, tets, values):
         import mi_tetvr
@@ -295,8 +345,28 @@ class AttenuationField(Field):
     """Per-vertex X-ray attenuation (per unit length), rendered by the
     ``absorption`` model; renders are compared by their transmittance."""
     point_arrays = {"attenuation": (key("vertex_opacity"), 1)}
-    signal = "transmittance"
+    scored = "transmittance"
+    fitted_file = "attenuation.vtu"
     extinction = "attenuation"
+
+    def compared(self, image, background, rgb_only):
+        # the optical depth -log T: linear in the attenuation (a least-squares
+        # problem, every ray weighted alike, as in algebraic reconstruction)
+        return -dr.log(dr.maximum(1.0 - image[..., 3:4], 1e-6))
+
+    def metric_mse(self, image, target, background):
+        return dr.mean(dr.square(image[..., 3] - target[..., 3]), axis=None)
+
+    def metrics(self, renders, targets, background):
+        per = [transmittance_metrics(r, t) for r, t in zip(renders, targets)]
+        # beside the mean of the views' PSNRs: the PSNR over all their pixels
+        return per, {"psnr_all_pixels": tomography_scores(
+            projections=[1.0 - r[..., 3] for r in renders],
+            targets=[1.0 - t[..., 3] for t in targets])["projection_psnr_pixels"]}
+
+    def shown(self, background):
+        # an absorbing volume over white shows its transmittance
+        return [1.0] * 3
 
     def initial(self, n):
         return {"attenuation": np.full(n, self.settings.init_opacity / self.h)}
@@ -361,6 +431,7 @@ class TransferFunctionField(_Classified):
     channels, weighted by ``tf_smoothing``; the opacity channel in
     optical depth per cell so that it weighs like a color)."""
     K_COLOR, K_OPACITY = key("tf_color"), key("tf_opacity")
+    fitted_file = "transfer_function.json"
 
     def initial(self, n):
         r = int(self.settings.tf_resolution)
@@ -409,6 +480,7 @@ class ScalarField(_Classified):
     ``opacity_scale`` as ``mi-tetvr
     make-dataset`` renders it); kept in ``value_range``."""
     point_arrays = {"scalar": (key("vertex_scalar"), 1)}
+    fitted_file = "scalar.vtu"
 
     def __init__(self, settings, h, values=None, tets=None, trainer=None, radius=1.0):
         from mi_tetvr.transfer import read_transfer_function
@@ -441,6 +513,17 @@ class ScalarField(_Classified):
 FIELDS = {"volume": VolumeField, "tf": TransferFunctionField}
 
 
+def field_type(settings: FieldSettings, sh_degree=None) -> type:
+    """The :class:`Field` class of the fit's ``field`` settings (see :func:`make_field`)."""
+    if sh_degree is not None and settings.kind == "color":
+        return ViewDependentField
+    if settings.model == "absorption":
+        return AttenuationField
+    if settings.model == "scattering":
+        return ScatteringField
+    return ScalarField if settings.optimize == "scalar" else FIELDS[settings.optimize]
+
+
 def make_field(settings: FieldSettings, h, values=None, tets=None, trainer=None, radius=1.0,
                sh_degree=None) -> Field:
     """The :class:`Field` of the fit's ``field`` settings: ``optimize`` (volume | tf |
@@ -450,12 +533,9 @@ def make_field(settings: FieldSettings, h, values=None, tets=None, trainer=None,
     unit of a known transfer function's opacity. ``sh_degree``: a volume's colors are
     spherical harmonics of this degree (the stage's, :meth:`FitConfig.stage_list`; None:
     plain colors)."""
-    if sh_degree is not None and settings.kind == "color":
-        return ViewDependentField(settings, h, values, tets, trainer, sh_degree)
-    if settings.model == "absorption":
-        return AttenuationField(settings, h, values, tets, trainer)
-    if settings.model == "scattering":
-        return ScatteringField(settings, h, values, tets, trainer)
-    if settings.optimize == "scalar":
-        return ScalarField(settings, h, values, tets, trainer, radius)
-    return FIELDS[settings.optimize](settings, h, values, tets, trainer)
+    kind = field_type(settings, sh_degree)
+    if kind is ViewDependentField:
+        return kind(settings, h, values, tets, trainer, sh_degree)
+    if kind is ScalarField:
+        return kind(settings, h, values, tets, trainer, radius)
+    return kind(settings, h, values, tets, trainer)

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_tetvr.recon.config import FitConfig
+from mi_tetvr.recon.fields import field_type
 from mi_tetvr.recon.metrics import display_rgb
 from mi_tetvr.recon.plots import plot_history, save_comparison
 from mi_tetvr.recon.trainer import TRAINING_VIEWS, Trainer
@@ -73,14 +74,11 @@ def write_flythrough(trainer: Trainer, path):
 
 
 def fitted_file(config: FitConfig) -> str:
-    """The file a fit with ``config`` writes what it fitted to, named after it:
-    ``mesh.vtu`` (colors and opacities), ``attenuation.vtu`` (``model`` absorption),
-    ``scalar.vtu`` (``optimize`` scalar) or ``transfer_function.json`` (``optimize`` tf)."""
-    if config.field.optimize == "tf":
-        return "transfer_function.json"
-    if config.field.optimize == "scalar":
-        return "scalar.vtu"
-    return "attenuation.vtu" if config.field.model == "absorption" else "mesh.vtu"
+    """The file a fit with ``config`` writes what it fitted to, named after it (its
+    field's ``fitted_file``): ``mesh.vtu`` (colors and opacities), ``attenuation.vtu``
+    (``model`` absorption), ``scalar.vtu`` (``optimize`` scalar) or
+    ``transfer_function.json`` (``optimize`` tf)."""
+    return field_type(config.field).fitted_file
 
 
 def write_fitted(trainer: Trainer, out: Path):
@@ -94,7 +92,7 @@ def write_fitted(trainer: Trainer, out: Path):
     from mi_tetvr.transfer import write_json
     vertices, tets, values = trainer.arrays()
     field = trainer.field
-    path = out / fitted_file(trainer.config)
+    path = out / field.fitted_file
     if isinstance(field, TransferFunctionField):
         from mi_tetvr.recon.plots import plot_transfer_functions
         tf = field.transfer_function(values)
@@ -136,15 +134,14 @@ def write_outputs(trainer: Trainer, out: Path):
                    split="test" if trainer.dataset.test else "train (no test views)",
                    protocol={"test_views": trainer.dataset.protocol or "given",
                              "metrics": "PSNR and SSIM of sRGB images in [0, 1]"
-                             + ("" if trainer.field.signal == "rgba" else
-                                " (here: transmittance)"),
+                             + ("" if trainer.field.scored == "sRGB" else
+                                f" (here: {trainer.field.scored})"),
                              "appearance": "none" if not trainer.appearance_index else
                              "a color transform per training photo; held-out photos "
                              "scored without one (the identity)"})
     renders = out / "test"
     renders.mkdir(exist_ok=True)
-    # an absorbing volume over white shows its transmittance
-    shown = [1.0] * 3 if trainer.field.signal == "transmittance" else trainer.background
+    shown = trainer.field.shown(trainer.background)
     for v in views:
         save_comparison(renders / f"{Path(v.name).stem}.png", trainer.render_view(v), v.image,
                         shown)

@@ -257,44 +257,26 @@ def run(dataset, out_dir, config: FitConfig, resume=True, progress=True, log=pri
     t_start = now()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    ckpt_path = out / "checkpoint.npz"
-    budget = None if config.trainer.time_budget is None else 60.0 * config.trainer.time_budget
     if config.linear_solver:
         # X-ray projections: the linear problem, solved as such
-        from mi_tetvr.recon.tomography import fit_attenuation
-        return fit_attenuation(dataset, out, config, resume, progress, log, now)
-    asked = config
-    # (a resumed run keeps what its plan said of the budget it began with)
-    earlier = FitPlan.read(out) if resume and ckpt_path.exists() else None
-    config, dataset, trainer = prepare(dataset, out, config, resume, budget, progress, log)
-    if earlier is not None:
-        said = dict(budget_seconds=earlier.budget_seconds, planned_steps=earlier.planned_steps,
-                    step_seconds=earlier.step_seconds)
-    elif budget is not None and asked.mesh.grid_resolution is None and \
-            config.mesh.grid_resolution is not None and not (resume and ckpt_path.exists()):
-        said = dict(budget_seconds=budget, planned_steps=BUDGET_STEPS,
-                    step_seconds=nominal_step_seconds(config, dataset, config.mesh.grid_resolution))
+        from mi_tetvr.recon.tomography import LinearCourse
+        course = LinearCourse(dataset, out, config, resume, progress, log, now)
     else:
-        said = dict(budget_seconds=budget)
-    write_settings(out, asked, config, **said)
-    loop = _Loop(trainer, config, ckpt_path, progress, log, now)
-    if budget is not None:
-        loop.clock = _Clock(t_start + budget, [max(st["iterations"], 1) for st in loop.stages],
-                            now)
-        loop.clock.begin_stage(trainer.state.stage, output_seconds(trainer, now))
-    loop.live = viewer(trainer) if viewer is not None else None
+        course = _Loop.start(dataset, out, config, resume, progress, log, now, t_start, viewer)
+    write_settings(out, config, course.config, **course.said)
     interrupted = False
     try:
-        loop.run()
+        course.run()
     except KeyboardInterrupt:
+        if course.trainer is None:
+            raise
         interrupted = True
-        log(f"interrupted at step {loop.trainer.state.step}: saving")
+        log(f"interrupted at step {course.trainer.state.step}: saving")
     finally:
-        loop.close()
-    trainer, optimization = loop.trainer, now() - loop.train_begin
-    if loop.clock:
-        log(f"time budget: {trainer.state.step - loop.steps_begin} steps in {optimization:.0f} s")
+        course.close()
+    trainer, optimization = course.trainer, now() - course.train_begin
     result = write_outputs(trainer, out)
+    result.update(course.metrics(optimization))
     result["optimization_seconds"] = optimization
     result["wall_seconds"] = now() - t_start
     (out / "metrics.json").write_text(json.dumps(result, indent=2))
@@ -374,7 +356,50 @@ def first_trainer(dataset, config: FitConfig, budget=None, progress=True, log=pr
 class _Loop:
     """A run's steps, stage after stage (:func:`next_stage` between them): the
     progress bar, log lines, checkpoints, the viewer's hook (``live``) and, with a time
-    budget, the :class:`_Clock` that ends each stage."""
+    budget, the :class:`_Clock` that ends each stage.
+
+    It is the course of a fit whose trainer steps (Adam); an X-ray fit's linear solver
+    is another (:class:`~mi_tetvr.recon.tomography.LinearCourse`). :func:`run` runs
+    either the same way: ``config`` (what the run decided) and ``said`` (its budget, for
+    the plan) before; ``run()`` and ``close()``; then ``trainer`` (the fit, which the
+    outputs are written from), ``train_begin`` and ``metrics(seconds)`` (what the
+    course adds to the metrics)."""
+
+    @classmethod
+    def start(cls, dataset, out, config, resume, progress, log, now, t_start, viewer=None):
+        """The course of a new or resumed run (:func:`prepare`), its clock set for a time
+        budget, its viewer open."""
+        ckpt_path = out / "checkpoint.npz"
+        resuming = resume and ckpt_path.exists()
+        budget = None if config.trainer.time_budget is None else 60.0 * config.trainer.time_budget
+        asked = config
+        # (a resumed run keeps what its plan said of the budget it began with)
+        earlier = FitPlan.read(out) if resuming else None
+        config, dataset, trainer = prepare(dataset, out, config, resume, budget, progress, log)
+        loop = cls(trainer, config, ckpt_path, progress, log, now)
+        if earlier is not None:
+            loop.said = dict(budget_seconds=earlier.budget_seconds,
+                             planned_steps=earlier.planned_steps,
+                             step_seconds=earlier.step_seconds)
+        elif budget is not None and asked.mesh.grid_resolution is None and \
+                config.mesh.grid_resolution is not None and not resuming:
+            loop.said = dict(budget_seconds=budget, planned_steps=BUDGET_STEPS,
+                             step_seconds=nominal_step_seconds(config, dataset,
+                                                               config.mesh.grid_resolution))
+        else:
+            loop.said = dict(budget_seconds=budget)
+        if budget is not None:
+            loop.clock = _Clock(t_start + budget,
+                                [max(st["iterations"], 1) for st in loop.stages], now)
+            loop.clock.begin_stage(trainer.state.stage, output_seconds(trainer, now))
+        loop.live = viewer(trainer) if viewer is not None else None
+        return loop
+
+    def metrics(self, seconds):
+        if self.clock:
+            self.log(f"time budget: {self.trainer.state.step - self.steps_begin} steps in "
+                     f"{seconds:.0f} s")
+        return {}
 
     def __init__(self, trainer, config, ckpt_path, progress, log, now):
         self.trainer, self.config, self.ckpt_path = trainer, config, ckpt_path
@@ -597,5 +622,4 @@ def evaluate_fit(fit_dir, data, split="test", downscale=None, holdout=8):
     dataset = load_dataset(data, downscale=downscale or config.data.downscale, holdout=holdout)
     trainer = load_checkpoint(ckpt, dataset, config)
     views = dataset.test if split == "test" and dataset.test else dataset.train
-    scored = "transmittance" if trainer.field.signal == "transmittance" else "sRGB"
-    return {**trainer.evaluate(views), "scored": scored}
+    return {**trainer.evaluate(views), "scored": trainer.field.scored}

@@ -29,17 +29,16 @@ graded grid whose cells are split where the volume has detail
 (:class:`~mi_tetvr.recon.octree.GradedGrid`).
 
 The default was chosen by measurement (``benchmarks/bench_tomography.py``,
-see ``benchmarks/README.md``). :func:`fit_attenuation` is ``mi-tetvr fit
---model absorption``'s run: a tet mesh over the scanned box, the solver, and
-the same outputs as every fit.
+see ``benchmarks/README.md``). :class:`LinearCourse` is ``mi-tetvr fit
+--model absorption``'s course in the fit's one pipeline
+(:func:`mi_tetvr.recon.pipeline.run`): a tet mesh over the scanned box and the
+solver, where an image fit has its steps; the same outputs as every fit.
 """
 from __future__ import annotations
 
 import copy
 import dataclasses
-import json
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -48,7 +47,7 @@ from mi_tetvr.extras import needs
 __all__ = ["Projector", "depths", "statistical_weights", "sart", "least_squares",
            "TetGradient", "PenalizedLS", "tied_unknowns", "basis_matrix", "trilinear_grid",
            "coarse_grid", "adaptive_mesh",
-           "aligned_resolution", "detector_cell", "fit_attenuation", "DEFAULT_PASSES", "STALL",
+           "aligned_resolution", "detector_cell", "LinearCourse", "DEFAULT_PASSES", "STALL",
            "HeldOut", "MAX_PASSES", "EDGE", "LAMBDA_DEFAULT", "LAMBDA_START", "LAMBDA_STEP",
            "LAMBDA_RANGE"]
 
@@ -783,7 +782,7 @@ def fine_penalty_scale(projector, weights, gradient):
 
 def _pwls_stage(projector, b, weights, gradient, x0, config, passes, tune, tune_deadline,
                 solve, log, near=None, reference=None):
-    """One mesh's :class:`PenalizedLS` solve for :func:`fit_attenuation`:
+    """One mesh's :class:`PenalizedLS` solve for :class:`LinearCourse`:
     with ``tune``, the penalty weight searched on every
     ``config.solver.validation``-th view held out, then all views from the
     tuning's solution (the search starts about ``near``, an earlier mesh's
@@ -820,35 +819,27 @@ def _pwls_stage(projector, b, weights, gradient, x0, config, passes, tune, tune_
     return x, record
 
 
-def fit_attenuation(dataset, out_dir, config, resume=True, progress=True, log=print,
-                    now=time.perf_counter):
-    """``mi-tetvr fit --model absorption`` with a linear solver
-    (``config.solver.solver`` ``sart``, ``sirt`` or ``lsqr``): an attenuation on a
-    tet grid from X-ray projections, written as every fit writes its results
-    (``attenuation.vtu``, ``metrics.json``, ``test/*.png``, ``progress.png``,
-    ``checkpoint.npz``, ``config.json``). Returns the metrics.
+class LinearCourse:
+    """The course of an X-ray fit with a linear solver (``mi-tetvr fit --model
+    absorption``; ``config.solver.solver`` ``pwls``, ``sart``, ``sirt`` or ``lsqr``), run
+    by :func:`mi_tetvr.recon.pipeline.run` where an image fit's steps run (its
+    ``_Loop``), its outputs written by the same code (``attenuation.vtu``,
+    ``metrics.json``, ``test/*.png``, ``progress.png``, ``checkpoint.npz``,
+    ``config.json``, ``plan.json``): the plan of grids (coarse to fine, or a coarse grid
+    and its adaptive refinement) and the solve on each.
 
     The grid's cells are the detector's pixels (:func:`detector_cell`) unless
     ``config.mesh.grid_resolution`` says otherwise; with ``config.strategy.stages`` of
-    ``{"grid": r}`` entries each grid is solved in turn, starting from the
-    previous one's field (coarse to fine). ``config.data.xray_flux`` or the data
-    set's weights the rays by their counts. ``config.trainer.time_budget`` (minutes)
-    bounds the passes.
-    """
-    fit = _AttenuationFit(dataset, Path(out_dir), config, progress, log, now)
-    x0 = fit.resumed() if resume else None
-    v, t, topology, x = fit.solve(x0)
-    return fit.finish(v, t, topology, x)
+    ``{"grid": r}`` entries each grid is solved in turn, starting from the previous
+    one's field (coarse to fine). ``config.data.xray_flux`` or the data set's weights
+    the rays by their counts. ``config.trainer.time_budget`` (minutes) bounds the
+    passes; ``resume`` goes on from ``out``'s checkpoint."""
 
-
-class _AttenuationFit:
-    """The parts of :func:`fit_attenuation`: the plan of grids (coarse to fine, or a
-    coarse grid and its adaptive refinement), the solve on each, the outputs."""
-
-    def __init__(self, dataset, out, config, progress, log, now):
+    def __init__(self, dataset, out, config, resume=True, progress=True, log=print,
+                 now=time.perf_counter):
         from mi_tetvr.recon.plan import data_bounds
-        self.t_start = now()
-        self.asked = config                 # (config.json; what the run decides: plan.json)
+        self.t_start = self.train_begin = now()
+        self.trainer = self.bar = None
         self.dataset, self.out, self.log, self.now = dataset, out, log, now
         self.progress = progress
         out.mkdir(parents=True, exist_ok=True)
@@ -888,6 +879,17 @@ class _AttenuationFit:
         self.octree = None                           # the graded grid (--adapt, trilinear)
         self.vertex_basis, self.basis_given = None, config.solver.basis
         self.set_basis(config.solver.basis or self.default_basis())
+        self.x0 = self.resumed() if resume else None
+        #: What the plan says of the budget (:func:`~mi_tetvr.recon.plan.write_settings`).
+        self.said = dict(budget_seconds=self.budget)
+
+    def run(self):
+        """Solve (:meth:`solve`); :attr:`trainer` holds the attenuation (checkpointed)."""
+        self.finish(*self.solve(self.x0))
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
 
     def default_basis(self):
         """Trilinear where the grid's walk has at most :data:`TRILINEAR_TETS` tets (an
@@ -1070,7 +1072,6 @@ class _AttenuationFit:
             if unknowns is not None:
                 x = unknowns @ x if graded else x[unknowns]       # the vertices' values
             prev = (v, topology.tets, x, gradient)
-        self.bar.close()
         if self.trilinear:
             # the walked mesh and its values: the field the projections were fitted with
             return *walk[:3], self.vertex_basis @ x
@@ -1173,27 +1174,22 @@ class _AttenuationFit:
         return x
 
     def finish(self, v, t, topology, x):
-        """The outputs every fit writes, the checkpoint, and the metrics (returned)."""
+        """The fit as a :class:`~mi_tetvr.recon.trainer.Trainer` on the last mesh
+        (:attr:`trainer`, what the outputs are written from), checkpointed."""
         from mi_tetvr.recon.checkpoint import save_checkpoint
-        from mi_tetvr.recon.outputs import write_outputs
-        from mi_tetvr.recon.plan import write_settings
         from mi_tetvr.recon.trainer import RunState, Trainer
-        config, out, history = self.config, self.out, self.history
-        optimization = self.now() - self.train_begin
-        write_settings(out, self.asked, config, budget_seconds=self.budget)
-        state = RunState(rng=np.random.default_rng(config.trainer.seed), step=len(history["step"]),
-                         elapsed=optimization, history=history)
-        trainer = Trainer(self.dataset, v, t, config.for_stage(0), {"attenuation": x},
-                          state=state, topology=topology)
-        save_checkpoint(trainer, self.ckpt)
-        result = write_outputs(trainer, out)
-        result["unknowns"] = self.projector.n
-        result["solver"] = {"method": self.solver, "passes": len(history["step"]),
-                            "weights": "Poisson counts" if self.weights is not None else "none",
-                            "basis": self.config.solver.basis,
-                            "tuning": self.tuned, **({"penalty": self.weight} if self.weight
-                                                     else {})}
-        result["optimization_seconds"] = optimization
-        result["wall_seconds"] = self.now() - self.t_start
-        (out / "metrics.json").write_text(json.dumps(result, indent=2))
-        return result
+        config, history = self.config, self.history
+        state = RunState(rng=np.random.default_rng(config.trainer.seed),
+                         step=len(history["step"]), elapsed=self.now() - self.train_begin,
+                         history=history)
+        self.trainer = Trainer(self.dataset, v, t, config.for_stage(0), {"attenuation": x},
+                               state=state, topology=topology)
+        save_checkpoint(self.trainer, self.ckpt)
+
+    def metrics(self, seconds):
+        """What the solver adds to the fit's metrics: its unknowns and its solve."""
+        return {"unknowns": self.projector.n,
+                "solver": {"method": self.solver, "passes": len(self.history["step"]),
+                           "weights": "Poisson counts" if self.weights is not None else "none",
+                           "basis": self.config.solver.basis, "tuning": self.tuned,
+                           **({"penalty": self.weight} if self.weight else {})}}

@@ -21,12 +21,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_tetvr.color import linear_to_srgb
 from mi_tetvr.mesh.topology import bounding_radius, mean_edge_length
 from mi_tetvr.recon.config import FitConfig
-from mi_tetvr.recon.fields import MESH_ID, key, make_field
-from mi_tetvr.recon.metrics import (composite, display_rgb, image_metrics, psnr,
-                                    tomography_scores, transmittance_metrics)
+from mi_tetvr.recon.fields import key, make_field
+from mi_tetvr.recon.metrics import display_rgb, psnr
 from mi_tetvr.recon.optim import VertexAdam
 
 __all__ = ["Trainer", "RunState", "K_POSITION", "K_ENVIRONMENT", "ENVIRONMENT_SIZE",
@@ -215,15 +213,7 @@ class Trainer:
         # the shape's tets are the oriented ones: their topology is this one, built once
         shape = mi_tetvr.tetmesh_shape(self.field.shape(vertices, self.tets, values),
                                        topology=dataclasses.replace(topology, n_flipped=0))
-        if self.field.signal == "rgb":
-            # a medium lit by the known lights: paths through it and the lights' scene
-            from mi_tetvr.render.surfaces import lights_scene
-            scene = {"type": "scene", "integrator": {"type": "tetpath"}, MESH_ID: shape,
-                     **lights_scene(config.data.lights)}
-        else:
-            scene = {"type": "scene",
-                     "integrator": {"type": "tetvr", "n_sub": config.trainer.n_sub},
-                     MESH_ID: shape}
+        scene = self.field.scene(shape, config.data.lights)
         #: Whether the background is learned: then the renders already hold
         #: it (``C + T * env``) and only their RGB is compared.
         self.learned_background = config.field.background == "learn"
@@ -301,22 +291,8 @@ class Trainer:
         """What the loss compares of an (h, w, 4) image: RGBA, or RGB over the
         config's background (or with the learned one); in ``srgb`` space the
         RGB sRGB-encoded; for X-ray images the optical depth."""
-        if self.field.signal == "transmittance":
-            # the optical depth -log T: linear in the attenuation (a least-squares
-            # problem, every ray weighted alike, as in algebraic reconstruction)
-            return -dr.log(dr.maximum(1.0 - image[..., 3:4], 1e-6))
-        if self.field.signal == "rgb":
-            # (a lit medium: the render holds everything the photo shows)
-            rgb = image[..., :3]
-            return rgb if self.config.trainer.loss_space == "linear" else linear_to_srgb(
-                dr.clip(rgb, 0.0, 1.0))
-        bg, rgb_only = self.background, self.config.field.background is not None
-        if self.config.trainer.loss_space == "linear":
-            return composite(image, bg) if rgb_only else image
-        rgb = linear_to_srgb(composite(image, bg))
-        if rgb_only:
-            return rgb
-        return dr.concat([rgb, image[..., 3:4]], axis=-1)
+        return self.field.compared(image, self.background,
+                                   self.config.field.background is not None)
 
     def apply_appearance(self, image, view):
         """The (h, w, 4) render as photo ``view`` recorded it: its color
@@ -356,14 +332,9 @@ class Trainer:
         """MSE of the sRGB pictures the metrics score (RGB over the config's
         background, black without one; the transmittance of X-ray images), no
         gradient: the training PSNR."""
-        bg = self.background
         with dr.suspend_grad():
-            if self.field.signal == "transmittance":
-                d = dr.detach(image[..., 3]) - self.targets[id(view)][..., 3]
-                return dr.mean(dr.square(d), axis=None)
-            a = display_rgb(self.apply_appearance(dr.detach(image), view), bg)
-            b = display_rgb(self.targets[id(view)], bg)
-            return dr.mean(dr.square(a - b), axis=None)
+            return self.field.metric_mse(self.apply_appearance(dr.detach(image), view),
+                                         self.targets[id(view)], self.background)
 
     def step(self, progress=None):
         """One optimizer step over ``config.trainer.views_per_step`` random training views.
@@ -598,7 +569,7 @@ class Trainer:
         little below the pixel average that :meth:`evaluate` renders with 16): the
         training PSNR at one scale across the stages (each step's own is on the stage's
         photos, area-averaged when coarse). ``None`` for X-ray images."""
-        if self.field.signal == "transmittance":
+        if self.field.scored != "sRGB":
             return None
         bg, mse = self.background, []
         with dr.suspend_grad():
@@ -625,17 +596,9 @@ class Trainer:
     def evaluate(self, views):
         """PSNR, SSIM and MSE per view (RGB over the config's background) and
         their mean: ``{"views": {name: metrics}, "mean": metrics}``."""
-        bg = self.background
         renders = [self.render_view(v) for v in views]
-        if self.field.signal == "transmittance":
-            per = {v.name: transmittance_metrics(r, v.image) for v, r in zip(views, renders)}
-        else:
-            per = {v.name: image_metrics(r, v.image, bg) for v, r in zip(views, renders)}
+        scores, more = self.field.metrics(renders, [v.image for v in views], self.background)
+        per = {v.name: m for v, m in zip(views, scores)}
         mean = {k: float(np.mean([m[k] for m in per.values()]))
                 for k in ("psnr", "ssim", "mse", "psnr_linear")}
-        if self.field.signal == "transmittance":
-            # beside the mean of the views' PSNRs: the PSNR over all their pixels
-            mean["psnr_all_pixels"] = tomography_scores(
-                projections=[1.0 - r[..., 3] for r in renders],
-                targets=[1.0 - v.image[..., 3] for v in views])["projection_psnr_pixels"]
-        return {"views": per, "mean": mean}
+        return {"views": per, "mean": {**mean, **more}}
