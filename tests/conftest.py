@@ -7,6 +7,8 @@ before any test module is imported, and an unusable variant stops the run with
 a clear message. Shared helpers live in :mod:`tests.helpers`.
 """
 import gc
+import json
+import os
 
 import pytest
 
@@ -21,6 +23,28 @@ def pytest_configure(config):
     # the bundled scenes, written where the tests, the tutorials and the README read them
     from mi_tetvr.mesh.scenes import make_scenes
     make_scenes(SCENES)
+
+
+#: A file to append, per test, the kernels Dr.Jit compiled for it (not found in its memory or
+#: disk cache) and their compile time: where a cold run's time goes.
+KERNEL_STATS = os.environ.get("MI_TETVR_KERNEL_STATS")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    if not KERNEL_STATS:
+        yield
+        return
+    import drjit as dr
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()                           # (what came before is not this test's)
+    yield
+    compiled = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT
+                and not k["cache_hit"] and not k["cache_disk"]]
+    with open(KERNEL_STATS, "a") as f:
+        f.write(json.dumps({"test": item.nodeid, "compiled": len(compiled),
+                            "seconds": sum(k["backend_time"] + k["codegen_time"]
+                                           for k in compiled) / 1000}) + "\n")
 
 
 def pytest_report_header(config):
