@@ -207,6 +207,35 @@ def enter(buf: MeshBuffers, face: mi.UInt32, fr: RayFrame, t_start: mi.Float, ma
     return tet, f, outward
 
 
+def advance(client: Client, cur: Cursor, fr: RayFrame, active: bool | mi.Bool) -> Piece:
+    """One step of a walk: the piece of the ray in the cursor's tet from the cursor to
+    the tet's exit crossing or (clients that cut tets) to the next knot of the
+    client's ``cut`` (``stay``: it ends inside the tet)."""
+    st = walk_step(client.ts.buf, cur.tet, cur.f_in, fr, active, cur.carry, client.gather)
+    a1 = weighted_sum(st.w, st.carry[1])
+    t1 = dr.maximum(st.t, cur.t)
+    stay = mi.Bool(False)
+    f = None
+    if client.cuts:
+        # The client's nonlinearity: end the piece at the next knot.
+        f = client.cut(cur.a, a1)
+        stay = f < 1.0
+        t1 = dr.select(stay, dr.lerp(cur.t, t1, f), t1)
+        a1 = tree_select(stay, tree_lerp(cur.a, a1, f), a1)
+    return Piece(cur, st, t1, a1, stay, f)
+
+
+def moved(p: Piece, cuts: bool) -> Cursor:
+    """The cursor after the piece ``p``: in the next tet, entered through the face the
+    ray leaves by, or (``p.stay``) in the same tet at the piece's end."""
+    nxt_tet, nxt_f = unpack_link(p.st.link)
+    cur, st = p.cur, p.st
+    if not cuts:
+        return Cursor(nxt_tet, nxt_f, st.carry, p.t1, p.a1)
+    return Cursor(dr.select(p.stay, cur.tet, nxt_tet), dr.select(p.stay, cur.f_in, nxt_f),
+                  tree_select(p.stay, cur.carry, st.carry), p.t1, p.a1)
+
+
 @dr.syntax
 def walk(client: Client, fr: RayFrame, cur: Cursor, acc: Any, span: Span, settings: WalkSettings,
          active: bool | mi.Bool) -> tuple[Any, mi.Float, mi.UInt32]:
@@ -217,7 +246,6 @@ def walk(client: Client, fr: RayFrame, cur: Cursor, acc: Any, span: Span, settin
     Returns ``(acc, t, steps)``: the client's state, where the walk ended
     and the number of tets crossed.
     """
-    buf = client.ts.buf
     cuts = client.cuts
     active = mi.Bool(active)
     acc = client.begin(acc, cur, fr, active)
@@ -225,30 +253,19 @@ def walk(client: Client, fr: RayFrame, cur: Cursor, acc: Any, span: Span, settin
     pieces = mi.UInt32(0)
     stay = mi.Bool(False)     # (clients that cut tets) the last piece ended inside its tet
     while dr.hint(active, label=client.label):
-        st = walk_step(buf, cur.tet, cur.f_in, fr, active, cur.carry, client.gather)
-        a1 = weighted_sum(st.w, st.carry[1])
-        t1 = dr.maximum(st.t, cur.t)
-        stay = mi.Bool(False)
-        f = None
+        p = advance(client, cur, fr, active)
+        stay = p.stay
+        acc, go = client.piece(acc, p, span, fr, active)
+        # Stay in the tet for the next piece (a knot), else move on.
+        cur = moved(p, cuts)
         if dr.hint(cuts, mode="scalar"):
-            # The client's nonlinearity: end the piece at the next knot.
-            f = client.cut(cur.a, a1)
-            stay = f < 1.0
-            t1 = dr.select(stay, dr.lerp(cur.t, t1, f), t1)
-            a1 = tree_select(stay, tree_lerp(cur.a, a1, f), a1)
-        acc, go = client.piece(acc, Piece(cur, st, t1, a1, stay, f), span, fr, active)
-        nxt_tet, nxt_f = unpack_link(st.link)
-        if dr.hint(cuts, mode="scalar"):
-            # Stay in the tet for the next piece, else move on.
-            cur = Cursor(dr.select(stay, cur.tet, nxt_tet), dr.select(stay, cur.f_in, nxt_f),
-                         tree_select(stay, cur.carry, st.carry), t1, a1)
             steps += dr.select(stay, 0, 1)
             pieces += 1
-            active &= (stay | (st.link >= 0)) & (t1 < span.end) & (pieces < settings.max_steps)
+            active &= (stay | (p.st.link >= 0)) & (p.t1 < span.end) & \
+                (pieces < settings.max_steps)
         else:
-            cur = Cursor(nxt_tet, nxt_f, st.carry, t1, a1)
             steps += 1
-            active &= (st.link >= 0) & (t1 < span.end) & (steps < settings.max_steps)
+            active &= (p.st.link >= 0) & (p.t1 < span.end) & (steps < settings.max_steps)
         active &= go
     # (a walk that stopped inside its first tet left none: count its pieces)
     acc = client.end(acc, cur, stay, (pieces > 0) if cuts else (steps > 0), fr)
@@ -355,26 +372,19 @@ def traverse_convex(scene: mi.Scene, client: Client, fr: RayFrame, acc: Any, spa
 
 @dataclass
 class Pieces:
-    """What the walk over overlapping meshes (:func:`traverse_merged`) hands
-    its client per piece ``[t0, t1]`` (``length``): per mesh ``k``, whether
-    the ray is ``inside[k]`` it, its tet, the mesh's values at the piece's
-    ends (``a0[k]``, ``a1[k]``), its cursor's carried face and step, the
-    ends of its segment in its tet (``ends[k] = (te, we, ae, tx, ax, 1 /
-    (tx - te))``: entry crossing's ``t``, weights and values, exit's ``t``
-    and values), and (clients that ask, ``boundary_terms``) whether the piece
-    starts where the ray crossed the mesh's boundary (``from_bnd[k]``), ends
-    where it enters or leaves it (``to_bnd[k]``), and the next boundary face
-    (``f_next[k]``)."""
+    """What the walk over overlapping meshes (:func:`traverse_merged`) hands its client
+    per piece ``[t0, t1]`` of the ray (``length``): per mesh ``k``, whether the ray is
+    ``inside[k]`` it and there the single walk's :class:`Piece` of that mesh over
+    ``[t0, t1]`` (``parts[k]``: its cursor at ``t0`` with the mesh's values there, the
+    step in its tet, the values at ``t1``), and (clients that ask, ``boundary_terms``)
+    whether the piece starts where the ray crossed the mesh's boundary
+    (``from_bnd[k]``), ends where it enters or leaves it (``to_bnd[k]``), and the next
+    boundary face (``f_next[k]``)."""
     t0: mi.Float
     t1: mi.Float
     length: mi.Float
     inside: list
-    tet: list
-    a0: list
-    a1: list
-    carry: list
-    st: list
-    ends: list
+    parts: list
     from_bnd: list = None
     to_bnd: list = None
     f_next: list = None
@@ -393,6 +403,28 @@ class MergedClient(Protocol):
               active: mi.Bool) -> tuple[Any, mi.Bool]: ...
 
 
+def entry_of(p: Piece) -> tuple[mi.Float, Any, mi.Float]:
+    """``(te, we, 1 / (tx - te))`` of a piece's tet: the ray parameter and the
+    face-vertex weights where the ray entered it, and the inverse of its span up to the
+    exit crossing (0 for none): the tet's linear field along the ray."""
+    te, we = crossing_at(p.cur.carry[0], p.cur.carry[2])
+    span = dr.maximum(p.st.t, te) - te
+    return te, we, dr.select(span > 0, dr.rcp(dr.select(span > 0, span, 1.0)), 0.0)
+
+
+def _clipped(p: Piece, t0: mi.Float, t1: mi.Float, whole: mi.Bool) -> Piece:
+    """The piece ``p`` (from its cursor) over ``[t0, t1]`` within it: the values at
+    each end on its line; where ``whole`` (``t1`` is its end) the end as it is."""
+    cur = p.cur
+    span = p.t1 - cur.t
+    inv = dr.select(span > 0, dr.rcp(dr.select(span > 0, span, 1.0)), 0.0)
+    a0 = tree_lerp(cur.a, p.a1, dr.clip((t0 - cur.t) * inv, 0.0, 1.0))
+    a1 = tree_select(whole, p.a1, tree_lerp(cur.a, p.a1, dr.clip((t1 - cur.t) * inv,
+                                                                   0.0, 1.0)))
+    return Piece(Cursor(cur.tet, cur.f_in, cur.carry, t0, a0), p.st, t1, a1,
+                 p.stay & whole, p.f)
+
+
 @dr.syntax
 def traverse_merged(scenes: list, client: MergedClient, fr: RayFrame, acc: Any, span: Span,
                     settings: WalkSettings, active: bool | mi.Bool) -> tuple[Any, mi.UInt32]:
@@ -400,35 +432,27 @@ def traverse_merged(scenes: list, client: MergedClient, fr: RayFrame, acc: Any, 
     per mesh (``scenes[k]``: a scene of mesh ``k``'s boundary alone, so that
     coincident faces of two meshes are both found), over ``span``.
 
-    Each mesh's cursor is inside it (its tet and entry face, as
-    :func:`walk` keeps them) or outside, holding the next boundary face of
-    that mesh along the ray. Each iteration hands the client the piece up to
-    the nearest event of any cursor (the exit of its tet, a knot of its
-    member's ``cut``, or entering its mesh) and moves on the cursor whose
-    event it is. A ray that starts inside a mesh (a camera inside, or a
-    first face it leaves by) is located in it by walking back
-    (:func:`locate`). Returns ``(acc, steps)``.
+    Each mesh's cursor is inside it (a :class:`Cursor`, stepped by the single walk's
+    :func:`advance` and :func:`moved`) or outside, holding the next boundary face of
+    that mesh along the ray. Each iteration hands the client the piece up to the
+    nearest event of any cursor (the end of its piece: its tet's exit or a knot of its
+    member's ``cut``; or entering its mesh) and moves on the cursor whose event it is;
+    the others stay where they are. A ray that starts inside a mesh (a camera inside,
+    or a first face it leaves by) is located in it by walking back (:func:`enter`).
+    Returns ``(acc, steps)``.
     """
     members = client.members
     K = len(members)
     t_max = mi.Float(span.end)
     active = mi.Bool(active)
     inside = [mi.Bool(False) for _ in range(K)]
-    tet = [mi.UInt32(0) for _ in range(K)]
-    f_in = [mi.UInt32(0) for _ in range(K)]
-    carry = [entry_carry(m.ts.buf, mi.UInt32(0), mi.UInt32(0), fr, mi.Bool(False), m.gather)
-             for m in members]
+    cur = [Cursor.at(m, mi.UInt32(0), mi.UInt32(0), fr, mi.Bool(False)) for m in members]
     # Outside a mesh: where to trace its boundary from, and its next face.
     need = [mi.Bool(active) for _ in range(K)]
     t_trace = [mi.Float(span.begin) for _ in range(K)]
     t_next = [mi.Float(dr.inf) for _ in range(K)]
     f_next = [mi.UInt32(0) for _ in range(K)]
-    # A cursor whose last event was a knot of its own keeps the values
-    # there (``kept``, ``a_at``): recomputed from t they could fall a hair
-    # short of the knot, and the next cut would not move on.
-    kept = [mi.Bool(False) for _ in range(K)]
-    a_at = [dr.zeros(type(c[1][0])) for c in carry]
-    # The piece starts where the ray crossed mesh k's boundary (its carried face).
+    # The piece starts where the ray crossed mesh k's boundary (its cursor's face).
     from_bnd = [mi.Bool(False) for _ in range(K)]
     # Outside mesh k, its cursor already at the tet the ray enters next (a face the ray
     # leaves by was found from outside: the ray grazed the mesh, round-off put the face
@@ -438,16 +462,15 @@ def traverse_merged(scenes: list, client: MergedClient, fr: RayFrame, acc: Any, 
     steps = mi.UInt32(0)
     inf = mi.Float(dr.inf)
     while dr.hint(active, label=client.label):
-        inside, tet, f_in, carry = list(inside), list(tet), list(f_in), list(carry)
-        need, t_trace, t_next, f_next = list(need), list(t_trace), list(t_next), list(f_next)
-        kept, a_at, from_bnd, waiting = list(kept), list(a_at), list(from_bnd), list(waiting)
+        inside, cur, need, t_trace = list(inside), list(cur), list(need), list(t_trace)
+        t_next, f_next, from_bnd, waiting = list(t_next), list(f_next), list(from_bnd), \
+            list(waiting)
         # Each mesh the ray is outside of: its next boundary face, where needed;
         # a face the ray leaves by: it is inside, walk back to where it is now.
         for k in range(K):
             m = members[k]
-            c_k, tet_k, f_k, in_k = carry[k], tet[k], f_in[k], inside[k]
-            kept_k, tn_k, fn_k, need_k = kept[k], t_next[k], f_next[k], need[k] & active
-            wait_k = waiting[k]
+            cur_k, in_k, tn_k, fn_k = cur[k], inside[k], t_next[k], f_next[k]
+            need_k, wait_k = need[k] & active, waiting[k]
             if need_k:
                 # (a branch: most iterations trace nothing)
                 si = scenes[k].ray_intersect_preliminary(mi.Ray3f(fr.at(t_trace[k]), fr.d),
@@ -455,103 +478,66 @@ def traverse_merged(scenes: list, client: MergedClient, fr: RayFrame, acc: Any, 
                 hit = need_k & si.is_valid()
                 tt, ff, out = enter(m.ts.buf, si.prim_index, fr, t, settings.max_steps, hit)
                 here = hit & out
-                c_k = tree_select(here, entry_carry(m.ts.buf, tt, ff, fr, here, m.gather), c_k)
-                tet_k = dr.select(here, tt, tet_k)
-                f_k = dr.select(here, ff, f_k)
+                # (located: the cursor at the tet's entry crossing, before t)
+                cur_k = tree_select(here, Cursor.at(m, tt, ff, fr, here), cur_k)
                 # (walked back, the ray left the mesh before t: it enters ahead, not here)
-                te_k, _ = crossing_at(c_k[0], c_k[2])
-                wait_k = here & (te_k > t)
+                wait_k = here & (cur_k.t > t)
                 in_k = in_k | (here & ~wait_k)
-                kept_k = kept_k & ~here
-                tn_k = dr.select(hit & ~out, t_trace[k] + si.t, dr.select(wait_k, te_k, inf))
+                tn_k = dr.select(hit & ~out, t_trace[k] + si.t, dr.select(wait_k, cur_k.t, inf))
                 fn_k = mi.UInt32(si.prim_index)
-            carry[k], tet[k], f_in[k], inside[k] = c_k, tet_k, f_k, in_k
-            kept[k], t_next[k], f_next[k], need[k] = kept_k, tn_k, fn_k, mi.Bool(False)
-            waiting[k] = wait_k
-        # Every cursor's next event: its tet's exit or a knot inside, or
-        # (outside its mesh) its next boundary face.
-        sts, ends, nows, knots, evs = [], [], [], [], []
+            cur[k], inside[k], t_next[k], f_next[k] = cur_k, in_k, tn_k, fn_k
+            need[k], waiting[k] = mi.Bool(False), wait_k
+        # Every cursor's next event: the end of its piece (its tet's exit or a knot),
+        # or (outside its mesh) its next boundary face.
+        pend, evs = [], []
         t_ev = mi.Float(t_max)
         for k in range(K):
-            m = members[k]
-            st = walk_step(m.ts.buf, tet[k], f_in[k], fr, inside[k], carry[k], m.gather)
-            te, we = crossing_at(carry[k][0], carry[k][2])
-            ae = weighted_sum(we, carry[k][1])
-            tx = dr.maximum(st.t, te)
-            ax = weighted_sum(st.w, st.carry[1])
-            span_k = tx - te
-            inv = dr.select(span_k > 0, dr.rcp(dr.select(span_k > 0, span_k, 1.0)), 0.0)
-            a_now = tree_select(kept[k], a_at[k], tree_lerp(ae, ax, dr.clip((t - te) * inv,
-                                                                            0.0, 1.0)))
-            ev = tx
-            knot = (mi.Bool(False), a_now)
-            if dr.hint(m.cuts, mode="scalar"):
-                f = m.cut(a_now, ax)
-                knot = (f < 1.0, tree_lerp(a_now, ax, f))
-                ev = dr.select(knot[0], dr.lerp(dr.maximum(t, te), tx, f), tx)
-            ev = dr.select(inside[k], ev, t_next[k])
-            sts.append(st)
-            ends.append((te, we, ae, tx, ax, inv))
-            nows.append(a_now)
-            knots.append(knot)
-            evs.append(ev)
-            t_ev = dr.minimum(t_ev, ev)
+            pend.append(advance(members[k], cur[k], fr, inside[k]))
+            evs.append(dr.select(inside[k], pend[k].t1, t_next[k]))
+            t_ev = dr.minimum(t_ev, evs[k])
         t_ev = dr.maximum(t_ev, t)
         # The cursor whose event it is (the first of equal ones) moves on.
         go = []
-        moved = mi.Bool(False)
+        moved_one = mi.Bool(False)
         for k in range(K):
-            go.append(active & ~moved & (evs[k] <= t_ev) & (evs[k] < t_max))
-            moved |= go[k]
+            go.append(active & ~moved_one & (evs[k] <= t_ev) & (evs[k] < t_max))
+            moved_one |= go[k]
         # The piece [t, t_ev] (none inside: an empty piece, which may reach to
         # an infinite t_max, whose length times a zero extinction would be NaN).
         any_in = mi.Bool(False)
         for k in range(K):
             any_in |= inside[k]
         t_end = dr.select(any_in, t_ev, t)
-        a1s = []
-        for k in range(K):
-            te, we, ae, tx, ax, inv = ends[k]
-            a1s.append(tree_select(go[k], tree_select(knots[k][0], knots[k][1], ax),
-                                   tree_lerp(ae, ax, dr.clip((t_ev - te) * inv, 0.0, 1.0))))
-        pc = Pieces(t, t_end, t_end - t, list(inside), list(tet), nows, a1s, list(carry), sts,
-                    ends)
+        parts = [_clipped(pend[k], t, t_ev, go[k]) for k in range(K)]
+        pc = Pieces(t, t_end, t_end - t, list(inside), parts)
         if dr.hint(client.boundary_terms, mode="scalar"):
             # The piece ends where the ray enters or leaves mesh k.
             pc.from_bnd, pc.f_next = list(from_bnd), list(f_next)
-            pc.to_bnd = [go[k] & (~inside[k] | (~knots[k][0] & (sts[k].link < 0)))
+            pc.to_bnd = [go[k] & (~inside[k] | (~pend[k].stay & (pend[k].st.link < 0)))
                          for k in range(K)]
         acc, more = client.piece(acc, pc, fr, active)
         for k in range(K):
             m = members[k]
-            st = sts[k]
-            kept[k] = inside[k] & go[k] & knots[k][0]
-            a_at[k] = a1s[k]
+            p = pend[k]
             # Inside: the next tet (or the knot, staying); leaving the mesh,
             # trace its boundary again past the exit.
-            adv = go[k] & inside[k] & ~knots[k][0]
-            nxt_tet, nxt_f = unpack_link(st.link)
-            carry[k] = tree_select(adv, st.carry, carry[k])
-            tet[k] = dr.select(adv, nxt_tet, tet[k])
-            f_in[k] = dr.select(adv, nxt_f, f_in[k])
-            left = adv & (st.link < 0)
+            adv = go[k] & inside[k]
+            cur_k = tree_select(adv, moved(p, m.cuts), cur[k])
+            left = adv & ~p.stay & (p.st.link < 0)
             inside[k] = inside[k] & ~left
             from_bnd[k] = left
-            t_trace[k] = dr.select(left, ends[k][3] + settings.retrace_eps, t_trace[k])
+            t_trace[k] = dr.select(left, p.t1 + settings.retrace_eps, t_trace[k])
             need[k] = need[k] | left
             # Outside: enter the mesh through its next boundary face.
             entering = go[k] & ~inside[k] & ~left
-            c_k, tet_k, f_k = carry[k], tet[k], f_in[k]
             # (a waiting cursor is at its tet already)
             fresh = entering & ~waiting[k]
             if fresh:
                 tt, ff, _ = face_entry(m.ts.buf, f_next[k], fr, fresh)
-                c_k = entry_carry(m.ts.buf, tt, ff, fr, fresh, m.gather)
-                tet_k, f_k = tt, ff
-            carry[k], tet[k], f_in[k] = c_k, tet_k, f_k
+                cur_k = tree_select(fresh, Cursor.at(m, tt, ff, fr, fresh), cur_k)
+            cur[k] = cur_k
             waiting[k] = waiting[k] & ~entering
             inside[k] = inside[k] | entering
-            kept[k] = kept[k] & ~entering
             from_bnd[k] = from_bnd[k] | entering
             t_next[k] = dr.select(entering, inf, t_next[k])
         t = t_ev

@@ -38,7 +38,7 @@ import mitsuba as mi
 from mi_tetvr.render import adjoint
 from mi_tetvr.render.buffers import model_groups
 from mi_tetvr.render.buffers import TetGroup
-from mi_tetvr.render.cursor import Pieces, Span, WalkSettings, traverse_merged
+from mi_tetvr.render.cursor import Pieces, Span, WalkSettings, entry_of, traverse_merged
 from mi_tetvr.render.geometry import RayFrame, face_crossing
 from mi_tetvr.render.pytree import tree_lerp
 from mi_tetvr.render.segment import merged_integral
@@ -97,9 +97,10 @@ class MergedEmission:
               active: mi.Bool) -> tuple[Radiance, mi.Bool]:
         media = []
         for k, ts in enumerate(self.tss):
+            p = pc.parts[k]
             # (outside its mesh a cursor's tet is stale: past the boundary, no tet)
-            lin = ts.model.linear(ts.params, pc.a0[k], pc.a1[k],
-                                  dr.select(pc.inside[k], pc.tet[k], 0))
+            lin = ts.model.linear(ts.params, p.cur.a, p.a1,
+                                  dr.select(pc.inside[k], p.cur.tet, 0))
             media.append(tuple(dr.select(pc.inside[k], x, 0.0) for x in lin))
         C_seg, T_seg = merged_integral(pc.length, media, 2 * self.n_sub)
         adj = acc.adj
@@ -153,7 +154,7 @@ def _piece_derivative(deriv: adjoint.Derivative, pc: Pieces, C_seg, acc: Radianc
     (:func:`~mi_tetvr.render.adjoint.ray_leaves`)."""
     backward = deriv.backward
     tss_ad = deriv.groups
-    carry, tets, sts, ends, inside = pc.carry, pc.tet, pc.st, pc.ends, pc.inside
+    parts, inside = pc.parts, pc.inside
     length = pc.length
     geo = pc.to_bnd is not None
     with dr.resume_grad():
@@ -168,9 +169,9 @@ def _piece_derivative(deriv: adjoint.Derivative, pc: Pieces, C_seg, acc: Radianc
                                  else adjoint.leaf_frame(leaves, act), act, reduce)
         crossings = []
         for k, ts in enumerate(tss_ad):
-            te, we, _, tx, _, inv = ends[k]
-            st = sts[k]
-            ids_e = tuple(c.i for c in carry[k][0])
+            te, we, inv = entry_of(parts[k])
+            st = parts[k].st
+            ids_e = tuple(c.i for c in parts[k].cur.carry[0])
             if geo:
                 from_bnd, to_bnd, f_next = pc.from_bnd, pc.to_bnd, pc.f_next
                 # (each crossing only where its face exists: the cursor's entry face
@@ -202,7 +203,7 @@ def _piece_derivative(deriv: adjoint.Derivative, pc: Pieces, C_seg, acc: Radianc
             F0 = (t0 - te) * inv
             F1 = (t1 - te) * inv
             lin = ts.model.linear(ts.params, tree_lerp(a_e, a_x, F0), tree_lerp(a_e, a_x, F1),
-                                  dr.select(inside[k], tets[k], 0))
+                                  dr.select(inside[k], parts[k].cur.tet, 0))
             lin = tuple(dr.select(inside[k], x, 0.0) for x in lin)
             media.append(lin)
             tau += length * (lin[2] + lin[3]) * 0.5

@@ -42,8 +42,8 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_tetvr.render.buffers import TetGroup
-from mi_tetvr.render.cursor import (Cursor, Entry, Piece, Pieces, Span, WalkSettings, traverse,
-                                    traverse_merged)
+from mi_tetvr.render.cursor import (Cursor, Entry, Piece, Pieces, Span, WalkSettings, entry_of,
+                                    traverse, traverse_merged)
 from mi_tetvr.render.geometry import RayFrame, crossing_at, face_crossing
 from mi_tetvr.render.linear import TetFrame
 from mi_tetvr.render.pytree import tree_select, weighted_sum
@@ -203,8 +203,10 @@ class MergedDepth:
     def piece(self, acc: Flight, pc: Pieces, fr: RayFrame,
               active: mi.Bool) -> tuple[Flight, mi.Bool]:
         K = len(self.members)
-        s0 = sum((dr.select(pc.inside[k], pc.a0[k], 0.0) for k in range(K)), mi.Float(0.0))
-        s1 = sum((dr.select(pc.inside[k], pc.a1[k], 0.0) for k in range(K)), mi.Float(0.0))
+        parts = pc.parts
+        s0 = sum((dr.select(pc.inside[k], parts[k].cur.a, 0.0) for k in range(K)),
+                 mi.Float(0.0))
+        s1 = sum((dr.select(pc.inside[k], parts[k].a1, 0.0) for k in range(K)), mi.Float(0.0))
         length = pc.length
         tau_seg = length * (s0 + s1) * 0.5
         r = self.target - acc.tau
@@ -213,7 +215,7 @@ class MergedDepth:
         frac = dr.select(length > 0, x * dr.rcp(dr.select(length > 0, length, 1.0)), 0.0)
         # The mesh it collides in, with probability s_k / s (the last inside
         # mesh where round-off leaves the pick past the sum).
-        s_k = [dr.select(pc.inside[k], dr.lerp(pc.a0[k], pc.a1[k], frac), 0.0)
+        s_k = [dr.select(pc.inside[k], dr.lerp(parts[k].cur.a, parts[k].a1, frac), 0.0)
                for k in range(K)]
         u = self.pick * sum(s_k, mi.Float(0.0))
         cum, found = mi.Float(0.0), mi.Bool(False)
@@ -222,7 +224,7 @@ class MergedDepth:
             cum = cum + s_k[k]
             take = ~found & pc.inside[k]
             mesh = dr.select(take, k, mesh)
-            tet = dr.select(take, pc.tet[k], tet)
+            tet = dr.select(take, parts[k].cur.tet, tet)
             s = dr.select(take, s_k[k], s)
             found |= take & (u < cum)
         dtau = acc.dtau
@@ -242,8 +244,9 @@ class MergedDepth:
         total = mi.Float(0.0)
         with dr.resume_grad():
             for k, m in enumerate(self.members):
-                te, we, _, _, _, inv = pc.ends[k]
-                st, ids = pc.st[k], tuple(c.i for c in pc.carry[k][0])
+                p = pc.parts[k]
+                te, we, inv = entry_of(p)
+                st, ids = p.st, tuple(c.i for c in p.cur.carry[0])
                 act = active & pc.inside[k]
                 ext = [extinction(m.ts_ad.params, i, act, self.reduce) for i in ids]
                 s_e = weighted_sum(we, ext)

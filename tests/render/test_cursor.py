@@ -75,7 +75,7 @@ class MergedRecorder:
     def piece(self, acc, pc, fr, active):
         ray = dr.arange(mi.UInt32, dr.width(pc.t0))
         for k in range(len(self.members)):
-            dr.scatter_add(self.lengths[k], pc.length, ray * self.n_tets[k] + pc.tet[k],
+            dr.scatter_add(self.lengths[k], pc.length, ray * self.n_tets[k] + pc.parts[k].cur.tet,
                            active & pc.inside[k] & (pc.length > 0))
         return acc, mi.Bool(True)
 
