@@ -27,8 +27,10 @@ are ``tetvr``'s emission-absorption and probes
 (:mod:`~mi_tetvr.render.adjoint`), and ``tetpath``'s optical depth up to a
 target (free flights, shadow transmittance:
 :mod:`~mi_tetvr.render.transport`). Meshes that overlap in space are walked
-with one cursor each (:mod:`~mi_tetvr.render.merged`), through the same
-:func:`enter`, :func:`locate` and :func:`~mi_tetvr.render.geometry.walk_step`.
+with one :class:`Cursor` each (:func:`traverse_merged`, :mod:`~mi_tetvr.render.merged`),
+entered by the same :func:`enter` and :func:`locate` and stepped by the single
+walk's own step (:func:`advance`, :func:`moved`); its client gets each mesh's
+:class:`Piece`.
 """
 from __future__ import annotations
 
