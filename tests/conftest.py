@@ -47,6 +47,28 @@ def pytest_runtest_protocol(item, nextitem):
                                            for k in compiled) / 1000}) + "\n")
 
 
+#: The test files that take longest (a cold run's durations, the slowest first). They run
+#: first: pytest-xdist hands each worker whole files (``--dist loadfile``), and one of these
+#: started last would keep its worker busy long after the other had finished.
+FIRST = ("recon/test_sweep.py", "recon/test_sfm.py", "recon/test_tomography_solvers.py",
+         "render/test_distributed.py", "recon/test_tomography.py", "test_tutorial.py",
+         "recon/test_fit.py", "render/test_overlay.py", "recon/test_unbounded.py",
+         "test_docs.py", "recon/test_scattering_fit.py", "render/test_overlap.py",
+         "render/test_transport.py", "test_wheel.py", "recon/test_capture.py")
+
+
+def pytest_collection_modifyitems(session, config, items):
+    from tests.helpers import ROOT
+    gone = [p for p in FIRST if not (ROOT / "tests" / p).is_file()]
+    if gone:
+        raise pytest.UsageError(f"tests/conftest.py: FIRST names files that are gone: {gone}")
+
+    def rank(item):
+        path = item.nodeid.split("::")[0].removeprefix("tests/")
+        return FIRST.index(path) if path in FIRST else len(FIRST)
+    items.sort(key=rank)            # (stable: each file's tests, and the others, in order)
+
+
 def pytest_report_header(config):
     return f"mi_tetvr: Mitsuba variant {VARIANT} (MI_TETVR_VARIANT)"
 

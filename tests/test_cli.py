@@ -1,7 +1,10 @@
 """The mi-tetvr command line and the bundled scenes."""
+import contextlib
+import io
 import json
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -18,8 +21,50 @@ SCENES = ["default", "transfer_function", "nonconvex", "two_meshes", "inside", "
 
 
 def run(*args):
+    """``mi-tetvr ARGS`` from the checkout's root: its exit status and what it printed,
+    as ``subprocess.run`` returns them. The command runs in this process (its kernels
+    shared with the suite's, no interpreter to start) when the suite's variant is the
+    commands' default, with what a process would start from: the working directory,
+    Python's default warning filters, Mitsuba's file resolver (restored after);
+    else in a process of its own (``test_entry_point_is_a_process`` runs one always)."""
+    if VARIANT != "llvm_ad_rgb":
+        return process(*args)
+    from mi_tetvr import cli
+    out, err = io.StringIO(), io.StringIO()
+    resolver = [str(p) for p in mi.file_resolver()]
+    code = 0
+    with contextlib.chdir(ROOT), contextlib.redirect_stdout(out), \
+            contextlib.redirect_stderr(err), warnings.catch_warnings():
+        warnings.resetwarnings()
+        warnings.simplefilter("default")
+        warnings.showwarning = warnings._showwarning_orig
+        try:
+            cli.main([str(a) for a in args])
+        except SystemExit as e:
+            code = e.code if isinstance(e.code, int) else 0 if e.code is None else 1
+            if isinstance(e.code, str):
+                print(e.code, file=err)
+    fr = mi.file_resolver()
+    fr.clear()
+    for path in resolver:
+        fr.append(path)
+    return subprocess.CompletedProcess(args, code, out.getvalue(), err.getvalue())
+
+
+def process(*args):
+    """``mi-tetvr ARGS`` in a process of its own (``python -m mi_tetvr.cli``)."""
     return subprocess.run([sys.executable, "-m", "mi_tetvr.cli", *args], capture_output=True,
                           text=True, cwd=ROOT)
+
+
+def test_entry_point_is_a_process(tmp_path):
+    """``python -m mi_tetvr.cli`` runs a command, and ends an error with one line and
+    status 1 (the other tests run the commands in the suite's process)."""
+    r = process("render", "scenes/default.xml", "--res", "8x6", "-o", str(tmp_path / "a.exr"))
+    assert r.returncode == 0 and (tmp_path / "a.exr").is_file(), r.stderr
+    r = process("render", str(tmp_path / "missing.xml"), "-o", str(tmp_path / "b.exr"))
+    assert r.returncode == 1 and r.stderr.strip().count("\n") == 0, r.stderr
+    assert r.stderr.startswith("mi-tetvr: ") and "missing.xml" in r.stderr, r.stderr
 
 
 @pytest.fixture(scope="module")

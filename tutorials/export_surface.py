@@ -114,7 +114,8 @@ def main(argv=None):
         spp=a.spp)
     side = np.concatenate([np.asarray(vol)[..., :3], np.asarray(surf)[..., :3]], 1)
     files["figure"] = out / "export_surface.png"
-    mi.util.write_bitmap(str(files["figure"]), side)
+    mi.util.write_bitmap(str(files["figure"]), side,
+                         write_async=False)   # (written when the function returns)
     print(f"surface at opacity {level:.3g}: {len(surface.points):,} vertices, "
           f"{len(surface.faces):,} triangles -> {', '.join(str(f) for f in files.values())}")
     return {"level": level, "surface": surface, "volume_image": np.asarray(vol),

@@ -195,7 +195,7 @@ def data_warnings(config: FitConfig, dataset):
         return []       # (a lit medium: the lights' scene holds the surroundings)
     out = []
     if config.field.background is None and all(float(v.image[..., 3].min()) >= 0.999
-                                          for v in dataset.train):
+                                               for v in dataset.train):
         out.append("every training pixel is opaque, yet the fit matches alpha (background "
                    "none): the volume must explain the surroundings too; for photos of a "
                    "scene in its surroundings try --background learn")
@@ -313,7 +313,7 @@ def prepare(dataset, out: Path, config: FitConfig, resume=True, budget=None, pro
     elif config.mesh.grid_resolution is None and config.strategy.stages is None:
         # a fit written before plans were kept apart: its checkpoint's settings
         config = config.replaced(grid_resolution=saved["grid_resolution"],
-                                     stages=saved["stages"])
+                                 stages=saved["stages"])
     trainer = load_checkpoint(ckpt_path, dataset, config)
     log(f"resumed from {ckpt_path} at step {trainer.state.step} "
         f"(stage {trainer.state.stage + 1})")

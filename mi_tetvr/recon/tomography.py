@@ -856,7 +856,7 @@ class LinearCourse:
         self.box = np.stack([bounds[0] - 1e-3 * cell, bounds[1] + 1e-3 * cell])
         self.resolution = config.mesh.grid_resolution or aligned_resolution(bounds, cell)
         self.config = config.replaced(bounds=np.asarray(bounds).tolist(),
-                                          grid_resolution=self.resolution, xray_flux=flux)
+                                      grid_resolution=self.resolution, xray_flux=flux)
         # coarse to fine: each stage's grid (one without: the fit's), the fit's last
         grids = [int(st.get("grid") or self.resolution) for st in (config.strategy.stages or [])]
         self.grids = [g for g in grids if g != self.resolution] + [self.resolution]
