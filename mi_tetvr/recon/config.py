@@ -144,7 +144,7 @@ class _Part:
 @dataclass
 class DataSettings(_Part):
     """The fit's settings of part ``data``: what the images are and how they are read."""
-    ABOUT: ClassVar[str] = 'what the images are and how they are read'
+    ABOUT: ClassVar[str] = "what the images are and how they are read"
 
     scene: str = setting(
         "auto", "what the images show: object (views of an object with alpha masks: a grid over "
@@ -175,7 +175,7 @@ class DataSettings(_Part):
 @dataclass
 class MeshSettings(_Part):
     """The fit's settings of part ``mesh``: the starting mesh."""
-    ABOUT: ClassVar[str] = 'the starting mesh'
+    ABOUT: ClassVar[str] = "the starting mesh"
 
     init: str = setting(
         "auto", "the starting mesh: auto (grid for objects, unbounded for scenes), grid, "
@@ -204,7 +204,7 @@ class MeshSettings(_Part):
 @dataclass
 class FieldSettings(_Part):
     """The fit's settings of part ``field``: what is fitted and how it starts."""
-    ABOUT: ClassVar[str] = 'what is fitted and how it starts'
+    ABOUT: ClassVar[str] = "what is fitted and how it starts"
 
     model: str = setting(
         "emission", "emission: colors and opacities from images; absorption: an X-ray "
@@ -298,7 +298,7 @@ class FieldSettings(_Part):
 @dataclass
 class StrategySettings(_Part):
     """The fit's settings of part ``strategy``: what changes the mesh between stages."""
-    ABOUT: ClassVar[str] = 'what changes the mesh between stages'
+    ABOUT: ClassVar[str] = "what changes the mesh between stages"
 
     stages: list | None = setting(
         None, "coarse-to-fine stages as JSON, run one after the other, each {\"iterations\": N, "
@@ -325,7 +325,7 @@ class StrategySettings(_Part):
 @dataclass
 class TrainerSettings(_Part):
     """The fit's settings of part ``trainer``: the loop, the optimizer and the clock."""
-    ABOUT: ClassVar[str] = 'the loop, the optimizer and the clock'
+    ABOUT: ClassVar[str] = "the loop, the optimizer and the clock"
 
     iterations: int = setting(
         1500, "optimizer steps (with a time budget only the stages' shares count)")
