@@ -45,9 +45,10 @@ def test_lit_data_set_is_opaque_and_recorded(lit_data):
 
 
 def test_fit_learns_extinction_and_albedo(lit_data, tmp_path):
-    """Held-out PSNR rises well above the start's (measured: +2.6 and +2.7 dB
-    after 100 steps; the gradients' atomics make runs differ a little), and
-    the written mesh holds the learned extinction (``opacity``) and ``albedo``."""
+    """Held-out PSNR rises well above the start's, and the written mesh holds the
+    learned extinction (``opacity``) and ``albedo``. The gradients' atomics make runs
+    differ: 100 steps at 4 samples per pixel gained 2.2-2.7 dB in five runs, at 8 (this
+    test's) 3.0-3.3 dB in three."""
     from mi_tetvr import cli
     data, lights = lit_data
     scores = {}
@@ -55,7 +56,7 @@ def test_fit_learns_extinction_and_albedo(lit_data, tmp_path):
         out = tmp_path / f"fit{iters}"
         cli.main(["fit", str(data), "--out", str(out), "--model", "scattering", "--lights",
                   str(lights), "--grid-resolution", "4", "--iterations", str(iters),
-                  "--views-per-step", "2", "--spp", "4", "--lr-opacity", "0.2",
+                  "--views-per-step", "2", "--spp", "8", "--lr-opacity", "0.2",
                   "--variant", VARIANT, "--quiet"])
         scores[iters] = json.loads((out / "metrics.json").read_text())["mean"]["psnr"]
     assert scores[100] > scores[1] + 2.0, scores
