@@ -500,7 +500,9 @@ class _Loop:
         h["loss"].append(loss)
         h["psnr"].append(psnr(mse))
         self.recent_mse.append(mse)
-        self.bar.update(dt if self.clock else 1)
+        # (seconds, at most to the bar's end: a stage's last step may end past its share,
+        # and a bar past its total no longer shows one)
+        self.bar.update(min(dt, max(self.bar.total - self.bar.n, 0.0)) if self.clock else 1)
         if state.step % config.trainer.log_every == 0 or state.step == 1:
             self.bar.set_postfix(step=state.step, loss=f"{loss:.3g}",
                                  psnr=f"{psnr(float(np.mean(self.recent_mse))):.2f}",
