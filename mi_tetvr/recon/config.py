@@ -648,10 +648,10 @@ class FitConfig:
         return cfg
 
     def differences(self, saved: dict, ignore=()):
-        """The settings that differ from ``saved`` (a :meth:`flat` of another config,
-        e.g. a checkpoint's), as ``{name: (saved value, this value)}``; settings that
-        are ``None`` here (chosen by the run) and those in ``ignore`` are not compared."""
-        saved = {RENAMED.get(k, k): v for k, v in saved.items()}
+        """The settings that differ from ``saved`` (a :meth:`flat` of another config by
+        today's names, e.g. a checkpoint's as :func:`~mi_tetvr.recon.checkpoint.check_resume`
+        reads it), as ``{name: (saved value, this value)}``; settings that are ``None``
+        here (chosen by the run) and those in ``ignore`` are not compared."""
         out = {}
         for name, value in self.flat().items():
             if name in ignore or value is None or name not in saved:

@@ -44,8 +44,8 @@ STEP_COST = (0.021, 1.46e-7, 2.33e-8, 6.6e-8)
 KIND_COST = {"scattering": 10.0}
 #: A time-budgeted run without a set resolution trains a grid of half the
 #: chosen resolution for this share of its steps, then the chosen grid starting
-#: from the coarse one's field (:func:`budget_stages`). (Measured on C60 with a
-#: 10-minute budget: ...)
+#: from the coarse one's field (:func:`budget_stages`; benchmarks/README.md, the
+#: budgeted default fit's C60 and head runs).
 COARSE_SHARE = 0.25
 #: The range a planned grid resolution is kept in (the upper end also at most the image
 #: width over 1.5: finer cells than pixels see nothing more).
@@ -151,11 +151,17 @@ class FitPlan:
         return cls({k: v for k, v in r.items() if not same_setting(a[k], v)}, **budget)
 
     def applied(self, config: FitConfig) -> FitConfig:
-        """``config`` (what was asked) with the plan's settings."""
+        """``config`` (what was asked) with the plan's settings, checked together."""
         unknown = sorted(set(self.settings) - set(PART_OF))
         if unknown:
             raise ValueError(f"a fit's plan with settings a fit does not have: {unknown}")
-        return config.replaced(**self.settings)
+        run = config.replaced(**self.settings)
+        try:
+            run.validate()
+        except ValueError as e:
+            raise ValueError(f"a fit's plan ({self.FILE}) that does not go with its config: "
+                             f"{e}") from None
+        return run
 
     def write(self, folder):
         Path(folder, self.FILE).write_text(json.dumps(dataclasses.asdict(self), indent=2))

@@ -256,10 +256,9 @@ def test_the_plan_is_kept_apart_and_read_back(data, tmp_path):
     nominal cost); the settings a fit ran with are both (fit_settings). A resumed run reads
     the plan back, and a folder written before plans were kept apart (config.json holding
     both, no plan.json) still resumes."""
-    import dataclasses
     import shutil
     from mi_tetvr.recon.plan import FitPlan, fit_settings
-    asked = dataclasses.replace(CFG, grid_resolution=None, time_budget=4.0 / 60)
+    asked = CFG.replaced(grid_resolution=None, time_budget=4.0 / 60)
     new = tmp_path / "new"
     first = run(data, new, asked, progress=False, log=lambda *a: None, now=TickClock(0.05))
     written = FitConfig.from_file(new / "config.json")
@@ -287,7 +286,8 @@ def test_the_plan_is_kept_apart_and_read_back(data, tmp_path):
     assert before["step"] == again["step"] and fit_settings(old) == ran
     # both resumed folders hold a plan again; a damaged plan is said to be one
     assert FitPlan.read(old).budget_seconds == FitPlan.read(new).budget_seconds == 4.0
-    for text in ("not json", "[1, 2]", '{"settings": {"no_such_setting": 1}}'):
+    for text in ("not json", "[1, 2]", '{"settings": {"no_such_setting": 1}}',
+                 '{"settings": {"solver": "sart"}}'):      # (an X-ray solver on a color fit)
         (old / "plan.json").write_text(text)
         with pytest.raises(ValueError, match="plan"):
             fit_settings(old)
@@ -297,10 +297,9 @@ def test_planned_grid_from_the_data_and_the_budget():
     """A budget's grid is planned from the photos, the box and the budget alone (no clock:
     the same mesh on a busy machine): the finest within the limits whose BUDGET_STEPS steps
     fit at the reference machine's cost per step, written out in closed form here."""
-    import dataclasses
     from types import SimpleNamespace as NS
     data = NS(train=[NS(camera=NS(width=200, height=100))] * 70)
-    box = dataclasses.replace(CFG, bounds=[[0, 0, 0], [2, 1, 1]])
+    box = CFG.replaced(bounds=[[0, 0, 0], [2, 1, 1]])
     fixed, per_ray, per_ray_cell, per_tet = STEP_COST
     rays = 2 * 200 * 100            # views_per_step photos, one ray per pixel
     assert nominal_step_seconds(box, data, 40) == pytest.approx(
@@ -317,7 +316,7 @@ def test_planned_grid_from_the_data_and_the_budget():
     assert chosen == sorted(chosen) and len(set(chosen)) > 2, chosen
     assert planned_resolution(box, data, 1e-3) == lo and planned_resolution(box, data, 1e9) == hi
     # a path-traced step costs KIND_COST times as much: a coarser grid in the same time
-    lit = dataclasses.replace(box, model="scattering", lights="lights.xml")
+    lit = box.replaced(model="scattering", lights="lights.xml")
     assert nominal_step_seconds(lit, data, 40) == pytest.approx(
         KIND_COST["scattering"] * nominal_step_seconds(box, data, 40))
     assert planned_resolution(lit, data, 200.0) < planned_resolution(box, data, 200.0)
