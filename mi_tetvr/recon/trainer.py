@@ -200,7 +200,7 @@ class Trainer:
             lo, hi = np.percentile(cell, [5, 95])
             if hi > MULTISCALE * lo:
                 self.cell = cell
-                initial[self.field.extinction] = np.full(n, self.config.field.init_opacity) / cell
+                initial[self.field.extinction] = np.full(n, self.field.settings.init_opacity) / cell
         return initial
 
     def _scene_dict(self, vertices, values, topology):
@@ -216,7 +216,7 @@ class Trainer:
         scene = self.field.scene(shape, config.data.lights)
         #: Whether the background is learned: then the renders already hold
         #: it (``C + T * env``) and only their RGB is compared.
-        self.learned_background = config.field.background == "learn"
+        self.learned_background = self.field.settings.background == "learn"
         if self.learned_background:
             mean = np.mean([v.image[..., :3].reshape(-1, 3).mean(0) for v in self.train], 0)
             w, h = ENVIRONMENT_SIZE
@@ -248,7 +248,7 @@ class Trainer:
         """The training photos' color transforms and their optimizer (``config
         .appearance``; ``appearance``: their values, default the identity)."""
         self.appearance_index = {}
-        if not self.config.field.appearance:
+        if not self.field.settings.appearance:
             return
         train = self.dataset.train
         # a training photo's transform, whether it is seen at the stage's scale or whole
@@ -285,14 +285,14 @@ class Trainer:
         """The constant background the images are composited over for the
         loss and the metrics: the config's, ``None`` (black) when fitting
         RGBA or when the background is learned (the renders hold it)."""
-        return None if self.learned_background else self.config.field.background
+        return None if self.learned_background else self.field.settings.background
 
     def _compared(self, image):
         """What the loss compares of an (h, w, 4) image: RGBA, or RGB over the
         config's background (or with the learned one); in ``srgb`` space the
         RGB sRGB-encoded; for X-ray images the optical depth."""
         return self.field.compared(image, self.background,
-                                   self.config.field.background is not None)
+                                   self.field.settings.background is not None)
 
     def apply_appearance(self, image, view):
         """The (h, w, 4) render as photo ``view`` recorded it: its color
