@@ -95,7 +95,8 @@ def parse_args(argv=None):
     p = make_parser(__doc__, repeat=None, quick="a 12^3 phantom, 16 angles, 4 passes of the tets")
     p.add_argument("--volume", choices=tuple(VOLUMES), default="headmr",
                    help="headmr (48x62x42, default), engine (256x256x128 averaged 4x4x4 to "
-                   "64x64x32) or phantom (a 48^3 made here: ellipsoids of several densities)")
+                   "64x64x32), phantom (a 48^3 made here: ellipsoids of several densities) "
+                   "or c60 (C60's electron density, 128^3 averaged 2x2x2 to 64^3: smooth)")
     p.add_argument("--views", type=int, default=64, help="training angles (default 64)")
     p.add_argument("--test-views", type=int, default=16, help="held-out angles (default 16)")
     p.add_argument("--beam", choices=("parallel", "cone"), default="parallel")
@@ -186,10 +187,10 @@ def parse_args(argv=None):
 #: The tuned baselines: method, label, most passes tried.
 TUNED = (("sart", "SART tuned", 30), ("sirt", "SIRT tuned", 300),
          ("fista_tv", "FISTA-TV tuned", 100))
-#: The table's scans: views and the degrees they span (parallel beam); the sparse
-#: full scans first, then limited angle.
 #: ``--table all``'s volumes (``c60`` is there to check a rule on a volume it was not made on)
 TABLE_VOLUMES = ("headmr", "engine", "phantom")
+#: The table's scans: views and the degrees they span (parallel beam); the sparse
+#: full scans first, then limited angle.
 TABLE_SCANS = ((24, 180.0), (64, 180.0), (24, 120.0), (24, 90.0))
 
 
