@@ -892,10 +892,13 @@ class LinearCourse:
             self.bar.close()
 
     def default_basis(self):
-        """Trilinear where the grid's walk has at most :data:`TRILINEAR_TETS` tets (an
-        adaptive one's has fewer), else linear; logged."""
+        """Trilinear where the grid's walk has at most :data:`TRILINEAR_TETS` tets (a
+        graded grid's: its cells made even), else linear; logged."""
         from mi_tetvr.mesh.initial import grid_shape
-        walked = 48 * int(np.prod(grid_shape(self.box, self.resolution)))
+        cells = np.asarray(grid_shape(self.box, self.resolution))
+        if self.graded:
+            cells = 2 * ((cells + 1) // 2)
+        walked = 48 * int(np.prod(cells))
         why = f"its walk would have {walked:,} tets, more than {TRILINEAR_TETS:,}" \
             if walked > TRILINEAR_TETS else None
         basis = "trilinear" if why is None else "linear"

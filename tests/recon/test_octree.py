@@ -69,23 +69,35 @@ def test_the_field_is_continuous_across_split_and_unsplit_cells(seed):
     assert hanging > 0                    # the split met unsplit cells
 
 
-def test_none_and_every_cell_split():
+@pytest.mark.parametrize("seed", [None, 5])
+def test_none_and_every_cell_split(seed):
     """No cell split: the coarse grid's vertices are the unknowns, walked on the fine
-    grid's 6 tets per cell. Every cell split: the fine grid's, walked on 48 tets per fine
-    cell, as :func:`trilinear_grid` walks them."""
+    grid's 6 tets per cell. Every cell split (``seed`` None), or some (a random split):
+    the fine grid's vertices are the unknowns or hang, walked on 48 tets per fine cell,
+    as :func:`trilinear_grid` walks them."""
     coarse = (3, 4, 2)
     g = GradedGrid.uniform(LO, CELL, coarse)
     assert g.n == 4 * 5 * 3 and np.all(g.free.reshape(7, 9, 5)[::2, ::2, ::2])
     v, t, _ = g.walk()
     assert len(v) == 7 * 9 * 5 and len(t) == 6 * 6 * 8 * 4
-    g = GradedGrid(LO, CELL, np.ones(coarse, bool))
-    assert g.n == 7 * 9 * 5 and (g.P != 0).nnz == g.n
+    split = np.ones(coarse, bool) if seed is None else random_split(seed, coarse)
+    g = GradedGrid(LO, CELL, split)
+    if seed is None:
+        assert g.n == 7 * 9 * 5 and (g.P != 0).nnz == g.n
+    else:
+        assert 4 * 5 * 3 < g.n < 7 * 9 * 5
     v, t, basis = g.walk()
     assert len(v) == 13 * 17 * 9 and len(t) == 48 * 6 * 8 * 4
     # the walked vertices are the lattice of half cells, and take the fine grid's field
     half = np.rint((v - LO) / (CELL / 2)).astype(int)
     assert len(np.unique(half, axis=0)) == len(v) and half.max(0).tolist() == [12, 16, 8]
     assert (basis != trilinear_rows(half, g.fine)).nnz == 0
+    # the Kuhn split of each half cell: every edge one of a half cell's 7 steps from its
+    # low corner, (0 or 1) per axis, all one way (the other diagonals are another split)
+    pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    step = np.concatenate([half[t[:, j]] - half[t[:, i]] for i, j in pairs])
+    step *= np.where(np.any(step < 0, axis=1) & ~np.any(step > 0, axis=1), -1, 1)[:, None]
+    assert step.min() == 0 and step.max() == 1
 
 
 def test_walk_is_a_conforming_cover_of_the_box():
