@@ -380,8 +380,9 @@ def test_graded_grid_keeps_the_fine_grids_penalty(blob_data):
 
 def test_default_basis_is_trilinear_under_its_cap(blob_data, tmp_path, monkeypatch):
     """The default basis is trilinear where its walk has at most ``TRILINEAR_TETS``
-    tets, else linear, and the log says why; a resumed fit keeps its own basis by
-    default, and another one given is refused in one line."""
+    tets (a graded grid's over its cells made even), else linear, and the log says why;
+    a resumed fit keeps its own basis by default, and another one given is refused in
+    one line."""
     import mi_tetvr.recon.tomography as tomo
     data = blob_data[2]
     quick = dict(model="absorption", solver="sart", passes=2, validation=0)
@@ -401,6 +402,14 @@ def test_default_basis_is_trilinear_under_its_cap(blob_data, tmp_path, monkeypat
             log=logs.append)
     m = run(data, tmp_path / "new", FitConfig(**quick), progress=False, log=logs.append)
     assert m["solver"]["basis"] == "trilinear" and "basis trilinear (the default)" in logs
+    # a graded grid walks its cells made even: 7 per axis walk as 8
+    monkeypatch.setattr(tomo, "TRILINEAR_TETS", 48 * 7 ** 3)
+    logs.clear()
+    m = run(data, tmp_path / "graded", FitConfig(model="absorption", grid_resolution=7,
+                                                 adapt=0.75, tv=0.1, passes=2),
+            progress=False, log=logs.append)
+    assert m["solver"]["basis"] == "linear" and "basis linear (the default: its walk would " \
+        "have 24,576 tets, more than 16,464)" in logs, logs
 
 
 def test_adaptive_grid_resumes_and_splits_anew(blob_data, tmp_path):
