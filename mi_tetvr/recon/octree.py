@@ -11,7 +11,7 @@ and axis) thus has a value ``u = P x`` from the unknowns ``x``
 fine grid's, as the grid's own trilinear field is walked.
 
 With no cell split it is the trilinear field of the coarse grid; with every
-cell split, that of the fine grid (:func:`~mi_tetvr.recon.tomography.trilinear_grid`).
+cell split, that of the fine grid, walked as :func:`half_cell_walk` walks any grid's.
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ import numpy as np
 
 from mi_tetvr.extras import needs
 
-__all__ = ["GradedGrid", "fine_mesh", "trilinear_rows"]
+__all__ = ["GradedGrid", "fine_mesh", "half_cell_walk", "trilinear_rows"]
 
 
 def trilinear_rows(half, cells):
@@ -55,11 +55,24 @@ def fine_mesh(lo, cell, fine):
     return np.asarray(v, np.float64), np.asarray(t, np.int64)
 
 
+def half_cell_walk(lo, hi, cells):
+    """The tets that walk the trilinear field of a grid of ``cells`` per axis over the box
+    ``lo``, ``hi``: the Kuhn splits of the lattice of half its cells, each vertex taking
+    the field's value there, so the walked field, linear in each small tet, interpolates
+    the trilinear one. Returns ``(vertices, tets, basis)``, ``basis`` (vertices, grid
+    vertices) each walked vertex's trilinear weights (:func:`trilinear_rows`)."""
+    from mi_tetvr.mesh.generate import grid_mesh
+    lo, hi, cells = (np.asarray(a) for a in (lo, hi, cells))
+    v, t = grid_mesh(tuple(int(c) for c in 2 * cells), lo, hi)
+    v = np.asarray(v, np.float64)
+    half = np.rint((v - lo) / ((hi - lo) / (2 * cells))).astype(np.int64)
+    return v, np.asarray(t, np.int64), trilinear_rows(half, cells)
+
+
 def _vertex_cells(split):
     """For the fine grid's vertices (C order) of coarse cells ``split``: their lattice
     indices, which are unknowns (the coarse corners, and the vertices every coarse cell
-    about which is split), which lie within split cells only, and an unsplit coarse
-    cell about each (-1 where none)."""
+    about which is split), and an unsplit coarse cell about each (-1 where none)."""
     coarse = np.asarray(split.shape)
     idx = np.indices(2 * coarse + 1).reshape(3, -1).T
     even = idx % 2 == 0
@@ -72,7 +85,7 @@ def _vertex_cells(split):
         s = split[tuple(np.clip(c, 0, coarse - 1).T)]
         all_split &= ~valid | s
         unsplit[valid & ~s] = c[valid & ~s]
-    return idx, np.all(even, axis=1) | all_split, all_split, unsplit
+    return idx, np.all(even, axis=1) | all_split, unsplit
 
 
 class GradedGrid:
@@ -104,7 +117,7 @@ class GradedGrid:
         self.cell = np.asarray(cell, np.float64)
         self.split = np.asarray(split, bool)
         self.fine = 2 * np.asarray(self.split.shape)
-        idx, self.free, _, unsplit = _vertex_cells(self.split)
+        idx, self.free, unsplit = _vertex_cells(self.split)
         self.n = int(self.free.sum())
         self.P = self._interpolation(idx, unsplit)
 
@@ -139,7 +152,8 @@ class GradedGrid:
     def walk(self):
         """The tets the projections walk: with no cell split, the fine grid's (the coarse
         field walked at half its cell); else the Kuhn splits of the lattice of half the
-        fine cell, everywhere (the fine field walked at half its cell, as
+        fine cell, everywhere (:func:`half_cell_walk`: the fine field walked at half its
+        cell, as
         :func:`~mi_tetvr.recon.tomography.trilinear_grid` walks the grid's). Returns
         ``(vertices, tets, basis)``, ``basis`` (vertices, N) each walked vertex's
         trilinear weights on the fine grid's vertices (on the unknowns: ``basis @ P``).
@@ -149,8 +163,9 @@ class GradedGrid:
         with every cell split (the phantom at 24 views and 10^4 photons: 34.84 against the
         grid's 35.12, and 35.14 on these tets): that bisection's children are not the half
         cells' Kuhn tets, and interpolate the trilinear field less well."""
-        v, t = self.fine_mesh() if not self.split.any() else \
-            fine_mesh(self.lo, 0.5 * self.cell, 2 * self.fine)
+        if self.split.any():
+            return half_cell_walk(self.lo, self.lo + self.fine * self.cell, self.fine)
+        v, t = self.fine_mesh()
         half = np.rint((v - self.lo) / (0.5 * self.cell)).astype(np.int64)
         return v, t, trilinear_rows(half, self.fine)
 
