@@ -20,6 +20,10 @@ if ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null
         apt-get install -y -qq chromium chromium-driver >/dev/null; } \
         || echo "setup.sh: could not install chromium and chromium-driver" >&2
 fi
+# PyTorch, for the torch extra: the release the tests run with, which pip takes as a
+# CPU build where one lies in its find-links (PyPI's Linux wheels are CUDA builds of
+# several GB; a newer release than a local CPU build would fetch one)
+python3 -m pip install -q "torch==2.13.0"
 # the package with every extra (rendering alone needs none: pip install mi_tetvr)
 python3 -m pip install -q -e ".[all,test,docs]"
 # the bundled scenes, their meshes and the default volume into scenes/

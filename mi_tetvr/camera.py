@@ -416,7 +416,7 @@ class Camera:
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return np.broadcast_to(self.to_world[:3, 3], d.shape).copy(), d
 
-    def rays_drjit(self, uv=None):
+    def rays_drjit(self, uv=None, to_world=None):
         """Rays through pixel positions, as a Dr.Jit ``mi.Ray3f`` (needs a Mitsuba variant).
 
         Parameters
@@ -424,6 +424,9 @@ class Camera:
         uv : mi.Point2f or (k, 2) float, optional
             Continuous pixel coordinates; default: every pixel center, in the order of
             :meth:`pixel_centers`.
+        to_world : mi.Matrix4f, optional
+            The camera-to-world matrix in place of :attr:`to_world`, as Dr.Jit values:
+            the rays then carry its AD graph (derivatives w.r.t. the pose).
 
         Returns
         -------
@@ -442,11 +445,12 @@ class Camera:
             if not isinstance(uv, mi.Point2f):
                 uv = mi.Point2f(*np.asarray(uv, np.float32).reshape(-1, 2).T)
             u, v = uv.x, uv.y
-        r = [[float(self.to_world[i, j]) for j in range(3)] for i in range(3)]
+        m = ([[float(x) for x in row] for row in self.to_world] if to_world is None
+             else to_world)
+        r = [[m[i][j] for j in range(3)] for i in range(3)]
         if self.pixel_size is not None:
             x, y = (self.cx - u) * self.pixel_size, (self.cy - v) * self.pixel_size
-            o = mi.Point3f(*[r[i][0] * x + r[i][1] * y + float(self.to_world[i, 3])
-                             for i in range(3)])
+            o = mi.Point3f(*[r[i][0] * x + r[i][1] * y + m[i][3] for i in range(3)])
             d = dr.zeros(mi.Vector3f, dr.width(o)) + mi.Vector3f(r[0][2], r[1][2], r[2][2])
             return mi.Ray3f(o, d)
         x = (self.cx - u) / self.fx
@@ -454,8 +458,7 @@ class Camera:
         d = mi.Vector3f(r[0][0] * x + r[0][1] * y + r[0][2],
                         r[1][0] * x + r[1][1] * y + r[1][2],
                         r[2][0] * x + r[2][1] * y + r[2][2])
-        o = mi.Point3f(*[float(c) for c in self.to_world[:3, 3]])
-        o = dr.zeros(mi.Point3f, dr.width(d)) + o
+        o = dr.zeros(mi.Point3f, dr.width(d)) + mi.Point3f(*[m[i][3] for i in range(3)])
         return mi.Ray3f(o, dr.normalize(d))
 
     # -- Mitsuba ----------------------------------------------------------------------------

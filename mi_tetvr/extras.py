@@ -10,6 +10,8 @@ an *extra*, named by what users do with it::
     pip install "mi_tetvr[vis]"        # VTK: lit isosurfaces, VTK files meshio cannot read
     pip install "mi_tetvr[viewer]"     # the live viewer in the browser (viser)
     pip install "mi_tetvr[cluster]"    # partitioned meshes and sweeps over workers (Ray)
+    pip install "mi_tetvr[torch]"      # the renderer as a layer of PyTorch programs
+    pip install "mi_tetvr[jax]"        # the renderer as a layer of JAX programs
     pip install "mi_tetvr[all]"        # all of the above
 
 Code that needs an extra imports it where it is used, inside :func:`needs`, so
@@ -31,6 +33,8 @@ EXTRAS = {
     "vis": "VTK's filters and readers: lit isosurfaces, VTK files meshio cannot read",
     "viewer": "the live viewer in the browser",
     "cluster": "partitioned meshes and sweeps over workers",
+    "torch": "the renderer as a differentiable layer of PyTorch programs",
+    "jax": "the renderer as a differentiable layer of JAX programs",
 }
 
 #: The optional packages by the name they are imported as: their name on PyPI.
@@ -39,7 +43,8 @@ PACKAGES = {"scipy": "scipy", "trimesh": "trimesh", "pytetwild": "pytetwild",
             "matplotlib": "matplotlib", "PIL": "pillow", "yaml": "pyyaml",
             "imageio_ffmpeg": "imageio-ffmpeg", "pycolmap": "pycolmap", "h5py": "h5py",
             "algotom": "algotom", "astra": "astra-toolbox", "viser": "viser", "ray": "ray",
-            "av": "av", "cv2": "opencv-python-headless"}
+            "av": "av", "cv2": "opencv-python-headless",
+            "torch": "torch", "jax": "jax"}
 
 
 class MissingExtra(ModuleNotFoundError):
