@@ -39,11 +39,16 @@ from __future__ import annotations
 
 import contextlib
 
-from .mesh import MeshError, TetMesh, Topology, build_topology, quality, read_tetmesh, write_tetmesh
-from .plugins import register
-from .transfer import TransferFunction, read_transfer_function
-
 __version__ = "0.9.0"
+
+# The Mitsuba release first: outside the supported range, one line says so.
+from .compat import check_mitsuba  # noqa: E402
+
+check_mitsuba()
+
+from .mesh import MeshError, TetMesh, Topology, build_topology, quality, read_tetmesh, write_tetmesh  # noqa: E402,E501
+from .plugins import register  # noqa: E402
+from .transfer import TransferFunction, read_transfer_function  # noqa: E402
 
 __all__ = ["__version__", "register", "tetmesh_dict", "tetmesh_shape", "load_dict",
            "load_file", "load_string", "plugin_error", "read_tetmesh", "write_tetmesh",

@@ -74,7 +74,7 @@ from mi_tetvr.extras import needs
 
 __all__ = ["Camera", "look_at", "as_rigid", "default_fov", "framing_distance", "FRAMING_MARGIN",
            "fibonacci_cameras", "random_cameras", "fibonacci_sphere", "box_cameras",
-           "orbit_to_world", "check_factor", "camera_path", "cameras_focus",
+           "orbit_to_world", "check_factor", "camera_path", "cameras_focus", "drjit_rays",
            "OPENGL_TO_MITSUBA", "OPENCV_TO_MITSUBA"]
 
 #: ``c2w_opengl @ OPENGL_TO_MITSUBA`` is Mitsuba's ``to_world`` (and vice versa: an involution).
@@ -447,19 +447,7 @@ class Camera:
             u, v = uv.x, uv.y
         m = ([[float(x) for x in row] for row in self.to_world] if to_world is None
              else to_world)
-        r = [[m[i][j] for j in range(3)] for i in range(3)]
-        if self.pixel_size is not None:
-            x, y = (self.cx - u) * self.pixel_size, (self.cy - v) * self.pixel_size
-            o = mi.Point3f(*[r[i][0] * x + r[i][1] * y + m[i][3] for i in range(3)])
-            d = dr.zeros(mi.Vector3f, dr.width(o)) + mi.Vector3f(r[0][2], r[1][2], r[2][2])
-            return mi.Ray3f(o, d)
-        x = (self.cx - u) / self.fx
-        y = (self.cy - v) / self.fy
-        d = mi.Vector3f(r[0][0] * x + r[0][1] * y + r[0][2],
-                        r[1][0] * x + r[1][1] * y + r[1][2],
-                        r[2][0] * x + r[2][1] * y + r[2][2])
-        o = dr.zeros(mi.Point3f, dr.width(d)) + mi.Point3f(*[m[i][3] for i in range(3)])
-        return mi.Ray3f(o, dr.normalize(d))
+        return drjit_rays(u, v, (self.fx, self.fy, self.cx, self.cy), m, self.pixel_size)
 
     # -- Mitsuba ----------------------------------------------------------------------------
     def sensor_dict(self, spp: int = 1, sampler: str = "independent", *,
@@ -552,6 +540,48 @@ class Camera:
 
 #: How much larger than a bounding sphere the sphere is that a framing camera's view holds.
 FRAMING_MARGIN = 1.05
+
+
+def drjit_rays(u, v, intrinsics, to_world, pixel_size=None):
+    """Dr.Jit rays through pixel positions ``(u, v)`` of pinhole (or orthographic)
+    cameras: the formula of :meth:`Camera.rays_drjit`, for one camera or for each
+    ray its own (every argument a number or a Dr.Jit ``Float`` per ray).
+
+    Parameters
+    ----------
+    u, v : mi.Float
+        Continuous pixel coordinates (top-left corner at (0, 0)).
+    intrinsics : (fx, fy, cx, cy)
+        Focal lengths and principal point in pixels.
+    to_world : 4x4 (or 3x4) nested sequence
+        The camera-to-world matrix, indexed ``[row][column]``.
+    pixel_size : float, optional
+        An orthographic camera's pixel size (``fx, fy`` unused).
+
+    Returns
+    -------
+    mi.Ray3f
+        Origins at the camera centre (orthographic: on the image plane), unit
+        directions.
+    """
+    import drjit as dr
+    import mitsuba as mi
+    fx, fy, cx, cy = intrinsics
+    m = to_world
+    r = [[m[i][j] for j in range(3)] for i in range(3)]
+    width = max(dr.width(u), dr.width(v))
+    if pixel_size is not None:
+        x, y = (cx - u) * pixel_size, (cy - v) * pixel_size
+        o = mi.Point3f(*[r[i][0] * x + r[i][1] * y + m[i][3] for i in range(3)])
+        d = dr.zeros(mi.Vector3f, dr.width(o)) + mi.Vector3f(r[0][2], r[1][2], r[2][2])
+        return mi.Ray3f(o, d)
+    x = (cx - u) / fx
+    y = (cy - v) / fy
+    d = mi.Vector3f(r[0][0] * x + r[0][1] * y + r[0][2],
+                    r[1][0] * x + r[1][1] * y + r[1][2],
+                    r[2][0] * x + r[2][1] * y + r[2][2])
+    o = dr.zeros(mi.Point3f, width) + mi.Point3f(*[m[i][3] for i in range(3)])
+    return mi.Ray3f(o, dr.normalize(d))
 
 
 def cameras_focus(cameras: Sequence[Camera]) -> np.ndarray:

@@ -334,6 +334,14 @@ class TrainerSettings(_Part):
         "unless set, is planned from the data and the budget, the same on any machine); a "
         "resumed run gets it again", metavar="MIN")
     views_per_step: int = setting(2, "training views rendered per optimizer step")
+    sampling: str = setting(
+        "photos", "what each optimizer step renders: whole training photos (views_per_step "
+        "of them), or rays drawn at random from all of them, as nerfstudio's pixel sampler "
+        "does (the same loss; each step's gradient spread over many photos)",
+        choices=("photos", "rays"))
+    rays_per_step: int | None = setting(
+        None, "sampling rays: rays per optimizer step (default: as many as views_per_step "
+        "photos hold at the stage's scale)")
     lr_color: float = setting(0.02, "color step")
     lr_opacity: float = setting(0.05, "opacity step: optical depth per cell")
     lr_position: float = setting(0.0, "position step in cell sizes; 0: positions fixed")
@@ -370,6 +378,8 @@ class TrainerSettings(_Part):
 
     def validate(self):
         super().validate()
+        if self.rays_per_step is not None and self.rays_per_step < 1:
+            raise ValueError("rays_per_step must be >= 1")
         if self.time_budget is not None and not self.time_budget > 0:
             raise ValueError("time_budget must be > 0 minutes")
         if not 0 < self.decay <= 1:

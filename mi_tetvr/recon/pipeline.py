@@ -461,8 +461,7 @@ class _Loop:
         # outputs' estimate and the checkpoint)
         share = clock.weights[i + 1] / max(sum(clock.weights[i + 1:]), 1e-9)
         seconds = max(left * share - self.between, 0.0)
-        steps = MIN_STAGE_EPOCHS * len(trainer.dataset.train) / min(
-            self.config.trainer.views_per_step, len(trainer.dataset.train))
+        steps = MIN_STAGE_EPOCHS * len(trainer.dataset.train) / trainer.photos_per_step
         max_tets, held = affordable(len(trainer.tets), step_seconds, seconds, steps,
                                     trainer.downscale, self.stages[i + 1]["downscale"])
         if held:

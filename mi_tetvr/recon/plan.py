@@ -83,7 +83,9 @@ def nominal_step_seconds(config: FitConfig, dataset, resolution):
     same on a busy machine and an idle one."""
     from mi_tetvr.mesh.initial import grid_shape
     pixels = np.mean([v.camera.width * v.camera.height for v in dataset.train])
-    rays = min(config.trainer.views_per_step, len(dataset.train)) * pixels * config.trainer.spp
+    rays = config.trainer.rays_per_step if config.trainer.sampling == "rays" else None
+    rays = rays or min(config.trainer.views_per_step, len(dataset.train)) * pixels \
+        * config.trainer.spp
     tets = 6 * np.prod(grid_shape(data_bounds(config.mesh, dataset), resolution))
     fixed, per_ray, per_ray_cell, per_tet = STEP_COST
     seconds = fixed + rays * (per_ray + per_ray_cell * resolution) + per_tet * tets

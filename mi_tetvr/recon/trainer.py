@@ -177,6 +177,7 @@ class Trainer:
             self.sensor(v)
         self.targets = {id(v): mi.TensorXf(np.ascontiguousarray(v.image, np.float32))
                         for v in self.train}
+        self._sampling(config.trainer)
         self._optimizer(len(vertices))
         self._appearance(appearance)
         #: Per vertex, the absolute image-loss gradients of the training steps so far in this
@@ -188,6 +189,26 @@ class Trainer:
             from mi_tetvr.recon.regularizer import QualityRegularizer
             self.regularizer = QualityRegularizer(self.tets, beta=config.trainer.regularizer_beta,
                                                   weight=config.trainer.regularizer)
+
+    def _sampling(self, settings):
+        """What a step renders (``sampling``): whole photos, or random rays over all of
+        them (:class:`~mi_tetvr.recon.pixels.PixelSampler`, made once per stage)."""
+        pixels = float(np.mean([v.camera.width * v.camera.height for v in self.train]))
+        photos = min(settings.views_per_step, len(self.train))
+        self.pixels = None
+        #: Whole photos' worth of pixels one step renders (the stages' epochs count them).
+        self.photos_per_step = float(photos)
+        if settings.sampling != "rays":
+            return
+        if not callable(getattr(self.scene.integrator(), "program", None)):
+            raise ValueError(f"sampling rays: the fit's integrator renders whole photos only "
+                             f"({type(self.scene.integrator()).__name__}); use sampling "
+                             f"photos")
+        from mi_tetvr.recon.pixels import PixelSampler
+        self.pixels = PixelSampler(self.train)
+        #: Rays per step (``sampling`` rays).
+        self.rays_per_step = int(settings.rays_per_step or round(photos * pixels))
+        self.photos_per_step = self.rays_per_step / pixels
 
     def _initial(self, vertices):
         """The field's starting values; on a multiscale mesh (:data:`MULTISCALE`) the
@@ -302,14 +323,18 @@ class Trainer:
         i = self.appearance_index.get(id(view))
         if i is None:
             return image
-        p = [dr.gather(mi.Float, self.appearance_opt["appearance"], 12 * i + j)
+        return self._transformed(image, i)
+
+    def _transformed(self, rgba, photo):
+        """``rgba`` (an ``(..., 4)`` tensor) through the color transforms of training
+        photos ``photo``: one index, or one per pixel (``mi.UInt32``)."""
+        p = [dr.gather(mi.Float, self.appearance_opt["appearance"], 12 * photo + j)
              for j in range(12)]
-        h, w = image.shape[0], image.shape[1]
-        idx = dr.arange(mi.UInt32, h * w)
-        ch = [dr.gather(mi.Float, image.array, 4 * idx + c) for c in range(4)]
+        idx = dr.arange(mi.UInt32, dr.width(rgba.array) // 4)
+        ch = [dr.gather(mi.Float, rgba.array, 4 * idx + c) for c in range(4)]
         out = [ch[c] + p[3 * c] * ch[0] + p[3 * c + 1] * ch[1] + p[3 * c + 2] * ch[2] + p[9 + c]
                for c in range(3)]
-        return mi.TensorXf(dr.ravel(mi.Vector4f(*out, ch[3])), shape=(h, w, 4))
+        return mi.TensorXf(dr.ravel(mi.Vector4f(*out, ch[3])), shape=tuple(rgba.shape))
 
     def appearance(self):
         """The training photos' color transforms as (len(train), 12) numpy,
@@ -322,8 +347,12 @@ class Trainer:
         """Image loss (L1 or L2, mean over pixels and channels) of a render,
         through the view's color transform, against a training view (see
         :meth:`_compared`)."""
-        image = self.apply_appearance(image, view)
-        diff = self._compared(image) - self._compared(self.targets[id(view)])
+        return self._loss(self.apply_appearance(image, view), self.targets[id(view)])
+
+    def _loss(self, rgba, target):
+        """The image loss of ``rgba`` (through its photo's color transform) against
+        ``target``: tensors of one shape, ``(h, w, 4)`` or ``(rays, 4)``."""
+        diff = self._compared(rgba) - self._compared(target)
         if self.config.trainer.loss == "l1":
             return dr.mean(dr.abs(diff), axis=None)
         return dr.mean(dr.square(diff), axis=None)
@@ -337,7 +366,9 @@ class Trainer:
                                          self.targets[id(view)], self.background)
 
     def step(self, progress=None):
-        """One optimizer step over ``config.trainer.views_per_step`` random training views.
+        """One optimizer step over ``config.trainer.views_per_step`` random training views
+        (``sampling`` photos) or :attr:`rays_per_step` random rays of all of them
+        (``sampling`` rays).
 
         ``progress`` is the fraction of the stage done, in [0, 1], which sets
         the learning-rate decay (default: steps taken over
@@ -347,18 +378,14 @@ class Trainer:
         """
         cfg, state = self.config, self.state
         train = self.train
-        pick = state.rng.choice(len(train), min(cfg.trainer.views_per_step, len(train)),
-                                replace=False)
-        total, metric = 0.0, 0.0
-        for j, i in enumerate(pick):
-            view = train[i]
-            seed = (state.step * 131 + j * 7919 + cfg.trainer.seed * 104729) % (2 ** 31)
-            image = self.render(view, self.params, seed=2 * seed)
-            loss = self.loss(image, view) / len(pick)
-            mse = self.metric_mse(image, view)
-            dr.backward(loss)
-            total += float(loss.array[0])
-            metric += float(mse.array[0]) / len(pick)
+        if self.pixels is not None:
+            seed = (state.step * 131 + cfg.trainer.seed * 104729) % (2 ** 31)
+            total, metric = self._ray_step(seed)
+            pick = state.rng.choice(len(train), 1)          # (the distortion's view)
+        else:
+            pick = state.rng.choice(len(train), min(cfg.trainer.views_per_step, len(train)),
+                                    replace=False)
+            total, metric, seed = self._photo_step(pick)
         self._accumulate_scores()
         if cfg.trainer.distortion > 0:
             self.distortion(train[pick[0]], 2 * seed + 1)
@@ -394,6 +421,36 @@ class Trainer:
         self.params.update(self.opt)
         state.step += 1
         return total, metric
+
+    def _photo_step(self, pick):
+        """The image loss of the training photos ``pick`` (indices), backpropagated;
+        returns it, the mean MSE of their sRGB pictures and the last render's seed."""
+        cfg, state = self.config, self.state
+        total, metric = 0.0, 0.0
+        for j, i in enumerate(pick):
+            view = self.train[i]
+            seed = (state.step * 131 + j * 7919 + cfg.trainer.seed * 104729) % (2 ** 31)
+            image = self.render(view, self.params, seed=2 * seed)
+            loss = self.loss(image, view) / len(pick)
+            mse = self.metric_mse(image, view)
+            dr.backward(loss)
+            total += float(loss.array[0])
+            metric += float(mse.array[0]) / len(pick)
+        return total, metric, seed
+
+    def _ray_step(self, seed):
+        """The image loss of :attr:`rays_per_step` rays drawn at random from all training
+        photos, backpropagated; returns it and the MSE of their sRGB values."""
+        from mi_tetvr.rays import render_rays
+        ray, target, photo = self.pixels.draw(self.rays_per_step, seed, self.jitter)
+        rgba = render_rays(self.scene, ray.o, ray.d, params=self.params, seed=2 * seed)
+        if self.appearance_index:
+            rgba = self._transformed(rgba, photo)
+        loss = self._loss(rgba, target)
+        with dr.suspend_grad():
+            mse = self.field.metric_mse(dr.detach(rgba), target, self.background)
+        dr.backward(loss)
+        return float(loss.array[0]), float(mse.array[0])
 
     def distortion(self, view, seed=0):
         """The rays' distortion of a training view at half its size, times
