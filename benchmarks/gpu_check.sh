@@ -16,7 +16,8 @@
 # Full mode: the renderer's tests (forward against the float64 reference, gradients
 # against finite differences, surfaces, overlapping meshes, tetproj, tetpath), then
 # 1.57M tets (64^3 cells) at 1024^2 (render, render + backward, adjoint memory) and
-# 10.4M tets (120^3 cells) at 1024^2 (render). Each step has its own time limit, so
+# 10.4M tets (120^3 cells) at 1024^2 (render), render_rays against mi.render on the same
+# rays (and, where PyTorch is installed, one step through the PyTorch wrapper). Each step has its own time limit, so
 # the whole check ends within 8 minutes and the report is written whatever fails.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -58,7 +59,8 @@ if [ $QUICK -eq 1 ]; then
            tests/render/test_surfaces.py::test_against_mitsuba_without_the_volume
            tests/render/test_overlap.py::test_overlapping_meshes_with_coincident_boundary_faces
            tests/render/test_projection.py::test_slice_against_the_reference
-           tests/render/test_transport.py::test_free_flight_distances_invert_the_optical_depth)
+           tests/render/test_transport.py::test_free_flight_distances_invert_the_optical_depth
+           tests/render/test_rays.py::test_gradients_against_finite_differences)
     SIZES=(--quick); BIG=(--cells 20 --res 64); LIMIT_TESTS=600
 else
     # the renderer's tests that need no extra (the VTK comparisons and Ray's blocks need theirs)
@@ -69,7 +71,8 @@ else
            tests/render/test_classified.py tests/render/test_cell_data.py
            tests/render/test_surfaces.py tests/render/test_overlap.py
            tests/render/test_overlay.py tests/render/test_projection.py
-           tests/render/test_transport.py tests/test_scenes.py)
+           tests/render/test_transport.py tests/render/test_rays.py tests/test_interop.py
+           tests/test_scenes.py)
     SIZES=(--cells 64 --res 1024); BIG=(--cells 120 --res 1024); LIMIT_TESTS=200
 fi
 step tests "$LIMIT_TESTS" python3 -m pytest -q -p no:cacheprovider -o addopts= \
@@ -85,6 +88,8 @@ else
     step memory 40 python3 benchmarks/bench_memory.py --variant "$VARIANT" \
         --json "$OUT/memory.json"
 fi
+step rays 60 python3 benchmarks/bench_rays.py --variant "$VARIANT" "${SIZES[@]}" \
+    --repeat 3 --json "$OUT/rays.json"
 step render_10m 90 python3 benchmarks/bench_render.py --variant "$VARIANT" "${BIG[@]}" \
     --repeat 2 --json "$OUT/render_10m.json"
 python3 benchmarks/gpu_report.py "$OUT" >"$OUT/gpu_check.md" || STATUS=1

@@ -99,6 +99,13 @@ def main(folder):
               f"({t['tets_per_ray_mean']:.0f} vs {o['tets_per_ray_mean']:.1f} tets per ray) | "
               f"recorded loop: {r['recorded_transparent_over_opaque']:.1f}x transparent / "
               f"opaque |")
+    d = _json(folder, "rays")
+    if d:
+        r = d["results"]
+        ratios = {c["case"]: sorted(c["ratios"])[len(c["ratios"]) // 2] for c in r["cases"]}
+        print(f"| render_rays | {r['tets']:,} tets, {r['rays']:,} rays | "
+              + ", ".join(f"{k} {v:.2f}x" for k, v in ratios.items())
+              + f" mi.render's time; max diff {r['max_diff']:.1e} | mi.render, same rays |")
     return 0 if all(rc == "0" for _, rc, _ in steps) and not failures else 1
 
 

@@ -47,6 +47,9 @@ def check_mitsuba(version: str | None = None, supported: str | None = None) -> N
     except InvalidVersion:
         ok = False
     if not ok:
-        from mi_tetvr import __version__
-        raise ImportError(f"mi_tetvr {__version__} runs on Mitsuba {supported}, and the "
+        try:
+            ours = metadata.version("mi_tetvr")
+        except metadata.PackageNotFoundError:
+            ours = "(a source tree)"
+        raise ImportError(f"mi_tetvr {ours} runs on Mitsuba {supported}, and the "
                           f"installed Mitsuba is {version}: pip install \"mitsuba{supported}\"")

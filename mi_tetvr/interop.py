@@ -167,9 +167,9 @@ def ray_renderer(scene: mi.Scene, keys: Sequence[str] = (), framework: str = "to
         w.r.t. the origins, directions and values. The values stay in the
         scene after the call.
     """
+    values_of = _Values(scene, keys)
     fw = _framework(framework)
     from mi_tetvr.rays import render_rays
-    values_of = _Values(scene, keys)
 
     def render(origins, directions, extents, values):
         params = values_of.write(values)
@@ -208,9 +208,9 @@ def camera_renderer(scene: mi.Scene, camera, keys: Sequence[str] = (),
         ``mi.render`` gives with one sample there). Differentiable w.r.t. the
         pose and the values.
     """
+    values_of = _Values(scene, keys)
     fw = _framework(framework)
     from mi_tetvr.rays import render_rays
-    values_of = _Values(scene, keys)
 
     def render(to_world, values):
         if tuple(to_world.shape) != (4, 4):

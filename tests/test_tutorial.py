@@ -267,3 +267,17 @@ def test_export_surface_tutorial(tmp_path):
     spread = surf[core & ~sky].std(0).max()                # colored, not one gray
     assert spread > 0.02, spread
     assert Path(r["files"]["figure"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_torch_network_tutorial(tmp_path):
+    """``tutorials/torch_network.py`` shrunk (4^3 cells, 4 views of 16x16, 60 steps of 512
+    rays): the network trained through the renderer lifts held-out PSNR from the untrained
+    network's by more than 6 dB (measured 15.5 -> 27.1 dB) and its loss falls to a fifth
+    (measured 0.13 of the first steps'; with no gradient it would stay)."""
+    pytest.importorskip("torch")
+    r = _tutorial("torch_network").main(["--cells", "4", "--views", "4", "--res", "16",
+                                         "--steps", "60", "--rays", "512", "--quiet",
+                                         "--out", str(tmp_path), "--variant", VARIANT])
+    assert r["psnr"] > r["start_psnr"] + 6.0, (r["psnr"], r["start_psnr"])
+    assert np.mean(r["losses"][-5:]) < 0.2 * np.mean(r["losses"][:5]), r["losses"]
+    assert Path(r["files"]["picture"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
