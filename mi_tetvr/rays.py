@@ -131,8 +131,9 @@ class _RaysOp(dr.CustomOp):
     ``render_backward``."""
 
     def eval(self, o, d, near, far, _, params, scene, integrator, seed, camera):
+        # (``_``: the parameters as a dict, the op's inputs in the AD graph;
+        # ``params`` the SceneParameters they come from, as mi.render passes them)
         self.o, self.d, self.near, self.far = o, d, near, far
-        self.params, self.scene, self.integrator = params, scene, integrator
         self.seed, self.camera = seed, camera
         self.program = integrator.program(scene)
         self.k = dr.width(o)

@@ -70,7 +70,15 @@ def pytest_collection_modifyitems(session, config, items):
 
 
 def pytest_report_header(config):
-    return f"mi_tetvr: Mitsuba variant {VARIANT} (MI_TETVR_VARIANT)"
+    from importlib import metadata
+    frameworks = []
+    for name in ("torch", "jax"):
+        try:
+            frameworks.append(f"{name} {metadata.version(name)}")
+        except metadata.PackageNotFoundError:
+            frameworks.append(f"{name} not installed (its tests skip)")
+    return [f"mi_tetvr: Mitsuba variant {VARIANT} (MI_TETVR_VARIANT)",
+            f"mi_tetvr.interop: {', '.join(frameworks)}"]
 
 
 @pytest.fixture

@@ -179,3 +179,41 @@ def test_refusals(volume):
         render_rays(empty, o, d)
     with pytest.raises(ValueError, match="tetvr integrator"):
         render_rays(scene, o, d, integrator=mi.load_dict({"type": "path"}))
+
+
+def test_surfaces_behind_and_inside():
+    """With surfaces (a sphere inside the volume, a floor and a wall behind it, a
+    point light, the nested ``prb`` at direct light): each ray is the float64
+    volume clipped at the analytic hit plus its transmittance times the
+    closed-form diffuse radiance (tests/render/test_surfaces.py's references),
+    alpha 1 where a surface is hit; the colors' gradient (the derivative pass
+    renders its own primal, the nested integrator's paths) against central
+    differences."""
+    from tests.render.test_surfaces import analytic_surfaces, camera_rays, scene_with, volume
+    rng = np.random.default_rng(41)
+    mesh = volume(np.random.default_rng(40))
+    o, d = camera_rays(rng, K)
+    scene = scene_with(mesh, nested={"type": "prb", "max_depth": 2})
+    rgba = np.array(render_rays(scene, o, d), np.float64)
+    t_hit, L_surf = analytic_surfaces(o, d)
+    hit = np.isfinite(t_hit)
+    C, a = reference_render(*mesh, o, d, t_max=np.where(hit, t_hit, np.inf))
+    assert np.abs(rgba[:, :3] - (C + (1.0 - a)[:, None] * L_surf)).max() < TOL
+    np.testing.assert_allclose(rgba[hit, 3], 1.0)
+    assert np.abs(rgba[~hit, 3] - a[~hit]).max() < TOL and hit.sum() > K // 4
+    params = mi.traverse(scene)
+    key = "mesh0.vertex_color"
+    W = mi.TensorXf(rng.normal(size=(K, 4)).astype(np.float32))
+    dr.enable_grad(params[key])
+    dr.backward(dr.sum(render_rays(scene, o, d, params=params) * W, axis=None))
+    g = np.array(dr.grad(params[key]), np.float64)
+    dr.disable_grad(params[key])
+    base, along, h = np.array(params[key], np.float64), rng.normal(size=len(g)), 1e-2
+
+    def loss(x):
+        params[key] = mi.Float(x.astype(np.float32))
+        params.update()
+        return float(np.array(dr.sum(render_rays(scene, o, d) * W, axis=None)).ravel()[0])
+    fd = (loss(base + h * along) - loss(base - h * along)) / (2 * h)
+    loss(base)
+    assert abs(fd) > 1e-2 and abs(g @ along - fd) < 0.05 * abs(fd), (g @ along, fd)
