@@ -18,15 +18,17 @@ from tests.helpers import ROOT, VARIANT
 POSITIONAL = {"render": ["s.xml"], "info": ["m.vtu"], "make-scenes": [],
               "make-dataset": ["v.npy"], "make-capture": [], "process-data": ["photos"],
               "process-xray": ["scan.h5"],
-              "fit": ["data"], "eval": ["fit", "data"], "export": ["m.vtu"], "refine": ["m.vtu"],
+              "fit": ["data"], "eval": ["fit", "data"], "uncertainty": ["fit", "data"],
+              "next-view": ["fit", "data"], "export": ["m.vtu"], "refine": ["m.vtu"],
               "viewpoint": ["m.vtu"], "view": ["m.vtu"], "partition": ["m.vtu"],
               "sweep": ["data", "sweep.yaml"]}
-REQUIRED = {"refine": ["--select", "x"], "partition": ["--blocks", "2"]}
+REQUIRED = {"refine": ["--select", "x"], "partition": ["--blocks", "2"],
+            "next-view": ["--candidates", "4"]}
 WRITES = set(POSITIONAL) - {"info"}
 RENDERS = {"render", "make-dataset", "make-capture", "fit", "eval", "viewpoint", "view",
-           "sweep"}
+           "sweep", "uncertainty", "next-view"}
 SHOWS_PROGRESS = {"make-dataset", "make-capture", "process-data", "process-xray", "fit",
-                  "viewpoint", "partition"}
+                  "viewpoint", "partition", "uncertainty", "next-view"}
 READS_MESHES = {"render", "info", "make-dataset", "fit", "eval", "export", "refine", "viewpoint",
                 "view", "partition"}
 MAKES_IMAGES = {"render", "make-dataset", "make-capture", "viewpoint", "view"}

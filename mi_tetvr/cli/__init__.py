@@ -14,7 +14,9 @@
     mi-tetvr process-xray SCAN.h5 -o DIR [--center C|auto] [--hold-out K] [--rings]
     mi-tetvr fit DATA -o DIR [--config FILE] [--print-config] [--time-budget MIN] [--viewer]
                  [...]
-    mi-tetvr eval FIT_DIR|MESH DATA [-o METRICS.json]
+    mi-tetvr eval FIT_DIR|MESH DATA [-o METRICS.json] [--images DIR]
+    mi-tetvr uncertainty FIT_DIR DATA [--stride S] [--draws K]
+    mi-tetvr next-view FIT_DIR DATA --candidates DATA|N [-o RANKING.json]
     mi-tetvr export FIT|MESH -o OUT.ply|.obj|.glb [--level L] [--array NAME] [--points]
     mi-tetvr refine MESH --select ARRAY [--fraction F] -o OUT
     mi-tetvr viewpoint MESH -o DIR [--tf TF] [--res WxH]
@@ -24,7 +26,8 @@
 
 One module per command (``render``, ``info``, ``make_scenes``, ``make_dataset``,
 ``make_capture``, ``process_data``, ``process_xray``, ``fit``, ``view``, ``evaluate`` for ``eval``,
-``export``, ``refine``, ``viewpoint``, ``partition``, ``sweep``), each with its ``NAME``, ``HELP``,
+``uncertainty``, ``next_view`` for ``next-view``, ``export``, ``refine``, ``viewpoint``,
+``partition``, ``sweep``), each with its ``NAME``, ``HELP``,
 ``add_arguments(parser)`` and ``run(args)``; :mod:`~mi_tetvr.cli.flags` holds the shared options
 and those generated from settings dataclasses (``render``'s from
 :class:`~mi_tetvr.apps.settings.RenderSettings`, ``fit``'s from
@@ -52,8 +55,8 @@ import textwrap
 
 from mi_tetvr.apps.settings import OPACITY_SCALE
 from mi_tetvr.cli import (evaluate, export, fit, info, make_capture, make_dataset,
-                          make_scenes, partition, process_data, process_xray, refine, render,
-                          sweep, view, viewpoint)
+                          make_scenes, next_view, partition, process_data, process_xray, refine,
+                          render, sweep, uncertainty, view, viewpoint)
 from mi_tetvr.cli.common import CommandError, scene_xml
 from mi_tetvr.cli.fit import fit_config
 from mi_tetvr.cli.flags import (VARIANTS, config_flags, image_size, settings_flags,
@@ -72,7 +75,8 @@ __all__ = ["main", "build_parser", "command_summary", "COMMANDS", "CommandError"
 
 #: The commands, in the order ``mi-tetvr --help`` and the README list them.
 COMMANDS = (render, info, make_scenes, make_dataset, make_capture, process_data, process_xray,
-            fit, view, evaluate, export, refine, viewpoint, partition, sweep)
+            fit, view, evaluate, uncertainty, next_view, export, refine, viewpoint, partition,
+            sweep)
 
 
 def build_parser():

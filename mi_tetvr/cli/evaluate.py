@@ -28,6 +28,9 @@ def add_arguments(p):
     p.add_argument("--holdout", type=int, default=8,
                    help="with a train split only: every N-th view is a test view (default 8)")
     p.add_argument("--split", choices=["test", "train"], default="test")
+    p.add_argument("--images", metavar="DIR", help="a fit folder: write a PNG per view to DIR, "
+                   "the render | the view's image | each value's uncertainty (its maximum "
+                   "along the rays, where mi-tetvr uncertainty wrote it)")
     flags.mesh_flags(p)
     flags.variant(p)
 
@@ -46,8 +49,11 @@ def run(a):
             raise ValueError("--background, --repair and --cell-to-point apply to a mesh "
                              "file; a fit folder is scored with its own settings")
         metrics = evaluate_fit(result, a.data, split=a.split, downscale=a.downscale,
-                               holdout=a.holdout)
+                               holdout=a.holdout, images=a.images)
     else:
+        if a.images:
+            raise ValueError("--images applies to a fit folder (its render, and its "
+                             "uncertainty where mi-tetvr uncertainty wrote it)")
         if background == "learn":
             raise ValueError("a learned background is in the fit's folder: eval that "
                              "folder (mi-tetvr eval FIT_DIR DATA)")
@@ -61,6 +67,8 @@ def run(a):
     linear = f"; linear PSNR {m['psnr_linear']:.2f} dB" if what == "sRGB" else ""
     print(f"mean PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} ({what}{linear}) "
           f"({len(metrics['views'])} views)")
+    if a.images:
+        print(f"render | image | uncertainty per view -> {a.images}")
     if a.out:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         Path(a.out).write_text(json.dumps(metrics, indent=2))

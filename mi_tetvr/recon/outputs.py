@@ -110,6 +110,30 @@ def write_fitted(trainer: Trainer, out: Path):
             k: values[k] for k in field.point_arrays}), color=None, opacity=None)
 
 
+def write_view_panels(trainer: Trainer, views, folder: Path, fitted=None, mode="max"):
+    """Write ``<view>.png`` per view to ``folder``: the fit's render | the view's image |
+    the uncertainty of each value (the ``<value>_std`` point arrays of the mesh file
+    ``fitted``, :mod:`~mi_tetvr.recon.uncertainty`), its ``mode`` (max or mean)
+    projection from the view's camera in viridis over 0 to the array's largest value.
+    Returns the names of the uncertainty arrays shown."""
+    from mi_tetvr.recon.uncertainty import STD_SUFFIX, projection
+    folder.mkdir(parents=True, exist_ok=True)
+    vertices, tets, _ = trainer.arrays()
+    stds = {}
+    if fitted is not None and Path(fitted).suffix == ".vtu" and Path(fitted).is_file():
+        from mi_tetvr.mesh.io import read_mesh_file
+        data = read_mesh_file(fitted).point_data
+        stds = {k: np.asarray(a, np.float64).reshape(len(vertices), -1)[:, 0]
+                for k, a in data.items() if k.endswith(STD_SUFFIX) and len(a) == len(vertices)}
+    shown = trainer.field.shown(trainer.background)
+    for v in views:
+        more = [projection(vertices, tets, s, v.camera, mode, (0.0, float(s.max())))
+                for s in stds.values()]
+        save_comparison(folder / f"{Path(v.name).stem}.png", trainer.render_view(v), v.image,
+                        shown, more)
+    return list(stds)
+
+
 def write_outputs(trainer: Trainer, out: Path):
     """Write what was fitted (:func:`write_fitted`),
     ``test/*.png`` (render | target; X-ray transmittance in grey),

@@ -33,7 +33,7 @@ from mi_tetvr.recon.strategy import (MIN_STAGE_EPOCHS, StageRefinement, affordab
 from mi_tetvr.recon.trainer import RunState, Trainer
 
 __all__ = ["run", "next_stage", "for_capture", "capture_kind", "with_sparse_points",
-           "evaluate_mesh", "evaluate_fit", "initial_mesh", "scalar_from_colors",
+           "evaluate_mesh", "evaluate_fit", "load_fit", "initial_mesh", "scalar_from_colors",
            "data_warnings", "SH_DEGREE_UNBOUNDED"]
 
 
@@ -607,11 +607,9 @@ def evaluate_mesh(mesh_path, dataset, background=None, n_sub=4, split="test", re
     return {**trainer.evaluate(views), "scored": "sRGB"}
 
 
-def evaluate_fit(fit_dir, data, split="test", downscale=None, holdout=8):
-    """Score what a fit in ``fit_dir`` fitted (its checkpoint: colors and opacities, an
-    attenuation, a scalar or a transfer function, with its background and settings) on
-    the data set ``data`` (a path, loaded at the fit's downscale unless given), as the fit
-    scores itself: PSNR/SSIM per view and their mean, ``scored`` says of what."""
+def load_fit(fit_dir, data, downscale=None, holdout=8):
+    """The fit in ``fit_dir`` (its checkpoint, with its settings) on the data set ``data``
+    (a path, loaded at the fit's downscale unless given): a :class:`Trainer`."""
     from mi_tetvr.recon.datasets import load_dataset
     fit_dir = Path(fit_dir)
     ckpt, saved = fit_dir / "checkpoint.npz", fit_dir / "config.json"
@@ -621,6 +619,20 @@ def evaluate_fit(fit_dir, data, split="test", downscale=None, holdout=8):
                                 f"or a mesh file")
     config = fit_settings(fit_dir)
     dataset = load_dataset(data, downscale=downscale or config.data.downscale, holdout=holdout)
-    trainer = load_checkpoint(ckpt, dataset, config)
+    return load_checkpoint(ckpt, dataset, config)
+
+
+def evaluate_fit(fit_dir, data, split="test", downscale=None, holdout=8, images=None):
+    """Score what a fit in ``fit_dir`` fitted (its checkpoint: colors and opacities, an
+    attenuation, a scalar or a transfer function, with its background and settings) on
+    the data set ``data`` (:func:`load_fit`), as the fit scores itself: PSNR/SSIM per view
+    and their mean, ``scored`` says of what. ``images``: a folder that gets a PNG per view
+    (:func:`~mi_tetvr.recon.outputs.write_view_panels`: render | target | the fit's
+    uncertainty where ``mi-tetvr uncertainty`` wrote it)."""
+    trainer = load_fit(fit_dir, data, downscale, holdout)
+    dataset = trainer.dataset
     views = dataset.test if split == "test" and dataset.test else dataset.train
+    if images is not None:
+        from mi_tetvr.recon.outputs import write_view_panels
+        write_view_panels(trainer, views, Path(images), Path(fit_dir) / trainer.field.fitted_file)
     return {**trainer.evaluate(views), "scored": trainer.field.scored}

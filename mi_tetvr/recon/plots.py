@@ -10,7 +10,7 @@ from mi_tetvr.recon.metrics import composite
 __all__ = ["save_comparison", "plot_history", "plot_transfer_functions"]
 
 
-def save_comparison(path, pred_rgba, target_rgba, background):
+def save_comparison(path, pred_rgba, target_rgba, background, more=()):
     """Write a render and its target side by side as an sRGB PNG.
 
     Parameters
@@ -20,12 +20,15 @@ def save_comparison(path, pred_rgba, target_rgba, background):
         Premultiplied linear RGBA, shown composited over ``background``.
     background : None or (3,) float
         Linear RGB (``None``: black).
+    more : sequence of (h, w, 3) float
+        Further linear RGB panels to their right (e.g. uncertainty projections).
     """
     with needs("recon", "the fit's plots"):
         from PIL import Image
 
     from mi_tetvr.color import linear_to_srgb
-    row = np.concatenate([composite(pred_rgba, background), composite(target_rgba, background)], 1)
+    row = np.concatenate([composite(pred_rgba, background), composite(target_rgba, background),
+                          *(np.asarray(m, np.float64)[..., :3] for m in more)], 1)
     img = (np.clip(linear_to_srgb(np.clip(row, 0, 1)), 0, 1) * 255 + 0.5).astype(np.uint8)
     Image.fromarray(img).save(path)
 
