@@ -46,6 +46,7 @@ def parse_args(argv=None):
     p.add_argument("--part", choices=("probes", "spearman", "nextview", "all"), default="all")
     p.add_argument("--draws", type=int, default=3, help="random next views averaged (default 3)")
     p.add_argument("--out", help="work folder (default: a temporary one)")
+    p.add_argument("--cases", help="spearman: these cases only (engine, headmr, color)")
     a = p.parse_args(argv)
     if a.quick:
         a.draws = 2
@@ -175,14 +176,19 @@ def part_probes(a, out):
     return {"dense_seconds": dense_s, "rows": rows}
 
 
-def vertex_errors(trainer, truth, scored):
-    """(values (n, c) fitted, errors (n,)): the absolute error of each vertex's value
-    (the color's RMS over channels, or the attenuation)."""
+def vertex_errors(trainer, truth):
+    """``{value: (std (n,), |error| (n,), in view (n,) bool)}`` of the fit's values
+    against the truth: an X-ray fit's attenuation; a color fit's color (the RMS over
+    its channels) and opacity, "in view" where the true opacity is above 1 % of its
+    largest (elsewhere a color is not seen)."""
     vertices, _, values = trainer.arrays()
-    if scored == "transmittance":
-        return np.abs(values["attenuation"] - truth(vertices))
-    color, _ = truth(vertices)
-    return np.sqrt(np.mean((values["color"] - color) ** 2, axis=1))
+    if trainer.field.scored == "transmittance":
+        err = np.abs(values["attenuation"] - truth(vertices))
+        return {"attenuation": (err, np.ones(len(err), bool))}
+    color, opacity = truth(vertices)
+    seen = opacity > 0.01 * opacity.max()
+    return {"color": (np.sqrt(np.mean((values["color"] - color) ** 2, axis=1)), seen),
+            "opacity": (np.abs(values["opacity"] - opacity), seen)}
 
 
 def part_spearman(a, out):
@@ -191,10 +197,12 @@ def part_spearman(a, out):
     cases = [("engine CT, 24 views, 1e4 photons", "ct", "engine"),
              ("head MR, 24 views, 1e4 photons", "ct", "headmr"),
              ("color volume, 8 views", "color", None)]
+    if a.cases:
+        cases = [c for c in cases if (c[2] or c[1]) in a.cases.split(",")]
     if a.quick:
         cases = [("phantom 12^3, 24 views", "ct", "phantom"), cases[2]]
-    print(f"{'case':<34} {'vertices':>8} {'std':>7} {'crossings':>9} {'renders':>7} "
-          f"{'seconds':>7} {'exact':>5}")
+    print(f"{'case':<34} {'value':<11} {'where':<7} {'vertices':>9} {'std':>7} "
+          f"{'crossings':>9} {'renders':>7} {'seconds':>7} {'exact':>5}")
     rows = []
     for label, kind, name in cases:
         work = out / f"spearman_{kind}_{name}"
@@ -205,19 +213,22 @@ def part_spearman(a, out):
             data, truth = color_case(work / "data", 8, a.quick)
             config = color_config(a.quick)
         _, trainer = fit(data, work / "fit", config)
-        u = U.laplace(trainer)
-        name_v = "attenuation" if kind == "ct" else "color"
-        std = np.sqrt(u.variance[name_v].mean(axis=1))
-        err = vertex_errors(trainer, truth, trainer.field.scored)
-        rho = spearman(std, err)
-        base = spearman(-u.information.crossings, err)
-        rows.append(dict(case=label, vertices=len(err), spearman_std=rho,
-                         spearman_crossings=base, renders=u.information.renders,
-                         seconds=u.information.seconds, exact=u.information.exact,
-                         sigma2=u.sigma2))
-        print(f"{label:<34} {len(err):>8,} {rho:7.3f} {base:9.3f} "
-              f"{u.information.renders:7.0f} {u.information.seconds:7.1f} "
-              f"{str(u.information.exact):>5}")
+        u = U.laplace(trainer, penalty=U.fit_penalty(work / "fit"))
+        for value, (err, seen) in vertex_errors(trainer, truth).items():
+            std = np.sqrt(u.variance[value].mean(axis=1))
+            for where, m in (("all", np.ones(len(err), bool)), ("in view", seen)):
+                if where == "in view" and m.all():
+                    continue
+                rho = spearman(std[m], err[m])
+                base = spearman(-u.information.crossings[m], err[m])
+                rows.append(dict(case=label, value=value, vertices=where, count=int(m.sum()),
+                                 spearman_std=rho, spearman_crossings=base,
+                                 renders=u.information.renders,
+                                 seconds=u.information.seconds, exact=u.information.exact,
+                                 sigma2=u.sigma2))
+                print(f"{label:<34} {value:<11} {where:<7} {int(m.sum()):>9,} {rho:7.3f} "
+                      f"{base:9.3f} {u.information.renders:7.0f} "
+                      f"{u.information.seconds:7.1f} {str(u.information.exact):>5}")
     return rows
 
 
@@ -246,7 +257,7 @@ def part_nextview(a, out):
 
         m0, trainer = fit(subset(start), work / "start", config)
         t0 = time.perf_counter()
-        u = U.laplace(trainer)
+        u = U.laplace(trainer, penalty=U.fit_penalty(work / "start"))
         ranked = U.rank_views(trainer, u, [data.train[i].camera for i in rest])
         rank_s = time.perf_counter() - t0
         best = rest[ranked[0]["index"]]

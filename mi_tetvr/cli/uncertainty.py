@@ -54,10 +54,11 @@ def load(a):
 
 
 def laplace(a, trainer):
-    from mi_tetvr.recon.uncertainty import laplace
+    """The fit's Laplace approximation (with an X-ray fit's own penalty)."""
+    from mi_tetvr.recon.uncertainty import fit_penalty, laplace
     strides = None if a.stride is None else [a.stride] * len(trainer.train)
-    return laplace(trainer, strides=strides, draws=a.draws, seed=a.seed,
-                   progress=not a.quiet)
+    return laplace(trainer, penalty=fit_penalty(a.fit), strides=strides, draws=a.draws,
+                   seed=a.seed, progress=not a.quiet)
 
 
 def run(a):

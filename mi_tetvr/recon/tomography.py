@@ -463,6 +463,24 @@ class TetGradient:
         value = float(np.sum(self.volumes * delta * delta * (q - 1.0)))
         return value, self._T @ (omega * g.ravel()), self._abs_T @ (omega * self._row_abs)
 
+    def hessian_diagonal(self, x, delta: float) -> np.ndarray:
+        """(n,) the diagonal of the smooth total variation's Hessian at ``x``,
+        exactly: ``sum_t vol_t (|G_t e_i|^2 / q_t + (1 / q_t^3 - 1 / q_t) (u_t . G_t
+        e_i)^2)``, ``q_t = sqrt(1 + (s_t / delta)^2)``, ``u_t`` the unit gradient (the
+        Hessian of ``psi(|g|)`` is ``I / q + (1 / q^3 - 1 / q) u u^T``)."""
+        from scipy.sparse import csr_matrix
+        g = (self.G @ np.asarray(x, np.float64)).reshape(-1, 3)
+        s = np.linalg.norm(g, axis=1)
+        q = np.sqrt(1.0 + (s / delta) ** 2)
+        u = g / np.maximum(s, 1e-300)[:, None]
+        first = self.G.multiply(self.G).T @ np.repeat(self.volumes / q, 3)
+        m = len(s)
+        # rows 3t + k scaled by u_tk and summed over k: u_t . G_t e_i
+        sums = csr_matrix((u.ravel(), (np.repeat(np.arange(m), 3), np.arange(3 * m))),
+                          shape=(m, 3 * m)) @ self.G
+        second = sums.multiply(sums).T @ (self.volumes * (q ** -3 - 1.0 / q))
+        return np.asarray(first + second).ravel()
+
     def curvature_scale(self) -> np.ndarray:
         """The penalty's curvature where the field is flat (its largest)."""
         return self._abs_T @ (np.repeat(self.volumes, 3) * self._row_abs)
@@ -783,7 +801,8 @@ def _pwls_stage(projector, b, weights, gradient, x0, config, passes, tune, tune_
     tuning's solution (the search starts about ``near``, an earlier mesh's
     weight, when given); else ``config.solver.tv`` (default :data:`LAMBDA_DEFAULT`)
     for ``passes``. Returns ``(x, record)``: the weight (``tv``), how it was
-    chosen, and the tuning's trials. ``reference``: :class:`PenalizedLS`'s."""
+    chosen, the absolute weight ``beta`` and corner ``delta`` solved with, and the
+    tuning's trials. ``reference``: :class:`PenalizedLS`'s."""
     if not tune:
         pls = PenalizedLS(projector, b, weights, gradient, reference=reference)
         start = pls.start(x0=x0, callback=solve["callback"])
@@ -791,7 +810,8 @@ def _pwls_stage(projector, b, weights, gradient, x0, config, passes, tune, tune_
         lam = config.solver.tv if given else LAMBDA_DEFAULT
         log(f"penalty weight {lam:g} ({'given' if given else 'the default rule'})")
         return pls.solve(lam, passes, start, **solve), \
-            {"tv": lam, "chosen": "given" if given else "the default rule"}
+            {"tv": lam, "chosen": "given" if given else "the default rule",
+             "beta": lam * pls.beta0, "delta": pls.delta}
     from mi_tetvr.grid.slices import validation_split
     fit_views, val_views = validation_split(len(projector.cameras), config.solver.validation)
     pls = PenalizedLS(projector, b, weights, gradient, views=fit_views, reference=reference)
@@ -809,6 +829,7 @@ def _pwls_stage(projector, b, weights, gradient, x0, config, passes, tune, tune_
     x = full.solve(best["lam"], max(1, passes // 2), best["x"], **solve)
     record = {"validation_views": len(val_views), "tv": best["lam"],
               "chosen": "on held-out views", "delta": pls.delta,
+              "beta": best["lam"] * full.beta0,
               "trials": [{k: r[k] for k in ("lam", "passes", "held_out_mse")}
                          for r in trials]}
     return x, record
@@ -1136,7 +1157,8 @@ class LinearCourse:
             x, record = _pwls_stage(projector, b, weights, gradient, x, config, passes,
                                     tune, self.deadline(0.6), solve, self.log, near=lam,
                                     reference=reference)
-            self.weight = {k: record[k] for k in ("tv", "chosen")}
+            # (the penalty's absolute weight and corner: what its curvature needs)
+            self.weight = {k: record[k] for k in ("tv", "chosen", "beta", "delta")}
             self.tuned = record if tune else None
             return x, record["tv"]
         subset = len(self.cameras) if self.solver == "sirt" else 1

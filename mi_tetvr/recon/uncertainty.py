@@ -41,7 +41,8 @@ import mitsuba as mi
 import numpy as np
 
 __all__ = ["Information", "Uncertainty", "stride", "information", "noise_variance",
-           "prior_curvature", "laplace", "rank_views", "candidate_cameras", "projection", "write",
+           "prior_curvature", "fit_penalty", "laplace", "rank_views", "candidate_cameras",
+           "projection", "write",
            "MAX_STRIDE", "STD_SUFFIX", "CROSSINGS"]
 
 #: The largest probing stride (``s^2`` groups of pixels per view): beyond it a
@@ -334,10 +335,27 @@ def _flux(trainer):
     return cfg if cfg is not None else getattr(trainer.dataset, "xray_flux", None)
 
 
-def laplace(trainer, *, strides=None, draws: int = 1, seed: int = 0, cap: int = MAX_STRIDE,
-            progress=False) -> Uncertainty:
+def fit_penalty(fit_dir):
+    """``(beta, delta)``: the absolute weight and corner of the total-variation
+    penalty an X-ray fit in ``fit_dir`` solved with (its ``metrics.json``), or None."""
+    import json
+    from pathlib import Path
+    path = Path(fit_dir) / "metrics.json"
+    if not path.is_file():
+        return None
+    penalty = json.loads(path.read_text()).get("solver", {}).get("penalty") or {}
+    if penalty.get("beta") is None or penalty.get("delta") is None:
+        return None
+    return float(penalty["beta"]), float(penalty["delta"])
+
+
+def laplace(trainer, *, penalty=None, strides=None, draws: int = 1, seed: int = 0,
+            cap: int = MAX_STRIDE, progress=False) -> Uncertainty:
     """The Laplace approximation of a fit (see the module docstring), from its
-    training views at the fit's scale (:attr:`Trainer.train`)."""
+    training views at the fit's scale (:attr:`Trainer.train`). ``penalty``: an X-ray
+    fit's total variation ``(beta, delta)`` (:func:`fit_penalty`), whose exact
+    curvature at the fitted field (:meth:`TetGradient.hessian_diagonal
+    <mi_tetvr.recon.tomography.TetGradient.hessian_diagonal>`) joins the prior."""
     arrays = _values(trainer)
     views = trainer.train
     flux = _flux(trainer) if trainer.field.scored == "transmittance" else None
@@ -346,8 +364,15 @@ def laplace(trainer, *, strides=None, draws: int = 1, seed: int = 0, cap: int = 
                        seed=seed, cap=cap, progress=progress)
     sigma2 = 1.0 if flux else max(noise_variance(trainer, views), 1e-12)
     if trainer.field.scored == "transmittance":
-        # an X-ray fit is a linear solve whose penalty is its solver's, not the field's
+        # an X-ray fit is a linear solve whose penalty is its solver's, not the field's:
+        # 1/2 sum w r^2 + beta TV (with the counts as weights, sigma = 1)
         prior = {name: np.zeros((trainer.opt.n_vertices, c)) for name, (_, c) in arrays.items()}
+        if penalty is not None:
+            from mi_tetvr.recon.tomography import TetGradient
+            beta, delta = penalty
+            vertices, tets, values = trainer.arrays()
+            curv = TetGradient(vertices, tets).hessian_diagonal(values["attenuation"], delta)
+            prior["attenuation"] += beta * curv[:, None] / sigma2
     else:
         # the loss is a mean over each view's compared values, the prior added once per
         # step: over all V views of M values the posterior's exponent is

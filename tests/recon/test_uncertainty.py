@@ -178,6 +178,19 @@ def test_cli_uncertainty_eval_images_next_view(data, tiny_data_path, tmp_path):
     assert np.all(point["opacity_std"] > 0)
     record = json.loads((fit / "uncertainty.json").read_text())
     assert record["strides"] == [4] * len(data.train) and record["renders"] > 0
+    # the viewer shows an uncertainty as any scalar: its maximum projection is projection()'s
+    from mi_tetvr.apps.viewer import MeshShown
+    shown = MeshShown(fit / "mesh.vtu", tf="viridis", scalar="opacity_std")
+    shown.mode = "maximum"
+    assert shown.apply("integrator")
+    cam, s = data.test[0].camera, point["opacity_std"]
+    seen = shown.render(cam)
+    mesh = meshio.read(fit / "mesh.vtu")
+    ref = U.projection(mesh.points, mesh.cells_dict["tetra"], s, cam, "max",
+                       (float(s.min()), float(s.max())))
+    hit = seen[..., 3] > 0.999
+    assert hit.sum() > 0.3 * hit.size
+    np.testing.assert_allclose(seen[..., :3][hit], ref[hit], atol=1e-5)
     r = run("eval", str(fit), d, "--images", str(tmp_path / "img"))
     assert r.returncode == 0, r.stderr
     w, h = data.test[0].camera.width, data.test[0].camera.height
@@ -196,3 +209,27 @@ def test_cli_uncertainty_eval_images_next_view(data, tiny_data_path, tmp_path):
                         "neither a number nor a data set")):
         r = run(*args)
         assert r.returncode == 1 and said in r.stderr and "Traceback" not in r.stderr
+
+
+def test_total_variation_curvature_is_exact(blob_data):
+    """The smooth total variation's Hessian diagonal (an X-ray fit's prior curvature)
+    equals central differences of its gradient, and joins the Laplace prior as
+    ``beta`` times it."""
+    from mi_tetvr.mesh.initial import grid_init
+    from mi_tetvr.recon.tomography import TetGradient
+    _, _, dataset = blob_data
+    vertices, tets = grid_init(np.array([[-0.93, -0.91, -0.89], [0.92, 0.9, 0.94]]), 2)
+    x = np.random.default_rng(2).uniform(0.0, 0.4, len(vertices))
+    cfg = FitConfig(model="absorption", grid_resolution=2, n_sub=2, jitter=False)
+    trainer = Trainer(dataset, vertices, tets, cfg, {"attenuation": x})
+    tg, delta = TetGradient(vertices, trainer.tets), 0.05
+    got = tg.hessian_diagonal(x, delta)
+    eps = 1e-6
+    want = np.array([(tg.penalty(x + eps * e, delta)[1][i] - tg.penalty(x - eps * e, delta)[1][i])
+                     / (2 * eps) for i, e in enumerate(np.eye(len(x)))])
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9 * np.abs(want).max())
+    beta = 3.0
+    u = U.laplace(trainer, penalty=(beta, delta), strides=[8] * len(trainer.train))
+    floor = 1.0 / np.var(np.array(trainer.arrays()[2]["attenuation"]))
+    np.testing.assert_allclose(u.prior["attenuation"][:, 0],
+                               beta * got / u.sigma2 + floor, rtol=1e-5)
