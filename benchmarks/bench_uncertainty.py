@@ -17,9 +17,10 @@ Three parts (``--part``, default all):
     transfer function) from 8 views.
 ``nextview``
     From a sparse start (8 of 32 views of the color volume; 12 of 64 X-ray angles of
-    the engine CT, drawn at random), the candidate FisherRF ranks first is added and
-    the fit run again with the same settings; the same with random candidates
-    (``--draws`` of them, their mean). Held-out PSNR of each.
+    the engine CT, drawn at random), the candidate ranked first is added and the fit
+    run again with the same settings; the same with random candidates (``--draws`` of
+    them, their mean). Held-out PSNR of each. Ranked by FisherRF's trace of the
+    information gain on the posterior's diagonal, and (X-ray) on its samples.
 
 Usage::
 
@@ -256,27 +257,52 @@ def part_nextview(a, out):
                               if hasattr(data, k)})
 
         m0, trainer = fit(subset(start), work / "start", config)
-        t0 = time.perf_counter()
         u = U.laplace(trainer, penalty=U.fit_penalty(work / "start"))
-        ranked = U.rank_views(trainer, u, [data.train[i].camera for i in rest])
-        rank_s = time.perf_counter() - t0
-        best = rest[ranked[0]["index"]]
-        m_best, _ = fit(subset(list(start) + [best]), work / "best", config)
+        cams = [data.train[i].camera for i in rest]
         rng = np.random.default_rng(1)
         randoms = [rest[i] for i in rng.choice(len(rest), a.draws, replace=False)]
         m_rand = [fit(subset(list(start) + [r]), work / f"random_{r}", config)[0]["mean"]["psnr"]
                   for r in randoms]
-        row = dict(case=label, start_psnr=m0["mean"]["psnr"], ranked_view=int(best),
-                   ranked_psnr=m_best["mean"]["psnr"], random_views=[int(r) for r in randoms],
-                   random_psnr=m_rand, random_mean=float(np.mean(m_rand)),
-                   ranking_seconds=rank_s, candidates=len(rest),
-                   gains=[r["gain"] for r in ranked])
-        rows.append(row)
-        print(f"{label}: start {row['start_psnr']:.2f} dB; ranked view {best} -> "
-              f"{row['ranked_psnr']:.2f} dB; random {randoms} -> "
-              f"{', '.join(f'{p:.2f}' for p in m_rand)} (mean {row['random_mean']:.2f} dB); "
-              f"ranking {len(rest)} candidates in {rank_s:.0f} s")
+        print(f"{label}: start {m0['mean']['psnr']:.2f} dB; random {randoms} -> "
+              f"{', '.join(f'{p:.2f}' for p in m_rand)} (mean {np.mean(m_rand):.2f} dB)")
+        for posterior in ("diagonal", "samples") if kind == "ct" else ("diagonal",):
+            t0 = time.perf_counter()
+            ranked = U.rank_views(trainer, u, cams, posterior=posterior)
+            rank_s = time.perf_counter() - t0
+            best = rest[ranked[0]["index"]]
+            done = work / f"best_{best}"
+            m_best = fit(subset(list(start) + [best]), done, config)[0]["mean"]["psnr"]
+            row = dict(case=label, posterior=posterior, start_psnr=m0["mean"]["psnr"],
+                       ranked_view=int(best), ranked_psnr=m_best,
+                       random_views=[int(r) for r in randoms], random_psnr=m_rand,
+                       random_mean=float(np.mean(m_rand)), ranking_seconds=rank_s,
+                       candidates=len(rest),
+                       gains={int(rest[r["index"]]): r["gain"] for r in ranked})
+            if kind == "ct":
+                row.update(gap_spearman=gap_spearman(data, start, rest, row["gains"]))
+            rows.append(row)
+            print(f"  {posterior}: ranked view {best} -> {m_best:.2f} dB "
+                  f"({m_best - row['random_mean']:+.2f} against random); ranking "
+                  f"{len(rest)} candidates in {rank_s:.0f} s"
+                  + (f"; gain against the angle's gap to the training ones: Spearman "
+                     f"{row['gap_spearman']['spearman']:.2f}, the top one's gap "
+                     f"{row['gap_spearman']['top_gap']:.1f} of at most "
+                     f"{row['gap_spearman']['max_gap']:.1f} degrees" if kind == "ct" else ""))
     return rows
+
+
+def gap_spearman(data, start, rest, gains):
+    """How the candidates' gains follow the angle's gap to the nearest training angle
+    (what a scan misses): their Spearman correlation, the top candidate's gap and the
+    largest."""
+    def angle(c):
+        return np.degrees(np.arctan2(c.to_world[1, 2], c.to_world[0, 2])) % 180.0
+    train = np.array([angle(data.train[i].camera) for i in start])
+    gaps = {i: float(np.abs((train - angle(data.train[i].camera) + 90.0) % 180.0 - 90.0).min())
+            for i in rest}
+    top = max(gains, key=gains.get)
+    return {"spearman": spearman([gains[i] for i in rest], [gaps[i] for i in rest]),
+            "top_gap": gaps[top], "max_gap": max(gaps.values())}
 
 
 def main(a):

@@ -20,6 +20,11 @@ def add_arguments(p):
                    help="a data set folder whose cameras are the candidates (their images are "
                         "not read), or N: N cameras on the training cameras' sphere (X-ray: N "
                         "angles over the scan's arc)")
+    p.add_argument("--posterior", choices=("auto", "diagonal", "samples"), default="auto",
+                   help="the current uncertainty the gain is taken on: diagonal (the variances, "
+                   "FisherRF's), samples (an X-ray fit's whole posterior by draws: it sees "
+                   "which directions the scan has not measured), auto (default: samples for "
+                   "an X-ray fit, else diagonal)")
     p.add_argument("--top", type=int, default=10, help="rows printed (default 10)")
     flags.out(p, "also write the ranking to this JSON file", required=False)
     probe_flags(p)
@@ -51,8 +56,8 @@ def run(a):
     if a.top < 1:
         raise ValueError(f"--top must be at least 1, got {a.top}")
     u = laplace(a, trainer)
-    rows = rank_views(trainer, u, cams, stride=a.stride, draws=a.draws, seed=a.seed,
-                      progress=not a.quiet)
+    rows = rank_views(trainer, u, cams, posterior=a.posterior, stride=a.stride, draws=a.draws,
+                      seed=a.seed, progress=not a.quiet)
     print(f"{'rank':>4}  {'candidate':<24s} {'information gain':>16}")
     for k, r in enumerate(rows[:a.top]):
         print(f"{k + 1:>4}  {names[r['index']]:<24s} {r['gain']:16.4g}")

@@ -41,7 +41,9 @@ import mitsuba as mi
 import numpy as np
 
 __all__ = ["Information", "Uncertainty", "stride", "information", "noise_variance",
-           "prior_curvature", "fit_penalty", "laplace", "rank_views", "candidate_cameras",
+           "prior_curvature", "fit_penalty", "laplace", "rank_views", "posterior_samples",
+           "rank_by_samples", "POSTERIORS",
+           "candidate_cameras",
            "projection", "write",
            "MAX_STRIDE", "STD_SUFFIX", "CROSSINGS"]
 
@@ -118,28 +120,37 @@ def _values(trainer):
     return arrays
 
 
-def stride(camera, vertices, tets, cap: int = MAX_STRIDE) -> tuple[int, bool]:
+def _stars(tets, n):
+    """The tets' corners sorted by vertex: ``(order, starts, vertices)``, each vertex's
+    star (its tets' corners) a run of ``order`` beginning at ``starts`` (vertices in
+    no tet left out)."""
+    flat = np.asarray(tets, np.int64).ravel()
+    order = np.argsort(flat, kind="stable")
+    vertices, starts = np.unique(flat[order], return_index=True)
+    return order, starts, vertices
+
+
+def stride(camera, vertices, tets, cap: int = MAX_STRIDE, stars=None) -> tuple[int, bool]:
     """The probing stride of ``camera`` over the mesh: one more than the widest
-    projected box of a vertex's star (its tets), in pixels, at most ``cap``;
-    and whether it separates every star (a star projected from behind the
-    camera does not count as separable)."""
+    projected box of a vertex's star (its tets) inside the image, in pixels, at most
+    ``cap``; and whether it separates every star (a star reaching behind a pinhole
+    camera does not count as separable). ``stars``: :func:`_stars` of the tets."""
     v = np.asarray(vertices, np.float64)
     t = np.asarray(tets, np.int64)
     uv, z = camera.project(v)
     if camera.pixel_size is None and np.any(z[t].min(axis=1) <= 0):
         return int(cap), False
-    lo = np.full((len(v), 2), np.inf)
-    hi = np.full((len(v), 2), -np.inf)
-    tlo, thi = uv[t].min(axis=1), uv[t].max(axis=1)
-    for j in range(4):
-        np.minimum.at(lo, t[:, j], tlo)
-        np.maximum.at(hi, t[:, j], thi)
+    if len(t) == 0:
+        return 1, True
+    order, starts, _ = stars if stars is not None else _stars(t, len(v))
+    tlo, thi = uv[t].min(axis=1), uv[t].max(axis=1)          # each tet's box
     # (only the pixel centres inside the image count)
     size = np.array([camera.width, camera.height], np.float64)
-    lo, hi = np.clip(lo, 0.0, size), np.clip(hi, 0.0, size)
-    used = np.isfinite(lo[:, 0])
-    width = float(np.max(hi[used] - lo[used])) if np.any(used) else 0.0
-    need = int(np.floor(width)) + 1
+    tlo, thi = np.clip(tlo, 0.0, size), np.clip(thi, 0.0, size)
+    corner_tet = order // 4
+    lo = np.minimum.reduceat(tlo[corner_tet], starts, axis=0)
+    hi = np.maximum.reduceat(thi[corner_tet], starts, axis=0)
+    need = int(np.floor(float(np.max(hi - lo)))) + 1
     return int(min(need, cap)), need <= cap
 
 
@@ -148,7 +159,7 @@ def _pixel_weights(view, flux, predicted=None):
     image's transmittance, or ``predicted`` for a view without one), else None."""
     if not flux:
         return None
-    t = 1.0 - (view.image[..., 3] if predicted is None else predicted).astype(np.float64)
+    t = 1.0 - np.asarray(view.image[..., 3] if predicted is None else predicted, np.float64)
     return np.maximum(float(flux) * t.ravel(), 1.0)
 
 
@@ -213,7 +224,8 @@ def information(trainer, views, *, weights=None, strides=None, draws: int = 1, s
     diag = {name: np.zeros((n, c)) for name, (_, c) in arrays.items()}
     crossings = np.zeros(n)
     rng = np.random.default_rng(seed)
-    found = [stride(v.camera, vertices, tets, cap if strides is None else 10 ** 6)
+    stars = _stars(tets, n)
+    found = [stride(v.camera, vertices, tets, cap if strides is None else 10 ** 6, stars)
              for v in views]
     exact = all(ok for _, ok in found)
     if strides is None:
@@ -390,19 +402,41 @@ def laplace(trainer, *, penalty=None, strides=None, draws: int = 1, seed: int = 
     return Uncertainty(variance, info, sigma2, prior)
 
 
-def rank_views(trainer, uncertainty: Uncertainty, cameras, *, stride: int | None = None,
-               draws: int = 1, seed: int = 0, cap: int = MAX_STRIDE,
+#: How :func:`rank_views` takes the posterior: ``auto`` (``samples`` for an X-ray
+#: fit, else ``diagonal``), ``diagonal`` (FisherRF's), ``samples``.
+POSTERIORS = ("auto", "diagonal", "samples")
+
+
+def rank_views(trainer, uncertainty: Uncertainty, cameras, *, posterior: str = "auto",
+               stride: int | None = None, draws: int = 1, samples: int = 4,
+               iterations: int = 20, seed: int = 0, cap: int = MAX_STRIDE,
                progress=False) -> list[dict]:
     """Candidate ``cameras`` ranked by the information they would add to the fit:
-    FisherRF's trace of the information gain, ``sum_i diag(H_c)_i var_i`` (``H_c``
-    the candidate's Gauss-Newton information, probed as :func:`information` does,
-    with the Poisson counts the fit's current transmittance predicts for an X-ray
-    view; ``stride``: every candidate's, default :func:`stride`'s). Returns
-    ``[{"index", "gain", "renders", "exact"}]``, best first."""
+    FisherRF's trace of the information gain, ``tr(H_c Sigma)`` (``H_c`` the
+    candidate's Gauss-Newton information, with the Poisson counts the fit's current
+    transmittance predicts for an X-ray view). ``posterior``:
+
+    * ``diagonal`` (FisherRF's): ``Sigma``'s diagonal, the variances;
+      ``sum_i diag(H_c)_i var_i``, ``diag(H_c)`` probed as :func:`information` does
+      (``stride``: every candidate's, default :func:`stride`'s; ``draws``);
+    * ``samples``: an X-ray fit's whole ``Sigma``, by ``samples`` draws of the
+      posterior (:func:`posterior_samples`, ``iterations`` of conjugate gradients)
+      projected through each candidate (:func:`rank_by_samples`). The diagonal
+      cannot see which directions the scan has not measured: a new angle adds about
+      as much to each vertex's own information wherever it lies;
+    * ``auto``: ``samples`` for an X-ray fit, else ``diagonal``.
+
+    Returns ``[{"index", "gain", "renders", "exact"}]``, best first."""
     from types import SimpleNamespace
 
     from mi_tetvr.progress import progress_bar
-    flux = _flux(trainer) if trainer.field.scored == "transmittance" else None
+    if posterior not in POSTERIORS:
+        raise ValueError(f"posterior must be one of {', '.join(POSTERIORS)}, got {posterior!r}")
+    xray = trainer.field.scored == "transmittance"
+    if posterior == "samples" or (posterior == "auto" and xray):
+        z = posterior_samples(trainer, uncertainty, samples, iterations, seed, progress)
+        return rank_by_samples(trainer, uncertainty, cameras, z)
+    flux = _flux(trainer) if xray else None
     rows = []
     for i, cam in enumerate(progress_bar(cameras, desc="candidates", unit="view",
                                          disable=not progress)):
@@ -417,6 +451,81 @@ def rank_views(trainer, uncertainty: Uncertainty, cameras, *, stride: int | None
                    for k, v in uncertainty.variance.items())
         rows.append({"index": i, "gain": gain, "renders": info.renders,
                      "exact": info.exact})
+    return sorted(rows, key=lambda r: -r["gain"])
+
+
+def _projector(trainer, cameras):
+    """The walk of the fit's mesh through ``cameras`` as the linear operator ``A``
+    (:class:`~mi_tetvr.recon.tomography.Projector`)."""
+    from mi_tetvr.recon.tomography import Projector
+    vertices, tets, _ = trainer.arrays()
+    return Projector(vertices, tets, cameras)
+
+
+def posterior_samples(trainer, uncertainty: Uncertainty, k: int = 4, iterations: int = 40,
+                      seed: int = 0, progress=False) -> np.ndarray:
+    """(k, n) draws from the Laplace posterior of an X-ray fit with its *full*
+    precision ``H = A^T W A / sigma^2 + diag(prior)`` (not only its diagonal): each
+    ``z = H^-1 (A^T W^(1/2) e1 / sigma + prior^(1/2) e2)``, ``e`` standard normal
+    (perturbation sampling: its covariance is ``H^-1``), solved by conjugate gradients
+    preconditioned by the exact diagonal (:attr:`Uncertainty.variance`). The model is
+    linear, so ``H`` is the fit's own curvature; the walk is ``A``, its adjoint ``A^T``."""
+    from mi_tetvr.progress import progress_bar
+    if trainer.field.scored != "transmittance":
+        raise ValueError("posterior samples need the linear model of an X-ray fit (an "
+                         "image fit's ranking uses the diagonal)")
+    views = trainer.train
+    proj = _projector(trainer, [v.camera for v in views])
+    flux = _flux(trainer)
+    w = np.concatenate([_pixel_weights(v, flux) for v in views]) if flux else \
+        np.ones(proj.shape[0])
+    w = w / uncertainty.sigma2
+    prior = uncertainty.prior["attenuation"][:, 0]
+    precond = uncertainty.variance["attenuation"][:, 0]
+
+    def H(x):
+        return proj.adjoint(w * proj.forward(x)) + prior * x
+
+    rng = np.random.default_rng(seed)
+    out = np.zeros((int(k), proj.n))
+    bar = progress_bar(total=int(k) * int(iterations), desc="posterior samples",
+                       unit="step", disable=not progress)
+    for j in range(int(k)):
+        b = proj.adjoint(np.sqrt(w) * rng.standard_normal(proj.shape[0])) + \
+            np.sqrt(prior) * rng.standard_normal(proj.n)
+        x = precond * b
+        r = b - H(x)
+        z = precond * r
+        p, rz = z.copy(), float(r @ z)
+        for _ in range(int(iterations)):
+            hp = H(p)
+            alpha = rz / max(float(p @ hp), 1e-300)
+            x += alpha * p
+            r -= alpha * hp
+            z = precond * r
+            rz, rz_old = float(r @ z), rz
+            p = z + (rz / max(rz_old, 1e-300)) * p
+            bar.update(1)
+        out[j] = x
+    bar.close()
+    return out
+
+
+def rank_by_samples(trainer, uncertainty: Uncertainty, cameras, samples) -> list[dict]:
+    """Candidates ranked by the trace of the information gain with the sampled
+    posterior: ``sum_r w_r E[(a_r^T z)^2] / sigma^2`` over each candidate's rays,
+    ``a_r^T z`` the walk's projection of a draw ``z`` (:func:`posterior_samples`),
+    ``w_r`` the counts the fit's transmittance predicts. Returns :func:`rank_views`'s
+    rows."""
+    flux = _flux(trainer)
+    proj = _projector(trainer, list(cameras))
+    var = np.mean([proj.forward(z) ** 2 for z in samples], axis=0)
+    rows = []
+    for i, cam in enumerate(cameras):
+        v = var[proj.offsets[i]:proj.offsets[i + 1]]
+        w = _pixel_weights(None, flux, trainer.render_camera(cam)[..., 3]) if flux else 1.0
+        rows.append({"index": i, "gain": float(np.sum(w * v)) / uncertainty.sigma2,
+                     "renders": float(len(samples)), "exact": False})
     return sorted(rows, key=lambda r: -r["gain"])
 
 

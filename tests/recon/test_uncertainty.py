@@ -233,3 +233,41 @@ def test_total_variation_curvature_is_exact(blob_data):
     floor = 1.0 / np.var(np.array(trainer.arrays()[2]["attenuation"]))
     np.testing.assert_allclose(u.prior["attenuation"][:, 0],
                                beta * got / u.sigma2 + floor, rtol=1e-5)
+
+
+def test_posterior_samples_have_the_laplace_covariance(blob_data):
+    """Draws of an X-ray fit's posterior are ``z = H^-1 b`` with ``b = A^T W^(1/2) e1 /
+    sigma + prior^(1/2) e2`` (``e`` standard normal), whose covariance is ``H^-1`` for the
+    full precision ``H = A^T W A / sigma^2 + diag(prior)``: the conjugate gradients
+    through the walk give the dense solve's ``z`` (``A`` formed column by column by the
+    primal walk, the same normal draws); the candidates' sampled gains are
+    ``sum_r E[(a_r^T z)^2] / sigma^2`` of those draws, projected densely."""
+    from mi_tetvr.mesh.initial import grid_init
+    from mi_tetvr.recon.tomography import Projector
+    _, _, dataset = blob_data
+    vertices, tets = grid_init(np.array([[-0.93, -0.91, -0.89], [0.92, 0.9, 0.94]]), 2)
+    x = np.random.default_rng(3).uniform(0.05, 0.3, len(vertices))
+    cfg = FitConfig(model="absorption", grid_resolution=2, n_sub=2, jitter=False)
+    trainer = Trainer(dataset, vertices, tets, cfg, {"attenuation": x})
+    trainer.train = trainer.train[:3]
+    u = U.laplace(trainer, strides=[8] * 3)
+    n = len(vertices)
+    A = Projector(vertices, trainer.tets, [v.camera for v in trainer.train])
+    cols = np.stack([A.forward(e) for e in np.eye(n)], 1)
+    prior = u.prior["attenuation"][:, 0]
+    H = cols.T @ cols / u.sigma2 + np.diag(prior)
+    z = U.posterior_samples(trainer, u, k=3, iterations=n, seed=1)
+    rng = np.random.default_rng(1)
+    for j in range(3):
+        b = cols.T @ (rng.standard_normal(len(cols)) / np.sqrt(u.sigma2)) + \
+            np.sqrt(prior) * rng.standard_normal(n)
+        want = np.linalg.solve(H, b)
+        np.testing.assert_allclose(z[j], want, rtol=0, atol=1e-4 * np.abs(want).max())
+    cams = [v.camera for v in dataset.test[:3]]
+    ranked = U.rank_by_samples(trainer, u, cams, z)
+    C = Projector(vertices, trainer.tets, cams)
+    proj = np.stack([C.forward(e) for e in np.eye(n)], 1) @ z.T
+    for r in ranked:
+        i = r["index"]
+        want = np.sum(np.mean(proj[C.offsets[i]:C.offsets[i + 1]] ** 2, axis=1)) / u.sigma2
+        assert r["gain"] == pytest.approx(want, rel=1e-4)
