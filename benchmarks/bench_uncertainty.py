@@ -43,14 +43,17 @@ DATA = ROOT.parent / "shared" / "data"
 
 
 def parse_args(argv=None):
-    p = make_parser(__doc__, repeat=None, quick="small volumes and fits, 2 random draws")
+    p = make_parser(__doc__, repeat=None, quick="small volumes and fits, 2 probed views, 2 random "
+                    "draws")
     p.add_argument("--part", choices=("probes", "spearman", "nextview", "all"), default="all")
     p.add_argument("--draws", type=int, default=3, help="random next views averaged (default 3)")
     p.add_argument("--out", help="work folder (default: a temporary one)")
     p.add_argument("--cases", help="spearman: these cases only (engine, headmr, color)")
     a = p.parse_args(argv)
+    #: (a smoke run probes and ranks at a fixed small stride, and fewer candidates)
+    a.stride = None
     if a.quick:
-        a.draws = 2
+        a.draws, a.stride = 2, 4
     return a
 
 
@@ -133,7 +136,7 @@ def part_probes(a, out):
     _, tr = first_trainer(data, cfg, log=log)
     for _ in range(20):
         tr.step()
-    views = tr.train
+    views = tr.train[:2] if a.quick else tr.train
     o = np.concatenate([v.camera.rays()[0] for v in views])
     d = np.concatenate([v.camera.rays()[1] for v in views])
     t0 = time.perf_counter()
@@ -157,11 +160,11 @@ def part_probes(a, out):
     print(f"{'stride':>8} {'draws':>5} {'rel. error':>10} {'renders':>8} {'seconds':>8}")
     rows = []
     for s in (1, 2, 4, None):
-        for draws in ((1, 4, 16) if s != 1 or not a.quick else (1, 4)):
+        for draws in ((1, 4) if a.quick else (1, 4, 16)):
             if s is None and draws > 1:
                 continue
             errs, secs = [], []
-            for seed in range(3 if s is not None else 1):
+            for seed in range(1 if a.quick or s is None else 3):
                 info = U.information(tr, views, strides=None if s is None else [s] * len(views),
                                      draws=draws, seed=seed, cap=64)
                 est = np.concatenate([info.diagonal[k].ravel() for k in dense])
@@ -214,7 +217,8 @@ def part_spearman(a, out):
             data, truth = color_case(work / "data", 8, a.quick)
             config = color_config(a.quick)
         _, trainer = fit(data, work / "fit", config)
-        u = U.laplace(trainer, penalty=U.fit_penalty(work / "fit"))
+        u = U.laplace(trainer, penalty=U.fit_penalty(work / "fit"),
+                      strides=None if a.stride is None else [a.stride] * len(trainer.train))
         for value, (err, seen) in vertex_errors(trainer, truth).items():
             std = np.sqrt(u.variance[value].mean(axis=1))
             for where, m in (("all", np.ones(len(err), bool)), ("in view", seen)):
@@ -238,7 +242,8 @@ def part_nextview(a, out):
     from mi_tetvr.recon.config import FitConfig
     from mi_tetvr.recon.datasets import Dataset
     rows = []
-    cases = [("color volume, 8 of 32 views", "color"), ("engine CT, 12 of 64 angles", "ct")]
+    ct = "12^3 phantom" if a.quick else "engine CT"
+    cases = [("color volume, 8 of 32 views", "color"), (f"{ct}, 12 of 64 angles", "ct")]
     for label, kind in cases:
         work = out / f"next_{kind}"
         if kind == "ct":
@@ -257,7 +262,10 @@ def part_nextview(a, out):
                               if hasattr(data, k)})
 
         m0, trainer = fit(subset(start), work / "start", config)
-        u = U.laplace(trainer, penalty=U.fit_penalty(work / "start"))
+        u = U.laplace(trainer, penalty=U.fit_penalty(work / "start"),
+                      strides=None if a.stride is None else [a.stride] * len(trainer.train))
+        if a.quick:
+            rest = rest[::3]
         cams = [data.train[i].camera for i in rest]
         rng = np.random.default_rng(1)
         randoms = [rest[i] for i in rng.choice(len(rest), a.draws, replace=False)]
@@ -267,7 +275,7 @@ def part_nextview(a, out):
               f"{', '.join(f'{p:.2f}' for p in m_rand)} (mean {np.mean(m_rand):.2f} dB)")
         for posterior in ("diagonal", "samples") if kind == "ct" else ("diagonal",):
             t0 = time.perf_counter()
-            ranked = U.rank_views(trainer, u, cams, posterior=posterior)
+            ranked = U.rank_views(trainer, u, cams, posterior=posterior, stride=a.stride)
             rank_s = time.perf_counter() - t0
             best = rest[ranked[0]["index"]]
             done = work / f"best_{best}"
