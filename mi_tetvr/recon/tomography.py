@@ -468,7 +468,8 @@ class TetGradient:
         exactly: ``sum_t vol_t (|G_t e_i|^2 / q_t + (1 / q_t^3 - 1 / q_t) (u_t . G_t
         e_i)^2)``, ``q_t = sqrt(1 + (s_t / delta)^2)``, ``u_t`` the unit gradient (the
         Hessian of ``psi(|g|)`` is ``I / q + (1 / q^3 - 1 / q) u u^T``)."""
-        from scipy.sparse import csr_matrix
+        with needs("recon", "the total variation's curvature"):
+            from scipy.sparse import csr_matrix
         g = (self.G @ np.asarray(x, np.float64)).reshape(-1, 3)
         s = np.linalg.norm(g, axis=1)
         q = np.sqrt(1.0 + (s / delta) ** 2)

@@ -20,16 +20,17 @@ the pixels gives ``(J^T v)_i^2``, whose mean over random signs is the
 diagonal (Hutchinson's estimator). Rays touch only the vertices of the
 tets they cross, so pixels further apart than any vertex's star projects
 share no vertex; probing them in groups (pixels ``(x, y)`` with equal
-``(x mod s, y mod s)``, one ray render of that group each, :func:`stride`)
+``(x mod s, y mod s)``, one compared channel at a time, :func:`stride`)
 leaves no cross terms and the estimate is *exact*, with random signs on top
 unbiased where the stride is capped. A probe renders its group's rays only
 (:func:`~mi_tetvr.rays.render_rays`), so one pass over all groups costs one
-render and one adjoint of the views, whatever the stride.
+render and one adjoint per view and channel, whatever the stride.
 
-The next view, as FisherRF (Jiang, Lei and Daniilidis 2024) chooses it: each
-candidate's information ``diag(H_c)``, probed the same way on its rays
-(no image needed), against the current variances: the trace of the
-information gain ``sum_i H_c,ii var_i`` (:func:`rank_views`).
+The next view, as FisherRF (Jiang, Lei and Daniilidis 2024) chooses it: the
+trace of the information gain ``tr(H_c Sigma)`` of each candidate (no image
+needed), on the posterior's diagonal (``sum_i H_c,ii var_i``, ``diag(H_c)``
+probed the same way on its rays) or, for an X-ray fit, on draws of the whole
+posterior projected through the candidate (:func:`rank_views`).
 """
 from __future__ import annotations
 
@@ -283,8 +284,10 @@ def noise_variance(trainer, views=None) -> float:
 def _colors(tets, n, seed=0):
     """(n,) a coloring of the mesh's vertices in which no two vertices of one tet
     share a color (Jones-Plassmann rounds with random priorities)."""
-    from scipy.sparse import coo_matrix
+    from mi_tetvr.extras import needs
     from mi_tetvr.mesh.topology import unique_edges
+    with needs("recon", "the prior's curvature"):
+        from scipy.sparse import coo_matrix
     e = unique_edges(tets)
     adj = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
                      shape=(n, n)).tocsr()

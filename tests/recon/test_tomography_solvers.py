@@ -70,8 +70,11 @@ def test_linear_fit_recovers_the_volume_and_beats_its_start(blob_data, tmp_path)
         assert m["solver"]["method"] == kw.get("solver", "pwls")
         penalty, tuning = m["solver"].get("penalty"), m["solver"]["tuning"]
         if name == "pwls":
-            assert penalty == {"tv": LAMBDA_DEFAULT, "chosen": "the default rule"} and \
-                tuning is None, m["solver"]
+            assert {k: penalty[k] for k in ("tv", "chosen")} == \
+                {"tv": LAMBDA_DEFAULT, "chosen": "the default rule"} and tuning is None, \
+                m["solver"]
+            # (the absolute weight and corner solved with: what the uncertainty reads)
+            assert penalty["beta"] > 0 and penalty["delta"] > 0, penalty
         if name == "heldout":
             # the weight kept is the trial that predicts the held-out views best
             best = min(tuning["trials"], key=lambda r: r["held_out_mse"])
