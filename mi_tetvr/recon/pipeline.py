@@ -615,8 +615,8 @@ def load_fit(fit_dir, data, downscale=None, holdout=8):
     ckpt, saved = fit_dir / "checkpoint.npz", fit_dir / "config.json"
     if not ckpt.is_file() or not saved.is_file():
         raise FileNotFoundError(f"{fit_dir} is not a fit's output folder (it has no "
-                                f"checkpoint.npz and config.json); give a fit's --out folder "
-                                f"or a mesh file")
+                                f"checkpoint.npz and config.json); give the folder a fit "
+                                f"wrote (mi-tetvr fit DATA -o FOLDER)")
     config = fit_settings(fit_dir)
     dataset = load_dataset(data, downscale=downscale or config.data.downscale, holdout=holdout)
     return load_checkpoint(ckpt, dataset, config)

@@ -121,14 +121,13 @@ def _values(trainer):
     return arrays
 
 
-def _stars(tets, n):
-    """The tets' corners sorted by vertex: ``(order, starts, vertices)``, each vertex's
-    star (its tets' corners) a run of ``order`` beginning at ``starts`` (vertices in
-    no tet left out)."""
+def _stars(tets):
+    """The tets' corners sorted by vertex: ``(order, starts)``, each vertex's star (its
+    tets' corners) a run of ``order`` beginning at ``starts`` (vertices in no tet left
+    out)."""
     flat = np.asarray(tets, np.int64).ravel()
     order = np.argsort(flat, kind="stable")
-    vertices, starts = np.unique(flat[order], return_index=True)
-    return order, starts, vertices
+    return order, np.unique(flat[order], return_index=True)[1]
 
 
 def stride(camera, vertices, tets, cap: int = MAX_STRIDE, stars=None) -> tuple[int, bool]:
@@ -143,7 +142,7 @@ def stride(camera, vertices, tets, cap: int = MAX_STRIDE, stars=None) -> tuple[i
         return int(cap), False
     if len(t) == 0:
         return 1, True
-    order, starts, _ = stars if stars is not None else _stars(t, len(v))
+    order, starts = stars if stars is not None else _stars(t)
     tlo, thi = uv[t].min(axis=1), uv[t].max(axis=1)          # each tet's box
     # (only the pixel centres inside the image count)
     size = np.array([camera.width, camera.height], np.float64)
@@ -225,7 +224,7 @@ def information(trainer, views, *, weights=None, strides=None, draws: int = 1, s
     diag = {name: np.zeros((n, c)) for name, (_, c) in arrays.items()}
     crossings = np.zeros(n)
     rng = np.random.default_rng(seed)
-    stars = _stars(tets, n)
+    stars = _stars(tets)
     found = [stride(v.camera, vertices, tets, cap if strides is None else 10 ** 6, stars)
              for v in views]
     exact = all(ok for _, ok in found)
@@ -392,8 +391,7 @@ def laplace(trainer, *, penalty=None, strides=None, draws: int = 1, seed: int = 
         # the loss is a mean over each view's compared values, the prior added once per
         # step: over all V views of M values the posterior's exponent is
         # (sum r^2 + V M P) / (2 sigma^2), its curvature J^T J / sigma^2 + V M P'' / (2 sigma^2)
-        probe = trainer._compared(mi.TensorXf(np.zeros((1, 4), np.float32)))
-        m = views[0].camera.height * views[0].camera.width * probe.shape[-1]
+        m = views[0].camera.height * views[0].camera.width * _channels(trainer)
         prior = prior_curvature(trainer, len(views) * m / (2.0 * sigma2))
     _, _, values = trainer.arrays()
     variance = {}
@@ -547,8 +545,10 @@ def candidate_cameras(cameras, n: int) -> list:
     focus = cameras_focus(cameras)
     if ref.pixel_size is None:
         radius = float(np.median([np.linalg.norm(c.center - focus) for c in cameras]))
+        # (the cameras' mean up; fibonacci_cameras normalizes it)
         up = np.mean([c.to_world[:3, 1] for c in cameras], axis=0)
-        up = up / max(np.linalg.norm(up), 1e-12) if np.linalg.norm(up) > 1e-6 else (0, 0, 1)
+        if np.linalg.norm(up) < 1e-6:
+            up = np.array([0.0, 0.0, 1.0])
         return fibonacci_cameras(n, radius, res=(ref.width, ref.height), fov=ref.fov_x,
                                  up=tuple(up), target=tuple(focus))
     if len(cameras) < 2:
